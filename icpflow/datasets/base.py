@@ -1,0 +1,41 @@
+"""The one plug-in interface every dataset reader implements.
+
+A reader is cheap to construct (it lists files, it does not load them) and picklable, so worker processes can
+each open their own copy. ``pair(index, horizon=k)`` returns the :class:`~icpflow.frames.FramePair` from scan t
+to scan t + k of the index-th sample, converted into the project's conventions at this boundary.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+from icpflow.frames import FramePair
+
+
+class PairDataset(ABC):
+    """Indexable frame pairs. Subclasses implement ``__len__``, ``pair`` and ``sample_id``."""
+
+    #: short name used in output paths and logs, e.g. ``"synthetic"`` or ``"av2"``
+    name: str = "dataset"
+    #: largest frame gap ``k`` that ``pair(index, horizon=k)`` supports
+    max_horizon: int = 1
+
+    @abstractmethod
+    def __len__(self) -> int: ...
+
+    @abstractmethod
+    def pair(self, index: int, horizon: int = 1) -> FramePair:
+        """The pair (t, t + horizon) of sample ``index``."""
+
+    @abstractmethod
+    def sample_id(self, index: int) -> str:
+        """A stable id for sample ``index`` (used in shards and failure records), without loading it."""
+
+    def __getitem__(self, index: int) -> FramePair:
+        if not 0 <= index < len(self):
+            raise IndexError(f"{self.name}: index {index} outside 0..{len(self) - 1}")
+        return self.pair(index)
+
+    def metadata(self) -> dict:
+        """Facts about the dataset that end up in shard attributes and reports."""
+        return {"name": self.name, "size": len(self), "max_horizon": self.max_horizon}

@@ -1,0 +1,244 @@
+"""The frame-pair schema every reader, the teacher, the shards and the student share.
+
+A :class:`FramePair` holds two scans and whatever is known about them. Conventions (see ``icpflow.geometry``):
+
+* ``pc0`` (N0, 3) float32: scan at t, ego frame of t, metres. ``pc1`` (N1, 3) float32: scan at t + dt, ego frame
+  of t + dt. N0 and N1 differ in general.
+* ``ego1_from_ego0`` (4, 4) float64 rigid, optional; derived from ``pose0``/``pose1`` (world_from_ego) if given.
+* ``ground0`` (N0,), ``ground1`` (N1,) bool, optional.
+* Ground truth for pc0, optional: ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow`` is in the ego frame of
+  t + dt), ``flow_valid`` (N0,) bool, ``classes`` (N0,) int32 (0 = background), ``instance`` (N0,) int32
+  (0 = background), ``dynamic`` (N0,) bool.
+* ``dt`` seconds between the scans; ids: ``log_id``, ``timestamp0_ns``, ``timestamp1_ns``, ``sample_id``.
+
+Construction validates shapes, dtypes, finiteness and rigidity, and raises :class:`FramePairError` with a
+one-line message naming ``source`` (usually the file the pair was read from). Readers convert their formats into
+these dtypes at the boundary; nothing here converts silently.
+
+A :class:`FrameSequence` holds consecutive scans with poses and, optionally, per-instance object poses, and
+produces the pair (t, t + k) with exact ground truth for any gap k (the long-horizon view).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+
+import numpy as np
+
+from icpflow.geometry import ego_flow, full_to_residual, invert, relative_transform, rigid_problem, transform_points
+
+
+class FramePairError(ValueError):
+    """A frame pair (or the file it came from) breaks the schema. The message is one line."""
+
+
+def _check_points(name: str, value, source: str) -> np.ndarray:
+    if not isinstance(value, np.ndarray):
+        raise FramePairError(f"{source}: {name} must be a numpy array, got {type(value).__name__}")
+    if value.ndim != 2 or value.shape[1] != 3:
+        raise FramePairError(f"{source}: {name} must have shape (N, 3), got {value.shape}")
+    if value.dtype != np.float32:
+        raise FramePairError(f"{source}: {name} must be float32, got {value.dtype}")
+    if not np.all(np.isfinite(value)):
+        bad = int((~np.isfinite(value)).any(axis=1).sum())
+        raise FramePairError(f"{source}: {name} has {bad} rows with NaN or Inf")
+    return value
+
+
+def _check_per_point(name: str, value, count: int, kind: str, source: str, width: int | None = None) -> np.ndarray:
+    if value is None:
+        return None
+    if not isinstance(value, np.ndarray):
+        raise FramePairError(f"{source}: {name} must be a numpy array, got {type(value).__name__}")
+    shape = (count,) if width is None else (count, width)
+    if value.shape != shape:
+        raise FramePairError(f"{source}: {name} must have shape {shape}, got {value.shape}")
+    if kind == "bool" and value.dtype != np.bool_:
+        raise FramePairError(f"{source}: {name} must be bool, got {value.dtype}")
+    if kind == "int32" and value.dtype != np.int32:
+        raise FramePairError(f"{source}: {name} must be int32, got {value.dtype}")
+    if kind == "float32":
+        if value.dtype != np.float32:
+            raise FramePairError(f"{source}: {name} must be float32, got {value.dtype}")
+        if not np.all(np.isfinite(value)):
+            raise FramePairError(f"{source}: {name} has NaN or Inf values")
+    return value
+
+
+def _check_transform(name: str, value, source: str) -> np.ndarray | None:
+    if value is None:
+        return None
+    value = np.asarray(value)
+    if value.dtype != np.float64:
+        raise FramePairError(f"{source}: {name} must be float64, got {value.dtype}")
+    problem = rigid_problem(value)
+    if problem:
+        raise FramePairError(f"{source}: {name} {problem}")
+    return value
+
+
+@dataclass
+class FramePair:
+    """Two consecutive LiDAR scans in the project's schema (see the module docstring for frames and dtypes)."""
+
+    pc0: np.ndarray
+    pc1: np.ndarray
+    ego1_from_ego0: np.ndarray | None = None
+    pose0: np.ndarray | None = None
+    pose1: np.ndarray | None = None
+    ground0: np.ndarray | None = None
+    ground1: np.ndarray | None = None
+    flow: np.ndarray | None = None
+    flow_valid: np.ndarray | None = None
+    classes: np.ndarray | None = None
+    instance: np.ndarray | None = None
+    dynamic: np.ndarray | None = None
+    dt: float = 0.1
+    log_id: str = ""
+    sample_id: str = ""
+    timestamp0_ns: int | None = None
+    timestamp1_ns: int | None = None
+    source: str = field(default="<memory>", compare=False)
+
+    def __post_init__(self) -> None:
+        src = self.source
+        _check_points("pc0", self.pc0, src)
+        _check_points("pc1", self.pc1, src)
+        n0, n1 = len(self.pc0), len(self.pc1)
+        self.pose0 = _check_transform("pose0", self.pose0, src)
+        self.pose1 = _check_transform("pose1", self.pose1, src)
+        self.ego1_from_ego0 = _check_transform("ego1_from_ego0", self.ego1_from_ego0, src)
+        if (self.pose0 is None) != (self.pose1 is None):
+            raise FramePairError(f"{src}: pose0 and pose1 must be given together")
+        if self.pose0 is not None:
+            derived = relative_transform(self.pose0, self.pose1)
+            if self.ego1_from_ego0 is None:
+                self.ego1_from_ego0 = derived
+            elif not np.allclose(derived, self.ego1_from_ego0, atol=1e-3):
+                raise FramePairError(f"{src}: ego1_from_ego0 disagrees with inv(pose1) @ pose0")
+        _check_per_point("ground0", self.ground0, n0, "bool", src)
+        _check_per_point("ground1", self.ground1, n1, "bool", src)
+        _check_per_point("flow", self.flow, n0, "float32", src, width=3)
+        _check_per_point("flow_valid", self.flow_valid, n0, "bool", src)
+        _check_per_point("classes", self.classes, n0, "int32", src)
+        _check_per_point("instance", self.instance, n0, "int32", src)
+        _check_per_point("dynamic", self.dynamic, n0, "bool", src)
+        if not (np.isfinite(self.dt) and self.dt > 0):
+            raise FramePairError(f"{src}: dt must be a positive number of seconds, got {self.dt}")
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return self.flow is not None
+
+    def ego_flow(self) -> np.ndarray:
+        """(N0, 3) float32 full flow pc0 would have if everything were static. Needs ``ego1_from_ego0``."""
+        return ego_flow(self.pc0, self._require_ego())
+
+    def residual_flow(self) -> np.ndarray:
+        """(N0, 3) float32 ground-truth ego-compensated flow. Needs ``flow`` and ``ego1_from_ego0``."""
+        if self.flow is None:
+            raise FramePairError(f"{self.source}: pair has no ground-truth flow")
+        return full_to_residual(self.flow, self.pc0, self._require_ego())
+
+    def pc0_in_frame1(self) -> np.ndarray:
+        """(N0, 3) float32 pc0 moved into the ego frame of t + dt by the ego motion (ego compensation)."""
+        return transform_points(self._require_ego(), self.pc0)
+
+    def replace(self, **changes) -> "FramePair":
+        """A validated copy with some fields replaced."""
+        return replace(self, **changes)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The array fields that are set, by name."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if isinstance(getattr(self, f.name), np.ndarray)}
+
+    def _require_ego(self) -> np.ndarray:
+        if self.ego1_from_ego0 is None:
+            raise FramePairError(f"{self.source}: pair has no ego1_from_ego0 (nor poses)")
+        return self.ego1_from_ego0
+
+
+@dataclass
+class FrameSequence:
+    """Consecutive scans of one log with exact rigid ground truth, giving the pair (t, t + k) for any k.
+
+    * ``points[t]`` (N_t, 3) float32 in the ego frame of scan t; ``poses`` (T, 4, 4) float64 world_from_ego.
+    * optional per-scan ``ground[t]`` bool, ``classes[t]`` int32, ``instance[t]`` int32 (0 = background).
+    * ``object_poses`` maps an instance id to (T, 4, 4) float64 world_from_object per scan: every point of that
+      instance moves rigidly with it. Background points (instance 0, or ids without poses) are static in the world.
+    * ``timestamps_ns`` (T,) int64.
+    """
+
+    points: list[np.ndarray]
+    poses: np.ndarray
+    timestamps_ns: np.ndarray
+    ground: list[np.ndarray] | None = None
+    classes: list[np.ndarray] | None = None
+    instance: list[np.ndarray] | None = None
+    object_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    dynamic_speed: float = 0.5
+    log_id: str = ""
+    source: str = field(default="<memory>", compare=False)
+
+    def __post_init__(self) -> None:
+        count = len(self.points)
+        if np.shape(self.poses) != (count, 4, 4) or len(self.timestamps_ns) != count:
+            raise FramePairError(
+                f"{self.source}: {count} scans need poses (T, 4, 4) and T timestamps, got "
+                f"{np.shape(self.poses)} and {len(self.timestamps_ns)}"
+            )
+        for t, pts in enumerate(self.points):
+            _check_points(f"points[{t}]", pts, self.source)
+        for name, kind in (("ground", "bool"), ("classes", "int32"), ("instance", "int32")):
+            values = getattr(self, name)
+            if values is not None:
+                for t, value in enumerate(values):
+                    _check_per_point(f"{name}[{t}]", value, len(self.points[t]), kind, self.source)
+        for t, pose in enumerate(self.poses):
+            _check_transform(f"poses[{t}]", np.asarray(pose), self.source)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def pair(self, t: int, k: int = 1) -> FramePair:
+        """The pair (scan t, scan t + k) with exact full flow for scan t's points."""
+        if not (0 <= t and t + k < len(self) and k >= 1):
+            raise IndexError(f"{self.source}: pair ({t}, {t + k}) outside a sequence of {len(self)} scans")
+        pc0 = self.points[t]
+        flow = None
+        dynamic = None
+        if self.instance is not None:
+            ego1_from_world = invert(self.poses[t + k])
+            world = transform_points(self.poses[t], pc0.astype(np.float64))
+            instance = self.instance[t]
+            moved = world.copy()
+            for inst in np.unique(instance):
+                if inst == 0 or int(inst) not in self.object_poses:
+                    continue
+                obj = self.object_poses[int(inst)]
+                mask = instance == inst
+                moved[mask] = transform_points(obj[t + k] @ invert(obj[t]), world[mask])
+            at_t1 = transform_points(ego1_from_world, moved)
+            flow = (at_t1 - pc0.astype(np.float64)).astype(np.float32)
+            dt = (self.timestamps_ns[t + k] - self.timestamps_ns[t]) * 1e-9
+            speed = np.linalg.norm((moved - world), axis=1) / dt
+            dynamic = speed > self.dynamic_speed
+        pick = lambda values, i: None if values is None else values[i]  # noqa: E731
+        return FramePair(
+            pc0=pc0,
+            pc1=self.points[t + k],
+            pose0=np.asarray(self.poses[t], np.float64),
+            pose1=np.asarray(self.poses[t + k], np.float64),
+            ground0=pick(self.ground, t),
+            ground1=pick(self.ground, t + k),
+            flow=flow,
+            classes=pick(self.classes, t),
+            instance=pick(self.instance, t),
+            dynamic=dynamic,
+            dt=float((self.timestamps_ns[t + k] - self.timestamps_ns[t]) * 1e-9),
+            log_id=self.log_id,
+            sample_id=f"{self.log_id}/{t:06d}+{k}",
+            timestamp0_ns=int(self.timestamps_ns[t]),
+            timestamp1_ns=int(self.timestamps_ns[t + k]),
+            source=self.source,
+        )
