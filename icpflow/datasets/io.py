@@ -1,0 +1,189 @@
+"""File reading shared by the readers: every failure becomes a one-line :class:`FramePairError` naming the file.
+
+Scans come back as (N, 3) float32 metres; poses as (T, 4, 4) float64. Nothing here knows a dataset's frames.
+"""
+
+from __future__ import annotations
+
+import re
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from icpflow.frames import FramePairError
+
+SCAN_SUFFIXES = (".bin", ".npy", ".ply", ".pcd")
+
+
+def natural_key(path: Path) -> list:
+    """Sort key that orders ``2.bin`` before ``10.bin``."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
+def fail(path, message: str) -> FramePairError:
+    """A one-line error naming ``path``."""
+    return FramePairError(f"{path}: {' '.join(str(message).split())}")
+
+
+def load_npz(
+    path: Path, required: tuple[str, ...], optional: tuple[str, ...] | None = None
+) -> dict[str, np.ndarray]:
+    """The ``required`` and present ``optional`` arrays of an ``.npz`` (all of them if ``optional`` is None).
+
+    Other keys are not read (they may hold pickled objects, which are never loaded). Missing ``required`` keys
+    or a damaged file raise.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            wanted = data.files if optional is None else [k for k in data.files if k in (*required, *optional)]
+            arrays = {key: data[key] for key in wanted}
+    except FileNotFoundError:
+        raise fail(path, "file not found") from None
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as error:
+        raise fail(path, f"cannot read .npz (truncated or damaged?): {error}") from None
+    missing = [key for key in required if key not in arrays]
+    if missing:
+        raise fail(path, f"missing key(s) {', '.join(missing)}; has {', '.join(sorted(arrays)) or 'none'}")
+    return arrays
+
+
+def read_feather(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
+    """The given columns of a feather file; a missing file or column or a damaged file raises."""
+    try:
+        frame = pd.read_feather(path)
+    except FileNotFoundError:
+        raise fail(path, "file not found") from None
+    except Exception as error:  # pyarrow raises several unrelated types for damaged files
+        raise fail(path, f"cannot read feather (truncated or damaged?): {type(error).__name__}: {error}") from None
+    missing = [column for column in columns if column not in frame.columns]
+    if missing:
+        raise fail(path, f"missing column(s) {', '.join(missing)}; has {', '.join(map(str, frame.columns))}")
+    return frame
+
+
+def check_points(path, name: str, values: np.ndarray) -> np.ndarray:
+    """(N, >= 3) numeric array -> (N, 3) float32 of its first three columns; empty scans or NaN rows raise."""
+    values = np.asarray(values)
+    if values.ndim != 2 or values.shape[1] < 3 or not np.issubdtype(values.dtype, np.number):
+        raise fail(path, f"{name} must be a numeric (N, 3) array, got {values.dtype} {values.shape}")
+    if len(values) == 0:
+        raise fail(path, f"{name} is an empty scan")
+    points = values[:, :3].astype(np.float32)
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise fail(path, f"{name} has {int(bad.sum())} rows with NaN or Inf (of {len(points)})")
+    return points
+
+
+def read_bin(path: Path, columns: int = 4) -> np.ndarray:
+    """KITTI-style ``.bin``: float32 rows of ``columns`` values (x, y, z, reflectance) -> (N, 3) float32."""
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise fail(path, "file not found") from None
+    if size % (4 * columns):
+        raise fail(path, f"size {size} bytes is not a whole number of {columns}-float32 rows (truncated?)")
+    return check_points(path, "scan", np.fromfile(path, dtype=np.float32).reshape(-1, columns))
+
+
+def read_scan(path: Path) -> np.ndarray:
+    """One scan from ``.bin`` (x, y, z, reflectance float32), ``.npy`` (N, >= 3), ``.ply`` or ``.pcd`` (open3d)."""
+    suffix = path.suffix.lower()
+    if suffix == ".bin":
+        return read_bin(path)
+    if suffix == ".npy":
+        try:
+            values = np.load(path, allow_pickle=False)
+        except FileNotFoundError:
+            raise fail(path, "file not found") from None
+        except (OSError, ValueError, EOFError) as error:
+            raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
+        return check_points(path, "scan", values)
+    if suffix in (".ply", ".pcd"):
+        if not path.is_file():
+            raise fail(path, "file not found")
+        if suffix == ".ply":
+            check_ply_complete(path)
+        import open3d as o3d  # imported here: only these two formats need it
+
+        cloud = o3d.io.read_point_cloud(str(path), format="auto")
+        points = np.asarray(cloud.points)
+        if len(points) == 0:
+            raise fail(path, "no points read (empty, truncated or not a point cloud)")
+        return check_points(path, "scan", points)
+    raise fail(path, f"unsupported scan format {suffix!r}; use one of {', '.join(SCAN_SUFFIXES)}")
+
+
+PLY_SIZES = {
+    "char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+    "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8,
+}  # fmt: skip
+
+
+def check_ply_complete(path: Path) -> None:
+    """Raise if a PLY file holds fewer vertex bytes or lines than its header declares.
+
+    open3d reads a truncated PLY without an error (it pads the missing vertices), so the header is checked first.
+    """
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise fail(path, "not a PLY file (no 'ply' ... 'end_header' header)")
+    header = data[:end].decode("ascii", errors="replace").splitlines()
+    body = data[data.index(b"\n", end) + 1 :]
+    fmt = next((line.split()[1] for line in header if line.startswith("format")), "")
+    elements = [line.split() for line in header if line.startswith(("element", "property"))]
+    if not elements or elements[0][:2] != ["element", "vertex"] or not elements[0][2:3] or not elements[0][2].isdigit():
+        raise fail(path, "PLY header has no leading 'element vertex N'")
+    count = int(elements[0][2])
+    properties = []
+    for entry in elements[1:]:
+        if entry[0] == "element":
+            break
+        properties.append(entry)
+    if fmt == "ascii":
+        available = len([line for line in body.splitlines() if line.strip()])
+        needed = count
+    elif any(entry[1] == "list" or entry[1] not in PLY_SIZES for entry in properties):
+        return  # list or unknown vertex properties: sizes vary, leave it to open3d
+    else:
+        available, needed = len(body), count * sum(PLY_SIZES[entry[1]] for entry in properties)
+    if available < needed:
+        raise fail(path, f"truncated: header declares {count} vertices, the file holds less")
+
+
+def read_pose_lines(path: Path) -> np.ndarray:
+    """Poses from text, one per line: 12 values (a row-major 3 x 4 matrix, KITTI) or 16 (4 x 4) -> (T, 4, 4)."""
+    try:
+        lines = [line.split() for line in path.read_text().splitlines() if line.strip()]
+    except FileNotFoundError:
+        raise fail(path, "file not found") from None
+    poses = np.tile(np.eye(4), (len(lines), 1, 1))
+    for number, values in enumerate(lines, start=1):
+        if len(values) not in (12, 16):
+            raise fail(path, f"line {number} has {len(values)} values, expected 12 (3 x 4) or 16 (4 x 4)")
+        try:
+            matrix = np.array(values, dtype=np.float64)
+        except ValueError:
+            raise fail(path, f"line {number} is not numeric") from None
+        poses[number - 1, : len(values) // 4] = matrix.reshape(-1, 4)
+    if len(poses) == 0:
+        raise fail(path, "no poses")
+    return poses
+
+
+def read_poses(path: Path) -> np.ndarray:
+    """World-from-sensor poses (T, 4, 4) float64 from a text file (see :func:`read_pose_lines`) or a ``.npy``."""
+    if path.suffix.lower() == ".npy":
+        try:
+            poses = np.load(path, allow_pickle=False)
+        except FileNotFoundError:
+            raise fail(path, "file not found") from None
+        except (OSError, ValueError, EOFError) as error:
+            raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+            raise fail(path, f"poses must have shape (T, 4, 4), got {poses.shape}")
+        return poses.astype(np.float64)
+    return read_pose_lines(path)

@@ -1,0 +1,92 @@
+"""Your own LiDAR recording: an ordered directory of scans, consecutive scans becoming pairs.
+
+Files: ``<root>/*.bin`` (float32 rows x, y, z, reflectance, the KITTI layout), ``*.npy`` ((N, >= 3) array), or
+``*.ply`` / ``*.pcd`` (read by open3d), in natural name order (``2.bin`` before ``10.bin``); one format per
+folder. Optional poses: ``poses_file`` (relative to ``root`` or absolute), default ``<root>/poses.txt`` when it
+exists: one pose per scan, world_from_sensor, as 12 values a line (row-major 3 x 4, KITTI) or 16 (4 x 4), or a
+``.npy`` of shape (T, 4, 4).
+
+What a pair holds: ``pc0``/``pc1`` (N, 3) float32 in their own sensor (ego) frames; with poses, ``pose0``/
+``pose1`` and hence ``ego1_from_ego0``; without, None (the teacher estimates ego motion with KISS-ICP). No ground
+truth. ``dt`` = horizon / ``frequency_hz``. Samples are the scans t for which t + ``max_horizon`` exists.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from icpflow.datasets.base import PairDataset
+from icpflow.datasets.io import SCAN_SUFFIXES, fail, natural_key, read_poses, read_scan
+from icpflow.frames import FramePair
+
+
+class ScanSequenceDataset(PairDataset):
+    """Consecutive scans of one directory as frame pairs (see the module docstring)."""
+
+    name = "sequence"
+
+    def __init__(
+        self,
+        root: str | Path,
+        poses_file: str | Path | None = None,
+        frequency_hz: float = 10.0,
+        max_horizon: int = 1,
+    ) -> None:
+        self.root = Path(root)
+        self.frequency_hz = float(frequency_hz)
+        self.max_horizon = int(max_horizon)
+        scans = [p for p in self.root.iterdir() if p.suffix.lower() in SCAN_SUFFIXES] if self.root.is_dir() else []
+        formats = sorted({p.suffix.lower() for p in scans})
+        if len(formats) != 1:
+            raise fail(self.root, f"need scans of one format ({', '.join(SCAN_SUFFIXES)}), found {formats or 'none'}")
+        self.scans = sorted(scans, key=natural_key)
+        if len(self.scans) <= self.max_horizon:
+            raise fail(self.root, f"{len(self.scans)} scans make no pair at horizon {self.max_horizon}")
+        if poses_file is None and (self.root / "poses.txt").is_file():
+            poses_file = "poses.txt"
+        self.poses_file = None if poses_file is None else self.root / poses_file
+        self._poses: np.ndarray | None = None
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_poses": None}
+
+    def __len__(self) -> int:
+        return len(self.scans) - self.max_horizon
+
+    def sample_id(self, index: int) -> str:
+        return self.scans[index].stem
+
+    def metadata(self) -> dict:
+        return {**super().metadata(), "root": str(self.root),
+                "poses_file": None if self.poses_file is None else str(self.poses_file)}  # fmt: skip
+
+    def poses(self) -> np.ndarray | None:
+        """(T, 4, 4) float64 world_from_sensor poses, one per scan, or None without a poses file."""
+        if self.poses_file is not None and self._poses is None:
+            poses = read_poses(self.poses_file)
+            if len(poses) != len(self.scans):
+                raise fail(self.poses_file, f"{len(poses)} poses for {len(self.scans)} scans in {self.root}")
+            self._poses = poses
+        return self._poses
+
+    def pair(self, index: int, horizon: int = 1) -> FramePair:
+        if not 1 <= horizon <= self.max_horizon:
+            raise IndexError(f"{self.name}: horizon {horizon} outside 1..{self.max_horizon}")
+        if not 0 <= index < len(self):
+            raise IndexError(f"{self.name}: index {index} outside 0..{len(self) - 1}")
+        poses = self.poses()
+        period_ns = 1e9 / self.frequency_hz
+        return FramePair(
+            pc0=read_scan(self.scans[index]),
+            pc1=read_scan(self.scans[index + horizon]),
+            pose0=None if poses is None else poses[index],
+            pose1=None if poses is None else poses[index + horizon],
+            dt=horizon / self.frequency_hz,
+            log_id=self.root.name,
+            sample_id=self.sample_id(index) + ("" if horizon == 1 else f"+{horizon}"),
+            timestamp0_ns=int(round(index * period_ns)),
+            timestamp1_ns=int(round((index + horizon) * period_ns)),
+            source=str(self.scans[index]),
+        )
