@@ -4,4 +4,13 @@ from icpflow.frames import FramePair, FramePairError, FrameSequence
 
 __version__ = "0.1.0"
 
-__all__ = ["FramePair", "FramePairError", "FrameSequence", "__version__"]
+__all__ = ["FramePair", "FramePairError", "FrameSequence", "ICPFlow", "ICPFlowConfig", "__version__"]
+
+
+def __getattr__(name: str):
+    """Lazy exports: ``from icpflow import ICPFlow, ICPFlowConfig`` without importing the teacher on ``import icpflow``."""
+    if name in ("ICPFlow", "ICPFlowConfig"):
+        from icpflow import teacher
+
+        return getattr(teacher, name)
+    raise AttributeError(f"module 'icpflow' has no attribute {name!r}")

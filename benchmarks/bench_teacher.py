@@ -1,0 +1,153 @@
+"""Wall time and peak memory of the ICP-Flow teacher per frame pair, with a per-stage breakdown.
+
+    .venv/bin/python benchmarks/bench_teacher.py [--repeats 5] [--threads 2] [--kernels-only]
+
+Rows (medians over ``repeats`` runs after one warm-up run):
+* ``av2``: the Argoverse 2 pair in ../shared/data/av2 (2 x ~99k points), ego motion given (``ego_motion.npz``),
+  preset "av2", ground from the teacher (Patchwork++).
+* ``kitti``: KITTI HDL-64E scans 000000 -> 000001 in ../shared/data/kitti_hdl64_scans (~124k points each), no
+  poses, so KISS-ICP estimates the ego motion; preset "av2" (Patchwork++ ground, 51.2 m crop).
+* ``kernels``: the per-cluster kernels alone on P synthetic cluster pairs of ~300 points (car-sized box surfaces
+  moved by up to 2 m and 0.3 rad): histogram initialisation and CPU ICP with checks.
+Peak RSS is the process's maximum resident set size so far (``resource.getrusage``), so it is cumulative over rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+
+from icpflow.geometry import make_transform, transform_points
+from icpflow.teacher.checks import passes
+from icpflow.teacher.config import ICPFlowConfig
+from icpflow.teacher.histogram import initial_translations, params_from_config as hist_params
+from icpflow.teacher.registration import register_clusters
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+STAGES = ("ego_motion", "ground", "clustering", "pairing", "histogram", "icp", "flow")
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def read_av2() -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    import pandas as pd
+
+    logs = sorted((DATA / "av2" / "sensor" / "val").glob("*/"))
+    if not logs:
+        return None
+    sweeps = sorted((logs[0] / "sensors" / "lidar").glob("*.feather"))[:2]
+    pc0, pc1 = (pd.read_feather(s, columns=["x", "y", "z"]).to_numpy().astype(np.float32) for s in sweeps)
+    ego = np.load(logs[0] / "ego_motion.npz")["ego_motion"][0].astype(np.float64)
+    return pc0, pc1, ego
+
+
+def read_kitti() -> tuple[np.ndarray, np.ndarray, None] | None:
+    scans = sorted((DATA / "kitti_hdl64_scans").glob("*.bin"))[:2]
+    if len(scans) < 2:
+        return None
+    pc0, pc1 = (np.fromfile(s, dtype=np.float32).reshape(-1, 4)[:, :3].copy() for s in scans)
+    return pc0, pc1, None
+
+
+def bench_teacher(name, data, cfg, repeats) -> dict:
+    from icpflow.teacher.pipeline import ICPFlow
+
+    teacher = ICPFlow(cfg)
+    pc0, pc1, ego = data
+    teacher(pc0, pc1, ego)  # warm-up: numba caches, Patchwork++ and KISS-ICP objects
+    walls, stages, candidates, matches = [], {s: [] for s in STAGES}, 0, 0
+    for _ in range(repeats):
+        tic = time.perf_counter()
+        result = teacher(pc0, pc1, ego)
+        walls.append(time.perf_counter() - tic)
+        for s in STAGES:
+            stages[s].append(result.timings.get(s, 0.0))
+        candidates, matches = result.n_candidates, len(result.pairs)
+    row = {"case": name, "points": f"{len(pc0)}+{len(pc1)}", "total": statistics.median(walls)}
+    row.update({s: statistics.median(v) for s, v in stages.items()})
+    row.update(candidates=candidates, matches=matches, rss=peak_rss_mb())
+    return row
+
+
+def synthetic_pairs(count: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    size = np.array([4.4, 1.8, 1.5])
+    pairs = []
+    for _ in range(count):
+        n = int(rng.integers(250, 350))
+        points = rng.uniform(-size / 2, size / 2, (n, 3))
+        axis = rng.integers(0, 3, n)
+        points[np.arange(n), axis] = np.where(rng.random(n) < 0.5, -1, 1) * size[axis] / 2
+        motion = make_transform(rng.uniform(-0.3, 0.3), (*rng.uniform(-2, 2, 2), 0.0))
+        moved = transform_points(motion, points) + rng.normal(0, 0.02, points.shape)
+        pairs.append((points.astype(np.float32), moved.astype(np.float32)))
+    return pairs
+
+
+def bench_kernels(count, cfg, repeats) -> dict:
+    pairs = synthetic_pairs(count)
+    windows = np.full(count, cfg.window(0.0))
+    params = hist_params(cfg)
+
+    def run():
+        tic = time.perf_counter()
+        translations, _ = initial_translations(pairs, windows, params)
+        mid = time.perf_counter()
+        inits = np.tile(np.eye(4), (count, 1, 1))
+        inits[:, :3, 3] = translations
+        result = register_clusters(pairs, inits, cfg, backend="cpu")
+        centroids = np.array([p[0].mean(axis=0) for p in pairs])
+        passes(result.transforms, result.mean_error, result.iou_ratio, windows, cfg, src_centroids=centroids)
+        return mid - tic, time.perf_counter() - mid
+
+    run()
+    times = [run() for _ in range(repeats)]
+    hist, icp = statistics.median(t[0] for t in times), statistics.median(t[1] for t in times)
+    row = {"case": f"kernels P={count}", "points": f"{count} x ~300", "total": hist + icp}
+    row.update({s: float("nan") for s in STAGES})
+    row.update(histogram=hist, icp=icp, candidates=count, matches=0, rss=peak_rss_mb())
+    return row
+
+
+def print_table(rows) -> None:
+    head = ["case", "points", "total s", *STAGES, "candidates", "matches", "peak RSS MB"]
+    print("| " + " | ".join(head) + " |")
+    print("|" + "---|" * len(head))
+    for r in rows:
+        cells = [r["case"], r["points"], f"{r['total']:.3f}"]
+        cells += ["-" if r[s] != r[s] else f"{r[s]:.3f}" for s in STAGES]
+        cells += [str(r["candidates"]), str(r["matches"]), f"{r['rss']:.0f}"]
+        print("| " + " | ".join(cells) + " |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=2, help="numba threads")
+    parser.add_argument("--pairs", type=int, default=200, help="cluster pairs in the kernels-only row")
+    parser.add_argument("--kernels-only", action="store_true")
+    args = parser.parse_args()
+    numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    cfg = ICPFlowConfig.preset("av2")
+    rows = [bench_kernels(args.pairs, cfg, args.repeats)]
+    if not args.kernels_only:
+        for name, reader in (("av2", read_av2), ("kitti", read_kitti)):
+            data = reader()
+            if data is None:
+                print(f"skipped {name}: no data under {DATA}")
+                continue
+            rows.append(bench_teacher(name, data, cfg, args.repeats))
+    print(f"numba threads {numba.get_num_threads()}, median of {args.repeats} after a warm-up; seconds")
+    print_table(rows)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,37 @@
+"""Scatter reductions over pillar ids written with ``scatter_reduce`` (exports to ONNX with the dynamo exporter).
+
+``ids`` (P,) int64 index rows of an output with ``num_slots`` rows; ``index_add`` is avoided on purpose: the legacy
+ONNX exporter mis-exports it silently (see NOTES.md).
+"""
+
+import torch
+
+
+def scatter_sum(values: torch.Tensor, ids: torch.Tensor, num_slots: int) -> torch.Tensor:
+    """Row sums: (num_slots, C) with ``out[k] = sum of values[p] over p with ids[p] == k``; values (P, C)."""
+    out = torch.zeros(num_slots, values.shape[1], dtype=values.dtype, device=values.device)
+    index = ids[:, None].expand(-1, values.shape[1])
+    return out.scatter_reduce(0, index, values, reduce="sum", include_self=True)
+
+
+def scatter_mean(values: torch.Tensor, ids: torch.Tensor, num_slots: int) -> torch.Tensor:
+    """Row means (num_slots, C) of values (P, C) grouped by ``ids``; rows without any point are 0."""
+    ones = torch.ones(values.shape[0], 1, dtype=values.dtype, device=values.device)
+    summed = scatter_sum(torch.cat([values, ones], dim=1), ids, num_slots)
+    counts = summed[:, -1:].clamp(min=1.0)
+    return summed[:, :-1] / counts
+
+
+def to_pseudo_image(pillar_values: torch.Tensor, batch_size: int, nx: int, ny: int) -> torch.Tensor:
+    """(B * nx * ny + 1, C) pillar rows (last row is the dump slot) -> pseudo-image (B, C, nx, ny)."""
+    channels = pillar_values.shape[1]
+    image = pillar_values[: batch_size * nx * ny].reshape(batch_size, nx, ny, channels)
+    return image.permute(0, 3, 1, 2).contiguous()
+
+
+def from_pseudo_image(image: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+    """Gather (P, C) rows of a (B, C, nx, ny) image at flat pillar ids; the dump id reads a row of zeros."""
+    channels = image.shape[1]
+    rows = image.permute(0, 2, 3, 1).reshape(-1, channels)
+    rows = torch.cat([rows, torch.zeros(1, channels, dtype=rows.dtype, device=rows.device)], dim=0)
+    return rows[ids]

@@ -1,0 +1,104 @@
+"""The embedded synthetic dataset: seeded street scenes ray-cast by a spinning LiDAR, with exact ground truth.
+
+Nothing is read from disk. Sequence i of a split is the world of seed ``seed + SPLIT_OFFSETS[split] * SPLIT_STRIDE
++ i`` (splits are disjoint for fewer than ``SPLIT_STRIDE`` sequences), ``frames_per_sequence`` scans at
+``frequency_hz`` (see :mod:`icpflow.synthetic`). Sample ``index`` is the pair (t, t + 1) of sequence
+``index // (frames - 1)`` with ``t = index % (frames - 1)``; ``pair(index, horizon=k)`` is (t0, t0 + k) with
+``t0 = min(t, frames - 1 - k)``. Ground truth: full flow, classes (``icpflow.synthetic.CLASSES``, mapped onto the
+AV2 meta-classes by ``AV2_META_CLASSES``), instance ids (0 = background; parked vehicles have their own), dynamic
+(world speed > 0.5 m/s), ground masks, poses and timestamps. Sequences are generated on demand; the last one is
+kept, so iterating in order costs one generation per sequence.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from icpflow.datasets.base import PairDataset
+from icpflow.frames import FramePair, FrameSequence
+from icpflow.synthetic import Lidar, build_scene, sequence
+
+SPLIT_OFFSETS = {"train": 0, "val": 1, "test": 2}
+SPLIT_STRIDE = 1_000_000
+
+
+class SyntheticDataset(PairDataset):
+    """Frame pairs of generated sequences (see the module docstring). Picklable; nothing generated up front."""
+
+    name = "synthetic"
+
+    def __init__(
+        self,
+        split: str = "val",
+        num_sequences: int = 4,
+        frames_per_sequence: int = 5,
+        beams: int = 64,
+        frequency_hz: float = 10.0,
+        seed: int = 0,
+        azimuth_resolution_deg: float = 0.2,
+        max_range: float = 75.0,
+        range_noise: float = 0.02,
+        dropout: float = 0.03,
+        sensor_height: float = 1.9,
+        density: float = 1.0,
+    ) -> None:
+        if split not in SPLIT_OFFSETS:
+            raise ValueError(f"synthetic: unknown split {split!r}, expected one of {sorted(SPLIT_OFFSETS)}")
+        if not 1 <= num_sequences <= SPLIT_STRIDE:
+            raise ValueError(f"synthetic: num_sequences must lie in 1..{SPLIT_STRIDE}, got {num_sequences}")
+        if frames_per_sequence < 2:
+            raise ValueError(f"synthetic: frames_per_sequence must be >= 2, got {frames_per_sequence}")
+        self.split = split
+        self.num_sequences = int(num_sequences)
+        self.frames = int(frames_per_sequence)
+        self.frequency_hz = float(frequency_hz)
+        self.seed = int(seed)
+        self.density = float(density)
+        self.lidar = Lidar(beams=int(beams), azimuth_resolution_deg=float(azimuth_resolution_deg),
+                           max_range=float(max_range), range_noise=float(range_noise), dropout=float(dropout),
+                           height=float(sensor_height))
+        self.max_horizon = self.frames - 1
+        self._cached: tuple[int, FrameSequence] | None = None
+
+    def __len__(self) -> int:
+        return self.num_sequences * (self.frames - 1)
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_cached": None}
+
+    def sequence_seed(self, sequence_index: int) -> int:
+        """The world seed of sequence ``sequence_index`` of this split."""
+        return self.seed + SPLIT_OFFSETS[self.split] * SPLIT_STRIDE + sequence_index
+
+    def log_id(self, sequence_index: int) -> str:
+        return f"synthetic-{self.split}-{self.sequence_seed(sequence_index)}-{self.lidar.beams}b"
+
+    def sample_id(self, index: int) -> str:
+        self._check(index)
+        s, t = divmod(index, self.frames - 1)
+        return f"{self.log_id(s)}/{t:06d}+1"
+
+    def metadata(self) -> dict:
+        return {**super().metadata(), "split": self.split, "num_sequences": self.num_sequences,
+                "frames": self.frames, "frequency_hz": self.frequency_hz, "seed": self.seed,
+                "beams": self.lidar.beams, "azimuth_resolution_deg": self.lidar.azimuth_resolution_deg,
+                "max_range": self.lidar.max_range, "range_noise": self.lidar.range_noise,
+                "dropout": self.lidar.dropout, "sensor_height": self.lidar.height, "density": self.density}
+
+    def pair(self, index: int, horizon: int = 1) -> FramePair:
+        self._check(index)
+        if not 1 <= horizon <= self.max_horizon:
+            raise IndexError(f"{self.name}: horizon {horizon} outside 1..{self.max_horizon}")
+        s, t = divmod(index, self.frames - 1)
+        return self.sequence(s).pair(min(t, self.frames - 1 - horizon), horizon)
+
+    def sequence(self, sequence_index: int) -> FrameSequence:
+        """Sequence ``sequence_index`` as a FrameSequence (generated, or the cached last one)."""
+        if self._cached is None or self._cached[0] != sequence_index:
+            scene = build_scene(self.sequence_seed(sequence_index), self.frames, self.frequency_hz, self.density)
+            self._cached = (sequence_index, sequence(scene, self.lidar, log_id=self.log_id(sequence_index)))
+        return self._cached[1]
+
+    def _check(self, index: int) -> None:
+        if not 0 <= index < len(self):
+            raise IndexError(f"{self.name}: index {index} outside 0..{len(self) - 1}")

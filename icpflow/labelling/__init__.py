@@ -1,0 +1,6 @@
+"""The labelling stage: plan samples into shards, label them with the teacher, write shards resumably."""
+
+from icpflow.labelling.plan import plan_shards
+from icpflow.labelling.run import LabelError, LabelJob, run_labelling
+
+__all__ = ["LabelError", "LabelJob", "plan_shards", "run_labelling"]

@@ -1,0 +1,223 @@
+"""Scene-flow metrics: ICP-Flow paper splits (EPE, Acc-S, Acc-R, Outliers) and Argoverse 2 Threeway / bucketed EPE.
+
+All inputs are in pc0's ego frame: pc0 (N, 3) metres, predicted and ground-truth FULL flow (N, 3) metres per pair,
+ego1_from_ego0 (4, 4). EPE on full flow equals EPE on residual (ego-compensated) flow, since both flows differ from
+their residual by the same ego flow. Speeds and dynamic masks use the ground-truth residual flow.
+
+Relative error = EPE / max(||gt residual flow||, eps) (eps = 1e-6 m): on static points the relative criterion is
+then almost never met for Acc and almost always met for Outliers unless EPE == 0; pass ``relative_to="full"`` to
+divide by the full-flow norm instead (the PCAccumulation / FlowStep3D convention).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from icpflow.geometry import ego_flow
+
+CATEGORIES = ("dynamic_fg", "static_fg", "static_bg", "overall")
+COLUMNS = ("EPE", "AccS", "AccR", "Outliers")
+RELATIVE_EPS = 1e-6
+
+# AV2 categories (flow_labels `classes` = av2 category index + 1, 0 = none) -> bucketed meta-classes, as in
+# bucketed-scene-flow-eval 2.0.25 (ANIMAL, DOG and road-sign categories belong to no meta-class).
+AV2_CATEGORIES = (
+    "ANIMAL", "ARTICULATED_BUS", "BICYCLE", "BICYCLIST", "BOLLARD", "BOX_TRUCK", "BUS", "CONSTRUCTION_BARREL",
+    "CONSTRUCTION_CONE", "DOG", "LARGE_VEHICLE", "MESSAGE_BOARD_TRAILER", "MOBILE_PEDESTRIAN_CROSSING_SIGN",
+    "MOTORCYCLE", "MOTORCYCLIST", "OFFICIAL_SIGNALER", "PEDESTRIAN", "RAILED_VEHICLE", "REGULAR_VEHICLE",
+    "SCHOOL_BUS", "SIGN", "STOP_SIGN", "STROLLER", "TRAFFIC_LIGHT_TRAILER", "TRUCK", "TRUCK_CAB",
+    "VEHICULAR_TRAILER", "WHEELCHAIR", "WHEELED_DEVICE", "WHEELED_RIDER",
+)
+META_CLASSES = ("BACKGROUND", "CAR", "OTHER_VEHICLES", "PEDESTRIAN", "WHEELED_VRU")
+_META_MEMBERS = {
+    "CAR": ("REGULAR_VEHICLE",),
+    "OTHER_VEHICLES": ("BOX_TRUCK", "LARGE_VEHICLE", "RAILED_VEHICLE", "TRUCK", "TRUCK_CAB", "VEHICULAR_TRAILER",
+                       "ARTICULATED_BUS", "BUS", "SCHOOL_BUS"),
+    "PEDESTRIAN": ("PEDESTRIAN", "STROLLER", "WHEELCHAIR", "OFFICIAL_SIGNALER"),
+    "WHEELED_VRU": ("BICYCLE", "BICYCLIST", "MOTORCYCLE", "MOTORCYCLIST", "WHEELED_DEVICE", "WHEELED_RIDER"),
+}
+AV2_META = {0: "BACKGROUND"} | {
+    AV2_CATEGORIES.index(name) + 1: meta for meta, names in _META_MEMBERS.items() for name in names
+}
+# The synthetic world's class table: 1 car, 2 other vehicle, 3 pedestrian, 4 cyclist.
+SYNTHETIC_META = {0: "BACKGROUND", 1: "CAR", 2: "OTHER_VEHICLES", 3: "PEDESTRIAN", 4: "WHEELED_VRU"}
+
+
+def _meta_index(classes: np.ndarray, class_to_meta: dict[int, str], metas: tuple[str, ...]) -> np.ndarray:
+    """(N,) int index into ``metas``; -1 for classes mapped to no meta-class."""
+    table = np.full(max(max(class_to_meta), int(classes.max(initial=0))) + 1, -1, np.int64)
+    for cls, meta in class_to_meta.items():
+        if meta in metas:
+            table[cls] = metas.index(meta)
+    return table[classes]
+
+
+def _check(pc0, pred_flow, gt_flow, classes) -> None:
+    n = len(pc0)
+    for name, arr in (("pred_flow", pred_flow), ("gt_flow", gt_flow)):
+        if np.shape(arr) != (n, 3):
+            raise ValueError(f"metrics: {name} has shape {np.shape(arr)}, expected ({n}, 3) like pc0")
+    if np.shape(classes) != (n,):
+        raise ValueError(f"metrics: classes has shape {np.shape(classes)}, expected ({n},)")
+    if n and np.min(classes) < 0:
+        raise ValueError(f"metrics: classes has negative values ({np.min(classes)}); 0 means background")
+
+
+def _selection(pc0, ground, flow_valid, crop, include_ground, strict=False) -> np.ndarray:
+    xy = np.abs(np.asarray(pc0, np.float64)[:, :2])
+    keep = np.all(xy < crop if strict else xy <= crop, axis=1) if crop is not None else np.ones(len(pc0), bool)
+    if ground is not None and not include_ground:
+        keep &= ~np.asarray(ground, bool)
+    if flow_valid is not None:
+        keep &= np.asarray(flow_valid, bool)
+    return keep
+
+
+def pair_stats(pc0, pred_flow, gt_flow, ego1_from_ego0, classes, ground=None, flow_valid=None, dt: float = 0.1,
+               crop: float | None = 32.0, include_ground: bool = False, dynamic_speed: float = 0.5,
+               relative_to: str = "residual") -> dict[str, np.ndarray]:
+    """Sums for one pair: {category: [epe_sum, accs_count, accr_count, outlier_count, n]} (float64 (5,)).
+
+    Points kept: |x|, |y| <= crop in pc0's ego frame (None = no crop), not ground unless ``include_ground``, and
+    ``flow_valid``. Dynamic = ||gt residual|| / dt > dynamic_speed; foreground = classes > 0. ``overall`` holds all
+    kept points (including dynamic background points, which are in none of the three splits).
+    """
+    _check(pc0, pred_flow, gt_flow, classes)
+    if relative_to not in ("residual", "full"):
+        raise ValueError(f"metrics: relative_to must be 'residual' or 'full', got {relative_to!r}")
+    pred = np.asarray(pred_flow, np.float64)
+    gt = np.asarray(gt_flow, np.float64)
+    residual = gt - ego_flow(np.asarray(pc0), ego1_from_ego0)
+    epe = np.linalg.norm(pred - gt, axis=1)
+    norm = np.linalg.norm(residual if relative_to == "residual" else gt, axis=1)
+    rel = epe / np.maximum(norm, RELATIVE_EPS)
+    hits = np.stack([epe, (epe < 0.05) | (rel < 0.05), (epe < 0.1) | (rel < 0.1), (epe > 0.3) | (rel > 0.1),
+                     np.ones_like(epe)], axis=1)
+    keep = _selection(pc0, ground, flow_valid, crop, include_ground)
+    dynamic = np.linalg.norm(residual, axis=1) / dt > dynamic_speed
+    fg = np.asarray(classes) > 0
+    masks = {"dynamic_fg": dynamic & fg, "static_fg": ~dynamic & fg, "static_bg": ~dynamic & ~fg, "overall": True}
+    return {name: hits[keep & mask].sum(axis=0) for name, mask in masks.items()}
+
+
+def frame_pair_stats(pair, pred_flow, **options) -> dict[str, np.ndarray]:
+    """:func:`pair_stats` for a FramePair holding ground truth (flow, classes, ego1_from_ego0)."""
+    if not pair.has_ground_truth or pair.classes is None:
+        raise ValueError(f"{pair.source}: metrics need ground-truth flow and classes")
+    return pair_stats(pair.pc0, pred_flow, pair.flow, pair.ego1_from_ego0, pair.classes, ground=pair.ground0,
+                      flow_valid=pair.flow_valid, dt=pair.dt, **options)
+
+
+def _means(sums: np.ndarray) -> dict[str, float]:
+    n = sums[4]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        values = sums[:4] / n if n > 0 else np.full(4, np.nan)
+    return dict(zip(COLUMNS, map(float, values))) | {"count": int(n)}
+
+
+class MetricAccumulator:
+    """Takes pairs one by one; keeps only sums. ``table()`` -> {"point_weighted"|"per_pair": {category: row}}.
+
+    Point-weighted: sums over all points of all pairs (the paper). Per-pair: mean over pairs of each pair's metric,
+    skipping pairs where the category is empty; its ``count`` is the number of pairs that contributed.
+    """
+
+    def __init__(self) -> None:
+        self.sums = {c: np.zeros(5) for c in CATEGORIES}
+        self.pair_sums = {c: np.zeros(4) for c in CATEGORIES}
+        self.pair_counts = dict.fromkeys(CATEGORIES, 0)
+
+    def add(self, stats: dict[str, np.ndarray]) -> None:
+        for c in CATEGORIES:
+            self.sums[c] += stats[c]
+            if stats[c][4] > 0:
+                self.pair_sums[c] += stats[c][:4] / stats[c][4]
+                self.pair_counts[c] += 1
+
+    def table(self) -> dict[str, dict[str, dict[str, float]]]:
+        per_pair = {}
+        for c in CATEGORIES:
+            k = self.pair_counts[c]
+            values = self.pair_sums[c] / k if k else np.full(4, np.nan)
+            per_pair[c] = dict(zip(COLUMNS, map(float, values))) | {"count": k}
+        return {"point_weighted": {c: _means(self.sums[c]) for c in CATEGORIES}, "per_pair": per_pair}
+
+
+def format_table(rows: dict[str, dict[str, dict[str, float]]]) -> str:
+    """Plain-text table: one row per name (method or region), EPE/AccS/AccR/Outliers per category."""
+    width = 9 * len(COLUMNS)
+    lines = [f"{'':<16}" + "".join(f"|{c:^{width}}" for c in CATEGORIES),
+             f"{'':<16}" + "".join("|" + "".join(f"{k:>9}" for k in COLUMNS) for _ in CATEGORIES)]
+    for name, table in rows.items():
+        lines.append(f"{name:<16}" + "".join("|" + "".join(f"{table[c][k]:>9.4f}" for k in COLUMNS)
+                                             for c in CATEGORIES))
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------- Argoverse 2 (bucketed-scene-flow-eval 2.0.25)
+
+BUCKET_EDGES = np.concatenate([np.linspace(0.0, 2.0, 51), [np.inf]])  # metres per frame
+THREEWAY_EDGES = np.array([0.0, 0.05, np.inf])
+
+
+def av2_bucket_stats(pc0, pred_flow, gt_flow, ego1_from_ego0, classes, ground=None, flow_valid=None,
+                     class_to_meta: dict[int, str] = AV2_META, edges: np.ndarray = BUCKET_EDGES,
+                     metas: tuple[str, ...] = META_CLASSES, distance: float = 35.0) -> np.ndarray:
+    """(len(metas), len(edges) - 1, 3) float64 [epe_sum, speed_sum, count] for one pair.
+
+    Points: non-ground, flow_valid, max(|x|, |y|) < distance in pc0's ego frame, class mapped to a meta-class.
+    Speed = ||gt residual flow|| in metres per frame; bucket i holds edges[i] <= speed < edges[i + 1].
+    ``classes`` are AV2 flow_labels classes (category index + 1, 0 = none) unless ``class_to_meta`` says otherwise
+    (e.g. SYNTHETIC_META; for Threeway use class_to_meta=THREEWAY_META, edges=THREEWAY_EDGES,
+    metas=("BACKGROUND", "FOREGROUND")). Sums over pairs add up (point-weighted, as the package's count-weighted
+    averages). The package applies its 35 m box to the points it is given (its "global" frame); here it is pc0's ego
+    frame, which is what the package sees when its poses are identity.
+    """
+    _check(pc0, pred_flow, gt_flow, classes)
+    residual = np.asarray(gt_flow, np.float64) - ego_flow(np.asarray(pc0), ego1_from_ego0)
+    epe = np.linalg.norm(np.asarray(pred_flow, np.float64) - np.asarray(gt_flow, np.float64), axis=1)
+    speed = np.linalg.norm(residual, axis=1)
+    meta = _meta_index(np.asarray(classes, np.int64), class_to_meta, metas)
+    keep = _selection(pc0, ground, flow_valid, distance, False, strict=True) & (meta >= 0)
+    bucket = np.searchsorted(edges, speed[keep], side="right") - 1
+    out = np.zeros((len(metas), len(edges) - 1, 3))
+    for j, values in enumerate((epe[keep], speed[keep], np.ones(keep.sum()))):
+        np.add.at(out[:, :, j], (meta[keep], bucket), values)
+    return out
+
+
+def _bucket_means(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        epe = np.where(sums[..., 2] > 0, sums[..., 0] / sums[..., 2], np.nan)
+        speed = np.where(sums[..., 2] > 0, sums[..., 1] / sums[..., 2], np.nan)
+    return epe, speed
+
+
+def bucketed_epe(sums: np.ndarray, metas: tuple[str, ...] = META_CLASSES) -> dict:
+    """From summed :func:`av2_bucket_stats`: per meta-class (static EPE, dynamic normalised EPE) and their means.
+
+    Static EPE = mean EPE of bucket 0; dynamic = nanmean over buckets 1.. of mean EPE / mean speed of the bucket;
+    "mean" = nanmean over meta-classes (empty classes are NaN).
+    """
+    epe, speed = _bucket_means(sums)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        dynamic = np.nanmean(epe[:, 1:] / speed[:, 1:], axis=1)
+        per_class = {m: (float(epe[i, 0]), float(dynamic[i])) for i, m in enumerate(metas)}
+        mean = (float(np.nanmean(epe[:, 0])), float(np.nanmean(dynamic)))
+    return {"per_class": per_class, "mean": mean}
+
+
+def threeway_epe(sums: np.ndarray) -> dict[str, float]:
+    """From summed :func:`av2_bucket_stats` with edges THREEWAY_EDGES and metas ("BACKGROUND", "FOREGROUND")."""
+    epe, _ = _bucket_means(sums)
+    out = {"foreground_dynamic": float(epe[1, 1]), "foreground_static": float(epe[1, 0]),
+           "background_static": float(epe[0, 0])}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return out | {"threeway": float(np.nanmean(list(out.values())))}
+
+
+THREEWAY_META = {c: ("BACKGROUND" if m == "BACKGROUND" else "FOREGROUND") for c, m in AV2_META.items()}

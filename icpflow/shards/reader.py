@@ -1,0 +1,60 @@
+"""Map-style dataset over all shards of a labelling run, for the student's DataLoader."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from icpflow.shards.schema import OPTIONAL, REQUIRED, group_name
+
+
+class ShardDataset:
+    """Random access to every labelled sample listed in ``<out_dir>/index.json``.
+
+    ``ds[i]`` is a dict of numpy arrays (``pc0``, ``pc1``, ``ground0``, ``ground1``, ``ego1_from_ego0``, ``flow``,
+    ``confidence``, ``cluster`` and any ``gt_*`` present) plus ``sample_id``, ``log_id``, ``dt``. Files are opened
+    lazily and cached per process (the cache is dropped on pickling and after a fork), so it is safe in a torch
+    DataLoader with workers.
+    """
+
+    def __init__(self, out_dir):
+        self.root = Path(out_dir)
+        index_path = self.root / "index.json"
+        if not index_path.is_file():
+            raise FileNotFoundError(f"{index_path}: no index (run label.py first)")
+        index = json.loads(index_path.read_text())
+        self.entries = [(shard["file"], position) for shard in index["shards"] for position in range(len(shard["samples"]))]
+        self._files: dict[str, h5py.File] = {}
+        self._pid = os.getpid()
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    def __getstate__(self):
+        return {**self.__dict__, "_files": {}}
+
+    def _file(self, name: str) -> h5py.File:
+        if self._pid != os.getpid():
+            self._files, self._pid = {}, os.getpid()
+        if name not in self._files:
+            self._files[name] = h5py.File(self.root / name, "r")
+        return self._files[name]
+
+    def __getitem__(self, index: int) -> dict:
+        if not 0 <= index < len(self):
+            raise IndexError(f"{self.root}: index {index} outside 0..{len(self) - 1}")
+        name, position = self.entries[index]
+        group = self._file(name)[group_name(position)]
+        sample = {key: np.asarray(group[key][()]) for key in (*REQUIRED, *OPTIONAL) if key in group}
+        sample.update(sample_id=str(group.attrs["sample_id"]), log_id=str(group.attrs["log_id"]),
+                      dt=float(group.attrs["dt"]))
+        return sample
+
+    def close(self) -> None:
+        for handle in self._files.values():
+            handle.close()
+        self._files = {}

@@ -1,0 +1,69 @@
+"""Checks that a shard file is complete and valid (the resume logic redoes any shard that fails them)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+
+from icpflow.shards.schema import CLOUD, FILE_ATTRS, OPTIONAL, REQUIRED, SAMPLE_ATTRS, SCHEMA_VERSION, group_name
+
+
+class ShardError(ValueError):
+    """A shard is missing, truncated, corrupt or made by another config. The message is one line."""
+
+
+def _check_array(path, name, key, data, spec, counts):
+    dtype, trail = spec
+    if data.dtype != dtype:
+        raise ShardError(f"{path}: {name}/{key} is {data.dtype}, expected {dtype}")
+    if isinstance(trail, tuple):
+        expected = trail
+    else:
+        n = counts[CLOUD.get(key, "pc0")]
+        expected = (n,) if trail is None else (n, trail)
+    if data.shape != expected:
+        raise ShardError(f"{path}: {name}/{key} has shape {data.shape}, expected {expected}")
+    data[()]  # reads every chunk: a truncated or corrupt file fails here
+
+
+def verify_shard(path: Path, config_hash: str | None = None, num_samples: int | None = None) -> int:
+    """Raise :class:`ShardError` unless ``path`` is a complete shard (optionally of ``config_hash`` and size).
+
+    Returns the number of samples.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ShardError(f"{path}: missing")
+    try:
+        with h5py.File(path, "r") as f:
+            missing = [a for a in FILE_ATTRS if a not in f.attrs]
+            if missing:
+                raise ShardError(f"{path}: file attributes missing: {', '.join(missing)}")
+            if int(f.attrs["schema_version"]) != SCHEMA_VERSION:
+                raise ShardError(f"{path}: schema version {f.attrs['schema_version']}, expected {SCHEMA_VERSION}")
+            if config_hash is not None and f.attrs["config_hash"] != config_hash:
+                raise ShardError(f"{path}: made by config {f.attrs['config_hash']}, expected {config_hash}")
+            count = int(f.attrs["num_samples"])
+            if num_samples is not None and count != num_samples:
+                raise ShardError(f"{path}: holds {count} samples, expected {num_samples}")
+            for position in range(count):
+                name = group_name(position)
+                if name not in f:
+                    raise ShardError(f"{path}: group {name} missing")
+                group = f[name]
+                for key in REQUIRED:
+                    if key not in group:
+                        raise ShardError(f"{path}: {name}/{key} missing")
+                lost = [a for a in SAMPLE_ATTRS if a not in group.attrs]
+                if lost:
+                    raise ShardError(f"{path}: {name} attributes missing: {', '.join(lost)}")
+                counts = {"pc0": group["pc0"].shape[0], "pc1": group["pc1"].shape[0]}
+                for key, spec in {**REQUIRED, **OPTIONAL}.items():
+                    if key in group:
+                        _check_array(path, name, key, group[key], spec, counts)
+            return count
+    except ShardError:
+        raise
+    except Exception as error:  # h5py raises OSError/KeyError/RuntimeError on damaged files
+        raise ShardError(f"{path}: unreadable ({type(error).__name__}: {str(error).splitlines()[0][:160]})") from None

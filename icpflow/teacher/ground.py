@@ -1,0 +1,73 @@
+"""Step 2: ground removal per scan, on raw points in their own (sensor or ego) frame.
+
+Methods (``cfg.ground``): ``patchwork`` (Patchwork++, ``pypatchworkpp``), ``zthreshold`` (ground if
+``z <= range_z + ground_slack``), ``both`` (the reference: a point is non-ground only if both say so) and ``none``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+
+import numpy as np
+
+
+@contextlib.contextmanager
+def _quiet_stdout():
+    """Silence C-level stdout (Patchwork++'s constructor prints a line even when not verbose)."""
+    try:
+        fd = os.dup(1)
+    except OSError:  # no real stdout (some embedded runners): nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            yield
+    finally:
+        os.dup2(fd, 1)
+        os.close(fd)
+
+
+class GroundSegmenter:
+    """Ground masks for one configuration; the Patchwork++ object is built once and reused."""
+
+    def __init__(self, cfg):
+        self.cfg = cfg
+        self._patchwork = None
+        if cfg.ground in ("both", "patchwork"):
+            import pypatchworkpp
+
+            params = pypatchworkpp.Parameters()
+            params.verbose = False
+            params.enable_RNR = False  # intensity-based noise removal: we pass no intensity
+            params.intensity_thr = 0.0  # left uninitialised by the binding
+            params.sensor_height = float(cfg.sensor_height)
+            params.min_range = 1.0
+            params.max_range = float(cfg.patchwork_max_range)
+            with _quiet_stdout():
+                self._patchwork = pypatchworkpp.patchworkpp(params)
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool ground mask of (N, 3) float32 points."""
+        n = len(points)
+        ground = np.zeros(n, dtype=bool)
+        if n == 0 or self.cfg.ground == "none":
+            return ground
+        if self.cfg.ground in ("both", "zthreshold"):
+            ground |= points[:, 2] <= self.cfg.range_z + self.cfg.ground_slack
+        if self._patchwork is not None:
+            ground |= self.patchwork(points)
+        return ground
+
+    def patchwork(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool Patchwork++ ground mask."""
+        ground = np.zeros(len(points), dtype=bool)
+        if len(points) < 10:
+            return ground
+        cloud = np.zeros((len(points), 4), dtype=np.float64)  # x, y, z, intensity (unused)
+        cloud[:, :3] = points
+        cloud[:, 2] += self.cfg.patchwork_z_offset
+        self._patchwork.estimateGround(cloud)
+        ground[np.asarray(self._patchwork.getGroundIndices(), dtype=np.int64)] = True
+        return ground

@@ -1,0 +1,234 @@
+"""The ICP-Flow teacher: ``ICPFlow(cfg)(pc0, pc1, ego1_from_ego0=None, ground0=None, ground1=None)``.
+
+Steps (one module each): ego motion (``ego_motion``), ground removal and crop (``ground``), one clustering of the
+fused non-ground points (``clustering``), candidate pairs in two stages (``pairing``), histogram or centroid
+initialisation (``histogram``), ICP (``registration``), checks (``checks``), association (``association``), flow
+and confidence (``flow``). Frames: pc0 in the ego frame of t, pc1 in the ego frame of t + dt; clustering and
+registration happen in pc1's frame after ego compensation of pc0.
+
+Bad input: rows of pc0/pc1 with NaN or Inf are dropped before processing and counted (``dropped0``/``dropped1``);
+their flow is reported as 0 with confidence 0 and ``valid0`` False. A non-rigid ``ego1_from_ego0``, wrong shapes
+or wrong mask lengths raise ``ValueError`` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from icpflow.geometry import rigid_problem, transform_points
+from icpflow.teacher import association, checks, histogram, registration
+from icpflow.teacher.clustering import cluster_points
+from icpflow.teacher.config import ICPFlowConfig
+from icpflow.teacher.ego_motion import estimate_ego_motion
+from icpflow.teacher.flow import absorb, match_confidence, point_flow
+from icpflow.teacher.ground import GroundSegmenter
+from icpflow.teacher.pairing import cluster_stats, stage1_pairs, stage2_pairs
+
+STAGES = ("ego_motion", "ground", "clustering", "pairing", "histogram", "icp", "flow")
+
+
+@dataclass
+class ICPFlowResult:
+    """Teacher output for one pair. Per-point arrays follow the INPUT rows of pc0 (N0) / pc1 (N1).
+
+    ``flow`` (N0, 3) float32 full flow; ``confidence`` (N0,) float32 in [0, 1]; ``labels0``/``labels1`` (N0,)/(N1,)
+    int32 fused cluster ids (-1: noise, ground, cropped or dropped); ``pairs`` (M, 2) int32 matched (src, dst)
+    cluster ids; ``transforms`` (M, 4, 4) float64 cluster motions in pc1's frame after ego compensation;
+    ``errors``/``iou_ratios``/``match_confidence`` (M,); ``stage`` (M,) int8 (1 same label, 2 cross label);
+    ``ego1_from_ego0`` (4, 4) used; ``ground0``/``ground1`` masks used; ``valid0``/``valid1`` finite rows;
+    ``dropped0``/``dropped1`` counts of non-finite rows; ``n_candidates`` pairs registered; ``timings`` seconds
+    per stage.
+    """
+
+    flow: np.ndarray
+    confidence: np.ndarray
+    labels0: np.ndarray
+    labels1: np.ndarray
+    pairs: np.ndarray
+    transforms: np.ndarray
+    errors: np.ndarray
+    iou_ratios: np.ndarray
+    match_confidence: np.ndarray
+    stage: np.ndarray
+    ego1_from_ego0: np.ndarray
+    ground0: np.ndarray
+    ground1: np.ndarray
+    valid0: np.ndarray
+    valid1: np.ndarray
+    dropped0: int
+    dropped1: int
+    n_candidates: int
+    timings: dict = field(default_factory=dict)
+
+
+def _as_points(name: str, value) -> np.ndarray:
+    try:
+        array = np.asarray(value, dtype=np.float32)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"ICPFlow: {name} must be an (N, 3) float array ({error})") from None
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"ICPFlow: {name} must have shape (N, 3), got {array.shape}")
+    return array
+
+
+def _as_mask(name: str, value, count: int) -> np.ndarray | None:
+    if value is None:
+        return None
+    array = np.asarray(value)
+    if array.shape != (count,):
+        raise ValueError(f"ICPFlow: {name} must have shape ({count},), got {array.shape}")
+    if array.dtype != np.bool_:
+        raise ValueError(f"ICPFlow: {name} must be bool, got {array.dtype}")
+    return array
+
+
+class ICPFlow:
+    """Learning-free scene flow between two LiDAR scans (see the module docstring)."""
+
+    def __init__(self, cfg: ICPFlowConfig | None = None):
+        self.cfg = cfg if cfg is not None else ICPFlowConfig.preset("av2")
+        if not isinstance(self.cfg, ICPFlowConfig):
+            raise ValueError(f"ICPFlow: cfg must be an ICPFlowConfig, got {type(self.cfg).__name__}")
+        self.ground = GroundSegmenter(self.cfg)
+        self.hist_params = histogram.params_from_config(self.cfg)
+        self.icp_params = registration.params_from_config(self.cfg)
+
+    def __call__(self, pc0, pc1, ego1_from_ego0=None, ground0=None, ground1=None, *, gap: int = 1) -> ICPFlowResult:
+        """Flow of pc0 (N0, 3) towards pc1 (N1, 3); ``gap`` k: frames between the scans (window scales with k)."""
+        cfg = self.cfg
+        timings = dict.fromkeys(STAGES, 0.0)
+        pc0_in, pc1_in = _as_points("pc0", pc0), _as_points("pc1", pc1)
+        ground0 = _as_mask("ground0", ground0, len(pc0_in))
+        ground1 = _as_mask("ground1", ground1, len(pc1_in))
+        if isinstance(gap, bool) or not isinstance(gap, (int, np.integer)) or not 1 <= gap <= cfg.max_frame_gap:
+            raise ValueError(f"ICPFlow: gap must be an integer in [1, {cfg.max_frame_gap}], got {gap!r}")
+        valid0 = np.isfinite(pc0_in).all(axis=1)
+        valid1 = np.isfinite(pc1_in).all(axis=1)
+        pc0_ok, pc1_ok = pc0_in[valid0], pc1_in[valid1]
+
+        tic = time.perf_counter()
+        if ego1_from_ego0 is None:
+            if cfg.ego_motion == "given":
+                raise ValueError("ICPFlow: ego_motion='given' but no ego1_from_ego0 was passed")
+            try:
+                ego = estimate_ego_motion(pc0_ok, pc1_ok, cfg)
+            except (RuntimeError, ValueError, MemoryError) as error:
+                raise ValueError(f"ICPFlow: ego-motion estimation failed ({type(error).__name__}: {error})") from None
+            if rigid_problem(ego):
+                raise ValueError(f"ICPFlow: the estimated ego motion {rigid_problem(ego)}")
+        else:
+            ego = np.asarray(ego1_from_ego0, dtype=np.float64)
+            problem = rigid_problem(ego)
+            if problem:
+                raise ValueError(f"ICPFlow: ego1_from_ego0 {problem}")
+        timings["ego_motion"] = time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        g0 = self.ground(pc0_ok) if ground0 is None else ground0[valid0]
+        g1 = self.ground(pc1_ok) if ground1 is None else ground1[valid1]
+        keep0 = ~g0 & (np.abs(pc0_ok[:, :2]) < cfg.crop_xy).all(axis=1)
+        keep1 = ~g1 & (np.abs(pc1_ok[:, :2]) < cfg.crop_xy).all(axis=1)
+        timings["ground"] = time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        src = transform_points(ego, pc0_ok[keep0])
+        dst = pc1_ok[keep1]
+        fused = cluster_points(np.concatenate([src, dst]), cfg)
+        src_labels, dst_labels = fused[: len(src)], fused[len(src) :]
+        timings["clustering"] = time.perf_counter() - tic
+
+        window = cfg.window(np.linalg.norm(ego[:3, 3]), int(gap))
+        matches = self._match(src, dst, src_labels, dst_labels, window, timings)
+
+        tic = time.perf_counter()
+        labels_ok0 = np.full(len(pc0_ok), -1, dtype=np.int32)
+        labels_ok0[keep0] = src_labels
+        flow_labels = labels_ok0
+        if cfg.absorb_radius > 0:
+            flow_labels = absorb(pc0_ok, labels_ok0, ego, matches["pairs"][:, 0], cfg.absorb_radius,
+                                 (np.abs(pc0_ok[:, :2]) < cfg.crop_xy).all(axis=1))
+        flow_ok, conf_ok = point_flow(pc0_ok, flow_labels, ego, matches["pairs"][:, 0], matches["transforms"],
+                                      matches["match_confidence"])
+        flow = np.zeros((len(pc0_in), 3), dtype=np.float32)
+        confidence = np.zeros(len(pc0_in), dtype=np.float32)
+        flow[valid0], confidence[valid0] = flow_ok, conf_ok
+        labels0 = np.full(len(pc0_in), -1, dtype=np.int32)
+        labels0[valid0] = labels_ok0
+        labels1 = np.full(len(pc1_in), -1, dtype=np.int32)
+        labels1[np.flatnonzero(valid1)[keep1]] = dst_labels
+        full_g0 = np.zeros(len(pc0_in), dtype=bool)
+        full_g0[valid0] = g0
+        full_g1 = np.zeros(len(pc1_in), dtype=bool)
+        full_g1[valid1] = g1
+        timings["flow"] = time.perf_counter() - tic
+        return ICPFlowResult(
+            flow=flow, confidence=confidence, labels0=labels0, labels1=labels1, ego1_from_ego0=ego,
+            ground0=full_g0, ground1=full_g1, valid0=valid0, valid1=valid1,
+            dropped0=int((~valid0).sum()), dropped1=int((~valid1).sum()), timings=timings, **matches,
+        )
+
+    def _match(self, src, dst, src_labels, dst_labels, window, timings) -> dict:
+        """Steps 4 to 8 over both stages: the chosen matches as arrays (see ``ICPFlowResult``)."""
+        cfg = self.cfg
+        tic = time.perf_counter()
+        n_labels = int(max(src_labels.max(initial=-1), dst_labels.max(initial=-1))) + 1
+        src_stats = cluster_stats(src, src_labels, n_labels)
+        dst_stats = cluster_stats(dst, dst_labels, n_labels)
+        s1, d1 = stage1_pairs(src_stats, dst_stats, window, cfg)
+        timings["pairing"] += time.perf_counter() - tic
+        first = self._register(src, dst, src_stats, dst_stats, s1, d1, window, timings)
+
+        tic = time.perf_counter()
+        src_free = np.ones(n_labels, dtype=bool)
+        dst_free = np.ones(n_labels, dtype=bool)
+        src_free[first["pairs"][:, 0]] = False
+        dst_free[first["pairs"][:, 1]] = False
+        s2, d2 = stage2_pairs(src_stats, dst_stats, src_free, dst_free, window, cfg)
+        timings["pairing"] += time.perf_counter() - tic
+        second = self._register(src, dst, src_stats, dst_stats, s2, d2, window, timings)
+
+        out = {key: np.concatenate([first[key], second[key]]) for key in first if key != "n_candidates"}
+        out["stage"] = np.concatenate(
+            [np.full(len(first["errors"]), 1, np.int8), np.full(len(second["errors"]), 2, np.int8)]
+        )
+        out["n_candidates"] = first["n_candidates"] + second["n_candidates"]
+        return out
+
+    def _register(self, src, dst, src_stats, dst_stats, src_ids, dst_ids, window, timings) -> dict:
+        """Initialise, register, check and associate candidate pairs; the chosen ones as arrays."""
+        cfg = self.cfg
+        n = len(src_ids)
+        empty = {
+            "pairs": np.zeros((0, 2), np.int32), "transforms": np.zeros((0, 4, 4)), "errors": np.zeros(0),
+            "iou_ratios": np.zeros(0), "match_confidence": np.zeros(0, np.float32), "n_candidates": n,
+        }
+        if n == 0:
+            return empty
+        tic = time.perf_counter()
+        clouds = [(src_stats.points(src, s), dst_stats.points(dst, d)) for s, d in zip(src_ids, dst_ids)]
+        if cfg.init == "histogram":
+            translations, _ = histogram.initial_translations(clouds, np.full(n, window), self.hist_params)
+        else:
+            translations = np.array([histogram.centroid_translation(a, b) for a, b in clouds]).reshape(n, 3)
+        inits = np.tile(np.eye(4), (n, 1, 1))
+        inits[:, :3, 3] = translations
+        timings["histogram"] += time.perf_counter() - tic
+
+        tic = time.perf_counter()
+        result = registration.register_clusters(clouds, inits, backend=cfg.icp_backend, params=self.icp_params)
+        ok = checks.passes(result.transforms, result.mean_error, result.iou_ratio, np.full(n, window), cfg,
+                           src_centroids=src_stats.centroid[src_ids])
+        chosen = association.associate(src_ids, dst_ids, result.mean_error, ok, method=cfg.association)
+        timings["icp"] += time.perf_counter() - tic
+        pick = np.flatnonzero(chosen)
+        return {
+            "pairs": np.stack([src_ids[pick], dst_ids[pick]], axis=1).astype(np.int32),
+            "transforms": result.transforms[pick],
+            "errors": result.mean_error[pick].astype(np.float64),
+            "iou_ratios": result.iou_ratio[pick].astype(np.float64),
+            "match_confidence": match_confidence(result.mean_error[pick], result.iou_ratio[pick], cfg),
+            "n_candidates": n,
+        }

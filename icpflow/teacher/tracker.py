@@ -1,0 +1,98 @@
+"""Step 11: long horizon, flow from scan 0 to scan k (k <= ``max_frame_gap``) of a sequence.
+
+* ``direct``: one teacher call on (scan 0, scan k) with the composed ego motion; the search window is scaled by k.
+* ``tracker`` (the paper's "Ours+Tracker"): teacher calls on every consecutive pair (i, i + 1); a pc0 cluster
+  is followed through the intermediate scans (its match in scan i + 1 is continued by the scan-(i + 1) cluster
+  holding most of that match's points) and the per-step motions ``T_cluster_i @ T_ego_i`` are composed. Points
+  whose chain breaks (no cluster, no match at some step) take the direct (0, k) result. Confidence of a chained
+  point is the smallest match confidence along its chain.
+
+Scans are (N_i, 3) float32 in their own ego frames; ``ego_transforms[i]`` is ``ego{i+1}_from_ego{i}`` (4, 4) or
+None (estimated).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+
+@dataclass
+class HorizonResult:
+    """Flow (N0, 3) float32 full flow from scan 0 to scan k, confidence (N0,) float32, ``chained`` (N0,) bool
+    (tracker mode: the flow came from a complete chain), ``ego_k_from_0`` (4, 4) float64."""
+
+    flow: np.ndarray
+    confidence: np.ndarray
+    chained: np.ndarray
+    ego_k_from_0: np.ndarray
+
+
+def long_horizon_flow(teacher, scans, ego_transforms=None, grounds=None, mode: str | None = None) -> HorizonResult:
+    """Flow from ``scans[0]`` to ``scans[-1]`` (see the module docstring); ``mode`` defaults to the config's."""
+    mode = mode or teacher.cfg.horizon_mode
+    k = len(scans) - 1
+    if mode not in ("direct", "tracker"):
+        raise ValueError(f"long_horizon_flow: mode must be 'direct' or 'tracker', got {mode!r}")
+    if not 1 <= k <= teacher.cfg.max_frame_gap:
+        raise ValueError(f"long_horizon_flow: need 2 to {teacher.cfg.max_frame_gap + 1} scans, got {len(scans)}")
+    egos = list(ego_transforms) if ego_transforms is not None else [None] * k
+    grounds = list(grounds) if grounds is not None else [None] * (k + 1)
+    if len(egos) != k or len(grounds) != k + 1:
+        raise ValueError(f"long_horizon_flow: {k + 1} scans need {k} ego transforms and {k + 1} ground masks")
+
+    steps = []
+    if mode == "tracker" or any(e is None for e in egos):
+        for i in range(k):
+            steps.append(teacher(scans[i], scans[i + 1], egos[i], grounds[i], grounds[i + 1]))
+        egos = [step.ego1_from_ego0 for step in steps]
+    ego_k = np.eye(4)
+    for ego in egos:
+        ego_k = np.asarray(ego, np.float64) @ ego_k
+    direct = teacher(scans[0], scans[k], ego_k, grounds[0], grounds[k], gap=k)
+    if mode == "direct":
+        return HorizonResult(direct.flow, direct.confidence, np.zeros(len(scans[0]), bool), ego_k)
+
+    motion, confidence, alive = _chain(steps, len(scans[0]))
+    flow = direct.flow.copy()
+    conf = direct.confidence.copy()
+    points = np.asarray(scans[0], np.float64)[alive]
+    moved = np.einsum("nij,nj->ni", motion[alive, :3, :3], points) + motion[alive, :3, 3]
+    flow[alive] = (moved - points).astype(np.float32)
+    conf[alive] = confidence[alive]
+    return HorizonResult(flow, conf, alive, ego_k)
+
+
+def _chain(steps, n0: int):
+    """Per pc0 point: composed motion (N0, 4, 4) ego_k_from_0 along its cluster chain, chain confidence (N0,),
+    and whether the chain is complete (N0,) bool."""
+    motion = np.tile(np.eye(4), (n0, 1, 1))
+    confidence = np.ones(n0, dtype=np.float32)
+    current = steps[0].labels0.copy()  # the chained cluster of each pc0 point in the current step's pc0 labels
+    alive = current >= 0
+    for i, step in enumerate(steps):
+        lookup = {int(s): m for m, s in enumerate(step.pairs[:, 0])}
+        next_cluster = np.full(n0, -1, dtype=np.int64)
+        for cluster in np.unique(current[alive]):
+            rows = np.flatnonzero(alive & (current == cluster))
+            m = lookup.get(int(cluster))
+            if m is None:
+                alive[rows] = False
+                continue
+            motion[rows] = step.transforms[m] @ step.ego1_from_ego0 @ motion[rows]
+            confidence[rows] = np.minimum(confidence[rows], step.match_confidence[m])
+            if i + 1 < len(steps):
+                # the match's points in scan i + 1, and the cluster they mostly belong to in the next step
+                members = steps[i + 1].labels0[step.labels1 == step.pairs[m, 1]]
+                members = members[members >= 0]
+                if len(members) == 0:
+                    alive[rows] = False
+                    continue
+                next_cluster[rows] = np.bincount(members).argmax()
+        current = next_cluster
+    return motion, confidence, alive
+
+
+__all__ = ["HorizonResult", "long_horizon_flow"]

@@ -1,0 +1,252 @@
+"""FastFlow3D student: voxelisation, scatter, model shapes/params/gradients, export parity, losses, overfitting."""
+
+import numpy as np
+import pytest
+import torch
+
+from fastflow3d.loss import distillation_loss, speed_weight, supervised_loss
+from fastflow3d.model import FastFlow3D, compensate
+from fastflow3d.scatter import scatter_mean, scatter_sum
+from fastflow3d.voxelize import Grid, voxelize
+from icpflow.geometry import make_transform, residual_to_full, transform_points
+
+SMALL = {"x_range": (-8.0, 8.0), "y_range": (-8.0, 8.0), "z_range": (-3.0, 3.0), "cell": 0.5}  # 32 x 32
+
+
+def flat_batch(clouds):
+    """Concatenate (N_i, 3) float32 tensors with a per-point sample index."""
+    points = torch.cat(clouds)
+    batch = torch.cat([torch.full((len(c),), i, dtype=torch.int64) for i, c in enumerate(clouds)])
+    return points, batch
+
+
+def test_voxelize_hand_case():
+    grid = Grid((0.0, 2.0), (0.0, 2.0), (-1.0, 1.0), 1.0)
+    points = torch.tensor([[0.2, 0.4, 0.0], [0.6, 0.8, 0.5], [1.5, 0.5, -0.5], [2.5, 0.5, 0.0], [0.5, 0.5, 0.0]])
+    batch = torch.tensor([0, 0, 0, 0, 1])
+    features, ids, valid = voxelize(points, batch, grid, batch_size=2)
+    assert ids.tolist() == [0, 0, 2, 8, 4]  # (b * nx + ix) * ny + iy; out of range -> dump id 2 * 2 * 2
+    assert valid.tolist() == [True, True, True, False, True]
+    expected = torch.tensor([
+        [0.2, 0.4, 0.0, -0.2, -0.2, -0.25, -0.3, -0.1, 0.0],
+        [0.6, 0.8, 0.5, 0.2, 0.2, 0.25, 0.1, 0.3, 0.5],
+        [1.5, 0.5, -0.5, 0.0, 0.0, 0.0, 0.0, 0.0, -0.5],
+        [0.0] * 9,
+        [0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+    ])
+    torch.testing.assert_close(features, expected, atol=1e-6, rtol=0)
+
+
+def test_voxelize_z_out_of_range_is_invalid():
+    grid = Grid((0.0, 2.0), (0.0, 2.0), (-1.0, 1.0), 1.0)
+    _, ids, valid = voxelize(torch.tensor([[0.5, 0.5, 1.5]]), torch.tensor([0]), grid, batch_size=1)
+    assert valid.tolist() == [False] and ids.tolist() == [4]
+
+
+def test_grid_rejects_bad_ranges():
+    with pytest.raises(ValueError, match="whole number"):
+        Grid((0.0, 1.0), (0.0, 1.0), (-1.0, 1.0), 0.3)
+    with pytest.raises(ValueError, match="max > min"):
+        Grid((1.0, 0.0), (0.0, 1.0), (-1.0, 1.0), 0.5)
+
+
+def test_scatter_equals_python_loop():
+    gen = torch.Generator().manual_seed(0)
+    values = torch.randn(200, 5, generator=gen)
+    ids = torch.randint(0, 17, (200,), generator=gen)
+    sums = torch.zeros(17, 5)
+    counts = torch.zeros(17)
+    for p in range(200):
+        sums[ids[p]] += values[p]
+        counts[ids[p]] += 1
+    means = torch.stack([sums[k] / counts[k] if counts[k] else torch.zeros(5) for k in range(17)])
+    torch.testing.assert_close(scatter_sum(values, ids, 17), sums, atol=1e-5, rtol=0)
+    torch.testing.assert_close(scatter_mean(values, ids, 17), means, atol=1e-6, rtol=0)
+
+
+def test_shapes_small_grid_batched():
+    model = FastFlow3D(**SMALL).eval()
+    gen = torch.Generator().manual_seed(1)
+    pc0, b0 = flat_batch([torch.randn(70, 3, generator=gen) * 6, torch.randn(50, 3, generator=gen) * 6])
+    pc1, b1 = flat_batch([torch.randn(60, 3, generator=gen) * 6, torch.randn(40, 3, generator=gen) * 6])
+    image, _, _, _ = model.embed(pc0, b0, 2)
+    assert image.shape == (2, 32, 32, 32)
+    assert model.unet(image, image).shape == (2, 64, 32, 32)
+    residual, valid = model(pc0, b0, pc1, b1, batch_size=2)
+    assert residual.shape == (120, 3) and valid.shape == (120,)
+    assert torch.all(residual[~valid] == 0) and valid.sum() > 0
+    # A sample's prediction does not depend on the other samples of the batch (eval mode).
+    alone, _ = model(pc0[:70], b0[:70], pc1[:60], b1[:60], batch_size=1)
+    torch.testing.assert_close(alone, residual[:70], atol=1e-5, rtol=0)
+
+
+def test_parameter_count_default_and_layers():
+    model = FastFlow3D()
+    assert (model.grid.nx, model.grid.ny) == (512, 512)
+    assert sum(p.numel() for p in model.parameters()) == 6_815_619
+    assert model.embedder.linear.bias is None
+    assert model.embedder.norm.eps == 1e-3 and model.embedder.norm.momentum == 0.01
+    assert [m.in_features for m in model.head if isinstance(m, torch.nn.Linear)] == [131, 32]
+
+
+def test_gradients_reach_every_parameter():
+    model = FastFlow3D(**SMALL).train()
+    gen = torch.Generator().manual_seed(2)
+    pc0, b0 = flat_batch([torch.rand(300, 3, generator=gen) * 14 - 7, torch.rand(200, 3, generator=gen) * 14 - 7])
+    pc1, b1 = flat_batch([torch.rand(300, 3, generator=gen) * 14 - 7, torch.rand(200, 3, generator=gen) * 14 - 7])
+    residual, valid = model(pc0, b0, pc1, b1, batch_size=2)
+    distillation_loss(residual, torch.randn_like(residual), b0, valid, 2).backward()
+    missing = [n for n, p in model.named_parameters() if p.grad is None or not torch.any(p.grad != 0)]
+    assert missing == []
+
+
+class VoxelizeScatter(torch.nn.Module):
+    """Voxelisation features plus the pillar mean of xyz, for export parity checks."""
+
+    def __init__(self, grid):
+        super().__init__()
+        self.grid = grid
+
+    def forward(self, points, batch):
+        features, ids, valid = voxelize(points, batch, self.grid, 2)
+        return features, scatter_mean(points, ids, 2 * self.grid.nx * self.grid.ny + 1), valid
+
+
+def random_flat(n0, n1, seed):
+    gen = torch.Generator().manual_seed(seed)
+    return flat_batch([torch.rand(n0, 3, generator=gen) * 20 - 10, torch.rand(n1, 3, generator=gen) * 20 - 10])
+
+
+def test_onnx_dynamo_parity_voxelize_scatter(tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    module = VoxelizeScatter(Grid(**SMALL)).eval()
+    points = torch.export.Dim("points", min=2)
+    path = tmp_path / "vox.onnx"
+    torch.onnx.export(module, random_flat(300, 200, 3), str(path), dynamo=True,
+                      dynamic_shapes={"points": {0: points}, "batch": {0: points}})
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    for n0, n1, seed in [(1000, 10, 4), (37, 512, 5), (5000, 4000, 6)]:
+        pts, batch = random_flat(n0, n1, seed)
+        expected = module(pts, batch)
+        got = session.run(None, {"points": pts.numpy(), "batch": batch.numpy()})
+        for e, g in zip(expected, got):
+            assert g.shape == tuple(e.shape)
+            np.testing.assert_allclose(g, e.numpy(), atol=1e-4, rtol=0)
+
+
+class SingleSample(torch.nn.Module):
+    """The model with batch_size fixed to 1 (tracing takes tensors only)."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, pc0, batch0, pc1, batch1):
+        return self.model(pc0, batch0, pc1, batch1, 1)
+
+
+def test_torchscript_trace_dynamic_point_counts():
+    model = FastFlow3D(**SMALL).eval()
+    traced = torch.jit.trace(SingleSample(model), (*random_flat(300, 0, 7), *random_flat(250, 0, 8)),
+                             check_trace=False)
+    for seed, n0, n1 in [(9, 1000, 800), (10, 50, 3000)]:
+        pc0, b0 = random_flat(n0, 0, seed)
+        pc1, b1 = random_flat(n1, 0, seed + 100)
+        expected, valid = model(pc0, b0, pc1, b1, 1)
+        got, got_valid = traced(pc0, b0, pc1, b1)
+        torch.testing.assert_close(got, expected, atol=1e-5, rtol=0)
+        assert torch.equal(got_valid, valid)
+
+
+def test_speed_weight_hand_values():
+    # speeds 0, 0.5, 0.75, 1.0, 2.0 m/s at dt 0.1 s -> displacements 0, 0.05, 0.075, 0.1, 0.2 m
+    pseudo = torch.tensor([[0.0, 0, 0], [0.05, 0, 0], [0, 0.075, 0], [0, 0, 0.1], [0.12, 0.16, 0.0]])
+    torch.testing.assert_close(speed_weight(pseudo, dt=0.1), torch.tensor([0.1, 0.1, 0.55, 1.0, 1.0]))
+
+
+def test_distillation_loss_hand_cases():
+    pred = torch.tensor([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [9.0, 9.0, 9.0], [0.0, 2.0, 0.0]])
+    pseudo = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    batch = torch.tensor([0, 0, 0, 0, 1])
+    valid = torch.tensor([True, True, True, False, True])
+    # sample 0: errors 5, 1, 1 (the invalid point is ignored) -> 7/3; sample 1: 2; batch mean (7/3 + 2) / 2
+    plain = distillation_loss(pred, pseudo, batch, valid, batch_size=2)
+    assert plain.item() == pytest.approx((7 / 3 + 2) / 2)
+    # speed weight: pseudo speeds 0, 10, 0, -, 0 m/s -> weights 0.1, 1, 0.1, -, 0.1
+    weighted = distillation_loss(pred, pseudo, batch, valid, batch_size=2, use_speed_weight=True)
+    assert weighted.item() == pytest.approx(((0.5 + 1 + 0.1) / 3 + 0.2) / 2)
+    confidence = torch.tensor([0.0, 1.0, 0.5, 1.0, 0.25])
+    conf = distillation_loss(pred, pseudo, batch, valid, batch_size=2, confidence=confidence)
+    assert conf.item() == pytest.approx(((0 + 1 + 0.5) / 3 + 0.5) / 2)
+    # an empty sample does not count in the batch mean
+    empty = distillation_loss(pred, pseudo, batch, valid, batch_size=3)
+    assert empty.item() == pytest.approx(plain.item())
+
+
+def test_supervised_loss_weights_background():
+    pred = torch.tensor([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    gt = torch.zeros(2, 3)
+    loss = supervised_loss(pred, gt, torch.tensor([True, False]), torch.tensor([0, 0]), torch.tensor([True, True]), 1)
+    assert loss.item() == pytest.approx((1.0 + 0.1 * 2.0) / 2)
+
+
+def synthetic_pair(seed):
+    """pc0, pc1 (ego frame of t and t + dt), ego1_from_ego0 and the residual flow: a moving box (the first 600
+    points, moving 1.08 m) on static ground with a hole under the box, and a static wall."""
+    rng = np.random.default_rng(seed)
+    ground = np.c_[rng.uniform(-15, 15, (3000, 2)), rng.normal(-1.5, 0.02, 3000)]
+    car = np.c_[rng.uniform(2, 6, (600, 1)), rng.uniform(-3, -1, (600, 1)), rng.uniform(-1.5, 0, (600, 1))]
+    wall = np.c_[rng.uniform(-12, -4, (600, 1)), rng.uniform(6, 6.3, (600, 1)), rng.uniform(-1.5, 1.5, (600, 1))]
+    ground = ground[~((ground[:, 0] > 1) & (ground[:, 0] < 8) & (ground[:, 1] > -4) & (ground[:, 1] < 0))]
+    pc0 = np.concatenate([car, ground, wall]).astype(np.float32)
+    residual = np.zeros_like(pc0)
+    residual[:600] = (1.0, 0.4, 0.0)
+    ego1_from_ego0 = make_transform(yaw=0.02, translation=(0.8, 0.1, 0.0))
+    moved = transform_points(ego1_from_ego0, pc0) + residual
+    pc1 = (moved + rng.normal(0, 0.01, moved.shape)).astype(np.float32)
+    return pc0, pc1, ego1_from_ego0, residual
+
+
+def test_overfit_one_synthetic_pair():
+    torch.manual_seed(0)
+    pc0, pc1, ego1_from_ego0, residual = synthetic_pair(0)
+    inputs = (torch.from_numpy(compensate(pc0, ego1_from_ego0)), torch.zeros(len(pc0), dtype=torch.int64),
+              torch.from_numpy(pc1), torch.zeros(len(pc1), dtype=torch.int64))
+    target = torch.from_numpy(residual)
+    model = FastFlow3D(x_range=(-16.0, 16.0), y_range=(-16.0, 16.0), cell=1.0)
+    optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)  # 2e-3 diverges on this pair
+    epes = []
+    for _ in range(150):
+        pred, valid = model(*inputs)
+        epes.append(torch.linalg.vector_norm(pred - target, dim=1)[valid].mean().item())
+        loss = distillation_loss(pred, target, inputs[1], valid, 1)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    # train-mode EPE (batch statistics): eval mode would use BatchNorm running stats still far from converged
+    assert epes[-1] < epes[0] / 5, (epes[0], epes[-1])
+    assert epes[-1] < 0.2 * 600 * np.hypot(1.0, 0.4) / valid.sum().item()  # 5x better than predicting zero
+    full = residual_to_full(pred.detach().numpy(), pc0, ego1_from_ego0)
+    exact = residual_to_full(residual, pc0, ego1_from_ego0)
+    assert np.linalg.norm(full - exact, axis=1).mean() == pytest.approx(epes[-1], rel=1e-3)
+
+
+def test_onnx_dynamo_parity_full_model(tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    model = FastFlow3D(**SMALL).eval()
+    path = tmp_path / "fastflow3d.onnx"
+    p0, p1 = torch.export.Dim("p0", min=2), torch.export.Dim("p1", min=2)
+    torch.onnx.export(SingleSample(model), (*random_flat(300, 0, 11), *random_flat(200, 0, 12)), str(path),
+                      dynamo=True,
+                      dynamic_shapes={"pc0": {0: p0}, "batch0": {0: p0}, "pc1": {0: p1}, "batch1": {0: p1}})
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    for n0, n1, seed in [(1000, 700, 13), (40, 3000, 14)]:
+        pc0, b0 = random_flat(n0, 0, seed)
+        pc1, b1 = random_flat(n1, 0, seed + 100)
+        expected, valid = model(pc0, b0, pc1, b1, 1)
+        got, got_valid = session.run(None, {"pc0": pc0.numpy(), "batch0": b0.numpy(), "pc1": pc1.numpy(),
+                                            "batch1": b1.numpy()})
+        np.testing.assert_allclose(got, expected.detach().numpy(), atol=1e-4, rtol=0)
+        assert np.array_equal(got_valid, valid.numpy())

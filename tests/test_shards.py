@@ -1,0 +1,161 @@
+"""Shard schema, atomic writer, reader and verification on hand-made samples."""
+
+import json
+import pickle
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+import icpflow
+from icpflow.labelling.plan import plan_shards
+from icpflow.shards import SCHEMA_VERSION, ShardDataset, ShardError, verify_shard, write_index, write_shard
+from icpflow.shards.schema import group_name
+
+
+def _sample(seed: int, n0: int, n1: int, gt: bool) -> dict:
+    rng = np.random.default_rng(seed)
+    sample = {
+        "pc0": rng.normal(size=(n0, 3)).astype(np.float32),
+        "pc1": rng.normal(size=(n1, 3)).astype(np.float32),
+        "ground0": rng.random(n0) < 0.5,
+        "ground1": rng.random(n1) < 0.5,
+        "ego1_from_ego0": np.array([[1, 0, 0, -1.5], [0, 1, 0, 0.25], [0, 0, 1, 0], [0, 0, 0, 1]], np.float64),
+        "flow": rng.normal(size=(n0, 3)).astype(np.float32),
+        "confidence": rng.random(n0).astype(np.float32),
+        "cluster": rng.integers(-1, 5, n0).astype(np.int32),
+        "attrs": {"sample_id": f"log/{seed:06d}", "log_id": "log", "index": seed, "timestamp0_ns": 1000 * seed,
+                  "timestamp1_ns": 1000 * seed + 100, "dt": 0.1},
+    }
+    if gt:
+        sample.update(gt_flow=rng.normal(size=(n0, 3)).astype(np.float32), gt_flow_valid=np.ones(n0, bool),
+                      gt_classes=rng.integers(0, 3, n0).astype(np.int32), gt_dynamic=rng.random(n0) < 0.2)
+    return sample
+
+
+@pytest.fixture
+def written(tmp_path):
+    """Two shards (3 + 1 samples, the second without ground truth) and their index."""
+    shards = {"shard_000000.h5": [_sample(i, 50 + i, 40 + i, True) for i in range(3)],
+              "shard_000001.h5": [_sample(3, 7, 9, False)]}
+    for name, samples in shards.items():
+        write_shard(tmp_path / name, samples, "teacher: {speed: 1.0}\n", "abc123", "gzip")
+    write_index(tmp_path / "index.json", {"config_hash": "abc123", "shards": [
+        {"file": name, "samples": [{"sample_id": s["attrs"]["sample_id"], "index": s["attrs"]["index"],
+                                    "n0": len(s["pc0"]), "n1": len(s["pc1"])} for s in samples]}
+        for name, samples in shards.items()]})
+    return tmp_path, [s for samples in shards.values() for s in samples]
+
+
+def test_round_trip_exact(written):
+    root, samples = written
+    dataset = ShardDataset(root)
+    assert len(dataset) == 4
+    for i, expected in enumerate(samples):
+        got = dataset[i]
+        arrays = {k: v for k, v in expected.items() if k != "attrs"}
+        assert set(got) == set(arrays) | {"sample_id", "log_id", "dt"}
+        for key, value in arrays.items():
+            assert got[key].dtype == value.dtype, key
+            np.testing.assert_array_equal(got[key], value, err_msg=key)
+        assert got["sample_id"] == expected["attrs"]["sample_id"] and got["log_id"] == "log" and got["dt"] == 0.1
+    with pytest.raises(IndexError):
+        dataset[4]
+    with h5py.File(root / "shard_000000.h5") as f:
+        assert f.attrs["config"] == "teacher: {speed: 1.0}\n" and f.attrs["config_hash"] == "abc123"
+        assert f.attrs["package_version"] == icpflow.__version__ and f.attrs["schema_version"] == SCHEMA_VERSION
+        assert f[group_name(2)].attrs["timestamp1_ns"] == 2100
+        assert f[group_name(0)]["pc0"].compression == "gzip"
+    assert not list(root.glob("*.tmp-*"))
+
+
+def test_reader_pickles_and_works_in_dataloader_workers(written):
+    root, samples = written
+    dataset = ShardDataset(root)
+    dataset[0]  # opens a file in this process; the copy must not carry the handle
+    clone = pickle.loads(pickle.dumps(dataset))
+    assert clone._files == {}
+    loader = torch.utils.data.DataLoader(dataset, batch_size=None, num_workers=2)
+    got = [item["pc0"].numpy() for item in loader]
+    for value, expected in zip(got, samples, strict=True):
+        np.testing.assert_array_equal(value, expected["pc0"])
+
+
+def test_verify_accepts_complete_and_checks_hash_and_count(written):
+    root, _ = written
+    assert verify_shard(root / "shard_000000.h5", "abc123", 3) == 3
+    with pytest.raises(ShardError, match="made by config abc123, expected zzz"):
+        verify_shard(root / "shard_000000.h5", "zzz")
+    with pytest.raises(ShardError, match="holds 3 samples, expected 4"):
+        verify_shard(root / "shard_000000.h5", num_samples=4)
+    with pytest.raises(ShardError, match="missing"):
+        verify_shard(root / "shard_000009.h5")
+
+
+def test_verify_detects_truncation(written):
+    root, _ = written
+    path = root / "shard_000000.h5"
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ShardError, match="shard_000000.h5: unreadable"):
+        verify_shard(path)
+
+
+def test_verify_detects_flipped_bytes_in_data(written):
+    root, samples = written
+    path = root / "shard_000000.h5"
+    with h5py.File(path) as f:
+        offset = f[group_name(1)]["flow"].id.get_chunk_info(0).byte_offset
+    data = bytearray(path.read_bytes())
+    data[offset + 20] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(ShardError, match="shard_000000.h5: unreadable"):
+        verify_shard(path)
+
+
+def test_verify_detects_schema_breaks(written):
+    root, _ = written
+    path = root / "shard_000000.h5"
+    with h5py.File(path, "a") as f:
+        del f[group_name(1)]["confidence"]
+        f[group_name(1)].create_dataset("confidence", data=np.zeros(3, np.float32))
+    with pytest.raises(ShardError, match=r"samples/00001/confidence has shape \(3,\), expected \(51,\)"):
+        verify_shard(path)
+    with h5py.File(path, "a") as f:
+        del f[group_name(1)]["confidence"]
+        f[group_name(1)].create_dataset("confidence", data=np.zeros(51, np.float32))
+        del f[group_name(2)]["cluster"]
+    with pytest.raises(ShardError, match="samples/00002/cluster missing"):
+        verify_shard(path)
+    with h5py.File(path, "a") as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION + 1
+    with pytest.raises(ShardError, match="schema version"):
+        verify_shard(path)
+
+
+def test_failed_write_leaves_no_file(tmp_path):
+    bad = _sample(0, 5, 5, False)
+    bad["flow"] = object()  # h5py cannot store it
+    with pytest.raises(TypeError):
+        write_shard(tmp_path / "shard_000000.h5", [bad], "", "h")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_index_json_is_plain_json(written):
+    root, _ = written
+    index = json.loads((root / "index.json").read_text())
+    assert [s["file"] for s in index["shards"]] == ["shard_000000.h5", "shard_000001.h5"]
+    assert index["shards"][1]["samples"] == [{"sample_id": "log/000003", "index": 3, "n0": 7, "n1": 9}]
+
+
+def test_plan_shards_split_is_a_partition():
+    full = plan_shards(10, 3)
+    assert full == [(0, [0, 1, 2]), (1, [3, 4, 5]), (2, [6, 7, 8]), (3, [9])]
+    assert plan_shards(10, 3, limit=5) == [(0, [0, 1, 2]), (1, [3, 4])]
+    parts = [plan_shards(10, 3, shard_index=i, num_shards=3) for i in range(3)]
+    assert parts == [[(0, [0, 1, 2]), (3, [9])], [(1, [3, 4, 5])], [(2, [6, 7, 8])]]
+    assert plan_shards(10, 3, shard_index=1, num_shards=8) == [(1, [3, 4, 5])]
+    assert plan_shards(10, 3, shard_index=5, num_shards=8) == []
+    with pytest.raises(ValueError, match="shard_index must be in 0..1"):
+        plan_shards(10, 3, shard_index=2, num_shards=2)

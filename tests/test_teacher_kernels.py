@@ -1,0 +1,278 @@
+"""Per-cluster kernels of the ICP-Flow teacher: histogram initialisation, ICP, checks and association."""
+
+import numpy as np
+import pytest
+
+from icpflow.geometry import euler_angles, invert, make_transform, transform_points
+from icpflow.teacher.association import associate
+from icpflow.teacher.checks import passes
+from icpflow.teacher.config import ICPFlowConfig
+from icpflow.teacher.histogram import HistogramParams, centroid_translation, initial_translation, initial_translations
+from icpflow.teacher.histogram import params_from_config as hist_params
+from icpflow.teacher.registration import ICPParams, register_clusters
+from icpflow.teacher.registration import params_from_config as icp_params
+
+HIST = HistogramParams()
+ICP = ICPParams()
+
+
+def _box_surface(n, size=(4.4, 1.8, 1.5), seed=0):
+    """n points on the surface of an axis-aligned box with its base centred at the origin, float32."""
+    rng = np.random.default_rng(seed)
+    lo = np.array([-size[0] / 2, -size[1] / 2, 0.0])
+    hi = np.array([size[0] / 2, size[1] / 2, size[2]])
+    points = rng.uniform(lo, hi, (n, 3))
+    axis = rng.integers(0, 3, n)
+    points[np.arange(n), axis] = np.where(rng.random(n) < 0.5, lo[axis], hi[axis])
+    return points.astype(np.float32)
+
+
+def _noisy(points, sigma, seed):
+    return (points + np.random.default_rng(seed).normal(0.0, sigma, points.shape)).astype(np.float32)
+
+
+def _rotation_error(a, b):
+    return float(np.arccos(np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1, 1)))
+
+
+# ------------------------------------------------------------------------------------------------- histogram
+
+
+def test_histogram_bin_centre_is_returned_exactly():
+    src = _box_surface(200)
+    # A translation on a bin centre comes back exactly; the reference would return the lower edge (-0.05 m).
+    translations, scores = initial_translations([(src, src + np.float32([1.3, -0.7, 0.1]))], [3.0], HIST)
+    np.testing.assert_allclose(translations[0], [1.3, -0.7, 0.1], atol=1e-9)
+    assert scores[0] < 1e-6
+    # Off-centre by 0.03 m: the centre of the bin holding it.
+    translations, _ = initial_translations([(src, src + np.float32([1.33, -0.67, 0.0]))], [3.0], HIST)
+    np.testing.assert_allclose(translations[0], [1.3, -0.7, 0.0], atol=1e-9)
+
+
+def test_histogram_recovers_translation_with_noise_partial_view():
+    src = _box_surface(600, seed=1)
+    truth = np.array([2.46, 1.12, 0.03])
+    moved = _noisy(src + truth, 0.02, seed=2)
+    partial = moved[(moved[:, 1] > truth[1] + 0.3) & (moved[:, 0] < truth[0] + 1.0)]  # a corner seen in dst
+    translations, scores = initial_translations([(src, partial)], [3.34], HIST)
+    np.testing.assert_allclose(translations[0], [2.5, 1.1, 0.0], atol=1e-9)  # the bin holding the truth
+    assert scores[0] < 0.15  # mean spacing of 300 points on the 34 m2 box surface is about 0.1 m
+
+
+def test_histogram_scoring_overrules_a_stronger_distractor_peak():
+    # src: a wall patch and a box. dst: both moved by the truth, plus two more copies of the wall 1 m further in
+    # y. Wall-to-copies votes outnumber the true ones, but only the truth also brings the box onto its copy.
+    xz = np.stack(np.meshgrid(np.arange(0, 2, 0.1), np.arange(0, 1.5, 0.1)), -1).reshape(-1, 2)
+    wall = np.column_stack([xz[:, 0], np.zeros(len(xz)), xz[:, 1]])
+    src = np.concatenate([wall, _box_surface(200, size=(1, 1, 1), seed=3) + [1.0, 2.5, 0.0]]).astype(np.float32)
+    truth = np.array([1.5, -0.8, 0.0])
+    copies = [wall + truth + [0.0, 1.0, 0.0], wall + truth + [0.0, 1.03, 0.0]]
+    dst = np.concatenate([src + truth, *copies]).astype(np.float32)
+    params = HistogramParams(max_points=2000)
+    top1, _ = initial_translations([(src, dst)], [3.0], HistogramParams(max_points=2000, top_k=1))
+    assert np.abs(top1[0] - truth).max() > 0.5  # the strongest peak alone is the distractor
+    translations, scores = initial_translations([(src, dst)], [3.0], params)
+    np.testing.assert_allclose(translations[0], truth, atol=1e-9)
+    assert scores[0] < 1e-6
+
+
+def test_histogram_zero_candidate_for_static_cluster():
+    src = _box_surface(400, seed=3)
+    translations, scores = initial_translations([(src, _noisy(src, 0.01, 4))], [3.34], HIST)
+    assert np.array_equal(translations[0], np.zeros(3))
+    # No vote inside the window at all: the zero translation is the only candidate.
+    far = src + np.float32([20.0, 0.0, 0.0])
+    translations, scores = initial_translations([(src, far)], [3.34], HIST)
+    assert np.array_equal(translations[0], np.zeros(3)) and 15.6 < scores[0] < 20.0  # 15.6 to 20 m apart
+
+
+def test_histogram_batch_matches_single_calls_and_is_deterministic():
+    pairs = [(_box_surface(500 + 50 * k, seed=k), _box_surface(450, seed=k + 10) + np.float32([k * 0.4, 0, 0]))
+             for k in range(4)]
+    batch, batch_scores = initial_translations(pairs, np.full(4, 3.0), HIST)
+    for k, pair in enumerate(pairs):
+        single, score = initial_translations([pair], [3.0], HIST)
+        np.testing.assert_array_equal(single[0], batch[k])
+        assert score[0] == batch_scores[k]
+    again, _ = initial_translations(pairs, np.full(4, 3.0), HIST)
+    np.testing.assert_array_equal(again, batch)
+    np.testing.assert_allclose(batch[:, 0], [0.0, 0.4, 0.8, 1.2], atol=0.1 + 1e-9)
+
+
+def test_centroid_translation():
+    src = np.float32([[0, 0, 0], [2, 0, 0]])
+    np.testing.assert_allclose(centroid_translation(src, src + np.float32([1, 2, 3])), [1, 2, 3], atol=1e-6)
+    np.testing.assert_array_equal(centroid_translation(src[:0], src), np.zeros(3))
+
+
+# ------------------------------------------------------------------------------------------------------ ICP
+
+
+def test_icp_recovers_rigid_transform_from_nearby_init():
+    src = _box_surface(800, seed=5)
+    truth = make_transform(yaw=0.15, translation=(1.8, -0.6, 0.02))
+    dst = _noisy(transform_points(truth, src), 0.005, seed=6)
+    init = make_transform(yaw=0.12, translation=(1.85, -0.55, 0.0))
+    result = register_clusters([(src, dst)], init[None], params=ICP)
+    assert np.abs(result.transforms[0, :3, 3] - truth[:3, 3]).max() < 0.01
+    assert _rotation_error(result.transforms[0], truth) < np.radians(0.2)
+    assert result.iou_ratio[0] > 0.95 and result.mean_error[0] < 0.01
+    assert 1 <= result.iterations[0] < ICP.max_iter
+
+
+def test_icp_keeps_initial_transform_when_it_got_worse():
+    # Fixed: two parallel planes y = 0 and y = 1. Moving: a small patch 5 cm above y = 0 (inside the 0.1 m
+    # correspondence range) and a large patch 12 cm below y = 1 (outside it). ICP snaps the small patch onto
+    # y = 0, which pushes the large patch 17 cm from y = 1: the mean distance grows, so the start is kept.
+    grid = np.stack(np.meshgrid(np.arange(10) * 0.1, np.arange(10) * 0.1), -1).reshape(-1, 2)
+    plane = lambda y, xz: np.column_stack([xz[:, 0], np.full(len(xz), y), xz[:, 1]])  # noqa: E731
+    fixed = np.concatenate([plane(0.0, grid), plane(1.0, grid)]).astype(np.float32)
+    moving = np.concatenate([plane(0.05, grid[:9]), plane(0.88, grid[20:70])]).astype(np.float32)
+    for backend in ("cpu", "torch"):
+        result = register_clusters([(moving, fixed)], np.eye(4)[None], params=ICP, backend=backend)
+        assert result.iterations[0] >= 1
+        np.testing.assert_array_equal(result.transforms[0], np.eye(4))
+        # Truncated ICP alone moves 5 cm down: without the check the result would differ from the start.
+        assert result.mean_error[0] == pytest.approx((9 * 0.05 + 50 * 0.12) / 59, abs=1e-6)
+
+
+def test_smaller_cluster_is_registered_and_result_inverted():
+    big = _box_surface(900, seed=7)
+    truth = make_transform(yaw=-0.1, translation=(0.9, 0.4, 0.0))
+    small = transform_points(truth, big)[::3]
+    init = make_transform(yaw=-0.08, translation=(0.92, 0.38, 0.0))
+    forward = register_clusters([(big, small)], init[None], params=ICP)  # src larger: roles swapped inside
+    backward = register_clusters([(small, big)], invert(init)[None], params=ICP)
+    np.testing.assert_allclose(forward.transforms[0], truth, atol=2e-3)
+    np.testing.assert_allclose(forward.transforms[0], invert(backward.transforms[0]), atol=1e-9)
+    assert forward.mean_error[0] == pytest.approx(backward.mean_error[0], abs=1e-9)
+    assert forward.iou_ratio[0] == pytest.approx(backward.iou_ratio[0], abs=1e-9)
+
+
+def test_error_and_iou_match_exact_nearest_neighbours():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(11)
+    pairs = [
+        (_box_surface(300, seed=12), _noisy(_box_surface(500, seed=13), 0.05, 14)),  # overlapping, noisy
+        (_box_surface(200, seed=15), _box_surface(400, seed=16) + np.float32([7.0, 3.0, 0.5])),  # far apart
+        (rng.uniform(-5, 5, (400, 3)).astype(np.float32), rng.uniform(-3, 8, (250, 3)).astype(np.float32)),
+    ]
+    result = register_clusters(pairs, np.tile(np.eye(4), (3, 1, 1)), params=ICPParams(max_iter=3))
+    for (src, dst), transform, error, iou in zip(pairs, result.transforms, result.mean_error, result.iou_ratio):
+        moved = transform_points(transform, src.astype(np.float64))
+        fwd, _ = cKDTree(dst).query(moved)
+        bwd, _ = cKDTree(moved).query(dst)
+        assert error == pytest.approx(min(fwd.mean(), bwd.mean()), rel=1e-6)
+        n = len(src) + len(dst)
+        i_f, i_b = (fwd < 0.1).sum(), (bwd < 0.1).sum()
+        assert iou == pytest.approx(min(i_f / (n - i_f), i_b / (n - i_b)), abs=1e-9)
+
+
+def test_cpu_and_torch_backends_agree():
+    rng = np.random.default_rng(8)
+    pairs, inits = [], []
+    for k in range(6):
+        src = _box_surface(int(rng.integers(150, 400)), seed=20 + k)
+        truth = make_transform(rng.uniform(-0.3, 0.3), (*rng.uniform(-2, 2, 2), 0.0))
+        dst = _noisy(transform_points(truth, _box_surface(int(rng.integers(150, 400)), seed=40 + k)), 0.01, k)
+        pairs.append((src, dst))
+        inits.append(truth @ make_transform(rng.uniform(-0.05, 0.05), (*rng.uniform(-0.08, 0.08, 2), 0.0)))
+    pairs.append((pairs[0][0], pairs[0][0][:0]))  # an empty cluster keeps its start
+    inits.append(np.eye(4))
+    cpu = register_clusters(pairs, np.array(inits), params=ICP, backend="cpu")
+    gpu = register_clusters(pairs, np.array(inits), params=ICP, backend="torch")
+    for a, b in zip(cpu.transforms, gpu.transforms):
+        assert np.abs(a[:3, 3] - b[:3, 3]).max() < 1e-3 and _rotation_error(a, b) < 1e-3
+    np.testing.assert_allclose(cpu.mean_error[:-1], gpu.mean_error[:-1], atol=1e-4)
+    np.testing.assert_allclose(cpu.iou_ratio, gpu.iou_ratio, atol=1e-3)
+    assert cpu.mean_error[-1] == np.inf and cpu.iou_ratio[-1] == 0.0 and gpu.mean_error[-1] == np.inf
+    np.testing.assert_array_equal(cpu.transforms[-1], np.eye(4))
+    again = register_clusters(pairs, np.array(inits), params=ICP, backend="cpu")
+    np.testing.assert_array_equal(again.transforms, cpu.transforms)
+
+
+def test_yaw_only_icp_keeps_objects_upright():
+    # icp_dof="yaw" recovers the yaw and the 3D translation with exactly zero roll and pitch, on both backends.
+    src = _box_surface(800, seed=9)
+    truth = make_transform(yaw=0.1, translation=(0.8, -0.2, 0.05))
+    dst = _noisy(transform_points(truth, src), 0.01, seed=10)
+    init = make_transform(yaw=0.08, translation=(0.75, -0.15, 0.0))
+    yaw = ICPParams(yaw_only=True)
+    for backend in ("cpu", "torch"):
+        result = register_clusters([(src, dst)], init[None], params=yaw, backend=backend)
+        roll, pitch, angle = euler_angles(result.transforms[0])
+        assert roll == 0.0 and pitch == 0.0
+        assert angle == pytest.approx(0.1, abs=2e-3)
+        np.testing.assert_allclose(result.transforms[0, :3, 3], truth[:3, 3], atol=0.01)
+
+
+def test_settings_come_from_the_config():
+    cfg = ICPFlowConfig.preset("av2", hist_max_points=123, max_points=456, icp_dof="yaw", top_k=2, seed=7)
+    assert hist_params(cfg) == HistogramParams(max_points=123, top_k=2, seed=7)
+    assert icp_params(cfg) == ICPParams(max_points=456, yaw_only=True, seed=7)
+    src = _box_surface(200)
+    translation, score = initial_translation(src, src + np.float32([0.5, 0.0, 0.0]), 2.0, cfg)
+    np.testing.assert_allclose(translation, [0.5, 0.0, 0.0], atol=1e-9)
+    result = register_clusters([(src, src)], np.eye(4)[None], cfg, backend=cfg.icp_backend)
+    np.testing.assert_allclose(result.transforms[0], np.eye(4), atol=1e-9)
+    fails = passes(make_transform(translation=(0.1, 0, 0))[None], [0.25], [0.5], 2.0, cfg)  # av2 max_error 0.2
+    assert not fails[0]
+
+
+# --------------------------------------------------------------------------------------------------- checks
+
+
+THRESHOLDS = dict(min_iou=0.2, max_roll_pitch_deg=9.0, max_error=0.2)
+
+
+def test_checks_reject_each_failure_alone():
+    good = make_transform(yaw=0.5, translation=(1.0, 0.5, 0.0))
+    cases = {
+        "good": (good, 0.05, 0.6, True),
+        "too far": (make_transform(translation=(2.9, 0.0, 0.0)), 0.05, 0.6, False),
+        "low iou": (good, 0.05, 0.19, False),
+        "roll": (make_transform(roll=np.radians(9.5)), 0.05, 0.6, False),
+        "pitch": (make_transform(pitch=np.radians(-9.5)), 0.05, 0.6, False),
+        "pitch inside": (make_transform(pitch=np.radians(8.5), yaw=3.0), 0.05, 0.6, True),
+        "error": (good, 0.21, 0.6, False),
+        "nan": (good, np.nan, 0.6, False),
+    }
+    transforms = np.array([c[0] for c in cases.values()])
+    result = passes(transforms, [c[1] for c in cases.values()], [c[2] for c in cases.values()], 2.5, **THRESHOLDS)
+    assert dict(zip(cases, result.tolist())) == {name: c[3] for name, c in cases.items()}
+
+
+def test_checks_use_centroid_displacement_when_given():
+    # A 0.2 rad turn about the origin moves a cluster at x = 20 m by about 4 m, though T's translation is 0.
+    turn = make_transform(yaw=0.2)
+    centroid = np.array([[20.0, 0.0, 0.0]])
+    assert passes(turn[None], [0.05], [0.6], 2.5, **THRESHOLDS)[0]
+    assert not passes(turn[None], [0.05], [0.6], 2.5, src_centroids=centroid, **THRESHOLDS)[0]
+    assert passes(turn[None], [0.05], [0.6], 4.5, src_centroids=centroid, **THRESHOLDS)[0]
+
+
+# ---------------------------------------------------------------------------------------------- association
+
+
+def test_argmin_and_hungarian_differ_on_hand_case():
+    # Sources A=0, B=1; destinations X=10, Y=11. Costs: A-X 1, A-Y 2, B-X 1.5, B-Y 10, plus B-Y failing checks.
+    src = np.array([0, 0, 1, 1, 1])
+    dst = np.array([10, 11, 10, 11, 11])
+    cost = np.array([1.0, 2.0, 1.5, 10.0, 0.1])
+    ok = np.array([True, True, True, True, False])
+    # argmin: each source its cheapest passing destination, both pick X.
+    assert associate(src, dst, cost, ok, "argmin").tolist() == [True, False, True, False, False]
+    # Hungarian: one-to-one with the lowest total, A-Y + B-X = 3.5 < A-X + B-Y = 11.
+    assert associate(src, dst, cost, ok, "hungarian").tolist() == [False, True, True, False, False]
+
+
+def test_association_edge_cases():
+    none = associate([0, 1], [5, 5], [1.0, 2.0], [False, False])
+    assert none.tolist() == [False, False]
+    tie = associate([0, 0], [5, 6], [1.0, 1.0], [True, True])  # ties go to the first listed pair
+    assert tie.tolist() == [True, False]
+    # Hungarian prefers more matches: one source, two destinations, only one can be taken.
+    assert associate([0, 0, 1], [5, 6, 5], [1.0, 0.5, 3.0], [True] * 3, "hungarian").tolist() == [False, True, True]
+    with pytest.raises(ValueError, match="method"):
+        associate([0], [1], [1.0], [True], "greedy")

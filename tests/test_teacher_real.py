@@ -1,0 +1,80 @@
+"""The ICP-Flow teacher on real LiDAR: the Argoverse 2 pair and KITTI sequence 01 frames in ../shared/data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from icpflow.geometry import ego_flow, invert, relative_transform
+from icpflow.teacher import ICPFlow, ICPFlowConfig
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+AV2_ROOT = DATA / "av2"
+KITTI = DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"
+
+
+@pytest.fixture(scope="module")
+def kitti():
+    if not KITTI.is_file():
+        pytest.skip(f"real KITTI sample absent: {KITTI}")
+    return np.load(KITTI)
+
+
+@pytest.fixture(scope="module")
+def kitti_result(kitti):
+    teacher = ICPFlow(ICPFlowConfig.preset("waymo", ground="patchwork", crop_xy=51.2))
+    pc0, pc1 = kitti["points0"].astype(np.float32), kitti["points1"].astype(np.float32)
+    return teacher(pc0, pc1)  # no ego motion given: KISS-ICP (+ point-to-plane refinement)
+
+
+@pytest.mark.slow
+def test_kitti_ego_motion_and_static_flow(kitti, kitti_result):
+    truth = relative_transform(kitti["velo_poses_world"][0], kitti["velo_poses_world"][1])
+    delta = invert(truth) @ kitti_result.ego1_from_ego0
+    angle = np.degrees(np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1, 1)))
+    assert np.linalg.norm(delta[:3, 3]) < 0.05
+    assert angle < 0.2
+    pc0 = kitti["points0"].astype(np.float32)
+    static = kitti["labels0"].reshape(-1) != 1  # every non-car point is static
+    error = np.linalg.norm(kitti_result.flow - ego_flow(pc0, truth), axis=1)[static]
+    assert error.mean() < 0.05
+    assert kitti_result.ground0.mean() > 0.3  # Patchwork++ found the road
+
+
+@pytest.fixture(scope="module")
+def av2_pair():
+    pytest.importorskip("av2", reason="the av2 package is an optional dependency")
+    if not (AV2_ROOT / "sensor" / "val").is_dir():
+        pytest.skip(f"real AV2 sample absent: {AV2_ROOT}")
+    from icpflow.datasets.av2 import AV2Dataset
+
+    return AV2Dataset(AV2_ROOT, split="val", ground_threshold=0.4).pair(0)  # map ground: within 0.4 m
+
+
+@pytest.fixture(scope="module")
+def av2_result(av2_pair):
+    p = av2_pair
+    return ICPFlow(ICPFlowConfig.preset("av2"))(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1)
+
+
+@pytest.mark.slow
+def test_av2_flow_beats_zero_flow_and_is_repeatable(av2_pair, av2_result):
+    p = av2_pair
+    error = np.linalg.norm(av2_result.flow - p.flow, axis=1)
+    zero = np.linalg.norm(ego_flow(p.pc0, p.ego1_from_ego0) - p.flow, axis=1)
+    assert zero[p.dynamic].mean() == pytest.approx(0.664, abs=0.002)  # the zero-flow baseline
+    assert error[p.dynamic].mean() < 0.21  # measured 0.192
+    assert error[~p.dynamic].mean() < 0.03
+    again = ICPFlow(ICPFlowConfig.preset("av2"))(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1)
+    np.testing.assert_array_equal(again.flow, av2_result.flow)  # same input, same output
+    np.testing.assert_array_equal(again.confidence, av2_result.confidence)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue target dynamic EPE <= 0.15 m not reached yet: 0.192 measured; one "
+                   "car (920 points, 0.82 m motion) registers 0.2 m short, its scans disagree by 0.13 m at the truth")
+def test_av2_dynamic_epe_target(av2_pair, av2_result):
+    error = np.linalg.norm(av2_result.flow - av2_pair.flow, axis=1)
+    assert error[av2_pair.dynamic].mean() <= 0.15
