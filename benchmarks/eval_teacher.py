@@ -96,7 +96,7 @@ def eval_av2(variants, ground: str, base: dict) -> None:
 def eval_kitti(cfg_overrides: dict) -> None:
     data = np.load(DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz")
     poses = data["velo_poses_world"]
-    teacher = ICPFlow(ICPFlowConfig.preset("waymo", ground="patchwork", crop_xy=51.2, **cfg_overrides))
+    teacher = ICPFlow(ICPFlowConfig.preset("waymo", ground="patchwork", patchwork_z_offset=0.0, crop_xy=51.2, **cfg_overrides))
     print("\nKITTI seq 01 (KISS-ICP + point-to-plane refinement; static = every non-car point)")
     print("| pair | ego dt (m) | ego drot (deg) | static flow EPE (m) | p95 (m) | s/pair |")
     print("|---|---|---|---|---|---|")

@@ -41,8 +41,6 @@ _META_MEMBERS = {
 AV2_META = {0: "BACKGROUND"} | {
     AV2_CATEGORIES.index(name) + 1: meta for meta, names in _META_MEMBERS.items() for name in names
 }
-# The synthetic world's class table: 1 car, 2 other vehicle, 3 pedestrian, 4 cyclist.
-SYNTHETIC_META = {0: "BACKGROUND", 1: "CAR", 2: "OTHER_VEHICLES", 3: "PEDESTRIAN", 4: "WHEELED_VRU"}
 
 
 def _meta_index(classes: np.ndarray, class_to_meta: dict[int, str], metas: tuple[str, ...]) -> np.ndarray:
@@ -170,7 +168,7 @@ def av2_bucket_stats(pc0, pred_flow, gt_flow, ego1_from_ego0, classes, ground=No
     Points: non-ground, flow_valid, max(|x|, |y|) < distance in pc0's ego frame, class mapped to a meta-class.
     Speed = ||gt residual flow|| in metres per frame; bucket i holds edges[i] <= speed < edges[i + 1].
     ``classes`` are AV2 flow_labels classes (category index + 1, 0 = none) unless ``class_to_meta`` says otherwise
-    (e.g. SYNTHETIC_META; for Threeway use class_to_meta=THREEWAY_META, edges=THREEWAY_EDGES,
+    (a dataset's ``class_to_meta``; for Threeway use class_to_meta=THREEWAY_META, edges=THREEWAY_EDGES,
     metas=("BACKGROUND", "FOREGROUND")). Sums over pairs add up (point-weighted, as the package's count-weighted
     averages). The package applies its 35 m box to the points it is given (its "global" frame); here it is pc0's ego
     frame, which is what the package sees when its poses are identity.

@@ -2,7 +2,7 @@
 
 All panels are drawn in the ego frame of t + dt (pc1's frame), x forward to the right, y to the left upwards.
 Flow colour encodes the RESIDUAL (ego-compensated) flow, because full flow is dominated by the ego motion:
-hue = direction in the xy-plane, brightness = magnitude (saturating at ``max_speed`` m/s).
+hue = direction in the xy-plane, from grey (still) to full colour at ``max_speed`` m/s.
 """
 
 from __future__ import annotations
@@ -22,13 +22,13 @@ from icpflow.geometry import full_to_residual, transform_points  # noqa: E402
 
 
 def flow_colours(residual: np.ndarray, dt: float, max_speed: float = 10.0) -> np.ndarray:
-    """(N, 3) RGB in [0, 1] for (N, 3) residual flow: hue = xy direction, value = speed / max_speed (m/s)."""
+    """(N, 3) RGB in [0, 1] for (N, 3) residual flow: hue = xy direction, mixed from grey (still) to the full hue
+    at ``max_speed`` m/s (square-root ramp, so that slow movers already stand out)."""
     angle = np.arctan2(residual[:, 1], residual[:, 0])
     speed = np.linalg.norm(residual[:, :2], axis=1) / dt
-    hsv = np.stack(
-        [(angle + np.pi) / (2 * np.pi), np.ones_like(angle), np.clip(speed / max_speed, 0.0, 1.0) * 0.85 + 0.15], axis=1
-    )
-    return hsv_to_rgb(hsv)
+    hue = hsv_to_rgb(np.stack([(angle + np.pi) / (2 * np.pi), np.ones_like(angle), np.full_like(angle, 0.9)], axis=1))
+    weight = np.sqrt(np.clip(speed / max_speed, 0.0, 1.0))[:, None]
+    return weight * hue + (1.0 - weight) * 0.6
 
 
 def _scatter(ax, points, colour, size, label=None):
@@ -76,7 +76,7 @@ def plot_bev(
         _scatter(ax, moved[ground], "0.85", size)
         colours = flow_colours(residual[~ground], pair.dt, max_speed)
         _scatter(ax, moved[~ground], colours, size * 2)
-        ax.set_title(f"{name} residual flow (hue: direction, brightness: speed to {max_speed:g} m/s)")
+        ax.set_title(f"{name} residual flow (hue: direction; grey: still, full colour: {max_speed:g} m/s)")
         index += 2
     for ax in axes.flat[:panels]:
         ax.set_xlim(-extent, extent)
@@ -88,7 +88,7 @@ def plot_bev(
     for ax in axes.flat[panels:]:
         ax.axis("off")
     fig.suptitle(title or pair.sample_id or "frame pair")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp.png")

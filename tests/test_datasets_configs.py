@@ -5,20 +5,25 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_dir
 from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
 from icpflow.datasets.base import PairDataset
+from icpflow.labelling.cli import teacher_config
+from icpflow.teacher import ICPFlowConfig
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-NAMES = ["av2", "waymo", "nuscenes", "zeroflow_av2", "kitti", "pairs", "sequence"]
+NAMES = ["av2", "waymo", "nuscenes", "zeroflow_av2", "kitti", "pairs", "sequence", "synthetic"]
+FILE_LESS = {"synthetic"}  # generated: root is null, nothing is read
 
 
 def load(name: str, root, split: str = "val"):
     """The dataset group as the top-level config sees it: ``dataset`` plus the top-level ``split``."""
     config = OmegaConf.create({"split": split, "dataset": OmegaConf.load(CONF / f"{name}.yaml")})
-    config.dataset.root = str(root)
+    if name not in FILE_LESS:
+        config.dataset.root = str(root)
     return config
 
 
@@ -28,13 +33,43 @@ def test_config_shape_and_reader_options(name):
     assert config.dataset.name == name
     assert config.dataset.preset in ("av2", "waymo", "nuscenes")
     assert OmegaConf.is_dict(config.dataset.teacher)
-    assert OmegaConf.is_missing(OmegaConf.load(CONF / f"{name}.yaml"), "root")
+    assert config.dataset.eval_crop in (32.0, 51.2)
+    raw = OmegaConf.load(CONF / f"{name}.yaml")
+    assert raw.root is None if name in FILE_LESS else OmegaConf.is_missing(raw, "root")
     reader = OmegaConf.to_container(config.dataset.reader, resolve=True)
     cls = get_class(reader.pop("_target_"))
     assert issubclass(cls, PairDataset)
     parameters = inspect.signature(cls.__init__).parameters
     assert set(reader) <= set(parameters), f"{name}: options the reader does not take"
-    assert reader["root"] == "/nowhere"
+    assert name in FILE_LESS or reader["root"] == "/nowhere"
+
+
+def _composed(*overrides):
+    with initialize_config_dir(config_dir=str(CONF.parent), version_base="1.3"):
+        return compose("label", list(overrides))
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_teacher_block_names_teacher_fields(name):
+    """dataset.teacher holds ICPFlowConfig fields only; they land in the teacher config over the preset."""
+    cfg = _composed(f"dataset={name}", "dataset.root=/nowhere")
+    teacher = teacher_config(cfg)
+    block = OmegaConf.to_container(cfg.dataset.teacher)
+    assert teacher == ICPFlowConfig.preset(cfg.dataset.preset, **block)
+    assert teacher_config(_composed(f"dataset={name}", "dataset.root=/nowhere", "icpflow.min_cluster_size=7")
+                          ).min_cluster_size == 7
+
+
+def test_unknown_teacher_key_is_an_error():
+    cfg = _composed("dataset=kitti", "dataset.root=/nowhere", "+dataset.teacher.num_frames=5")
+    with pytest.raises(ValueError, match="dataset kitti: dataset.teacher has keys that are not ICPFlowConfig fields: "
+                                         "num_frames"):
+        teacher_config(cfg)
+
+
+def test_synthetic_config_instantiates():
+    dataset = instantiate(load("synthetic", None).dataset.reader)
+    assert len(dataset) == 8 and dataset.split == "val" and dataset.lidar.beams == 64
 
 
 def test_pairs_config_instantiates(tmp_path):

@@ -74,7 +74,7 @@ def test_round_trip_holds_reader_input_and_teacher_output(reference):
     assert sorted(p.name for p in reference.glob("shard_*.h5")) == [f"shard_00000{i}.h5" for i in range(3)]
     dataset = SyntheticDataset(**READER)
     samples = _samples(reference)
-    cfg, _ = teacher_config(_cfg(reference))
+    cfg = teacher_config(_cfg(reference))
     teacher = ICPFlow(cfg)
     for i in (0, 4):
         pair, got = dataset.pair(i), samples[i]
@@ -246,7 +246,7 @@ def test_missing_or_empty_root_is_one_line(tmp_path, root):
 
 def test_long_horizon_direct_and_tracker(tmp_path):
     dataset = SyntheticDataset(**READER)
-    cfg, _ = teacher_config(_cfg(tmp_path))
+    cfg = teacher_config(_cfg(tmp_path))
     direct_out, tracked_out = tmp_path / "direct", tmp_path / "tracker"
     assert label(_cfg(direct_out, "horizon=2", "limit=2"), progress=False) == 0
     assert label(_cfg(tracked_out, "horizon=2", "tracker=true", "limit=2"), progress=False) == 0

@@ -35,6 +35,7 @@ from icpflow.datasets.base import PairDataset
 from icpflow.datasets.io import check_points, fail, read_feather
 from icpflow.frames import FramePair
 from icpflow.geometry import ego_flow, invert, transform_points
+from icpflow.metrics import AV2_META
 
 POSE_COLUMNS = ("timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
 CUBOID_COLUMNS = (
@@ -52,6 +53,7 @@ class AV2Dataset(PairDataset):
     """Argoverse 2 sensor-dataset sweep pairs with map ground and annotation flow (see the module docstring)."""
 
     name = "av2"
+    class_to_meta = AV2_META
 
     def __init__(
         self,

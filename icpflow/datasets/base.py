@@ -19,6 +19,8 @@ class PairDataset(ABC):
     name: str = "dataset"
     #: largest frame gap ``k`` that ``pair(index, horizon=k)`` supports
     max_horizon: int = 1
+    #: the readers' ``classes`` -> AV2 bucketed-metric meta-class (``icpflow.metrics.META_CLASSES``); None: unknown
+    class_to_meta: dict[int, str] | None = None
 
     @abstractmethod
     def __len__(self) -> int: ...

@@ -16,7 +16,7 @@ import numpy as np
 
 from icpflow.datasets.base import PairDataset
 from icpflow.frames import FramePair, FrameSequence
-from icpflow.synthetic import Lidar, build_scene, sequence
+from icpflow.synthetic import AV2_META_CLASSES, Lidar, build_scene, sequence
 
 SPLIT_OFFSETS = {"train": 0, "val": 1, "test": 2}
 SPLIT_STRIDE = 1_000_000
@@ -26,6 +26,7 @@ class SyntheticDataset(PairDataset):
     """Frame pairs of generated sequences (see the module docstring). Picklable; nothing generated up front."""
 
     name = "synthetic"
+    class_to_meta = AV2_META_CLASSES
 
     def __init__(
         self,

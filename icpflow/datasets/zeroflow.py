@@ -26,6 +26,7 @@ import numpy as np
 from icpflow.datasets.base import PairDataset
 from icpflow.datasets.io import fail, load_npz
 from icpflow.frames import FramePair
+from icpflow.metrics import AV2_META
 
 KEYS = ("pc1", "pc2", "gt_flow_0_1", "pc1_flows_valid_idx", "pc2_flows_valid_idx", "pc1_classes")
 #: the AV2 dynamic rule, as the AV2 reader: at least 0.05 m between sweeps 0.1 s apart
@@ -57,6 +58,7 @@ class ZeroFlowAV2Dataset(PairDataset):
     """ZeroFlow dumps of Argoverse 2 pairs (see the module docstring for frames and conversions)."""
 
     name = "zeroflow_av2"
+    class_to_meta = AV2_META
 
     def __init__(self, root: str | Path, split: str = "val", subdir: str = "{split}_zero_flow") -> None:
         self.root = Path(root)

@@ -16,17 +16,21 @@ from icpflow.labelling.run import LabelError, LabelJob, run_labelling
 def teacher_config(cfg: DictConfig):
     """``ICPFlowConfig``: the dataset's preset, then ``dataset.teacher``, then non-null ``icpflow.*`` fields.
 
-    Returns ``(config, ignored)`` where ``ignored`` lists ``dataset.teacher`` keys that are not teacher fields.
+    A ``dataset.teacher`` key that is not a teacher field is an error (ValueError naming it).
     """
     from icpflow.teacher.config import ICPFlowConfig, from_hydra
 
     known = {f.name for f in dataclasses.fields(ICPFlowConfig)}
-    per_dataset = OmegaConf.to_container(cfg.dataset.get("teacher") or {}, resolve=True)
-    ignored = sorted(set(per_dataset) - known)
-    values = {key: value for key, value in per_dataset.items() if key in known}
+    block = cfg.dataset.get("teacher")
+    per_dataset = OmegaConf.to_container(block, resolve=True) if block is not None else {}
+    unknown = sorted(set(per_dataset) - known)
+    if unknown:
+        raise ValueError(f"dataset {cfg.dataset.name}: dataset.teacher has keys that are not ICPFlowConfig fields: "
+                         f"{', '.join(unknown)}")
+    values = dict(per_dataset)
     chosen = OmegaConf.to_container(cfg.icpflow, resolve=True)
     values.update({key: value for key, value in chosen.items() if value is not None})
-    return from_hydra(values), ignored
+    return from_hydra(values)
 
 
 def labeller_yaml(cfg: DictConfig, teacher) -> str:
@@ -40,7 +44,7 @@ def labeller_yaml(cfg: DictConfig, teacher) -> str:
     return OmegaConf.to_yaml(OmegaConf.create(content), sort_keys=True)
 
 
-def _open_dataset(cfg: DictConfig):
+def open_dataset(cfg: DictConfig):
     """Instantiate the reader; a missing or empty root becomes one line (LabelError)."""
     from hydra.utils import instantiate
 
@@ -71,11 +75,8 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
     130: interrupted (only complete shards are kept).
     """
     try:
-        dataset = _open_dataset(cfg)
-        teacher, ignored = teacher_config(cfg)
-        if ignored:
-            print(f"label: dataset.teacher keys that are not teacher fields, ignored: {', '.join(ignored)}",
-                  file=sys.stderr)
+        dataset = open_dataset(cfg)
+        teacher = teacher_config(cfg)
         if int(cfg.horizon) > getattr(dataset, "max_horizon", 1):
             raise LabelError(f"dataset {cfg.dataset.name}: horizon={cfg.horizon} exceeds its max_horizon "
                              f"{dataset.max_horizon}")

@@ -42,7 +42,7 @@ class LabelJob:
         self.hash = config_hash(self.config_yaml)
 
 
-def _tracked(dataset, teacher, index: int, horizon: int, pair):
+def tracked_sample(dataset, teacher, index: int, horizon: int, pair):
     """Tracker mode: teacher calls on every consecutive pair of (t .. t + horizon), chained (see teacher.tracker)."""
     from icpflow.teacher.tracker import long_horizon_flow
 
@@ -70,7 +70,7 @@ def _sample(dataset, teacher, index: int, horizon: int, tracker: bool) -> dict:
     """One labelled sample as written to a shard (see ``icpflow.shards.schema``)."""
     pair = dataset.pair(index, horizon=horizon)
     if tracker and horizon > 1:
-        flow, confidence, cluster, ground0, ground1, ego = _tracked(dataset, teacher, index, horizon, pair)
+        flow, confidence, cluster, ground0, ground1, ego = tracked_sample(dataset, teacher, index, horizon, pair)
     else:
         result = teacher(pair.pc0, pair.pc1, ego1_from_ego0=pair.ego1_from_ego0, ground0=pair.ground0,
                          ground1=pair.ground1, gap=horizon)

@@ -28,6 +28,8 @@ class ShardDataset:
             raise FileNotFoundError(f"{index_path}: no index (run label.py first)")
         index = json.loads(index_path.read_text())
         self.entries = [(shard["file"], position) for shard in index["shards"] for position in range(len(shard["samples"]))]
+        #: sample id of each entry, in order (from the index, without opening a shard)
+        self.sample_ids = [sample["sample_id"] for shard in index["shards"] for sample in shard["samples"]]
         self._files: dict[str, h5py.File] = {}
         self._pid = os.getpid()
 

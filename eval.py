@@ -1,0 +1,23 @@
+"""Evaluate scene-flow methods against ground truth (see conf/eval.yaml and icpflow.evaluation).
+
+    python eval.py [dataset=<name>] [split=val] [method=[zero,ego,icpflow,student,shards]] [checkpoint=...]
+        [shards=<label out_dir>] [horizon=k] [tracker=true] [limit=N] [bev=N] [out_dir=...]
+"""
+
+import sys
+
+import hydra
+from omegaconf import DictConfig
+
+from icpflow.evaluation import run_eval
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="eval")
+def main(cfg: DictConfig) -> None:
+    status = run_eval(cfg)
+    if status:
+        sys.exit(status)
+
+
+if __name__ == "__main__":
+    main()
