@@ -1,6 +1,6 @@
 """Quality tables of the ICP-Flow teacher: Argoverse 2 pair, KITTI sequence 01 frames, synthetic val split.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/eval_teacher.py [--av2] [--kitti] [--synthetic N | --synthetic-seeds a:b]
+    .venv/bin/python benchmarks/eval_teacher.py [--av2] [--kitti] [--synthetic N | --synthetic-seeds a:b]
         [--variants "teacher,centroid init,hungarian,kiss-icp ego,zero flow"]
 
 Metrics per point group (the paper's table): EPE (m, mean end-point error), Acc-S (share of points with error
