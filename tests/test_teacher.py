@@ -102,15 +102,22 @@ def test_ground_zthreshold_and_none():
     assert not GroundSegmenter(CFG.replace(ground="none"))(points).any()
 
 
-def test_patchwork_finds_a_flat_ground():
+@pytest.mark.parametrize("cfg, ground_z", [
+    (ICPFlowConfig(ground="patchwork"), -1.723),  # sensor frame: the ground 1.723 m below the lidar
+    (CFG.replace(ground="patchwork"), 0.0),  # Waymo vehicle frame: the ground at z = 0 (patchwork_z_offset)
+])
+def test_patchwork_finds_a_flat_ground(cfg, ground_z):
     rng = np.random.default_rng(0)
     radius, angle = rng.uniform(3, 30, 20000), rng.uniform(-np.pi, np.pi, 20000)
-    plane = np.stack([radius * np.cos(angle), radius * np.sin(angle), np.full(20000, -1.723)], 1)
-    pole = np.stack([np.full(500, 6.0), np.zeros(500), np.linspace(-1.2, 1.0, 500)], 1)
+    plane = np.stack([radius * np.cos(angle), radius * np.sin(angle), np.full(20000, ground_z)], 1)
+    pole = np.stack([np.full(500, 6.0), np.zeros(500), np.linspace(0.5, 2.7, 500) + ground_z], 1)
     points = np.concatenate([plane, pole]).astype(np.float32)
-    ground = GroundSegmenter(CFG.replace(ground="patchwork"))(points)
+    segmenter = GroundSegmenter(cfg)
+    ground = segmenter(points)
     assert ground[:20000].mean() > 0.95
     assert not ground[20000:].any()
+    # Patchwork++ adapts its thresholds to what it has seen; the segmenter must not: same scan, same mask
+    np.testing.assert_array_equal(segmenter(points), ground)
 
 
 def test_voxel_downsample_carries_labels_back():

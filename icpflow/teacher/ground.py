@@ -30,11 +30,16 @@ def _quiet_stdout():
 
 
 class GroundSegmenter:
-    """Ground masks for one configuration; the Patchwork++ object is built once and reused."""
+    """Ground masks for one configuration.
+
+    Patchwork++ adapts its elevation and flatness thresholds to the scans it has seen (a ``patchworkpp`` object
+    gives a different mask for the same scan the second time), so every scan gets a fresh object (about 20 us):
+    a pair's ground then depends on that pair alone, whatever order or worker labels it.
+    """
 
     def __init__(self, cfg):
         self.cfg = cfg
-        self._patchwork = None
+        self._params = None
         if cfg.ground in ("both", "patchwork"):
             import pypatchworkpp
 
@@ -45,8 +50,7 @@ class GroundSegmenter:
             params.sensor_height = float(cfg.sensor_height)
             params.min_range = 1.0
             params.max_range = float(cfg.patchwork_max_range)
-            with _quiet_stdout():
-                self._patchwork = pypatchworkpp.patchworkpp(params)
+            self._params = params
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool ground mask of (N, 3) float32 points."""
@@ -56,7 +60,7 @@ class GroundSegmenter:
             return ground
         if self.cfg.ground in ("both", "zthreshold"):
             ground |= points[:, 2] <= self.cfg.range_z + self.cfg.ground_slack
-        if self._patchwork is not None:
+        if self._params is not None:
             ground |= self.patchwork(points)
         return ground
 
@@ -68,6 +72,10 @@ class GroundSegmenter:
         cloud = np.zeros((len(points), 4), dtype=np.float64)  # x, y, z, intensity (unused)
         cloud[:, :3] = points
         cloud[:, 2] += self.cfg.patchwork_z_offset
-        self._patchwork.estimateGround(cloud)
-        ground[np.asarray(self._patchwork.getGroundIndices(), dtype=np.int64)] = True
+        import pypatchworkpp
+
+        with _quiet_stdout():
+            patchwork = pypatchworkpp.patchworkpp(self._params)
+        patchwork.estimateGround(cloud)
+        ground[np.asarray(patchwork.getGroundIndices(), dtype=np.int64)] = True
         return ground
