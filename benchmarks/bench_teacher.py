@@ -4,7 +4,8 @@
 
 Rows (medians over ``repeats`` runs after one warm-up run):
 * ``av2``: the Argoverse 2 pair in ../shared/data/av2 (2 x ~99k points), ego motion given (``ego_motion.npz``),
-  preset "av2", ground from the teacher (Patchwork++).
+  per-point times from ``offset_ns`` (so the preset's de-skew step runs), preset "av2", ground from the teacher
+  (Patchwork++).
 * ``kitti``: KITTI HDL-64E scans 000000 -> 000001 in ../shared/data/kitti_hdl64_scans (~124k points each), no
   poses, so KISS-ICP estimates the ego motion; preset "av2" (Patchwork++ ground, 51.2 m crop).
 * ``kernels``: the per-cluster kernels alone on P synthetic cluster pairs of ~300 points (car-sized box surfaces
@@ -27,46 +28,49 @@ from icpflow.geometry import make_transform, transform_points
 from icpflow.teacher.checks import passes
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.histogram import initial_translations, params_from_config as hist_params
+from icpflow.teacher.pipeline import STAGES
 from icpflow.teacher.registration import register_clusters
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-STAGES = ("ego_motion", "ground", "clustering", "pairing", "histogram", "icp", "flow")
 
 
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def read_av2() -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def read_av2() -> tuple[np.ndarray, np.ndarray, np.ndarray, dict] | None:
     import pandas as pd
 
     logs = sorted((DATA / "av2" / "sensor" / "val").glob("*/"))
     if not logs:
         return None
     sweeps = sorted((logs[0] / "sensors" / "lidar").glob("*.feather"))[:2]
-    pc0, pc1 = (pd.read_feather(s, columns=["x", "y", "z"]).to_numpy().astype(np.float32) for s in sweeps)
+    frames = [pd.read_feather(s, columns=["x", "y", "z", "offset_ns"]) for s in sweeps]
+    pc0, pc1 = (f[["x", "y", "z"]].to_numpy().astype(np.float32) for f in frames)
+    time0, time1 = ((f["offset_ns"].to_numpy() * 1e-9).astype(np.float32) for f in frames)
     ego = np.load(logs[0] / "ego_motion.npz")["ego_motion"][0].astype(np.float64)
-    return pc0, pc1, ego
+    dt = (int(sweeps[1].stem) - int(sweeps[0].stem)) * 1e-9
+    return pc0, pc1, ego, {"time0": time0, "time1": time1, "dt": dt}
 
 
-def read_kitti() -> tuple[np.ndarray, np.ndarray, None] | None:
+def read_kitti() -> tuple[np.ndarray, np.ndarray, None, dict] | None:
     scans = sorted((DATA / "kitti_hdl64_scans").glob("*.bin"))[:2]
     if len(scans) < 2:
         return None
     pc0, pc1 = (np.fromfile(s, dtype=np.float32).reshape(-1, 4)[:, :3].copy() for s in scans)
-    return pc0, pc1, None
+    return pc0, pc1, None, {}
 
 
 def bench_teacher(name, data, cfg, repeats) -> dict:
     from icpflow.teacher.pipeline import ICPFlow
 
     teacher = ICPFlow(cfg)
-    pc0, pc1, ego = data
-    teacher(pc0, pc1, ego)  # warm-up: numba caches, Patchwork++ and KISS-ICP objects
+    pc0, pc1, ego, extra = data
+    teacher(pc0, pc1, ego, **extra)  # warm-up: numba caches, Patchwork++ and KISS-ICP objects
     walls, stages, candidates, matches = [], {s: [] for s in STAGES}, 0, 0
     for _ in range(repeats):
         tic = time.perf_counter()
-        result = teacher(pc0, pc1, ego)
+        result = teacher(pc0, pc1, ego, **extra)
         walls.append(time.perf_counter() - tic)
         for s in STAGES:
             stages[s].append(result.timings.get(s, 0.0))

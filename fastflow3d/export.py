@@ -16,10 +16,13 @@ exporter mis-exports scatter ops without a warning, so every export is run once 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import logging
 import os
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -117,6 +120,22 @@ def check_inputs(model: FastFlow3D, n0: int, n1: int, seed: int) -> tuple[torch.
 CHECK_SIZES = ((3000, 2500, 0), (257, 4100, 1), (6000, 40, 2))
 
 
+@contextlib.contextmanager
+def quiet_exporters():
+    """Silence the exporters' progress logs and deprecation warnings for the duration (levels are restored)."""
+    loggers = [logging.getLogger(name) for name in ("torch.onnx", "onnxscript", "onnx_ir")]
+    levels = [logger.level for logger in loggers]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", (DeprecationWarning, FutureWarning))
+        for logger in loggers:
+            logger.setLevel(logging.ERROR)
+        try:
+            yield
+        finally:
+            for logger, level in zip(loggers, levels):
+                logger.setLevel(level)
+
+
 def _atomic_target(path: Path) -> Path:
     return path.with_name(f".{path.name}.{os.getpid()}.tmp")
 
@@ -152,30 +171,9 @@ def export_torchscript(net: SingleSampleNet, path: Path) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def run_onnx(path: Path):
-    """``(pc0_compensated, pc1) numpy -> (residual, valid) numpy`` with ONNX Runtime on the CPU."""
-    try:
-        import onnxruntime
-    except ImportError:
-        raise ExportError("ONNX parity needs onnxruntime: pip install 'icpflow[export]'") from None
-    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    return lambda pc0, pc1: session.run(list(OUTPUT_NAMES), {INPUT_NAMES[0]: pc0, INPUT_NAMES[1]: pc1})
-
-
-def run_torchscript(path: Path):
-    """``(pc0_compensated, pc1) numpy -> (residual, valid) numpy`` with the saved TorchScript module."""
-    module = torch.jit.load(str(path), map_location="cpu")
-
-    def run(pc0, pc1):
-        with torch.no_grad():
-            residual, valid = module(torch.from_numpy(pc0), torch.from_numpy(pc1))
-        return residual.numpy(), valid.numpy()
-
-    return run
-
-
 def measure_parity(net: SingleSampleNet, runner) -> float:
-    """Max abs difference (m) of ``runner``'s residual against eager on :data:`CHECK_SIZES`; validity must match."""
+    """Max abs difference (m) of ``runner``'s residual (numpy in, numpy out) against eager on
+    :data:`CHECK_SIZES`; the validity masks must match."""
     worst = 0.0
     for n0, n1, seed in CHECK_SIZES:
         pc0, pc1 = check_inputs(net.model, n0, n1, seed + 100)
@@ -205,12 +203,16 @@ def export_model(model: FastFlow3D, out_dir: str | os.PathLike, formats=FORMATS,
     net = SingleSampleNet(model.eval()).eval()
     metadata = network_metadata(model, model_config, checkpoint)
     metadata["files"], metadata["parity_max_abs_m"] = {}, {}
-    writers = {"onnx": (export_onnx, run_onnx), "torchscript": (export_torchscript, run_torchscript)}
+    from fastflow3d.predictor import OnnxRuntimeNetwork, load_network  # imports this module
+
+    writers = {"onnx": export_onnx, "torchscript": export_torchscript}
     for name in formats:
         path = out_dir / FILE_NAMES[name]
-        write, runner = writers[name]
-        write(net, path)
-        error = measure_parity(net, runner(path))
+        with quiet_exporters():
+            writers[name](net, path)
+            runner = (OnnxRuntimeNetwork(path, ["CPUExecutionProvider"]) if name == "onnx"
+                      else load_network(path, name, "cpu"))
+            error = measure_parity(net, runner)
         if not error <= tolerance:
             path.unlink()
             raise ExportError(f"{path}: {name} export differs from eager by {error:.3g} m (> {tolerance:g} m); "

@@ -9,8 +9,10 @@ import torch
 from fastflow3d.scatter import scatter_sum
 
 
-def speed_weight(pseudo: torch.Tensor, dt: float = 0.1) -> torch.Tensor:
-    """ZeroFlow's importance weight ``max(0.1, min(1, 1.8 v - 0.8))``, v = pseudo-label speed in m/s; (P,)."""
+def speed_weight(pseudo: torch.Tensor, dt: float | torch.Tensor = 0.1) -> torch.Tensor:
+    """ZeroFlow's importance weight ``max(0.1, min(1, 1.8 v - 0.8))``, v = pseudo-label speed in m/s; (P,).
+
+    ``dt`` in seconds: a number, or (P,) per point (a batch mixing frame rates)."""
     speed = torch.linalg.vector_norm(pseudo, dim=1) / dt
     return (1.8 * speed - 0.8).clamp(min=0.1, max=1.0)
 
@@ -27,7 +29,7 @@ def weighted_epe(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor,
 
 
 def distillation_loss(pred: torch.Tensor, pseudo: torch.Tensor, batch: torch.Tensor, valid: torch.Tensor,
-                      batch_size: int, use_speed_weight: bool = False, dt: float = 0.1,
+                      batch_size: int, use_speed_weight: bool = False, dt: float | torch.Tensor = 0.1,
                       confidence: torch.Tensor | None = None) -> torch.Tensor:
     """ZeroFlow loss on pseudo-labels; optional speed weight (``dt`` in s) and per-point confidence (P,) weight."""
     weight = speed_weight(pseudo, dt) if use_speed_weight else torch.ones_like(pred[:, 0])

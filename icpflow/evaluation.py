@@ -55,7 +55,8 @@ class TeacherMethod:
 
             return tracked_sample(self.dataset, self.teacher, index, self.horizon, pair)[0]
         return self.teacher(pair.pc0, pair.pc1, ego1_from_ego0=pair.ego1_from_ego0, ground0=pair.ground0,
-                            ground1=pair.ground1, gap=self.horizon).flow
+                            ground1=pair.ground1, time0=pair.time0, time1=pair.time1, gap=self.horizon,
+                            dt=pair.dt).flow
 
 
 class ShardMethod:

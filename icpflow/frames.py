@@ -6,6 +6,11 @@ A :class:`FramePair` holds two scans and whatever is known about them. Conventio
   of t + dt. N0 and N1 differ in general.
 * ``ego1_from_ego0`` (4, 4) float64 rigid, optional; derived from ``pose0``/``pose1`` (world_from_ego) if given.
 * ``ground0`` (N0,), ``ground1`` (N1,) bool, optional.
+* ``time0`` (N0,), ``time1`` (N1,) float32, optional: each point's capture time in seconds relative to its own
+  scan's timestamp (``timestamp0_ns`` / ``timestamp1_ns``), e.g. Argoverse 2's ``offset_ns`` (0 to ~0.1 s across a
+  spinning sweep). The points themselves stay where they were measured; the teacher can use the times to undo
+  the smear of moving objects (rolling shutter). Readers without per-point times leave them None; shards do not
+  store them.
 * Ground truth for pc0, optional: ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow`` is in the ego frame of
   t + dt), ``flow_valid`` (N0,) bool, ``classes`` (N0,) int32 (0 = background), ``instance`` (N0,) int32
   (0 = background), ``dynamic`` (N0,) bool.
@@ -88,6 +93,8 @@ class FramePair:
     pose1: np.ndarray | None = None
     ground0: np.ndarray | None = None
     ground1: np.ndarray | None = None
+    time0: np.ndarray | None = None
+    time1: np.ndarray | None = None
     flow: np.ndarray | None = None
     flow_valid: np.ndarray | None = None
     classes: np.ndarray | None = None
@@ -118,6 +125,8 @@ class FramePair:
                 raise FramePairError(f"{src}: ego1_from_ego0 disagrees with inv(pose1) @ pose0")
         _check_per_point("ground0", self.ground0, n0, "bool", src)
         _check_per_point("ground1", self.ground1, n1, "bool", src)
+        _check_per_point("time0", self.time0, n0, "float32", src)
+        _check_per_point("time1", self.time1, n1, "float32", src)
         _check_per_point("flow", self.flow, n0, "float32", src, width=3)
         _check_per_point("flow_valid", self.flow_valid, n0, "bool", src)
         _check_per_point("classes", self.classes, n0, "int32", src)

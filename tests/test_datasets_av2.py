@@ -48,6 +48,11 @@ def test_points_poses_and_times(real_pair):
     assert (real_pair.timestamp0_ns, real_pair.timestamp1_ns) == (STAMP0, STAMP1)
     assert real_pair.dt == pytest.approx(0.100196)
     assert real_pair.log_id == LOG
+    # per-point capture times: offset_ns in seconds, 0 to ~0.1 s after the sweep's timestamp
+    assert real_pair.time0.dtype == np.float32 and real_pair.time0.shape == (99229,)
+    np.testing.assert_allclose(real_pair.time0, raw["offset_ns"].to_numpy() * 1e-9, rtol=1e-6)
+    assert real_pair.time1.shape == (99466,)
+    assert 0.0 < real_pair.time1.min() < 0.01 and 0.09 < real_pair.time1.max() < 0.11
 
 
 def test_flow_matches_official_labels(real_pair, labels):
@@ -147,6 +152,21 @@ def test_truncated_sweep(log_copy):
     _sweep(log_dir, STAMP1).write_bytes(data[: len(data) // 2])
     message = _read_error(root)
     assert f"{STAMP1}.feather: cannot read feather" in message
+
+
+def test_sweep_without_offsets_has_no_times(log_copy):
+    root, log_dir = log_copy
+    pd.read_feather(_sweep(log_dir, STAMP1)).drop(columns="offset_ns").to_feather(_sweep(log_dir, STAMP1))
+    pair = AV2Dataset(root, "val").pair(0)
+    assert pair.time0 is not None and pair.time1 is None
+
+
+def test_non_integer_offsets(log_copy):
+    root, log_dir = log_copy
+    frame = pd.read_feather(_sweep(log_dir))
+    frame["offset_ns"] = frame["offset_ns"].astype(np.float64)
+    frame.to_feather(_sweep(log_dir))
+    assert f"{STAMP0}.feather: offset_ns must hold integer nanoseconds" in _read_error(root)
 
 
 def test_missing_pose(log_copy):

@@ -37,8 +37,11 @@ def test_valid_pair_with_everything():
         classes=np.zeros(n0, np.int32),
         instance=np.zeros(n0, np.int32),
         dynamic=np.zeros(n0, bool),
+        time0=np.linspace(0, 0.1, n0, dtype=np.float32),
+        time1=np.zeros(60, np.float32),
     )
     assert pair.has_ground_truth
+    assert pair.time0[-1] == pytest.approx(0.1)
     assert set(pair.arrays()) >= {"pc0", "pc1", "flow", "ego1_from_ego0", "classes"}
 
 
@@ -63,6 +66,9 @@ BAD_CASES = [
     (dict(classes=np.zeros(50, np.int64)), "classes must be int32"),
     (dict(instance=np.zeros(51, np.int32)), r"instance must have shape \(50,\)"),
     (dict(dynamic=np.zeros(50, np.float32)), "dynamic must be bool"),
+    (dict(time0=np.zeros(49, np.float32)), r"time0 must have shape \(50,\)"),
+    (dict(time1=np.zeros(60, np.float64)), "time1 must be float32"),
+    (dict(time0=np.full(50, np.nan, np.float32)), "time0 has NaN or Inf"),
     (dict(dt=0.0), "dt must be a positive"),
     (dict(dt=float("nan")), "dt must be a positive"),
     (dict(pose0=np.eye(4)), "pose0 and pose1 must be given together"),

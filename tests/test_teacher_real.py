@@ -55,8 +55,9 @@ def av2_pair():
 
 @pytest.fixture(scope="module")
 def av2_result(av2_pair):
-    p = av2_pair
-    return ICPFlow(ICPFlowConfig.preset("av2"))(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1)
+    p = av2_pair  # with the sweeps' per-point times, so the preset's de-skew step runs
+    return ICPFlow(ICPFlowConfig.preset("av2"))(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1, p.time0,
+                                                p.time1, dt=p.dt)
 
 
 @pytest.mark.slow
@@ -65,16 +66,23 @@ def test_av2_flow_beats_zero_flow_and_is_repeatable(av2_pair, av2_result):
     error = np.linalg.norm(av2_result.flow - p.flow, axis=1)
     zero = np.linalg.norm(ego_flow(p.pc0, p.ego1_from_ego0) - p.flow, axis=1)
     assert zero[p.dynamic].mean() == pytest.approx(0.664, abs=0.002)  # the zero-flow baseline
-    assert error[p.dynamic].mean() < 0.21  # measured 0.192
     assert error[~p.dynamic].mean() < 0.03
-    again = ICPFlow(ICPFlowConfig.preset("av2"))(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1)
+    again = ICPFlow(ICPFlowConfig.preset("av2"))(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1, p.time0,
+                                                 p.time1, dt=p.dt)
     np.testing.assert_array_equal(again.flow, av2_result.flow)  # same input, same output
     np.testing.assert_array_equal(again.confidence, av2_result.confidence)
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue target dynamic EPE <= 0.15 m not reached yet: 0.192 measured; one "
-                   "car (920 points, 0.82 m motion) registers 0.2 m short, its scans disagree by 0.13 m at the truth")
 def test_av2_dynamic_epe_target(av2_pair, av2_result):
+    """The issue's target, dynamic EPE <= 0.15 m, on a stricter protocol than eval.py's: every dynamic point,
+    ground included (map ground within 0.4 m), no 51.2 m crop. Measured 0.107 with de-skew (0.192 without:
+    one car, 920 points moving 0.82 m, registered 0.2 m short between its rolling-shutter smeared scans);
+    eval.py's dynamic foreground (non-ground, crop 51.2 m) measures 0.066."""
     error = np.linalg.norm(av2_result.flow - av2_pair.flow, axis=1)
     assert error[av2_pair.dynamic].mean() <= 0.15
+    assert av2_result.n_deskewed >= 1
+    p = av2_pair
+    plain = ICPFlow(ICPFlowConfig.preset("av2", deskew=False))(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1)
+    plain_error = np.linalg.norm(plain.flow - p.flow, axis=1)
+    assert plain_error[p.dynamic].mean() > error[p.dynamic].mean() + 0.05  # the de-skew step is what gets there

@@ -9,6 +9,9 @@ What a pair holds (project conventions, ``icpflow.frames``):
 * ``pc0``, ``pc1`` (N, 3) float32, each sweep in its own ego frame; ``pose0``/``pose1`` world_from_ego (the city
   frame) float64, so ``ego1_from_ego0 = inv(pose1) @ pose0`` (composed in float64; av2 composes in float32,
   which puts up to about 1e-3 m of ego-motion error into the official labels far from the city origin).
+* ``time0``/``time1`` (N,) float32: each point's capture time in seconds after its sweep's timestamp, from the
+  sweep's ``offset_ns`` column (0 to ~0.1 s; the two stacked lidars scan with different phases); None when a
+  sweep has no ``offset_ns`` column.
 * ``ground0``/``ground1``: a point is ground if it lies within ``ground_threshold`` of the map's ground height
   raster, or below it; points off the raster are not ground. The default 0.3 m is av2's own
   (``GROUND_HEIGHT_THRESHOLD_M``) and reproduces the official ``is_ground_0`` labels; 0.4 m (ZeroFlow's band)
@@ -105,7 +108,7 @@ class AV2Dataset(PairDataset):
         log, t = self._index[index]
         log_dir, stamps = self._logs[log]
         stamp0, stamp1 = stamps[t], stamps[t + horizon]
-        pc0, pc1 = self._points(log_dir, stamp0), self._points(log_dir, stamp1)
+        (pc0, time0), (pc1, time1) = self._points(log_dir, stamp0), self._points(log_dir, stamp1)
         pose0, pose1 = self._pose(log_dir, stamp0), self._pose(log_dir, stamp1)
         fields = {}
         if self.with_flow and (log_dir / "annotations.feather").is_file():
@@ -117,6 +120,8 @@ class AV2Dataset(PairDataset):
             pose1=pose1,
             ground0=self._ground(log_dir, pc0, pose0),
             ground1=self._ground(log_dir, pc1, pose1),
+            time0=time0,
+            time1=time1,
             dt=(stamp1 - stamp0) * 1e-9,
             log_id=log_dir.name,
             sample_id=self.sample_id(index) + ("" if horizon == 1 else f"+{horizon}"),
@@ -131,10 +136,17 @@ class AV2Dataset(PairDataset):
     def _lidar_path(log_dir: Path, stamp: int) -> Path:
         return log_dir / "sensors" / "lidar" / f"{stamp}.feather"
 
-    def _points(self, log_dir: Path, stamp: int) -> np.ndarray:
-        """(N, 3) float32 x, y, z of one sweep, ego frame."""
+    def _points(self, log_dir: Path, stamp: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """(N, 3) float32 x, y, z of one sweep (ego frame) and (N,) float32 capture times (s) or None."""
         path = self._lidar_path(log_dir, stamp)
-        return check_points(path, "x, y, z", read_feather(path, LIDAR_COLUMNS)[["x", "y", "z"]].to_numpy())
+        frame = read_feather(path, LIDAR_COLUMNS)
+        points = check_points(path, "x, y, z", frame[["x", "y", "z"]].to_numpy())
+        if "offset_ns" not in frame.columns:
+            return points, None
+        offsets = frame["offset_ns"].to_numpy()
+        if not np.issubdtype(offsets.dtype, np.integer):
+            raise fail(path, f"offset_ns must hold integer nanoseconds, got {offsets.dtype}")
+        return points, (offsets * 1e-9).astype(np.float32)
 
     def _log_cache(self, log_dir: Path) -> dict:
         """Per-log tables and raster, kept for the current log only (samples are ordered by log)."""

@@ -73,7 +73,7 @@ def _sample(dataset, teacher, index: int, horizon: int, tracker: bool) -> dict:
         flow, confidence, cluster, ground0, ground1, ego = tracked_sample(dataset, teacher, index, horizon, pair)
     else:
         result = teacher(pair.pc0, pair.pc1, ego1_from_ego0=pair.ego1_from_ego0, ground0=pair.ground0,
-                         ground1=pair.ground1, gap=horizon)
+                         ground1=pair.ground1, time0=pair.time0, time1=pair.time1, gap=horizon, dt=pair.dt)
         flow, confidence, cluster = result.flow, result.confidence, result.labels0
         ground0, ground1, ego = result.ground0, result.ground1, result.ego1_from_ego0
     return {

@@ -2,9 +2,10 @@
 
 Steps (one module each): ego motion (``ego_motion``), ground removal and crop (``ground``), one clustering of the
 fused non-ground points (``clustering``), candidate pairs in two stages (``pairing``), histogram or centroid
-initialisation (``histogram``), ICP (``registration``), checks (``checks``), association (``association``), flow
-and confidence (``flow``). Frames: pc0 in the ego frame of t, pc1 in the ego frame of t + dt; clustering and
-registration happen in pc1's frame after ego compensation of pc0.
+initialisation (``histogram``), ICP (``registration``), checks (``checks``), association (``association``),
+optional rolling-shutter refinement of moving matches (``deskew``, with ``cfg.deskew`` and per-point capture times
+``time0``/``time1``), flow and confidence (``flow``). Frames: pc0 in the ego frame of t, pc1 in the ego frame of
+t + dt; clustering and registration happen in pc1's frame after ego compensation of pc0.
 
 Bad input: rows of pc0/pc1 with NaN or Inf are dropped before processing and counted (``dropped0``/``dropped1``);
 their flow is reported as 0 with confidence 0 and ``valid0`` False. A non-rigid ``ego1_from_ego0``, wrong shapes
@@ -19,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from icpflow.geometry import rigid_problem, transform_points
-from icpflow.teacher import association, checks, histogram, registration
+from icpflow.teacher import association, checks, deskew, histogram, registration
 from icpflow.teacher.clustering import cluster_points
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.ego_motion import estimate_ego_motion
@@ -27,7 +28,7 @@ from icpflow.teacher.flow import absorb, match_confidence, point_flow
 from icpflow.teacher.ground import GroundSegmenter
 from icpflow.teacher.pairing import cluster_stats, stage1_pairs, stage2_pairs
 
-STAGES = ("ego_motion", "ground", "clustering", "pairing", "histogram", "icp", "flow")
+STAGES = ("ego_motion", "ground", "clustering", "pairing", "histogram", "icp", "deskew", "flow")
 
 
 @dataclass
@@ -39,8 +40,8 @@ class ICPFlowResult:
     cluster ids; ``transforms`` (M, 4, 4) float64 cluster motions in pc1's frame after ego compensation;
     ``errors``/``iou_ratios``/``match_confidence`` (M,); ``stage`` (M,) int8 (1 same label, 2 cross label);
     ``ego1_from_ego0`` (4, 4) used; ``ground0``/``ground1`` masks used; ``valid0``/``valid1`` finite rows;
-    ``dropped0``/``dropped1`` counts of non-finite rows; ``n_candidates`` pairs registered; ``timings`` seconds
-    per stage.
+    ``dropped0``/``dropped1`` counts of non-finite rows; ``n_candidates`` pairs registered; ``n_deskewed`` matches
+    refined by the de-skew step; ``timings`` seconds per stage.
     """
 
     flow: np.ndarray
@@ -61,6 +62,7 @@ class ICPFlowResult:
     dropped0: int
     dropped1: int
     n_candidates: int
+    n_deskewed: int = 0
     timings: dict = field(default_factory=dict)
 
 
@@ -72,6 +74,17 @@ def _as_points(name: str, value) -> np.ndarray:
     if array.ndim != 2 or array.shape[1] != 3:
         raise ValueError(f"ICPFlow: {name} must have shape (N, 3), got {array.shape}")
     return array
+
+
+def _as_times(name: str, value, count: int) -> np.ndarray | None:
+    if value is None:
+        return None
+    array = np.asarray(value)
+    if array.shape != (count,):
+        raise ValueError(f"ICPFlow: {name} must have shape ({count},), got {array.shape}")
+    if not np.issubdtype(array.dtype, np.floating) or not np.isfinite(array).all():
+        raise ValueError(f"ICPFlow: {name} must hold finite float seconds")
+    return array.astype(np.float64)
 
 
 def _as_mask(name: str, value, count: int) -> np.ndarray | None:
@@ -96,15 +109,28 @@ class ICPFlow:
         self.hist_params = histogram.params_from_config(self.cfg)
         self.icp_params = registration.params_from_config(self.cfg)
 
-    def __call__(self, pc0, pc1, ego1_from_ego0=None, ground0=None, ground1=None, *, gap: int = 1) -> ICPFlowResult:
-        """Flow of pc0 (N0, 3) towards pc1 (N1, 3); ``gap`` k: frames between the scans (window scales with k)."""
+    def __call__(self, pc0, pc1, ego1_from_ego0=None, ground0=None, ground1=None, time0=None, time1=None, *,
+                 gap: int = 1, dt: float | None = None) -> ICPFlowResult:
+        """Flow of pc0 (N0, 3) towards pc1 (N1, 3); ``gap`` k: frames between the scans (window scales with k).
+
+        ``time0`` (N0,) / ``time1`` (N1,): optional capture time of each point in seconds after its scan's
+        timestamp, and ``dt`` the seconds between the two timestamps; with ``cfg.deskew`` they drive the
+        rolling-shutter refinement (``deskew``), which then needs all three. Without them nothing is de-skewed.
+        """
         cfg = self.cfg
         timings = dict.fromkeys(STAGES, 0.0)
         pc0_in, pc1_in = _as_points("pc0", pc0), _as_points("pc1", pc1)
         ground0 = _as_mask("ground0", ground0, len(pc0_in))
         ground1 = _as_mask("ground1", ground1, len(pc1_in))
+        time0 = _as_times("time0", time0, len(pc0_in))
+        time1 = _as_times("time1", time1, len(pc1_in))
         if isinstance(gap, bool) or not isinstance(gap, (int, np.integer)) or not 1 <= gap <= cfg.max_frame_gap:
             raise ValueError(f"ICPFlow: gap must be an integer in [1, {cfg.max_frame_gap}], got {gap!r}")
+        deskew_on = cfg.deskew and (time0 is not None or time1 is not None)
+        if deskew_on and (time0 is None or time1 is None or dt is None):
+            raise ValueError("ICPFlow: de-skew needs time0, time1 and dt together (or cfg.deskew=False)")
+        if deskew_on and not (isinstance(dt, (int, float, np.integer, np.floating)) and np.isfinite(dt) and dt > 0):
+            raise ValueError(f"ICPFlow: dt must be a positive number of seconds, got {dt!r}")
         valid0 = np.isfinite(pc0_in).all(axis=1)
         valid1 = np.isfinite(pc1_in).all(axis=1)
         pc0_ok, pc1_ok = pc0_in[valid0], pc1_in[valid1]
@@ -141,7 +167,16 @@ class ICPFlow:
         timings["clustering"] = time.perf_counter() - tic
 
         window = cfg.window(np.linalg.norm(ego[:3, 3]), int(gap))
-        matches = self._match(src, dst, src_labels, dst_labels, window, timings)
+        matches, src_stats, dst_stats = self._match(src, dst, src_labels, dst_labels, window, timings)
+
+        tic = time.perf_counter()
+        n_deskewed = 0
+        if deskew_on:
+            n_deskewed = deskew.refine(
+                src, dst, src_stats, dst_stats, time0[valid0][keep0], time1[valid1][keep1], matches, float(dt),
+                window, cfg, self.icp_params,
+            )
+        timings["deskew"] = time.perf_counter() - tic
 
         tic = time.perf_counter()
         labels_ok0 = np.full(len(pc0_ok), -1, dtype=np.int32)
@@ -167,11 +202,13 @@ class ICPFlow:
         return ICPFlowResult(
             flow=flow, confidence=confidence, labels0=labels0, labels1=labels1, ego1_from_ego0=ego,
             ground0=full_g0, ground1=full_g1, valid0=valid0, valid1=valid1,
-            dropped0=int((~valid0).sum()), dropped1=int((~valid1).sum()), timings=timings, **matches,
+            dropped0=int((~valid0).sum()), dropped1=int((~valid1).sum()), n_deskewed=n_deskewed, timings=timings,
+            **matches,
         )
 
-    def _match(self, src, dst, src_labels, dst_labels, window, timings) -> dict:
-        """Steps 4 to 8 over both stages: the chosen matches as arrays (see ``ICPFlowResult``)."""
+    def _match(self, src, dst, src_labels, dst_labels, window, timings) -> tuple:
+        """Steps 4 to 8 over both stages: the chosen matches as arrays (see ``ICPFlowResult``) and the two
+        scans' ``ClusterStats``."""
         cfg = self.cfg
         tic = time.perf_counter()
         n_labels = int(max(src_labels.max(initial=-1), dst_labels.max(initial=-1))) + 1
@@ -195,7 +232,7 @@ class ICPFlow:
             [np.full(len(first["errors"]), 1, np.int8), np.full(len(second["errors"]), 2, np.int8)]
         )
         out["n_candidates"] = first["n_candidates"] + second["n_candidates"]
-        return out
+        return out, src_stats, dst_stats
 
     def _register(self, src, dst, src_stats, dst_stats, src_ids, dst_ids, window, timings) -> dict:
         """Initialise, register, check and associate candidate pairs; the chosen ones as arrays."""

@@ -22,6 +22,16 @@ Quality of the final transform (nearest neighbours are exact, not truncated):
 
 Two backends give the same transforms: ``cpu`` (numba, parallel over pairs, nearest neighbours from a sorted
 voxel grid per cluster) and ``torch`` (padded batch, ``torch.cdist``; meant for GPUs, runs on CPU).
+
+:func:`register_plane` is the point-to-plane variant used by the de-skew refinement (``teacher.deskew``) on the
+few moving matches, CPU only (numba): src -> dst from the given transform, each moved source point paired with
+its nearest destination point within ``max_corr``; the residual is the distance along that destination point's
+normal (smallest principal axis of its ``PLANE_NEIGHBOURS`` nearest neighbours); each iteration solves the
+linearised least-squares update of a rotation about z (through the moved source centroid) and a 3D translation,
+which does not slide along flat sides the way point-to-point ICP does between differently sampled scans; it stops
+after 30 iterations, when the update is below 1e-4 (rad and m), or with fewer than 4 correspondences.
+Quality (error, IoU ratio) is measured as above, without the keep-the-initial rule.
+
 All points share one frame; clusters (N, 3); transforms (4, 4) float64, src -> dst.
 """
 
@@ -41,6 +51,12 @@ _EVAL_CELL = 0.3
 _MAX_SHELL = 3
 # Squared distances at or above this are "nothing found yet" (no z-range pruning).
 _FAR = 1e30
+# Neighbours (the point included) whose covariance gives a destination point's normal in ``register_plane``.
+PLANE_NEIGHBOURS = 10
+# ``register_plane`` stops when an update turns by less than this (rad) and moves by less than this (m), or after
+# ``_PLANE_MAX_ITER`` iterations (nearest-neighbour switches can make it cycle at the 0.1 mm level).
+_PLANE_TOL = 1e-4
+_PLANE_MAX_ITER = 30
 
 
 @dataclass(frozen=True)
@@ -332,6 +348,126 @@ def _register_batch(
                     moving, fixed, inits[p].copy(), max_corr, max_iter, rel_rmse, yaw_only, inlier_d2, eval_cell
                 )
     return transforms, errors, ious, iters
+
+
+@numba.njit(cache=True)
+def _icp_plane(moving, fixed, normals, init, max_corr, max_iter):
+    """Point-to-plane ICP (rotation about z and 3D translation) of moving (M, 3) onto fixed (N, 3) with unit
+    ``normals`` (N, 3), from ``init``: ((4, 4) transform, iterations run)."""
+    grid = _grid(fixed, max_corr)
+    transform = init.copy()
+    max_d2 = max_corr * max_corr
+    iterations = 0
+    while iterations < max_iter:
+        moved = _transform(moving, transform)
+        centre = np.zeros(3)
+        for i in range(moved.shape[0]):
+            centre += moved[i]
+        centre /= moved.shape[0]
+        ata = np.zeros((4, 4))
+        atb = np.zeros(4)
+        row = np.empty(4)
+        count = 0
+        for i in range(moved.shape[0]):
+            j, _ = _nearest(moved[i], fixed, grid, max_corr, max_d2)
+            if j < 0:
+                continue
+            n = normals[j]
+            residual = (moved[i, 0] - fixed[j, 0]) * n[0] + (moved[i, 1] - fixed[j, 1]) * n[1] + (
+                moved[i, 2] - fixed[j, 2]) * n[2]
+            # d(residual)/d(yaw) about the centre, then d/d(translation) = the normal
+            row[0] = (moved[i, 0] - centre[0]) * n[1] - (moved[i, 1] - centre[1]) * n[0]
+            row[1], row[2], row[3] = n[0], n[1], n[2]
+            for a in range(4):
+                atb[a] -= row[a] * residual
+                for b in range(4):
+                    ata[a, b] += row[a] * row[b]
+            count += 1
+        if count < 4:
+            break
+        damping = 1e-9 * (ata[0, 0] + ata[1, 1] + ata[2, 2] + ata[3, 3]) + 1e-12
+        for a in range(4):
+            ata[a, a] += damping
+        x = np.linalg.solve(ata, atb)
+        c, s = np.cos(x[0]), np.sin(x[0])
+        step = np.eye(4)
+        step[0, 0], step[0, 1], step[1, 0], step[1, 1] = c, -s, s, c
+        step[0, 3] = centre[0] - c * centre[0] + s * centre[1] + x[1]
+        step[1, 3] = centre[1] - s * centre[0] - c * centre[1] + x[2]
+        step[2, 3] = x[3]
+        transform = step @ transform
+        iterations += 1
+        if abs(x[0]) < _PLANE_TOL and abs(x[1]) < _PLANE_TOL and abs(x[2]) < _PLANE_TOL and abs(x[3]) < _PLANE_TOL:
+            break
+    return transform, iterations
+
+
+@numba.njit(cache=True, parallel=True)
+def _register_plane_batch(mov_all, mov_off, fix_all, fix_off, nrm_all, inits, max_corr, inlier_dist, eval_cell,
+                          n_workers):
+    """:func:`_icp_plane` and the quality of P packed pairs, dealt round-robin to the workers."""
+    n_pairs = inits.shape[0]
+    transforms = np.zeros((n_pairs, 4, 4))
+    errors = np.full(n_pairs, np.inf)
+    ious = np.zeros(n_pairs)
+    iters = np.zeros(n_pairs, dtype=np.int64)
+    inlier_d2 = inlier_dist * inlier_dist
+    for w in numba.prange(n_workers):
+        for p in range(w, n_pairs, n_workers):
+            moving = mov_all[mov_off[p] : mov_off[p + 1]]
+            fixed = fix_all[fix_off[p] : fix_off[p + 1]]
+            transforms[p] = inits[p]
+            if moving.shape[0] == 0 or fixed.shape[0] == 0:
+                continue
+            transform, iters[p] = _icp_plane(moving, fixed, nrm_all[fix_off[p] : fix_off[p + 1]], inits[p].copy(),
+                                             max_corr, _PLANE_MAX_ITER)
+            moved = _transform(moving, transform)
+            err_fwd, inl_fwd = _nn_stats(moved, fixed, _grid(fixed, eval_cell), eval_cell, inlier_d2)
+            err_bwd, inl_bwd = _nn_stats(fixed, moved, _grid(moved, eval_cell), eval_cell, inlier_d2)
+            n_all = moving.shape[0] + fixed.shape[0]
+            transforms[p] = transform
+            errors[p] = min(err_fwd, err_bwd)
+            ious[p] = min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
+    return transforms, errors, ious, iters
+
+
+def normals(points: np.ndarray, neighbours: int = PLANE_NEIGHBOURS) -> np.ndarray:
+    """(N, 3) float64 unit normals of (N, 3) points: the smallest principal axis of each point's ``neighbours``
+    nearest points (itself included; fewer when the cloud is smaller). Sign arbitrary."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    k = min(neighbours, len(points))
+    if k < 3:
+        return np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    _, nearest = cKDTree(points).query(points, k)
+    local = points[nearest] - points[nearest].mean(axis=1, keepdims=True)
+    _, axes = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    return axes[:, :, 0]
+
+
+def register_plane(pairs: list[tuple[np.ndarray, np.ndarray]], inits: np.ndarray, params: ICPParams
+                   ) -> RegistrationResult:
+    """Point-to-plane registration of P pairs (src (Ns, 3), dst (Nd, 3)) from ``inits`` (P, 4, 4), src -> dst
+    (see the module docstring); clusters capped at ``params.max_points`` by a seeded subsample."""
+    inits = np.asarray(inits, dtype=np.float64).reshape(-1, 4, 4)
+    if len(inits) != len(pairs):
+        raise ValueError(f"register_plane: {len(pairs)} pairs but {len(inits)} initial transforms")
+    if not pairs:
+        return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
+    movings = [subsample(np.asarray(a, np.float64).reshape(-1, 3), params.max_points, params.seed) for a, _ in pairs]
+    fixeds = [subsample(np.asarray(b, np.float64).reshape(-1, 3), params.max_points, params.seed) for _, b in pairs]
+    fixed_normals = [normals(b) for b in fixeds]
+    order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
+    mov_all, mov_off = pack([movings[k] for k in order])
+    fix_all, fix_off = pack([fixeds[k] for k in order])
+    nrm_all, _ = pack([fixed_normals[k] for k in order])
+    out = _register_plane_batch(mov_all, mov_off, fix_all, fix_off, nrm_all, inits[order], params.max_corr,
+                                params.inlier_dist, _EVAL_CELL, numba.get_num_threads())
+    transforms, errors, ious, iters = (np.empty_like(a) for a in out)
+    for a, b in zip((transforms, errors, ious, iters), out):
+        a[order] = b
+    return RegistrationResult(transforms, errors, ious, iters)
 
 
 # --------------------------------------------------------------------------------------------- torch backend

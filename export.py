@@ -1,0 +1,23 @@
+"""Export a trained FastFlow3D checkpoint for inference outside this code base (see conf/export.yaml and
+fastflow3d.export): ONNX (ONNX Runtime) and/or TorchScript with dynamic point counts, plus metadata.json.
+
+    python export.py checkpoint=<path.ckpt> [format=onnx|torchscript|all] [out_dir=<dir>]
+"""
+
+import sys
+
+import hydra
+from omegaconf import DictConfig
+
+from fastflow3d.export import run_export
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="export")
+def main(cfg: DictConfig) -> None:
+    status = run_export(cfg)
+    if status:
+        sys.exit(status)
+
+
+if __name__ == "__main__":
+    main()

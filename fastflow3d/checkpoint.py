@@ -1,0 +1,58 @@
+"""Student checkpoints: the network from its config, and a trained network back from a Lightning checkpoint.
+
+Contract (``fastflow3d.module.StudentModule`` writes it; export and evaluation read it): the checkpoint's
+``hyper_parameters`` is ``{"cfg": <the full resolved training config as plain dict>}``; ``cfg["model"]`` is
+``{"_target_": "fastflow3d.model.FastFlow3D", <FastFlow3D keyword arguments>}``; the network's weights are the
+``state_dict`` entries ``model.<name>``. Checkpoints are read with ``torch.load(..., weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from fastflow3d.model import FastFlow3D
+
+MODEL_TARGET = "fastflow3d.model.FastFlow3D"
+
+
+class CheckpointError(ValueError):
+    """A file is not a readable student checkpoint. The message is one line naming the file."""
+
+
+def build_student(model_cfg: dict) -> FastFlow3D:
+    """A fresh FastFlow3D from ``cfg["model"]`` (``_target_`` must be ``MODEL_TARGET``; lists become tuples)."""
+    kwargs = dict(model_cfg)
+    target = kwargs.pop("_target_", None)
+    if target != MODEL_TARGET:
+        raise ValueError(f"model config: _target_ must be {MODEL_TARGET}, got {target!r}")
+    return FastFlow3D(**{k: tuple(v) if isinstance(v, list) else v for k, v in kwargs.items()})
+
+
+def _first_line(error: Exception) -> str:
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
+
+
+def load_student(path, map_location="cpu") -> tuple[FastFlow3D, dict]:
+    """``(FastFlow3D in eval mode, training config dict)`` from a student checkpoint written by ``train.py``."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint does not exist")
+    try:
+        checkpoint = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as error:  # torch raises many types for a file that is not a (safe) checkpoint
+        raise CheckpointError(f"{path}: not a readable torch checkpoint ({_first_line(error)})") from None
+    hparams = checkpoint.get("hyper_parameters") if isinstance(checkpoint, dict) else None
+    cfg = hparams.get("cfg") if isinstance(hparams, dict) else None
+    if not isinstance(cfg, dict) or not isinstance(cfg.get("model"), dict) or "state_dict" not in checkpoint:
+        raise CheckpointError(f"{path}: not a FastFlow3D student checkpoint (no hyper_parameters.cfg.model "
+                              "or no state_dict)")
+    try:
+        model = build_student(cfg["model"])
+        state = {k[len("model."):]: v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
+        model.load_state_dict(state)
+    except (ValueError, TypeError, RuntimeError) as error:
+        raise CheckpointError(f"{path}: weights do not fit its model config ({_first_line(error)})") from None
+    return model.to(map_location).eval(), cfg

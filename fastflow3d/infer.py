@@ -1,0 +1,149 @@
+"""Scene flow of two raw scan files with a trained FastFlow3D; writes the flow and a bird's-eye-view PNG.
+
+    python -m fastflow3d.infer MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
+        [--bev FILE.png | --no-bev] [--backend onnx|torchscript] [--device cpu]
+
+MODEL: an export directory, ``.onnx``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz`` (array
+``points`` or ``pc``), ``.npy`` (N, >= 3), KITTI ``.bin`` (float32 x, y, z, reflectance), ``.ply`` or ``.pcd``;
+the first three columns are x, y, z in metres in the sensor's own frame. Ego motion: ``--poses`` (two
+world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a (2, 4, 4) ``.npy``),
+``--ego`` (one (4, 4) ``ego1_from_ego0``: 12 or 16 values, or a ``.npy``), or neither (estimated by KISS-ICP).
+Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow`` is in
+scan1's frame), ``residual`` (ego-compensated), ``in_grid``, ``ego1_from_ego0``, ``ego_estimated``; a ``.npy``
+output holds the flow alone. Errors are one line on stderr, exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from icpflow.datasets.io import SCAN_SUFFIXES, check_points, fail, load_npz, read_pose_lines, read_scan
+from icpflow.frames import FramePair
+from icpflow.geometry import relative_transform, rigid_problem
+
+NPZ_KEYS = ("points", "pc")
+
+
+def read_raw_scan(path: Path) -> np.ndarray:
+    """(N, 3) float32 points of one scan file (see the module docstring for the formats)."""
+    suffix = path.suffix.lower()
+    if suffix != ".npz":
+        if suffix not in SCAN_SUFFIXES:
+            raise fail(path, f"unsupported scan format {suffix!r}; use one of .npz, {', '.join(SCAN_SUFFIXES)}")
+        return read_scan(path)
+    arrays = load_npz(path, required=(), optional=NPZ_KEYS)
+    key = next((name for name in NPZ_KEYS if name in arrays), None)
+    if key is None:
+        raise fail(path, f"no array named {' or '.join(NPZ_KEYS)}")
+    return check_points(path, key, arrays[key])
+
+
+def read_transforms(path: Path, count: int) -> np.ndarray:
+    """Exactly ``count`` rigid (4, 4) float64 transforms from text (12 or 16 values a line) or ``.npy``."""
+    if path.suffix.lower() == ".npy":
+        try:
+            values = np.load(path, allow_pickle=False)
+        except FileNotFoundError:
+            raise fail(path, "file not found") from None
+        except (OSError, ValueError, EOFError) as error:
+            raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
+        if values.shape == (4, 4):
+            values = values[None]
+        if values.ndim != 3 or values.shape[1:] != (4, 4) or not np.issubdtype(values.dtype, np.number):
+            raise fail(path, f"expected (T, 4, 4) numeric transforms, got {values.dtype} {values.shape}")
+        transforms = values.astype(np.float64)
+    else:
+        try:
+            transforms = read_pose_lines(path)
+        except UnicodeDecodeError:
+            raise fail(path, "not a text file of transforms (use .npy for binary)") from None
+    if len(transforms) != count:
+        raise fail(path, f"holds {len(transforms)} transform(s), expected {count}")
+    for number, transform in enumerate(transforms, start=1):
+        problem = rigid_problem(transform)
+        if problem:
+            raise fail(path, f"transform {number} {problem}")
+    return transforms
+
+
+def write_flow(path: Path, prediction) -> None:
+    """``.npy``: the full flow; ``.npz``: flow, residual, in_grid, ego1_from_ego0, ego_estimated. Atomic."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as handle:
+            if path.suffix == ".npy":
+                np.save(handle, prediction.flow)
+            else:
+                np.savez(handle, flow=prediction.flow, residual=prediction.residual, in_grid=prediction.in_grid,
+                         ego1_from_ego0=prediction.ego1_from_ego0, ego_estimated=np.bool_(prediction.ego_estimated))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def parse_args(argv):
+    parser = argparse.ArgumentParser(prog="python -m fastflow3d.infer", description=__doc__.splitlines()[0])
+    parser.add_argument("model", type=Path, help="export directory, .onnx, .pt or .ckpt")
+    parser.add_argument("scan0", type=Path, help="scan at t (.npz, .npy, .bin, .ply, .pcd)")
+    parser.add_argument("scan1", type=Path, help="scan at t + dt")
+    ego = parser.add_mutually_exclusive_group()
+    ego.add_argument("--poses", type=Path, help="two world_from_ego poses (scan0, scan1)")
+    ego.add_argument("--ego", type=Path, help="one ego1_from_ego0 transform")
+    parser.add_argument("--out", type=Path, help="flow file, .npz or .npy (default outputs/infer/<scan0>_flow.npz)")
+    pictures = parser.add_mutually_exclusive_group()
+    pictures.add_argument("--bev", type=Path, help="BEV PNG (default: the output's name with .png)")
+    pictures.add_argument("--no-bev", action="store_true", help="write no picture")
+    parser.add_argument("--extent", type=float, default=40.0, help="half-width of the picture in metres")
+    parser.add_argument("--backend", choices=("onnx", "torchscript"), help="format of an export directory")
+    parser.add_argument("--device", default="cpu", help="torch device for TorchScript and checkpoints")
+    return parser.parse_args(argv)
+
+
+def infer(args) -> tuple[Path, Path | None]:
+    """Read, predict, write; returns the flow path and the picture path (or None)."""
+    from fastflow3d.predictor import Predictor
+    from icpflow.viz import plot_bev
+
+    out = args.out or Path("outputs/infer") / f"{args.scan0.stem}_flow.npz"
+    if out.suffix not in (".npz", ".npy"):
+        raise ValueError(f"{out}: output must end in .npz or .npy")
+    pc0, pc1 = read_raw_scan(args.scan0), read_raw_scan(args.scan1)
+    ego = None
+    if args.poses is not None:
+        pose0, pose1 = read_transforms(args.poses, 2)
+        ego = relative_transform(pose0, pose1)
+    elif args.ego is not None:
+        ego = read_transforms(args.ego, 1)[0]
+    predictor = Predictor.load(args.model, backend=args.backend, device=args.device)
+    prediction = predictor.predict(pc0, pc1, ego)
+    write_flow(out, prediction)
+    bev = None
+    if not args.no_bev:
+        bev = args.bev or out.with_suffix(".png")
+        pair = FramePair(pc0=pc0, pc1=pc1, ego1_from_ego0=prediction.ego1_from_ego0, source=str(args.scan0))
+        source = "estimated" if prediction.ego_estimated else "given"
+        plot_bev(pair, bev, predicted=prediction.flow, extent=args.extent,
+                 title=f"{args.scan0.name} -> {args.scan1.name}: FastFlow3D ({predictor.backend}), ego motion {source}")
+    return out, bev
+
+
+def main(argv=None) -> int:
+    """Command-line entry; returns the exit status (0 written, 2 error)."""
+    args = parse_args(argv)
+    try:
+        out, bev = infer(args)
+    except (ValueError, RuntimeError, OSError) as error:
+        print(f"infer: {' '.join(str(error).split())}", file=sys.stderr)
+        return 2
+    print(f"infer: flow -> {out}" + (f", BEV -> {bev}" if bev else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,147 @@
+"""The student's LightningModule: FastFlow3D trained on pseudo-labels (or ground truth), validated with the paper's
+metrics.
+
+Config keys read (``conf/train.yaml``): ``model`` (FastFlow3D, see ``fastflow3d.checkpoint``), ``loss`` (``name``:
+``distillation`` on the teacher's pseudo-labels with optional ``speed_weight`` / ``confidence_weight``, or
+``supervised`` on ground truth with ``background_weight``), ``optim`` (Adam ``lr``, ``weight_decay``; MultiStepLR
+``milestones`` in epochs and ``gamma``), ``metrics`` (``crop``, ``bev_every``) and ``out_dir``.
+
+Validation scores the full flow (network residual + ego flow; pc0 points outside the grid get the ego flow) with
+``icpflow.metrics.pair_stats``: against the shards' ground truth when they carry it, else against the pseudo-labels
+with "foreground" = points the teacher clustered (``val/against_gt`` is 1 or 0, and the TensorBoard text
+``val/against`` says ``gt`` or ``pseudo``). Logged: ``train/loss``, ``val/loss``, ``val/<category>/<column>``
+(point-weighted, categories dynamic_fg, static_fg, static_bg, overall; columns EPE, AccS, AccR, Outliers) and a BEV
+image every ``bev_every`` validations (also written to ``<out_dir>/bev/``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+
+from fastflow3d.checkpoint import build_student
+from fastflow3d.data import split_samples
+from fastflow3d.loss import distillation_loss, supervised_loss
+from icpflow import metrics
+from icpflow.frames import FramePair
+from icpflow.geometry import residual_to_full
+
+LOSSES = ("distillation", "supervised")
+
+
+class StudentModule(L.LightningModule):
+    """FastFlow3D as ``self.model``; ``cfg`` is the full resolved training config (plain dict), saved in checkpoints."""
+
+    def __init__(self, cfg: dict):
+        super().__init__()
+        if cfg["loss"]["name"] not in LOSSES:
+            raise ValueError(f"loss.name must be one of {', '.join(LOSSES)}, got {cfg['loss']['name']!r}")
+        self.save_hyperparameters({"cfg": cfg})
+        self.cfg = cfg
+        self.model = build_student(cfg["model"])
+        self.validations = 0
+        self.scores = metrics.MetricAccumulator()
+        self.against = None
+
+    def forward(self, batch: dict):
+        """(residual (P0, 3), valid (P0,)) of a collated batch."""
+        return self.model(batch["pc0_compensated"], batch["batch0"], batch["pc1"], batch["batch1"],
+                          batch["batch_size"])
+
+    def loss(self, pred: torch.Tensor, valid: torch.Tensor, batch: dict) -> torch.Tensor:
+        """The configured loss of residual predictions (P0, 3) on in-grid points."""
+        options, size = self.cfg["loss"], batch["batch_size"]
+        if options["name"] == "supervised":
+            if "gt" not in batch:
+                raise ValueError(f"loss.name=supervised needs ground truth, but samples {batch['sample_id']} have none")
+            return supervised_loss(pred, batch["gt"], batch["gt_classes"] > 0, batch["batch0"],
+                                   valid & batch["gt_valid"], size, options["background_weight"])
+        return distillation_loss(pred, batch["pseudo"], batch["batch0"], valid, size,
+                                 use_speed_weight=options["speed_weight"], dt=batch["dt"].float()[batch["batch0"]],
+                                 confidence=batch["confidence"] if options["confidence_weight"] else None)
+
+    def training_step(self, batch: dict, batch_index: int) -> torch.Tensor:
+        pred, valid = self(batch)
+        loss = self.loss(pred, valid, batch)
+        self.log("train/loss", loss, batch_size=batch["batch_size"], prog_bar=True)
+        return loss
+
+    # ------------------------------------------------------------------------------------------------ validation
+
+    def on_validation_epoch_start(self) -> None:
+        self.scores = metrics.MetricAccumulator()
+        self.against = None
+
+    def validation_step(self, batch: dict, batch_index: int) -> None:
+        pred, valid = self(batch)
+        self.log("val/loss", self.loss(pred, valid, batch), batch_size=batch["batch_size"], sync_dist=True)
+        against = "gt" if "gt" in batch else "pseudo"
+        if self.against not in (None, against):
+            raise ValueError(f"validation shards mix samples with and without ground truth ({batch['sample_id']})")
+        self.against = against
+        residual = pred.detach().float().cpu().numpy()
+        host = {key: value.cpu().numpy() for key, value in batch.items() if torch.is_tensor(value)}
+        pairs = zip(split_samples(batch, "batch0"), split_samples(batch, "batch1"), batch["sample_id"])
+        for b, (rows0, rows1, sample_id) in enumerate(pairs):
+            pair = self._pair(host, b, rows0, rows1, sample_id)
+            predicted = residual_to_full(residual[rows0], pair.pc0, pair.ego1_from_ego0)
+            self.scores.add(metrics.frame_pair_stats(pair, predicted, crop=self.cfg["metrics"]["crop"]))
+            if batch_index == 0 and b == 0 and self._draw_now():
+                self._draw(pair, predicted)
+
+    def _pair(self, host: dict, b: int, rows0: slice, rows1: slice, sample_id: str) -> FramePair:
+        """Sample b of a batch (numpy arrays) as a FramePair whose ``flow`` is the reference (gt or pseudo)."""
+        pc0, ego = host["pc0"][rows0], host["ego1_from_ego0"][b]
+        if self.against == "gt":
+            reference, classes, flow_valid = host["gt"][rows0], host["gt_classes"][rows0], host["gt_valid"][rows0]
+        else:
+            reference, flow_valid = host["pseudo"][rows0], None
+            classes = (host["cluster"][rows0] >= 0).astype(np.int32)
+        return FramePair(pc0, host["pc1"][rows1], ego1_from_ego0=ego, ground0=host["ground0"][rows0],
+                         flow=residual_to_full(reference, pc0, ego), flow_valid=flow_valid, classes=classes,
+                         dt=float(host["dt"][b]), sample_id=sample_id)
+
+    def _draw_now(self) -> bool:
+        every = int(self.cfg["metrics"]["bev_every"])
+        return every > 0 and not self.trainer.sanity_checking and self.validations % every == 0 \
+            and self.global_rank == 0
+
+    def _draw(self, pair: FramePair, predicted: np.ndarray) -> None:
+        """BEV image of the first validation sample: PNG under out_dir/bev and, with TensorBoard, an image."""
+        from icpflow.viz import plot_bev
+
+        path = Path(self.cfg["out_dir"]) / "bev" / f"val_step{self.global_step:07d}.png"
+        plot_bev(pair, path, predicted, title=f"student at step {self.global_step} vs {self.against}")
+        experiment = getattr(self.logger, "experiment", None)
+        if hasattr(experiment, "add_image"):
+            import matplotlib.image
+
+            image = matplotlib.image.imread(path)[..., :3]
+            experiment.add_image("val/bev", image, self.global_step, dataformats="HWC")
+
+    def on_validation_epoch_end(self) -> None:
+        sums = torch.tensor(np.stack([self.scores.sums[c] for c in metrics.CATEGORIES]), device=self.device)
+        sums = self.trainer.strategy.reduce(sums, reduce_op="sum")
+        self.scores.sums = dict(zip(metrics.CATEGORIES, sums.cpu().double().numpy()))
+        table = self.scores.table()["point_weighted"]
+        for category in metrics.CATEGORIES:
+            for column in metrics.COLUMNS:
+                self.log(f"val/{category}/{column}", float(table[category][column]), sync_dist=True)
+        self.log("val/against_gt", float(self.against == "gt"), sync_dist=True)
+        experiment = getattr(self.logger, "experiment", None)
+        if not self.trainer.sanity_checking:
+            if self.validations == 0 and hasattr(experiment, "add_text"):
+                experiment.add_text("val/against", self.against or "none", self.global_step)
+            self.validations += 1
+
+    # ------------------------------------------------------------------------------------------------ optimiser
+
+    def configure_optimizers(self):
+        options = self.cfg["optim"]
+        optimiser = torch.optim.Adam(self.parameters(), lr=options["lr"], weight_decay=options["weight_decay"])
+        schedule = torch.optim.lr_scheduler.MultiStepLR(optimiser, milestones=list(options["milestones"]),
+                                                        gamma=options["gamma"])
+        return {"optimizer": optimiser, "lr_scheduler": {"scheduler": schedule, "interval": "epoch"}}

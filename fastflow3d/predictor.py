@@ -1,0 +1,225 @@
+"""Run a trained FastFlow3D on a pair of scans: ``Predictor.load(path)`` then ``predictor(pc0, pc1)`` -> full flow.
+
+``path`` is an export directory (``metadata.json`` plus ``fastflow3d.onnx`` and/or ``fastflow3d.pt``, see
+``fastflow3d.export``), one exported file (``.onnx`` runs in ONNX Runtime, ``.pt`` is TorchScript) or a training
+checkpoint (``.ckpt``, run eagerly). The predictor moves pc0 into the ego frame of t + dt with ``ego1_from_ego0``,
+runs the network, which gives the residual (ego-compensated) flow, and adds the ego flow back, so the result is
+FULL flow in the project convention (``pc0 + flow`` is the position at t + dt in the ego frame of t + dt). Points
+outside the network's grid get the ego flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the
+two scans with the teacher's step (KISS-ICP, then point-to-plane refinement; ``icpflow.teacher.ego_motion``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fastflow3d.export import (
+    FORMATS,
+    INPUT_NAMES,
+    METADATA_NAME,
+    OUTPUT_NAMES,
+    SingleSampleNet,
+    network_metadata,
+    sha256_file,
+)
+from fastflow3d.model import compensate
+from icpflow.geometry import residual_to_full, rigid_problem
+
+SUFFIX_FORMATS = {".onnx": "onnx", ".pt": "torchscript", ".ckpt": "checkpoint"}
+
+
+class PredictorError(ValueError):
+    """A model that cannot be loaded or inputs that cannot be used. The message is one line and names the cause."""
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """One pair's result. ``flow`` (N0, 3) float32 FULL flow; ``residual`` (N0, 3) float32 ego-compensated flow
+    (0 outside the grid); ``in_grid`` (N0,) bool; ``ego1_from_ego0`` (4, 4) float64 used (given or estimated)."""
+
+    flow: np.ndarray
+    residual: np.ndarray
+    in_grid: np.ndarray
+    ego1_from_ego0: np.ndarray
+    ego_estimated: bool
+
+
+class OnnxRuntimeNetwork:
+    """An exported ``.onnx`` in ONNX Runtime: ``(pc0_compensated, pc1) -> (residual, valid)`` numpy arrays."""
+
+    def __init__(self, path: Path, providers=None):
+        try:
+            import onnxruntime
+        except ImportError:
+            raise PredictorError(f"{path}: running .onnx needs onnxruntime (pip install 'icpflow[export]')") from None
+        available = onnxruntime.get_available_providers()
+        if providers is None:
+            providers = [name for name in ("CUDAExecutionProvider", "CPUExecutionProvider") if name in available]
+        try:
+            self.session = onnxruntime.InferenceSession(str(path), providers=list(providers))
+        except Exception as error:  # onnxruntime raises its own exception types for damaged or foreign files
+            raise PredictorError(f"{path}: cannot load ONNX model: {' '.join(str(error).split())}") from None
+        names = tuple(entry.name for entry in self.session.get_inputs())
+        if names != INPUT_NAMES:
+            raise PredictorError(f"{path}: ONNX inputs are {names}, expected {INPUT_NAMES} (not a FastFlow3D export)")
+
+    def __call__(self, pc0_compensated: np.ndarray, pc1: np.ndarray):
+        residual, valid = self.session.run(list(OUTPUT_NAMES), {INPUT_NAMES[0]: pc0_compensated, INPUT_NAMES[1]: pc1})
+        return residual, valid
+
+
+class TorchNetwork:
+    """A :class:`SingleSampleNet` or its TorchScript trace on ``device``: numpy in, numpy out."""
+
+    def __init__(self, module, device: str = "cpu"):
+        self.module, self.device = module, torch.device(device)
+
+    def __call__(self, pc0_compensated: np.ndarray, pc1: np.ndarray):
+        with torch.inference_mode():
+            residual, valid = self.module(torch.from_numpy(pc0_compensated).to(self.device),
+                                          torch.from_numpy(pc1).to(self.device))
+        return residual.cpu().numpy(), valid.cpu().numpy()
+
+
+def read_metadata(path: Path) -> dict:
+    """``metadata.json`` of an export directory (one-line error if missing or not an export's)."""
+    try:
+        metadata = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise PredictorError(f"{path.parent}: no {METADATA_NAME} (not an export directory; see export.py)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise PredictorError(f"{path}: cannot read export metadata: {' '.join(str(error).split())}") from None
+    if not isinstance(metadata, dict) or not isinstance(metadata.get("files"), dict):
+        raise PredictorError(f"{path}: not FastFlow3D export metadata (no 'files' entry)")
+    return metadata
+
+
+def sibling_metadata(path: Path, kind: str) -> dict:
+    """The metadata next to an exported file if it describes exactly this file (same name and hash), else {}."""
+    meta_path = path.parent / METADATA_NAME
+    if not meta_path.is_file():
+        return {}
+    try:
+        metadata = read_metadata(meta_path)
+    except PredictorError:
+        return {}
+    entry = metadata["files"].get(kind) or {}
+    same = entry.get("path") == path.name and entry.get("sha256") == sha256_file(path)
+    return metadata if same else {}
+
+
+def as_points(name: str, values) -> np.ndarray:
+    """(N, 3) float32, without a copy when possible; one-line error for other shapes or non-finite values."""
+    array = np.asarray(values)
+    if array.ndim != 2 or array.shape[1] != 3 or not np.issubdtype(array.dtype, np.number):
+        raise PredictorError(f"{name} must be a numeric (N, 3) array, got {array.dtype} {array.shape}")
+    array = np.require(array, np.float32, ["C", "W"])  # torch.from_numpy wants a writeable array
+    if not np.isfinite(array).all():
+        raise PredictorError(f"{name} has {int((~np.isfinite(array)).any(axis=1).sum())} rows with NaN or Inf")
+    return array
+
+
+class Predictor:
+    """A FastFlow3D network behind the project's conventions (see the module docstring)."""
+
+    def __init__(self, network, metadata: dict, backend: str, ego_config=None):
+        """``network(pc0_compensated, pc1) -> (residual, valid)`` on float32 numpy arrays; ``ego_config`` holds
+        the ego-motion settings (``kiss_voxel_size``, ``kiss_max_range``, ``ego_refine_voxel``; default: the
+        teacher's ``ICPFlowConfig()``)."""
+        self.network, self.metadata, self.backend = network, metadata, backend
+        if ego_config is None:
+            from icpflow.teacher.config import ICPFlowConfig
+
+            ego_config = ICPFlowConfig()
+        self.ego_config = ego_config
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, backend: str | None = None, device: str = "cpu",
+             ego_config=None) -> Predictor:
+        """From an export directory, a ``.onnx``, a ``.pt`` (TorchScript) or a ``.ckpt``.
+
+        ``backend`` picks the format of an export directory (``onnx`` or ``torchscript``; default ONNX when
+        onnxruntime is installed and the export has it). ``device`` applies to TorchScript and checkpoints; ONNX
+        Runtime uses CUDA when its CUDA provider is installed, else the CPU.
+        """
+        path = Path(path)
+        if path.is_dir():
+            metadata = read_metadata(path / METADATA_NAME)
+            kind = backend or choose_format(metadata["files"])
+            if kind not in FORMATS:
+                raise PredictorError(f"{path}: unknown backend {kind!r}; use one of {', '.join(FORMATS)}")
+            entry = metadata["files"].get(kind)
+            if not entry:
+                raise PredictorError(f"{path}: the export has no {kind} file (has {', '.join(metadata['files'])})")
+            file = path / entry["path"]
+            if not file.is_file():
+                raise PredictorError(f"{file}: file listed in {METADATA_NAME} is missing")
+            if sha256_file(file) != entry.get("sha256"):
+                raise PredictorError(f"{file}: file changed after export (sha256 differs from {METADATA_NAME})")
+            return cls(load_network(file, kind, device), metadata, kind, ego_config)
+        kind = SUFFIX_FORMATS.get(path.suffix.lower())
+        if kind is None:
+            raise PredictorError(f"{path}: expected an export directory, .onnx, .pt (TorchScript) or .ckpt")
+        if not path.is_file():
+            raise PredictorError(f"{path}: file not found")
+        if backend is not None and backend != kind:
+            raise PredictorError(f"{path}: a {path.suffix} file cannot run with backend {backend!r}")
+        if kind == "checkpoint":
+            from fastflow3d.checkpoint import load_student
+
+            model, cfg = load_student(path, map_location=device)
+            metadata = network_metadata(model, dict(cfg.get("model") or {}), path)
+            return cls(TorchNetwork(SingleSampleNet(model).eval(), device), metadata, "eager", ego_config)
+        return cls(load_network(path, kind, device), sibling_metadata(path, kind), kind, ego_config)
+
+    def __call__(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None) -> np.ndarray:
+        """(N0, 3) float32 FULL flow of pc0 (N0, 3) towards pc1 (N1, 3); the ego motion is estimated if None."""
+        return self.predict(pc0, pc1, ego1_from_ego0).flow
+
+    def predict(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None) -> Prediction:
+        """Full flow with the residual, grid mask and ego motion behind it (see :class:`Prediction`)."""
+        pc0, pc1 = as_points("pc0", pc0), as_points("pc1", pc1)
+        estimated = ego1_from_ego0 is None
+        ego = self.estimate_ego_motion(pc0, pc1) if estimated else np.asarray(ego1_from_ego0, dtype=np.float64)
+        problem = rigid_problem(ego)
+        if problem:
+            raise PredictorError(f"{'estimated ' if estimated else ''}ego1_from_ego0 {problem}")
+        residual, valid = self.network(compensate(pc0, ego), pc1)
+        residual = np.where(valid[:, None], residual, 0.0).astype(np.float32)
+        return Prediction(residual_to_full(residual, pc0, ego), residual, valid.astype(bool), ego, estimated)
+
+    def estimate_ego_motion(self, pc0: np.ndarray, pc1: np.ndarray) -> np.ndarray:
+        """(4, 4) float64 ``ego1_from_ego0`` from the two scans (KISS-ICP + refinement, the teacher's step 1)."""
+        from icpflow.teacher.ego_motion import estimate_ego_motion
+
+        try:
+            return estimate_ego_motion(pc0, pc1, self.ego_config)
+        except (RuntimeError, ValueError, MemoryError) as error:
+            raise PredictorError(f"ego-motion estimation failed ({type(error).__name__}: "
+                                 f"{' '.join(str(error).split())})") from None
+
+
+def choose_format(files: dict) -> str:
+    """ONNX when the export has it and onnxruntime is installed (or there is nothing else), else TorchScript."""
+    if "onnx" in files and ("torchscript" not in files or importlib.util.find_spec("onnxruntime") is not None):
+        return "onnx"
+    return "torchscript"
+
+
+def load_network(path: Path, kind: str, device: str):
+    """The runnable network of one exported file."""
+    if kind == "onnx":
+        return OnnxRuntimeNetwork(path)
+    try:
+        module = torch.jit.load(str(path), map_location=device)
+    except (RuntimeError, ValueError) as error:
+        raise PredictorError(f"{path}: cannot load TorchScript: {' '.join(str(error).split())[:300]}") from None
+    return TorchNetwork(module.eval(), device)
+

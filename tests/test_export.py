@@ -1,0 +1,287 @@
+"""Export (ONNX, TorchScript) parity with eager, the Predictor on arrays and raw scan files, and the CLIs' errors.
+
+One tiny FastFlow3D (+-6.4 m, 0.2 m cells, 64 x 64 grid) is trained a few steps on a synthetic pair so that its
+weights and BatchNorm statistics are not the initial ones, saved as a training checkpoint (the checkpoint contract
+of ``fastflow3d.checkpoint``) and exported once for the whole module.
+"""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fastflow3d.checkpoint import load_student
+from fastflow3d.export import FILE_NAMES, METADATA_NAME, SingleSampleNet, export_checkpoint, run_export, sha256_file
+from fastflow3d.infer import main as infer_main
+from fastflow3d.loss import distillation_loss
+from fastflow3d.model import FastFlow3D, compensate
+from fastflow3d.predictor import Predictor, PredictorError
+from icpflow import __version__
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.geometry import ego_flow, residual_to_full
+from icpflow.teacher.config import ICPFlowConfig
+from icpflow.teacher.ego_motion import estimate_ego_motion
+
+pytest.importorskip("onnxruntime")
+pytest.importorskip("onnxscript")
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-6.4, 6.4], "y_range": [-6.4, 6.4],
+        "z_range": [-3.0, 3.0], "cell": 0.2, "pillar_channels": 8, "stage_channels": [8, 16, 32],
+        "stage_blocks": [1, 1, 1]}
+TOLERANCE = 1e-4  # metres
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """One torch thread for these tiny networks: as fast on an idle machine, much faster on a busy shared one."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    """Synthetic pairs with different point counts: a whole pair and two random subsets of the next one."""
+    dataset = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=3, seed=0)
+    whole, other = dataset[0], dataset[1]
+    rng = np.random.default_rng(0)
+    subsets = []
+    for n0, n1 in [(9000, 31000), (20000, 700)]:
+        keep0, keep1 = rng.choice(len(other.pc0), n0, replace=False), rng.choice(len(other.pc1), n1, replace=False)
+        subsets.append(other.replace(pc0=other.pc0[keep0], pc1=other.pc1[keep1], flow=other.flow[keep0],
+                                     ground0=None, ground1=None, flow_valid=None, classes=None, instance=None,
+                                     dynamic=None))
+    return [whole, *subsets]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory, pairs):
+    """A training checkpoint of the tiny model after 15 Adam steps towards one pair's true residual flow (on 6000
+    points of each scan near the grid, to keep it fast)."""
+    torch.manual_seed(0)
+    model = FastFlow3D(**{k: v for k, v in TINY.items() if k != "_target_"})
+    pair = pairs[0]
+    near0 = np.flatnonzero(np.abs(pair.pc0[:, :2]).max(axis=1) < 7.0)[:6000]
+    near1 = np.flatnonzero(np.abs(pair.pc1[:, :2]).max(axis=1) < 7.0)[:6000]
+    pc0 = torch.from_numpy(compensate(pair.pc0[near0], pair.ego1_from_ego0))
+    pc1 = torch.from_numpy(pair.pc1[near1])
+    target = torch.from_numpy(pair.residual_flow()[near0])
+    batch0, batch1 = torch.zeros(len(pc0), dtype=torch.int64), torch.zeros(len(pc1), dtype=torch.int64)
+    optimiser = torch.optim.Adam(model.parameters(), lr=2e-3)
+    model.train()
+    for _ in range(15):
+        residual, valid = model(pc0, batch0, pc1, batch1, 1)
+        loss = distillation_loss(residual, target, batch0, valid, 1)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    path = tmp_path_factory.mktemp("run") / "best.ckpt"
+    cfg = {"model": dict(TINY), "out_dir": str(path.parent)}
+    torch.save({"state_dict": {f"model.{key}": value for key, value in model.state_dict().items()},
+                "hyper_parameters": {"cfg": cfg}, "epoch": 0, "global_step": 15}, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def export_dir(checkpoint):
+    return export_checkpoint(checkpoint)
+
+
+@pytest.fixture(scope="module")
+def eager(checkpoint):
+    """The trained tiny network in eval mode, from the checkpoint."""
+    return SingleSampleNet(load_student(checkpoint)[0]).eval()
+
+
+def eager_full_flow(net, pair):
+    with torch.no_grad():
+        residual, valid = net(torch.from_numpy(compensate(pair.pc0, pair.ego1_from_ego0)), torch.from_numpy(pair.pc1))
+    return residual_to_full(residual.numpy(), pair.pc0, pair.ego1_from_ego0), valid.numpy()
+
+
+@pytest.fixture(scope="module")
+def expected(eager, pairs):
+    """Eager full flow and in-grid mask of every pair (given ego motion)."""
+    return [eager_full_flow(eager, pair) for pair in pairs]
+
+
+@pytest.fixture(scope="module")
+def teacher_ego(pairs):
+    """The teacher's ego-motion estimate (step 1, default settings) of the smallest pair."""
+    pair = pairs[1]
+    return estimate_ego_motion(pair.pc0, pair.pc1, ICPFlowConfig())
+
+
+def test_metadata_describes_the_export(export_dir, checkpoint):
+    assert export_dir == checkpoint.parent / "export"
+    metadata = json.loads((export_dir / METADATA_NAME).read_text())
+    assert metadata["grid"] == {"x_range": [-6.4, 6.4], "y_range": [-6.4, 6.4], "z_range": [-3.0, 3.0], "cell": 0.2,
+                                "nx": 64, "ny": 64}
+    assert metadata["model"] == TINY
+    assert metadata["package_version"] == __version__
+    assert metadata["source_checkpoint"]["sha256"] == sha256_file(checkpoint)
+    assert [entry["name"] for entry in metadata["inputs"]] == ["pc0_compensated", "pc1"]
+    assert [entry["name"] for entry in metadata["outputs"]] == ["residual", "valid"]
+    assert "ego1_from_ego0 * pc0 - pc0" in metadata["flow_convention"]
+    for name in ("onnx", "torchscript"):
+        entry = metadata["files"][name]
+        assert entry["path"] == FILE_NAMES[name] and entry["sha256"] == sha256_file(export_dir / entry["path"])
+        assert metadata["parity_max_abs_m"][name] <= TOLERANCE
+    assert sorted(p.name for p in export_dir.iterdir()) == sorted([METADATA_NAME, *FILE_NAMES.values()])
+
+
+@pytest.mark.parametrize("backend", ["onnx", "torchscript"])
+def test_export_parity_on_synthetic_pairs(export_dir, expected, pairs, backend):
+    predictor = Predictor.load(export_dir, backend=backend)
+    assert predictor.backend == backend
+    moving = 0
+    for pair, (flow, valid) in zip(pairs, expected):
+        prediction = predictor.predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+        assert prediction.flow.shape == (len(pair.pc0), 3) and prediction.flow.dtype == np.float32
+        assert np.array_equal(prediction.in_grid, valid) and 0 < valid.sum() < len(valid)
+        assert np.abs(prediction.flow - flow).max() <= TOLERANCE
+        # outside the grid: the ego flow exactly; inside: what the network adds on top of it
+        ego = ego_flow(pair.pc0, pair.ego1_from_ego0)
+        np.testing.assert_allclose(prediction.flow[~valid], ego[~valid], atol=1e-6, rtol=0)
+        moving += int((np.linalg.norm(prediction.residual[valid], axis=1) > 0.05).sum())
+    assert moving > 100  # a trained network that predicts motion, not a near-zero one that passes any tolerance
+
+
+def test_checkpoint_and_single_files_load(export_dir, checkpoint, expected, pairs):
+    pair, (flow, _) = pairs[2], expected[2]
+    from_ckpt = Predictor.load(checkpoint)
+    assert from_ckpt.backend == "eager" and from_ckpt.metadata["grid"]["nx"] == 64
+    np.testing.assert_allclose(from_ckpt(pair.pc0, pair.pc1, pair.ego1_from_ego0), flow, atol=1e-6, rtol=0)
+    for name, backend in (("fastflow3d.onnx", "onnx"), ("fastflow3d.pt", "torchscript")):
+        predictor = Predictor.load(export_dir / name)
+        assert predictor.backend == backend and predictor.metadata["model"] == TINY
+        assert np.abs(predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0) - flow).max() <= TOLERANCE
+
+
+def test_predictor_estimates_ego_motion_without_transform(export_dir, pairs, teacher_ego):
+    pair = pairs[1]
+    predictor = Predictor.load(export_dir)
+    estimated = predictor.predict(pair.pc0, pair.pc1)
+    assert estimated.ego_estimated
+    # the teacher's step 1 with the teacher's default settings, then the same as with that transform given
+    np.testing.assert_allclose(estimated.ego1_from_ego0, teacher_ego, atol=1e-9)
+    assert np.abs(teacher_ego[:3, 3] - pair.ego1_from_ego0[:3, 3]).max() < 0.1  # KISS-ICP here: a few cm
+    given = predictor.predict(pair.pc0, pair.pc1, teacher_ego)
+    assert not given.ego_estimated
+    np.testing.assert_allclose(estimated.flow, given.flow, atol=1e-6, rtol=0)
+
+
+def test_predictor_rejects_bad_inputs(export_dir, tmp_path):
+    predictor = Predictor.load(export_dir)
+    points = np.zeros((10, 3), np.float32)
+    with pytest.raises(PredictorError, match=r"pc1 must be a numeric \(N, 3\) array"):
+        predictor(points, np.zeros((10, 4), np.float32), np.eye(4))
+    with pytest.raises(PredictorError, match="not rigid"):
+        predictor(points, points, np.diag([2.0, 1.0, 1.0, 1.0]))
+    with pytest.raises(PredictorError, match="not an export directory"):
+        Predictor.load(tmp_path)
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    for name in (METADATA_NAME, FILE_NAMES["torchscript"]):
+        (copy / name).write_bytes((export_dir / name).read_bytes())
+    (copy / FILE_NAMES["torchscript"]).write_bytes(b"changed")
+    with pytest.raises(PredictorError, match="changed after export"):
+        Predictor.load(copy, backend="torchscript")
+
+
+def write_scan(path: Path, points: np.ndarray) -> Path:
+    """Write (N, 3) float32 points in the format of ``path``'s suffix."""
+    suffix = path.suffix
+    if suffix == ".bin":
+        np.c_[points, np.ones(len(points))].astype(np.float32).tofile(path)
+    elif suffix == ".npy":
+        np.save(path, points)
+    elif suffix == ".npz":
+        np.savez(path, points=points)
+    else:
+        import open3d as o3d
+
+        o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(float))))
+    return path
+
+
+def write_poses(path: Path, poses) -> Path:
+    path.write_text("".join(" ".join(f"{v:.12g}" for v in pose[:3].ravel()) + "\n" for pose in poses))
+    return path
+
+
+def test_infer_cli_on_raw_files_with_and_without_poses(export_dir, pairs, expected, teacher_ego, tmp_path, capsys):
+    pair, (flow, valid) = pairs[1], expected[1]
+    poses = write_poses(tmp_path / "poses.txt", [pair.pose0, pair.pose1])
+    for suffix0, suffix1, bev in ((".bin", ".npz", []), (".ply", ".pcd", ["--no-bev"])):
+        scan0, scan1 = write_scan(tmp_path / f"a{suffix0}", pair.pc0), write_scan(tmp_path / f"b{suffix1}", pair.pc1)
+        out = tmp_path / f"flow{suffix0}.npz"
+        args = [str(export_dir), str(scan0), str(scan1), "--poses", str(poses), "--out", str(out), *bev]
+        assert infer_main(args) == 0
+        with np.load(out) as result:
+            assert not result["ego_estimated"]
+            np.testing.assert_allclose(result["ego1_from_ego0"], pair.ego1_from_ego0, atol=1e-9)
+            assert np.abs(result["flow"] - flow).max() <= TOLERANCE
+            assert np.array_equal(result["in_grid"], valid)
+        assert out.with_suffix(".png").is_file() == (not bev)
+    assert (tmp_path / "flow.bin.png").stat().st_size > 10_000
+    scan0, scan1 = write_scan(tmp_path / "a.npy", pair.pc0), write_scan(tmp_path / "b.npy", pair.pc1)
+    out = tmp_path / "estimated.npy"
+    assert infer_main([str(export_dir / "fastflow3d.pt"), str(scan0), str(scan1), "--out", str(out), "--no-bev"]) == 0
+    got = np.load(out)
+    assert got.shape == pair.pc0.shape and got.dtype == np.float32
+    with_teacher_ego = Predictor.load(export_dir).predict(pair.pc0, pair.pc1, teacher_ego)
+    assert np.abs(got - with_teacher_ego.flow).max() <= TOLERANCE
+    assert "flow ->" in capsys.readouterr().out
+
+
+def test_infer_cli_errors_are_one_line(export_dir, pairs, tmp_path, capsys):
+    pair = pairs[2]
+    good0, good1 = write_scan(tmp_path / "a.npy", pair.pc0), write_scan(tmp_path / "b.npy", pair.pc1)
+    truncated = tmp_path / "cut.bin"
+    truncated.write_bytes(np.ones(4 * 100 + 2, np.float32).tobytes())
+    unnamed = tmp_path / "keys.npz"
+    np.savez(unnamed, xyz=pair.pc0)
+    three = write_poses(tmp_path / "three.txt", [np.eye(4)] * 3)
+    sheared = tmp_path / "sheared.npy"
+    np.save(sheared, np.diag([1.0, 2.0, 1.0, 1.0]))
+    cases = [
+        ([good0, tmp_path / "missing.npy"], "missing.npy: file not found"),
+        ([truncated, good1], "cut.bin: size"),
+        ([unnamed, good1], "keys.npz: no array named points or pc"),
+        ([good0, tmp_path / "scan.xyz"], "scan.xyz: unsupported scan format"),
+        ([good0, good1, "--poses", three], "three.txt: holds 3 transform(s), expected 2"),
+        ([good0, good1, "--ego", sheared], "sheared.npy: transform 1 is not rigid"),
+    ]
+    for args, message in cases:
+        assert infer_main([str(export_dir), *map(str, args), "--out", str(tmp_path / "x.npz")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and err.startswith("infer: ") and message in err, err
+    assert infer_main([str(tmp_path), str(good0), str(good1)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not an export directory" in err
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_export_cli(checkpoint, tmp_path, capsys):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        base = compose(config_name="export")
+        out = tmp_path / "ts"
+        chosen = compose(config_name="export", overrides=[f"checkpoint={checkpoint}", "format=torchscript",
+                                                          f"out_dir={out}"])
+    assert run_export(base) == 2 and "pass checkpoint=" in capsys.readouterr().err
+    base.checkpoint = str(tmp_path / "none.ckpt")
+    assert run_export(base) == 2 and "none.ckpt: checkpoint not found" in capsys.readouterr().err
+    base.checkpoint, base.format = str(checkpoint), "tflite"
+    status, err = run_export(base), capsys.readouterr().err
+    assert status == 2 and "unknown export format" in err and err.count("\n") == 1
+    assert run_export(chosen) == 0
+    assert sorted(p.name for p in out.iterdir()) == [FILE_NAMES["torchscript"], METADATA_NAME]
+    assert json.loads((out / METADATA_NAME).read_text())["files"].keys() == {"torchscript"}
+    assert f"{out / METADATA_NAME}" in capsys.readouterr().out

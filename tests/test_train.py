@@ -1,0 +1,279 @@
+"""Training stage: configs compose, flat batches, fast_dev_run, overfitting one pair, resume, checkpoint contract."""
+
+import inspect
+import subprocess
+import sys
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from fastflow3d.checkpoint import CheckpointError, build_student, load_student
+from fastflow3d.data import DataError, StudentDataset, collate
+from fastflow3d.model import FastFlow3D
+from fastflow3d.module import StudentModule
+from fastflow3d.training import TrainError, fit
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.geometry import ego_flow, transform_points
+from icpflow.shards.writer import write_index, write_shard
+
+REPO = Path(__file__).resolve().parents[1]
+CONF = REPO / "conf"
+GROUPS = ("data", "model", "trainer", "logger", "callbacks", "experiment")
+# 32 x 32 pillars of 1 m and narrow encoders: a training step takes milliseconds
+TINY = ["model.x_range=[-16.0,16.0]", "model.y_range=[-16.0,16.0]", "model.cell=1.0", "model.pillar_channels=16",
+        "model.stage_channels=[16,32,64]", "data.workers=0", "trainer.log_every_n_steps=1",
+        "+trainer.enable_progress_bar=false", "+trainer.enable_model_summary=false"]
+
+
+def _compose(*overrides):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("train", list(overrides))
+
+
+def _options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+
+
+# ---------------------------------------------------------------------------------------------------- configs
+
+@pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in _options(g)])
+def test_every_config_composes(group, option, tmp_path):
+    cfg = _compose(f"{group}={option}", f"out_dir={tmp_path}")
+    plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    for key in ("train", "val", "batch_size", "workers"):
+        assert key in plain["data"]
+    assert "max_steps" in plain["trainer"] and "ckpt_path" in plain and plain["out_dir"] == str(tmp_path)
+    trainer_args = set(inspect.signature(L.Trainer.__init__).parameters)
+    assert set(plain["trainer"]) <= trainer_args, set(plain["trainer"]) - trainer_args
+    model_args = set(inspect.signature(FastFlow3D.__init__).parameters)
+    assert plain["model"]["_target_"] == "fastflow3d.model.FastFlow3D"
+    assert set(plain["model"]) - {"_target_"} <= model_args
+    callbacks = [instantiate(c) for c in cfg.callbacks.values()]
+    assert any(isinstance(c, L.pytorch.callbacks.ModelCheckpoint) and c.monitor == "val/dynamic_fg/EPE"
+               for c in callbacks)
+    assert str(Path(cfg.checkpoint_dir).parent) == str(tmp_path)
+    assert isinstance(instantiate(cfg.logger), L.pytorch.loggers.TensorBoardLogger)
+
+
+def test_model_configs_build_the_issue_networks():
+    default = build_student(OmegaConf.to_container(_compose("model=fastflow3d").model))
+    assert (default.grid.nx, default.grid.ny) == (512, 512)
+    assert sum(p.numel() for p in default.parameters()) == 6_815_619
+    xl = _compose("model=fastflow3d_xl").model
+    assert xl.cell == 0.1 and xl.pillar_channels == 64 and len(xl.stage_channels) == 4
+    with pytest.raises(ValueError, match="_target_"):
+        build_student({"_target_": "os.system", "cell": 1.0})
+
+
+def test_experiment_recipes():
+    paper = _compose("experiment=paper")
+    assert paper.optim.lr == 2e-4 and list(paper.optim.milestones) == [25] and paper.optim.gamma == 0.1
+    assert paper.trainer.max_epochs == 50 and paper.model.cell == 0.2
+    zeroflow = _compose("experiment=zeroflow")
+    assert zeroflow.optim.lr == 2e-6
+    assert zeroflow.data.batch_size * zeroflow.trainer.accumulate_grad_batches == 64
+    quick = _compose()  # python train.py with no arguments
+    assert quick.data.train == "outputs/labels/synthetic/train" and quick.data.val == "outputs/labels/synthetic/val"
+    assert quick.trainer.max_steps > 0 and quick.trainer.accelerator == "cpu"
+    assert _compose("model=fastflow3d_xl").model.cell == 0.1  # a group on the command line beats the experiment's
+
+
+# ---------------------------------------------------------------------------------------------------- tiny shards
+
+def _write_shards(out_dir: Path, pairs, with_gt: bool = True, noise: float = 0.0) -> Path:
+    """Shards in the label.py layout whose pseudo-labels are the ground truth (plus Gaussian ``noise`` in m)."""
+    rng = np.random.default_rng(0)
+    samples, records = [], []
+    for index, pair in enumerate(pairs):
+        foreground = pair.classes > 0
+        sample = {
+            "pc0": pair.pc0, "pc1": pair.pc1, "ground0": pair.ground0, "ground1": pair.ground1,
+            "ego1_from_ego0": pair.ego1_from_ego0,
+            "flow": (pair.flow + rng.normal(0, noise, pair.flow.shape)).astype(np.float32),
+            "confidence": np.where(pair.ground0, 0.0, 1.0).astype(np.float32),
+            "cluster": np.where(foreground, 0, -1).astype(np.int32),
+            "attrs": {"sample_id": pair.sample_id, "log_id": pair.log_id, "index": index, "timestamp0_ns": -1,
+                      "timestamp1_ns": -1, "dt": pair.dt},
+        }
+        if with_gt:
+            sample.update(gt_flow=pair.flow, gt_flow_valid=pair.flow_valid, gt_classes=pair.classes,
+                          gt_dynamic=pair.dynamic)
+        samples.append(sample)
+        records.append({"sample_id": pair.sample_id, "index": index, "n0": len(pair.pc0), "n1": len(pair.pc1)})
+    out_dir.mkdir(parents=True)
+    write_shard(out_dir / "shard_000000.h5", samples, "test: true\n", "test")
+    write_index(out_dir / "index.json", {"config_hash": "test", "shards": [{"file": "shard_000000.h5",
+                                                                          "samples": records}]})
+    return out_dir
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    dataset = SyntheticDataset(split="train", num_sequences=1, frames_per_sequence=3, beams=32,
+                               azimuth_resolution_deg=1.0)
+    return [dataset.pair(i) for i in range(len(dataset))]
+
+
+@pytest.fixture(scope="module")
+def shards(pairs, tmp_path_factory):
+    root = tmp_path_factory.mktemp("shards")
+    return {"gt": _write_shards(root / "gt", pairs), "pseudo": _write_shards(root / "pseudo", pairs[:1], False),
+            "one": _write_shards(root / "one", pairs[:1])}
+
+
+def _cfg(tmp_path, train, val, *overrides):
+    return _compose(f"data.train={train}", f"data.val={val}", f"out_dir={tmp_path / 'run'}", *TINY, *overrides)
+
+
+# ---------------------------------------------------------------------------------------------------- data
+
+def test_collate_flat_batch(shards, pairs):
+    dataset = StudentDataset(shards["gt"])
+    batch = collate([dataset[0], dataset[1]])
+    n0 = [len(p.pc0) for p in pairs[:2]]
+    assert batch["batch_size"] == 2 and batch["sample_id"] == [p.sample_id for p in pairs[:2]]
+    assert batch["batch0"].tolist() == [0] * n0[0] + [1] * n0[1]
+    assert batch["pc1"].shape == (sum(len(p.pc1) for p in pairs[:2]), 3) and batch["ego1_from_ego0"].shape == (2, 4, 4)
+    first = slice(0, n0[0])
+    np.testing.assert_allclose(batch["pc0_compensated"][first].numpy(),
+                               transform_points(pairs[0].ego1_from_ego0, pairs[0].pc0), atol=1e-5)
+    residual = pairs[0].flow - ego_flow(pairs[0].pc0, pairs[0].ego1_from_ego0)
+    np.testing.assert_allclose(batch["pseudo"][first].numpy(), residual, atol=1e-5)
+    np.testing.assert_allclose(batch["gt"][first].numpy(), residual, atol=1e-5)
+    assert batch["gt_classes"].shape == (sum(n0),) and batch["pseudo"].dtype == torch.float32
+    mixed = collate([dataset[0], StudentDataset(shards["pseudo"])[0]])
+    assert "gt" not in mixed and mixed["pseudo"].shape == (n0[0] * 2, 3)
+
+
+def test_loss_choice_per_sample_dt_and_confidence():
+    cfg = OmegaConf.to_container(_compose(*TINY), resolve=True)
+    pred = torch.zeros(4, 3)
+    batch = {"pseudo": torch.tensor([[0.05, 0, 0], [0.0, 0, 0], [0.05, 0, 0], [0, 0.0, 0]]),
+             "batch0": torch.tensor([0, 0, 1, 1]), "batch_size": 2,
+             "dt": torch.tensor([0.1, 0.05], dtype=torch.float64),
+             "confidence": torch.tensor([1.0, 1.0, 0.5, 0.0]), "gt": torch.tensor([[1.0, 0, 0]] * 4),
+             "gt_classes": torch.tensor([1, 0, 0, 0], dtype=torch.int32), "gt_valid": torch.ones(4, dtype=torch.bool),
+             "sample_id": ["a", "b"]}
+    valid = torch.ones(4, dtype=torch.bool)
+
+    def loss(**options):
+        module = StudentModule({**cfg, "loss": {**cfg["loss"], **options}})
+        return module.loss(pred, valid, batch).item()
+
+    assert loss() == pytest.approx((0.025 + 0.025) / 2)
+    # 0.05 m is 0.5 m/s at dt 0.1 s (weight 0.1) but 1 m/s at dt 0.05 s (weight 1)
+    assert loss(speed_weight=True) == pytest.approx((0.1 * 0.05 / 2 + 1.0 * 0.05 / 2) / 2)
+    assert loss(confidence_weight=True) == pytest.approx((0.05 / 2 + 0.5 * 0.05 / 2) / 2)
+    # supervised: background weighs 0.1; all errors are 1
+    assert loss(name="supervised") == pytest.approx(((1 + 0.1) / 2 + (0.1 + 0.1) / 2) / 2)
+    with pytest.raises(ValueError, match="loss.name must be one of"):
+        loss(name="chamfer")
+
+
+def test_missing_or_empty_shard_dir_is_one_line(tmp_path):
+    with pytest.raises(DataError, match="does not exist"):
+        StudentDataset(tmp_path / "nowhere")
+    with pytest.raises(DataError, match="no index.json"):
+        StudentDataset(tmp_path)
+    (tmp_path / "empty").mkdir()
+    write_index(tmp_path / "empty" / "index.json", {"config_hash": "x", "shards": []})
+    with pytest.raises(DataError, match="no samples"):
+        StudentDataset(tmp_path / "empty")
+    expected = r"data.train: .*nowhere: shard directory does not exist; .*python label.py split=train"
+    with pytest.raises(TrainError, match=expected):
+        fit(_cfg(tmp_path, tmp_path / "nowhere", tmp_path / "nowhere"))
+
+
+def test_train_script_says_how_to_label(tmp_path):
+    result = subprocess.run([sys.executable, str(REPO / "train.py"), f"data.train={tmp_path / 'none'}",
+                             f"out_dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.startswith("train:")]
+    assert len(lines) == 1 and "python label.py split=train" in lines[0], result.stderr
+
+
+# ---------------------------------------------------------------------------------------------------- training
+
+def test_fast_dev_run_against_gt_and_pseudo(shards, tmp_path):
+    trainer = fit(_cfg(tmp_path, shards["gt"], shards["gt"], "trainer.fast_dev_run=true", "data.batch_size=2"))
+    assert trainer.state.finished and trainer.global_step == 1
+    metrics = trainer.callback_metrics
+    assert metrics["val/against_gt"] == 1.0 and np.isfinite(metrics["val/dynamic_fg/EPE"].item())
+    assert {"val/static_fg/EPE", "val/static_bg/EPE", "val/dynamic_fg/AccS", "val/dynamic_fg/AccR"} <= set(metrics)
+    trainer = fit(_cfg(tmp_path, shards["gt"], shards["pseudo"], "trainer.fast_dev_run=true",
+                       "loss.speed_weight=true", "loss.confidence_weight=true"))
+    assert trainer.callback_metrics["val/against_gt"] == 0.0
+    with pytest.raises(TrainError, match="supervised needs ground truth"):
+        fit(_cfg(tmp_path, shards["pseudo"], shards["pseudo"], "trainer.fast_dev_run=true", "loss.name=supervised"))
+
+
+def test_overfit_one_pair_drives_dynamic_epe_down(shards, tmp_path):
+    cfg = _cfg(tmp_path, shards["one"], shards["one"], "trainer.max_steps=150", "trainer.val_check_interval=150",
+               "optim.lr=1e-3", "loss.speed_weight=true", "metrics.bev_every=0", "metrics.crop=16.0")
+    before = L.Trainer(logger=False, enable_progress_bar=False, enable_model_summary=False).validate(
+        StudentModule(OmegaConf.to_container(cfg, resolve=True)), datamodule=_datamodule(cfg), verbose=False)[0]
+    trainer = fit(cfg)
+    after = trainer.callback_metrics["val/dynamic_fg/EPE"].item()
+    assert after < before["val/dynamic_fg/EPE"] / 5, (before["val/dynamic_fg/EPE"], after)
+
+
+def _datamodule(cfg):
+    from fastflow3d.data import ShardDataModule
+
+    return ShardDataModule(**OmegaConf.to_container(cfg.data, resolve=True))
+
+
+def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
+    common = ("trainer.val_check_interval=2", "data.batch_size=1")
+    first = fit(_cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=3", *common))
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert first.global_step == 3 and torch.load(last, weights_only=True)["global_step"] == 3
+    assert list(last.parent.glob("best-*.ckpt"))
+
+    second = fit(_cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=5", "ckpt_path=last", *common))
+    checkpoint = torch.load(last, weights_only=True)
+    assert second.global_step == 5 and checkpoint["global_step"] == 5
+    adam_steps = {float(state["step"]) for state in checkpoint["optimizer_states"][0]["state"].values()}
+    assert adam_steps == {5.0}  # the optimiser continued: a fresh start would have taken 2 steps
+
+    model, cfg = load_student(last)
+    assert not model.training and cfg == OmegaConf.to_container(
+        _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=5", "ckpt_path=last", *common), resolve=True)
+    assert cfg["model"]["cell"] == 1.0 and cfg["model"]["stage_channels"] == [16, 32, 64]
+    batch = collate([StudentDataset(shards["gt"])[0]])
+    trained = second.lightning_module.model.eval()
+    args = (batch["pc0_compensated"], batch["batch0"], batch["pc1"], batch["batch1"], 1)
+    with torch.no_grad():
+        expected, got = trained(*args)[0], model(*args)[0]
+    assert torch.equal(expected, got) and torch.any(expected != 0)
+
+
+def test_ckpt_path_last_without_checkpoint(shards, tmp_path):
+    with pytest.raises(TrainError, match="last.ckpt does not exist"):
+        fit(_cfg(tmp_path, shards["gt"], shards["gt"], "ckpt_path=last"))
+
+
+def test_load_student_rejects_other_files(tmp_path):
+    text = tmp_path / "notes.ckpt"
+    text.write_text("not a checkpoint")
+    with pytest.raises(CheckpointError, match=r"notes.ckpt: not a readable torch checkpoint"):
+        load_student(text)
+    plain = tmp_path / "plain.ckpt"
+    torch.save({"state_dict": {}}, plain)
+    with pytest.raises(CheckpointError, match=r"plain.ckpt: not a FastFlow3D student checkpoint"):
+        load_student(plain)
+    wrong = tmp_path / "wrong.ckpt"
+    model_cfg = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-4.0, 4.0], "y_range": [-4.0, 4.0],
+                 "cell": 1.0, "stage_channels": [8, 16, 32]}
+    torch.save({"state_dict": {"model.head.0.weight": torch.zeros(2, 2)}, "hyper_parameters": {"cfg": {
+        "model": model_cfg}}}, wrong)
+    with pytest.raises(CheckpointError, match=r"wrong.ckpt: weights do not fit"):
+        load_student(wrong)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_student(tmp_path / "missing.ckpt")

@@ -1,0 +1,26 @@
+"""Train the FastFlow3D student on pseudo-flow shards (see conf/train.yaml and fastflow3d.training).
+
+    python train.py [experiment=synthetic_quick|paper|zeroflow] [data.train=<shard dir>] [data.val=<shard dir>]
+        [trainer=cpu|gpu|ddp] [trainer.max_steps=N] [trainer.precision=bf16-mixed] [compile=true]
+        [out_dir=<dir>] [ckpt_path=last]
+"""
+
+import sys
+
+import hydra
+from omegaconf import DictConfig
+
+from fastflow3d.training import TrainError, fit
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="train")
+def main(cfg: DictConfig) -> None:
+    try:
+        fit(cfg)
+    except TrainError as error:
+        print(f"train: {error}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()
