@@ -1,12 +1,14 @@
-"""Quality tables of the ICP-Flow teacher: Argoverse 2 pair, KITTI sequence 01 frames, synthetic val split.
+"""Quality tables of the ICP-Flow teacher and its ablations: Argoverse 2 pair, KITTI sequence 01, synthetic val split.
 
-    .venv/bin/python benchmarks/eval_teacher.py [--av2] [--kitti] [--synthetic N | --synthetic-seeds a:b]
-        [--variants "teacher,centroid init,hungarian,kiss-icp ego,zero flow"]
+    .venv/bin/python benchmarks/eval_teacher.py [--av2 [--av2-ground map|patchwork] [--no-times]] [--kitti]
+        [--synthetic N] [--variants "teacher,centroid init,hungarian,kiss-icp ego,zero flow"] [--set FIELD=VALUE ...]
 
-Metrics per point group (the paper's table): EPE (m, mean end-point error), Acc-S (share of points with error
-< 0.05 m or < 5 % of the ego-compensated ground-truth flow), Acc-R (< 0.1 m or < 10 %). Groups: dynamic (all),
-dynamic fg, static fg, static bg (fg: points with a class / instance). Rows: the teacher (preset of the data set),
-its ablations (centroid init, Hungarian, KISS-ICP ego motion) and the zero (ego-compensated) flow.
+Scores come from ``icpflow.metrics`` (the same code as eval.py): the paper's split into dynamic foreground, static
+foreground and static background, point-weighted, ground excluded, in the dataset's crop (AV2 51.2 m, synthetic
+32 m). Variants: the teacher (the dataset's preset), centroid initialisation, Hungarian association, KISS-ICP ego
+motion (the given poses ignored), and the zero (ego-compensated) flow. For AV2 it also prints the protocol of
+``tests/test_teacher_real.py``: mean EPE over every point the official labels call dynamic (ground included, no
+crop). ``--no-times`` withholds the sweeps' per-point capture times, so the de-skew step does not run.
 """
 
 from __future__ import annotations
@@ -18,10 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow import metrics
 from icpflow.geometry import ego_flow, invert, relative_transform
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
 VARIANTS = {
     "teacher": {},
     "centroid init": {"init": "centroid"},
@@ -31,72 +35,62 @@ VARIANTS = {
 }
 
 
-def scores(flow: np.ndarray, pair) -> dict:
-    """EPE / Acc-S / Acc-R per group of ``pair`` (a FramePair with flow, dynamic, classes or instance)."""
-    error = np.linalg.norm(flow - pair.flow, axis=1)
-    residual = np.linalg.norm(pair.flow - ego_flow(pair.pc0, pair.ego1_from_ego0), axis=1)
-    relative = error / np.maximum(residual, 1e-6)
-    valid = np.ones(len(error), bool) if pair.flow_valid is None else pair.flow_valid
-    labels = pair.instance if pair.instance is not None else pair.classes
-    fg = labels > 0 if labels is not None else np.zeros(len(error), bool)
-    groups = {"dynamic": pair.dynamic, "dynamic fg": pair.dynamic & fg, "static fg": ~pair.dynamic & fg,
-              "static bg": ~pair.dynamic & ~fg}  # fmt: skip
-    out = {}
-    for name, mask in groups.items():
-        mask = mask & valid
-        if mask.any():
-            e, r = error[mask], relative[mask]
-            out[name] = (e.mean(), ((e < 0.05) | (r < 0.05)).mean(), ((e < 0.1) | (r < 0.1)).mean(), int(mask.sum()))
-    return out
+def dataset_teacher(name: str) -> tuple[str, dict]:
+    """The teacher preset and field overrides that ``conf/dataset/<name>.yaml`` gives label.py and eval.py."""
+    from omegaconf import OmegaConf
+
+    node = OmegaConf.load(ROOT / "conf" / "dataset" / f"{name}.yaml")
+    teacher = node.get("teacher")
+    return str(node.preset), OmegaConf.to_container(teacher) if teacher else {}
 
 
-def run_variant(name: str, pairs, preset: str, use_ground: bool, base: dict) -> tuple[dict, float]:
-    """Per-group metrics pooled over ``pairs`` (point-weighted) and the median wall time per pair."""
-    overrides = VARIANTS[name]
-    sums: dict = {}
-    times = []
-    teacher = None if overrides is None else ICPFlow(ICPFlowConfig.preset(preset, **{**base, **overrides}))
+def run_variant(overrides, pairs, dataset: str, crop: float, use_ground: bool, use_times: bool, base: dict):
+    """(point-weighted table of ``icpflow.metrics``, median s/pair, mean EPE over each pair's ``dynamic`` points)."""
+    preset, fields = dataset_teacher(dataset)
+    teacher = None if overrides is None else ICPFlow(ICPFlowConfig.preset(preset, **{**fields, **base, **overrides}))
+    scores, seconds, dynamic_errors = metrics.MetricAccumulator(), [], []
+    if teacher is not None:  # warm-up: numba caches, hdbscan's worker pool
+        teacher(pairs[0].pc0, pairs[0].pc1, pairs[0].ego1_from_ego0)
     for pair in pairs:
         if teacher is None:
             flow = ego_flow(pair.pc0, pair.ego1_from_ego0)
         else:
-            ego = None if overrides.get("ego_motion") == "kiss_icp" else pair.ego1_from_ego0
+            extra = {"time0": pair.time0, "time1": pair.time1, "dt": pair.dt} if use_times else {}
             grounds = (pair.ground0, pair.ground1) if use_ground else (None, None)
             tic = time.perf_counter()
-            flow = teacher(pair.pc0, pair.pc1, ego, *grounds).flow
-            times.append(time.perf_counter() - tic)
-        for group, (epe, accs, accr, n) in scores(flow, pair).items():
-            acc = sums.setdefault(group, np.zeros(4))
-            acc += [epe * n, accs * n, accr * n, n]
-    table = {g: (v[0] / v[3], v[1] / v[3], v[2] / v[3], int(v[3])) for g, v in sums.items()}
-    return table, float(np.median(times)) if times else 0.0
+            flow = teacher(pair.pc0, pair.pc1, pair.ego1_from_ego0, *grounds, **extra).flow
+            seconds.append(time.perf_counter() - tic)
+        scores.add(metrics.frame_pair_stats(pair, flow, crop=crop))
+        if pair.dynamic is not None:
+            dynamic_errors.append(np.linalg.norm(flow - pair.flow, axis=1)[pair.dynamic])
+    dynamic = float(np.concatenate(dynamic_errors).mean()) if dynamic_errors else float("nan")
+    return scores.table()["point_weighted"], float(np.median(seconds)) if seconds else 0.0, dynamic
 
 
 def print_table(title: str, rows: dict) -> None:
-    groups = ["dynamic", "dynamic fg", "static fg", "static bg"]
     print(f"\n{title}")
-    print(f"| variant | s/pair | " + " | ".join(f"{g} EPE / Acc-S / Acc-R" for g in groups) + " |")
-    print("|---|---|" + "---|" * len(groups))
-    for name, (table, seconds) in rows.items():
-        cells = [("%.3f / %.3f / %.3f" % table[g][:3]) if g in table else "-" for g in groups]
-        print(f"| {name} | {seconds:.2f} | " + " | ".join(cells) + " |")
+    print("| variant | s/pair | dynamic EPE (all) | " + " | ".join(f"{c} EPE / Acc-S / Acc-R" for c in metrics.CATEGORIES[:3])
+          + " |")
+    print("|---|---|---|" + "---|" * 3)
+    for name, (table, seconds, dynamic) in rows.items():
+        cells = ["%.4f / %.4f / %.4f" % (table[c]["EPE"], table[c]["AccS"], table[c]["AccR"])
+                 for c in metrics.CATEGORIES[:3]]
+        print(f"| {name} | {seconds:.2f} | {dynamic:.4f} | " + " | ".join(cells) + " |")
 
 
-def eval_av2(variants, ground: str, base: dict) -> None:
+def eval_av2(variants, ground: str, use_times: bool, base: dict) -> None:
     from icpflow.datasets.av2 import AV2Dataset
 
-    root = DATA / "av2"
-    threshold = 0.4 if ground == "map" else 0.3
-    pair = AV2Dataset(root, split="val", ground_threshold=threshold).pair(0)
-    rows = {v: run_variant(v, [pair], "av2", ground == "map", base) for v in variants}
-    print_table(f"AV2 pair {pair.sample_id} (preset av2 {base or ''}, ground: {ground}; "
-                f"{int(pair.dynamic.sum())} dynamic points)", rows)
+    pair = AV2Dataset(DATA / "av2", split="val", ground_threshold=0.4).pair(0)
+    rows = {v: run_variant(VARIANTS[v], [pair], "av2", 51.2, ground == "map", use_times, base) for v in variants}
+    print_table(f"AV2 pair {pair.sample_id} (preset av2 {base or ''}, ground: {ground}, per-point times: "
+                f"{'yes' if use_times else 'no'}; {int(pair.dynamic.sum())} dynamic points)", rows)
 
 
-def eval_kitti(cfg_overrides: dict) -> None:
+def eval_kitti(base: dict) -> None:
     data = np.load(DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz")
     poses = data["velo_poses_world"]
-    teacher = ICPFlow(ICPFlowConfig.preset("waymo", ground="patchwork", patchwork_z_offset=0.0, crop_xy=51.2, **cfg_overrides))
+    teacher = ICPFlow(ICPFlowConfig.preset("waymo", ground="patchwork", patchwork_z_offset=0.0, crop_xy=51.2, **base))
     print("\nKITTI seq 01 (KISS-ICP + point-to-plane refinement; static = every non-car point)")
     print("| pair | ego dt (m) | ego drot (deg) | static flow EPE (m) | p95 (m) | s/pair |")
     print("|---|---|---|---|---|---|")
@@ -114,34 +108,23 @@ def eval_kitti(cfg_overrides: dict) -> None:
               f"{np.quantile(error, 0.95):.4f} | {seconds:.2f} |")
 
 
-def synthetic_pairs(count: int, seeds: str | None) -> tuple[list, str]:
-    """``count`` synthetic val pairs: from ``SyntheticDataset(split="val")``, or, with ``seeds`` "a:b", the pair
-    (0, 1) of the worlds ``build_scene(seed)`` for seed in range(a, b) with the default 64-beam lidar."""
-    if seeds:
-        from icpflow.synthetic import Lidar, build_scene, sequence
-
-        first, last = (int(v) for v in seeds.split(":"))
-        pairs = [sequence(build_scene(seed), Lidar(), frames=[0, 1]).pair(0, 1) for seed in range(first, last)]
-        return pairs, f"build_scene seeds {first}..{last - 1}"
+def eval_synthetic(variants, count: int, base: dict) -> None:
     from icpflow.datasets.synthetic import SyntheticDataset
 
-    dataset = SyntheticDataset(split="val")
-    return [dataset.pair(i) for i in range(min(count, len(dataset)))], "SyntheticDataset(split='val')"
-
-
-def eval_synthetic(variants, count: int, seeds: str | None, base: dict) -> None:
-    pairs, source = synthetic_pairs(count, seeds)
-    rows = {v: run_variant(v, pairs, "waymo", True, base) for v in variants}
-    print_table(f"Synthetic {source}, {len(pairs)} pairs (preset waymo {base or ''}, ground masks given)", rows)
+    dataset = SyntheticDataset(split="val", num_sequences=max(1, -(-count // 4)))
+    pairs = [dataset.pair(i) for i in range(min(count, len(dataset)))]
+    rows = {v: run_variant(VARIANTS[v], pairs, "synthetic", 32.0, True, False, base) for v in variants}
+    print_table(f"Synthetic val, {len(pairs)} pairs (conf/dataset/synthetic.yaml's teacher {base or ''}, ground masks "
+                "given)", rows)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--av2", action="store_true")
     parser.add_argument("--av2-ground", choices=("map", "patchwork"), default="map")
+    parser.add_argument("--no-times", action="store_true", help="AV2: do not pass per-point capture times")
     parser.add_argument("--kitti", action="store_true")
     parser.add_argument("--synthetic", type=int, default=0, help="number of val pairs (0 = skip)")
-    parser.add_argument("--synthetic-seeds", default=None, help="a:b, worlds build_scene(a..b-1) instead of the split")
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                         help="ICPFlowConfig overrides for every variant (values parsed as Python literals)")
@@ -152,11 +135,11 @@ def main() -> None:
         parser.error(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
     base = {key: ast.literal_eval(value) for key, value in (item.split("=", 1) for item in args.set)}
     if args.av2:
-        eval_av2(variants, args.av2_ground, base)
+        eval_av2(variants, args.av2_ground, not args.no_times, base)
     if args.kitti:
-        eval_kitti({})
-    if args.synthetic or args.synthetic_seeds:
-        eval_synthetic(variants, args.synthetic, args.synthetic_seeds, base)
+        eval_kitti(base)
+    if args.synthetic:
+        eval_synthetic(variants, args.synthetic, base)
 
 
 if __name__ == "__main__":

@@ -297,11 +297,23 @@ def test_bad_arguments_are_one_line_errors(teacher, moving_scene, kwargs, words)
     assert "\n" not in str(info.value)
 
 
-def test_wrong_point_shape_and_missing_ego(teacher, moving_scene):
+def test_wrong_point_shape(teacher, moving_scene):
     with pytest.raises(ValueError, match=r"pc1 must have shape \(N, 3\)"):
         teacher(moving_scene["pc0"], np.zeros((4, 4), np.float32), EGO)
-    with pytest.raises(ValueError, match="ego_motion='given'"):
-        teacher(moving_scene["pc0"], moving_scene["pc1"])
+
+
+@pytest.mark.parametrize("mode, passed, estimated", [
+    ("given", True, False), ("given", False, True),  # a transform passed in is used; none: KISS-ICP
+    ("kiss_icp", True, True), ("kiss_icp", False, True),  # the ablation: always estimated
+])
+def test_ego_motion_switch(monkeypatch, moving_scene, mode, passed, estimated):
+    s = moving_scene
+    guess = make_transform(yaw=0.002, translation=(0.55, 0.01, 0.0))
+    calls = []
+    monkeypatch.setattr("icpflow.teacher.pipeline.estimate_ego_motion", lambda a, b, cfg: calls.append(1) or guess)
+    result = ICPFlow(CFG.replace(ego_motion=mode))(s["pc0"], s["pc1"], s["ego"] if passed else None)
+    assert bool(calls) == estimated
+    np.testing.assert_array_equal(result.ego1_from_ego0, guess if estimated else s["ego"])
 
 
 # ----------------------------------------------------------------------------------------------- long horizon

@@ -276,3 +276,27 @@ def test_association_edge_cases():
     assert associate([0, 0, 1], [5, 6, 5], [1.0, 0.5, 3.0], [True] * 3, "hungarian").tolist() == [False, True, True]
     with pytest.raises(ValueError, match="method"):
         associate([0], [1], [1.0], [True], "greedy")
+
+
+def test_static_pairs_keep_the_identity_when_a_slide_fits_barely_better():
+    import dataclasses
+
+    from icpflow.teacher.pipeline import _prefer_static
+
+    # A 6 m x 3 m wall sampled at random by two scans: a 0.1 m slide along it fits about as well as no motion.
+    # A car that moved 0.3 m fits far worse at the identity than at its motion.
+    rng = np.random.default_rng(0)
+    wall0, wall1 = (np.column_stack([rng.uniform(0, 6, 2000), rng.normal(0, 0.01, 2000), rng.uniform(0, 3, 2000)])
+                    .astype(np.float32) for _ in range(2))
+    car = _box_surface(600, seed=3)
+    motion = make_transform(translation=(0.3, 0.1, 0.0))
+    moved = _noisy(transform_points(motion, car), 0.01, 4)
+    clouds = [(wall0, wall1), (car, moved)]
+    transforms = np.stack([make_transform(translation=(0.1, 0.0, 0.0)), motion])
+    result = register_clusters(clouds, transforms, params=dataclasses.replace(ICP, max_iter=0))  # quality only
+    slid = result.mean_error.copy()
+    _prefer_static(result, clouds, 0.25, ICP)
+    np.testing.assert_array_equal(result.transforms[0], np.eye(4))
+    assert result.mean_error[0] <= 1.25 * slid[0]  # the identity's own error replaced the slide's
+    np.testing.assert_array_equal(result.transforms[1], motion)
+    assert result.mean_error[1] == slid[1]

@@ -14,6 +14,7 @@ or wrong mask lengths raise ``ValueError`` with a one-line message.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -98,6 +99,19 @@ def _as_mask(name: str, value, count: int) -> np.ndarray | None:
     return array
 
 
+def _prefer_static(result, clouds, tolerance: float, params) -> None:
+    """Pairs whose mean error at the identity is at most ``(1 + tolerance)`` times their registered error keep the
+    identity (no motion), with its error and IoU ratio (``result`` is updated in place). Scans sample a static
+    surface differently (scan lines move with the ego), so a small slide along walls often fits slightly better
+    than no motion at all; a real motion fits far better than the identity."""
+    identity = np.tile(np.eye(4), (len(clouds), 1, 1))
+    still = registration.register_clusters(clouds, identity, params=dataclasses.replace(params, max_iter=0))
+    static = still.mean_error <= result.mean_error * (1.0 + tolerance)
+    result.transforms[static] = identity[static]
+    result.mean_error[static] = still.mean_error[static]
+    result.iou_ratio[static] = still.iou_ratio[static]
+
+
 class ICPFlow:
     """Learning-free scene flow between two LiDAR scans (see the module docstring)."""
 
@@ -136,9 +150,7 @@ class ICPFlow:
         pc0_ok, pc1_ok = pc0_in[valid0], pc1_in[valid1]
 
         tic = time.perf_counter()
-        if ego1_from_ego0 is None:
-            if cfg.ego_motion == "given":
-                raise ValueError("ICPFlow: ego_motion='given' but no ego1_from_ego0 was passed")
+        if ego1_from_ego0 is None or cfg.ego_motion == "kiss_icp":
             try:
                 ego = estimate_ego_motion(pc0_ok, pc1_ok, cfg)
             except (RuntimeError, ValueError, MemoryError) as error:
@@ -256,6 +268,8 @@ class ICPFlow:
 
         tic = time.perf_counter()
         result = registration.register_clusters(clouds, inits, backend=cfg.icp_backend, params=self.icp_params)
+        if cfg.static_tolerance > 0:
+            _prefer_static(result, clouds, cfg.static_tolerance, self.icp_params)
         ok = checks.passes(result.transforms, result.mean_error, result.iou_ratio, np.full(n, window), cfg,
                            src_centroids=src_stats.centroid[src_ids])
         chosen = association.associate(src_ids, dst_ids, result.mean_error, ok, method=cfg.association)

@@ -8,7 +8,8 @@
   point is the smallest match confidence along its chain.
 
 Scans are (N_i, 3) float32 in their own ego frames; ``ego_transforms[i]`` is ``ego{i+1}_from_ego{i}`` (4, 4) or
-None (estimated).
+None (estimated); optional ``times[i]`` (N_i,) per-point capture times (s after scan i's timestamp) and ``dts[i]``
+seconds between scans i and i + 1 feed the teacher's de-skew step (``teacher.deskew``).
 """
 
 from __future__ import annotations
@@ -30,9 +31,9 @@ class HorizonResult:
     ego_k_from_0: np.ndarray
 
 
-def long_horizon_flow(teacher, scans, ego_transforms=None, grounds=None, mode: str | None = None) -> HorizonResult:
-    """Flow from ``scans[0]`` to ``scans[-1]`` (see the module docstring); ``mode`` defaults to the config's."""
-    mode = mode or teacher.cfg.horizon_mode
+def long_horizon_flow(teacher, scans, ego_transforms=None, grounds=None, mode: str = "direct", times=None,
+                      dts=None) -> HorizonResult:
+    """Flow from ``scans[0]`` to ``scans[-1]`` (see the module docstring), ``mode`` "direct" or "tracker"."""
     k = len(scans) - 1
     if mode not in ("direct", "tracker"):
         raise ValueError(f"long_horizon_flow: mode must be 'direct' or 'tracker', got {mode!r}")
@@ -40,18 +41,23 @@ def long_horizon_flow(teacher, scans, ego_transforms=None, grounds=None, mode: s
         raise ValueError(f"long_horizon_flow: need 2 to {teacher.cfg.max_frame_gap + 1} scans, got {len(scans)}")
     egos = list(ego_transforms) if ego_transforms is not None else [None] * k
     grounds = list(grounds) if grounds is not None else [None] * (k + 1)
-    if len(egos) != k or len(grounds) != k + 1:
-        raise ValueError(f"long_horizon_flow: {k + 1} scans need {k} ego transforms and {k + 1} ground masks")
+    times = list(times) if times is not None else [None] * (k + 1)
+    dts = list(dts) if dts is not None else [None] * k
+    if len(egos) != k or len(grounds) != k + 1 or len(times) != k + 1 or len(dts) != k:
+        raise ValueError(f"long_horizon_flow: {k + 1} scans need {k} ego transforms, {k + 1} ground masks, "
+                         f"{k + 1} time arrays and {k} dts")
 
     steps = []
     if mode == "tracker" or any(e is None for e in egos):
         for i in range(k):
-            steps.append(teacher(scans[i], scans[i + 1], egos[i], grounds[i], grounds[i + 1]))
+            steps.append(teacher(scans[i], scans[i + 1], egos[i], grounds[i], grounds[i + 1], times[i], times[i + 1],
+                                 dt=dts[i]))
         egos = [step.ego1_from_ego0 for step in steps]
     ego_k = np.eye(4)
     for ego in egos:
         ego_k = np.asarray(ego, np.float64) @ ego_k
-    direct = teacher(scans[0], scans[k], ego_k, grounds[0], grounds[k], gap=k)
+    dt_k = sum(dts) if all(dt is not None for dt in dts) else None
+    direct = teacher(scans[0], scans[k], ego_k, grounds[0], grounds[k], times[0], times[k], gap=k, dt=dt_k)
     if mode == "direct":
         return HorizonResult(direct.flow, direct.confidence, np.zeros(len(scans[0]), bool), ego_k)
 
