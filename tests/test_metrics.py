@@ -108,6 +108,12 @@ def _package_results(evaluator, frames):
     return evaluator.compute_results(save_results=False)
 
 
+def _package_mean(evaluator):
+    """The package's mean over meta-classes (static EPE, dynamic normalised EPE), after ``_package_results``."""
+    stats = evaluator._category_to_average_stats(evaluator._category_to_per_frame_stats())
+    return evaluator._build_stat_table(stats, 35).get_mean_average_values().to_tuple()
+
+
 def test_parity_with_bucketed_scene_flow_eval(tmp_path):
     pytest.importorskip("bucketed_scene_flow_eval", reason="bucketed-scene-flow-eval not installed")
     from bucketed_scene_flow_eval.datasets.argoverse2.argoverse_scene_flow import CATEGORY_MAP
@@ -117,11 +123,12 @@ def test_parity_with_bucketed_scene_flow_eval(tmp_path):
 
     frames = [_random_av2(seed=s) for s in range(3)]
     ours = sum(av2_bucket_stats(*f[:5], ground=f[5]) for f in frames)
-    ref = _package_results(BucketedEPEEvaluator(CATEGORY_MAP, output_path=tmp_path / "b",
-                                                meta_class_lookup=BUCKETED_METACATAGORIES), frames)
-    mine = bucketed_epe(ours)["per_class"]
+    evaluator = BucketedEPEEvaluator(CATEGORY_MAP, output_path=tmp_path / "b", meta_class_lookup=BUCKETED_METACATAGORIES)
+    ref = _package_results(evaluator, frames)
+    mine = bucketed_epe(ours)
     for meta in META_CLASSES:
-        np.testing.assert_allclose(mine[meta], ref[meta], atol=1e-6, rtol=0)
+        np.testing.assert_allclose(mine["per_class"][meta], ref[meta], atol=1e-6, rtol=0)
+    np.testing.assert_allclose(mine["mean"], _package_mean(evaluator), atol=1e-6, rtol=0)
     ours3 = sum(av2_bucket_stats(*f[:5], ground=f[5], class_to_meta=THREEWAY_META, edges=THREEWAY_EDGES,
                                  metas=("BACKGROUND", "FOREGROUND")) for f in frames)
     ref3 = _package_results(ThreeWayEPEEvaluator(CATEGORY_MAP, THREEWAY_EPE_METACATAGORIES,
@@ -182,12 +189,13 @@ def test_parity_on_real_av2_pair(tmp_path):
     classes = labels["classes"].to_numpy(np.int32)
     ground = labels["is_ground_0"].to_numpy(bool)
     frame = (pc0, ego_flow(pc0, ego), gt, ego, classes, ground)  # ego flow as the prediction
-    ref = _package_results(BucketedEPEEvaluator(CATEGORY_MAP, output_path=tmp_path / "b",
-                                                meta_class_lookup=BUCKETED_METACATAGORIES), [frame])
-    mine = bucketed_epe(av2_bucket_stats(*frame[:5], ground=ground))["per_class"]
-    assert mine["CAR"][1] > 0.5  # moving cars: ego flow misses their motion
+    evaluator = BucketedEPEEvaluator(CATEGORY_MAP, output_path=tmp_path / "b", meta_class_lookup=BUCKETED_METACATAGORIES)
+    ref = _package_results(evaluator, [frame])
+    mine = bucketed_epe(av2_bucket_stats(*frame[:5], ground=ground))
+    assert mine["per_class"]["CAR"][1] > 0.5  # moving cars: ego flow misses their motion
     for meta in META_CLASSES:
-        np.testing.assert_allclose(mine[meta], ref[meta], atol=1e-6, rtol=0)
+        np.testing.assert_allclose(mine["per_class"][meta], ref[meta], atol=1e-6, rtol=0)
+    np.testing.assert_allclose(mine["mean"], _package_mean(evaluator), atol=1e-6, rtol=0)
     ref3 = _package_results(ThreeWayEPEEvaluator(CATEGORY_MAP, THREEWAY_EPE_METACATAGORIES,
                                                  output_path=tmp_path / "t"), [frame])
     three = threeway_epe(av2_bucket_stats(*frame[:5], ground=ground, class_to_meta=THREEWAY_META,

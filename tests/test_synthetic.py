@@ -192,25 +192,33 @@ def test_scenes_have_the_asked_for_variety():
     for s in scenes:
         moving = np.flatnonzero(s.owner_speed > 0)
         assert len(moving) >= 10 and set(s.owner_class[moving]) >= {1, 3}
-        near = np.linalg.norm(s.owner_poses[moving, 0, :2, 3] - s.ego_poses[0, :2, 3], axis=1) < 40
-        assert near.mean() > 0.6
+        start = np.linalg.norm(s.owner_poses[moving, 0, :2, 3] - s.ego_poses[0, :2, 3], axis=1)
+        assert (start[start < 60] < 40).mean() > 0.6  # most traffic near the ego (beyond 60 m: range-edge agents)
+        assert 0.1 <= s.ground.kerb <= 0.2  # a kerb step off the road
+        static = s.owner == 0
+        assert (s.kind[static] == 2).any() and (s.kind[static] == 1).any()  # canopies and bushes; poles and trunks
     classes = np.concatenate([s.owner_class for s in scenes])
     assert set(classes) == {0, 1, 2, 3, 4}
+    lengths = [2 * (np.abs(s.local[s.owner == o, 0, 3]) + s.size[s.owner == o, 0]).max()  # footprint length
+               for s in scenes for o in np.flatnonzero(s.owner_class == 2)]
+    assert 10.0 <= max(lengths) <= 12.0  # buses up to 12 m
 
 
 def test_dataset_indexing_lazy_and_picklable():
     data = SyntheticDataset("test", num_sequences=2, frames_per_sequence=3, beams=16, azimuth_resolution_deg=1.0)
-    assert len(data) == 4 and data.max_horizon == 2
+    assert len(data) == 4 and data.max_horizon == 1
     assert data.sample_id(3) == "synthetic-test-2000001-16b/000001+1" and data._cached is None
     pair = data.pair(3)
     assert pair.sample_id == data.sample_id(3) and pair.dt == pytest.approx(0.1)
-    assert data.pair(3, horizon=2).sample_id == "synthetic-test-2000001-16b/000000+2"
+    longer = SyntheticDataset("test", num_sequences=2, frames_per_sequence=3, beams=16, azimuth_resolution_deg=1.0,
+                              max_horizon=2)
+    assert len(longer) == 2 and longer.pair(1, horizon=2).sample_id == "synthetic-test-2000001-16b/000000+2"
     copy = pickle.loads(pickle.dumps(data))
     assert copy._cached is None and np.array_equal(copy.pair(3).pc0, pair.pc0)
     with pytest.raises(IndexError):
         data.pair(4)
     with pytest.raises(IndexError):
-        data.pair(0, horizon=3)
+        data.pair(0, horizon=2)
     assert SyntheticDataset("val", 1, 3, frequency_hz=20.0, beams=16, azimuth_resolution_deg=1.0).pair(0).dt == 0.05
 
 
@@ -220,3 +228,15 @@ def test_hydra_config_instantiates():
     data = instantiate(config.dataset.reader)
     assert isinstance(data, SyntheticDataset) and data.split == "val" and data.lidar.beams == 64
     assert len(data) <= 8
+
+
+def test_some_agents_enter_or_leave_the_sensor_range():
+    lidar = Lidar(beams=32, azimuth_resolution_deg=0.5)  # default 75 m range
+    crossings = 0
+    for seed in range(4):
+        seq = sequence(build_scene(seed, 5), lidar)
+        seen = [set(np.unique(i[i > 0]).tolist()) for i in seq.instance]
+        crossings += len((seen[0] ^ seen[-1]) - set.intersection(*seen[1:-1]))
+        for t in range(5):  # nothing is ever seen beyond the range
+            assert np.linalg.norm(seq.points[t] - [0, 0, lidar.height], axis=1).max() <= lidar.max_range + 0.1
+    assert crossings >= 3

@@ -283,6 +283,10 @@ class _Builder:
         return True
 
 
+#: distance (m) from the ego at which ``_range_edge`` agents cross in or out: the default ``Lidar.max_range``
+RANGE_EDGE = 75.0
+
+
 def build_scene(seed: int, frames: int = 5, frequency_hz: float = 10.0, density: float = 1.0) -> Scene:
     """The world of one sequence, fully determined by ``seed`` (see the module docstring).
 
@@ -305,6 +309,7 @@ def build_scene(seed: int, frames: int = 5, frequency_hz: float = 10.0, density:
     _structures(b, g)
     _parked(b)
     _traffic(b, g, density)
+    _range_edge(b, ego_xy)
 
     kinds, owners, locals_, sizes = zip(*b.prims)
     poses, classes, speeds = zip(*b.owners)
@@ -386,7 +391,7 @@ def _parked(b: _Builder) -> None:
 
 
 def _traffic(b: _Builder, g: Ground, density: float) -> None:
-    """Moving vehicles, cyclists and pedestrians; close pairs, fast ones, turning ones, ones at the range edge."""
+    """Moving vehicles, cyclists and pedestrians; close pairs, fast ones, turning ones."""
     rng = b.rng
 
     def lane_vehicle(cls, lane, x, speed=None, rate=None, shaped=None):
@@ -433,3 +438,19 @@ def _traffic(b: _Builder, g: Ground, density: float) -> None:
             offset = rng.uniform(0.55, 0.95)  # a companion walking side by side
             b.agent(PEDESTRIAN, x - offset * np.sin(heading), y + offset * np.cos(heading), heading, speed, rate,
                     margin=0.05)
+
+
+def _range_edge(b: _Builder, ego_xy: np.ndarray) -> None:
+    """One or two fast vehicles on the oncoming lanes that cross ``RANGE_EDGE`` metres from the ego during the
+    sequence: one entering the sensor's range ahead, one leaving it behind (drawn last: earlier draws unchanged)."""
+    rng = b.rng
+    duration = b.times[-1]
+    ego_speed = np.linalg.norm(ego_xy[-1] - ego_xy[0]) / duration
+    for entering in (True, False)[: int(rng.integers(1, 3))]:
+        speed = _speed(rng, 15.0, 33.0)
+        lane = LANES[int(rng.integers(2, 4))]  # heading -x
+        change = (speed + ego_speed) * duration  # the ego drives +x: the gap closes ahead, opens behind
+        reach = RANGE_EDGE + change * rng.uniform(0.25, 0.75) * (1 if entering else -1)
+        x = ego_xy[0, 0] + (reach if entering else -reach)
+        cls = OTHER_VEHICLE if rng.random() < 0.3 else CAR
+        b.agent(cls, x, lane + rng.normal(0, 0.2), np.pi + rng.normal(0, 0.01), speed, 0.0)
