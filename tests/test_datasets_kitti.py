@@ -158,3 +158,31 @@ def test_non_rigid_pose(small_root):
     poses[1, 0] = 3.0
     np.savetxt(small_root / "poses" / "00.txt", poses)
     assert "pose1 is not rigid" in _error(small_root)
+
+
+def test_missing_calib_file_where_poses_exist(small_root):
+    (small_root / "sequences" / "00" / "calib.txt").unlink()
+    message = _error(small_root)
+    assert message.endswith("sequences/00/calib.txt: file not found (needed to turn camera poses into velodyne poses)")
+
+
+def test_scans_without_poses_need_no_calib(small_root):
+    (small_root / "sequences" / "00" / "calib.txt").unlink()
+    (small_root / "poses" / "00.txt").unlink()
+    assert KittiOdometryDataset(small_root, "train").pair(0).ego1_from_ego0 is None
+
+
+@pytest.mark.parametrize("content, message", [
+    ("0.0\n0.1\n", "times.txt: 2 times for 3 scans"),
+    ("0.0\n0.1\nsoon\n", "times.txt: not a column of seconds"),
+    ("0.0\n0.0\n0.2\n", "times.txt: times of scans 0 and 1 not increasing"),
+])
+def test_bad_times(small_root, content, message):
+    (small_root / "sequences" / "00" / "times.txt").write_text(content)
+    assert message in _error(small_root)
+
+
+def test_times_give_dt(small_root):
+    (small_root / "sequences" / "00" / "times.txt").write_text("0.0\n0.1037\n0.2075\n")
+    pair = KittiOdometryDataset(small_root, "train").pair(1)
+    assert pair.dt == pytest.approx(0.1038) and pair.timestamp1_ns == 207_500_000

@@ -1,100 +1,154 @@
-"""PCAccumulation reader (Waymo, nuScenes): files written in the real layout from a hand-built rigid world."""
+"""PCAccumulation reader (Waymo, nuScenes): files written in PCAccumulation's layout from the synthetic world.
+
+The layout and label encoding are those of PCAccumulation's writers (``dataset_toolbox/prep_nuscene_waymo_sf``):
+int64 labels, float32 transforms, anchor = frame 0 = the latest scan, Waymo ``sem_labels`` per point (box type - 1:
+0 vehicle, 1 pedestrian, 2 background or sign, 3 cyclist), nuScenes ``sem_labels`` the 16 lidarseg classes of the
+anchor frame's points only.
+"""
 
 import pickle
+from functools import lru_cache
 
 import numpy as np
 import pytest
 
 from icpflow.datasets.pcaccumulation import PCAccumulationDataset
-from icpflow.frames import FramePairError
-from icpflow.geometry import invert, make_transform, transform_points
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.frames import FramePairError, FrameSequence
+from icpflow.geometry import invert
 
-RNG = np.random.default_rng(7)
-STATIC_WORLD = RNG.uniform((-30, -30, -1.8), (30, 30, 2.0), (300, 3))
-OBJECT_BODY = RNG.uniform((-2.0, -1.0, -0.8), (2.0, 1.0, 0.8), (80, 3))
+#: frames per sample and their rate, per dataset
+FORMATS = {"waymo": (5, 10.0), "nuscenes": (11, 20.0)}
+#: synthetic classes (background, car, other vehicle, pedestrian, cyclist) -> Waymo sem_labels
+WAYMO_SEM = np.array([2, 0, 0, 1, 3])
+#: the same -> nuScenes lidarseg classes (manmade, car, truck, pedestrian, bicycle); ground is 11 (driveable)
+NUSCENES_SEM = np.array([15, 4, 10, 7, 2])
+#: -> the classes the reader gives Waymo points (1 vehicle, 2 pedestrian, 3 cyclist)
+WAYMO_CLASSES = np.array([0, 1, 1, 2, 3])
+SPEED_THRESHOLD = 0.5  # m/s, a box is dynamic when its fastest motion exceeds it
 
 
-def ego_pose(t):
-    return make_transform(yaw=0.02 * t, translation=(1.0 * t, 0.1 * t, 0.0))
+@lru_cache
+def world(dataset: str) -> FrameSequence:
+    """A small synthetic sequence (32 beams, 2 degree columns) with the dataset's frame count and rate."""
+    frames, frequency = FORMATS[dataset]
+    return SyntheticDataset("val", num_sequences=1, frames_per_sequence=frames, beams=32, azimuth_resolution_deg=2.0,
+                            frequency_hz=frequency).sequence(0)
 
 
-def object_pose(t):
-    return make_transform(yaw=0.05 * t, translation=(5.0 + 0.8 * t, 3.0, 0.0))
-
-
-def sample_arrays(frames: int) -> dict:
-    """A sample in PCAccumulation's layout: scan t (oldest first) is frame c = F - 1 - t; anchor = the last scan.
-
-    Every frame sees the same physical points in the same order (static first, then the object), so the exact
-    flow of frame c maps its points row by row onto the anchor's.
-    """
+def pcaccumulation_arrays(sequence: FrameSequence, dataset: str) -> dict[str, np.ndarray]:
+    """One PCAccumulation sample of ``sequence`` (scans oldest first): the anchor is the last scan, frame c is scan
+    F - 1 - c, rows stacked anchor first; instances numbered 1..K as indices into ``bbox_tsfm`` (0 = none)."""
+    frames = len(sequence)
     anchor = frames - 1
-    anchor_from_world = invert(ego_pose(anchor))
-    points, time, inst = [], [], []
-    for c in range(frames):
-        t = anchor - c
-        world = np.concatenate([STATIC_WORLD, transform_points(object_pose(t), OBJECT_BODY)])
-        points.append(transform_points(invert(ego_pose(t)), world))
-        time.append(np.full(len(world), c))
-        inst.append(np.r_[np.zeros(len(STATIC_WORLD)), np.ones(len(OBJECT_BODY))])
-    inst = np.concatenate(inst).astype(np.int64)
-    boxes = np.tile(np.eye(4), (2, frames, 1, 1))
-    for c in range(frames):
-        motion_in_world = object_pose(anchor) @ invert(object_pose(anchor - c))
-        boxes[1, c] = anchor_from_world @ motion_in_world @ invert(anchor_from_world)
+    scans = [anchor - c for c in range(frames)]
+    world_from_anchor = sequence.poses[anchor]
+    anchor_from_world = invert(world_from_anchor)
+    ids = sorted(sequence.object_poses)
+    number = np.zeros(max(ids) + 1, np.int64)
+    number[ids] = np.arange(1, len(ids) + 1)
+    boxes = np.tile(np.eye(4), (len(ids) + 1, frames, 1, 1))
+    moving = np.zeros(len(ids) + 1, bool)
+    seconds = np.diff(sequence.timestamps_ns) * 1e-9
+    for key, poses in sequence.object_poses.items():
+        for c, t in enumerate(scans):
+            boxes[number[key], c] = anchor_from_world @ poses[anchor] @ invert(poses[t]) @ world_from_anchor
+        speeds = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) / seconds
+        moving[number[key]] = speeds.max() > SPEED_THRESHOLD
+    classes = np.concatenate([sequence.classes[t] for t in scans])
+    inst = np.concatenate([number[sequence.instance[t]] for t in scans])
+    if dataset == "waymo":
+        sem = WAYMO_SEM[classes]
+    else:
+        sem = np.where(sequence.ground[anchor], 11, NUSCENES_SEM[sequence.classes[anchor]])
     return {
-        "raw_points": np.concatenate(points).astype(np.float32),
-        "time_indice": np.concatenate(time).astype(np.float32),
-        "sd_labels": inst.astype(np.float32),
-        "fb_labels": inst.astype(np.float32),
+        "raw_points": np.concatenate([sequence.points[t] for t in scans]),
+        "time_indice": np.concatenate([np.full(len(sequence.points[t]), c) for c, t in enumerate(scans)]),
+        "sd_labels": moving[inst].astype(np.int64),
+        "fb_labels": (classes > 0).astype(np.int64),
         "inst_labels": inst,
-        "sem_labels": inst * 3,
-        "ego_motion_gt": np.stack([anchor_from_world @ ego_pose(anchor - c) for c in range(frames)]).astype(np.float32),
+        "sem_labels": sem.astype(np.int64),
+        "ego_motion_gt": np.stack([anchor_from_world @ sequence.poses[t] for t in scans]).astype(np.float32),
         "bbox_tsfm": boxes.astype(np.float32),
     }
 
 
-def write_dataset(root, frames=5, **changes):
+@lru_cache
+def _cached_arrays(dataset: str) -> dict[str, np.ndarray]:
+    return pcaccumulation_arrays(world(dataset), dataset)
+
+
+def sample_arrays(dataset: str = "waymo") -> dict[str, np.ndarray]:
+    """A fresh copy of the dataset's sample arrays (safe to modify)."""
+    return {key: value.copy() for key, value in _cached_arrays(dataset).items()}
+
+
+def write_dataset(root, dataset="waymo", **changes):
+    """``<root>/val/seg/000.npz`` holding the sample with ``changes`` (None removes a key)."""
     (root / "val" / "seg").mkdir(parents=True, exist_ok=True)
-    arrays = {**sample_arrays(frames), **changes}
-    for key in [k for k, v in arrays.items() if v is None]:
-        del arrays[key]
+    arrays = {key: value for key, value in {**sample_arrays(dataset), **changes}.items() if value is not None}
     np.savez(root / "val" / "seg" / "000.npz", **arrays)
     return root / "val" / "seg" / "000.npz"
 
 
-@pytest.mark.parametrize("frames, frequency", [(5, 10.0), (11, 20.0)])
-def test_round_trip_flow_maps_every_frame_onto_the_anchor(tmp_path, frames, frequency):
-    write_dataset(tmp_path, frames)
-    dataset = PCAccumulationDataset(tmp_path, "val", frames=frames, frequency_hz=frequency)
-    assert len(dataset) == 1 and dataset.max_horizon == frames - 1
-    assert dataset.sample_id(0) == "val/seg/000"
+def reader(root, dataset="waymo", **options) -> PCAccumulationDataset:
+    frames, frequency = FORMATS[dataset]
+    return PCAccumulationDataset(root, "val", frames=frames, frequency_hz=frequency, name=dataset,
+                                 sem_labels=dataset, **options)
+
+
+@pytest.mark.parametrize("dataset", ["waymo", "nuscenes"])
+def test_round_trip_gives_the_synthetic_pairs_into_the_anchor(tmp_path, dataset):
+    write_dataset(tmp_path, dataset)
+    data = reader(tmp_path, dataset)
+    truth = world(dataset)
+    frames, frequency = FORMATS[dataset]
     anchor = frames - 1
-    n_object = len(OBJECT_BODY)
+    assert len(data) == 1 and data.max_horizon == frames - 1 and data.sample_id(0) == "val/seg/000"
     for k in range(1, frames):
-        pair = dataset.pair(0, horizon=k)
-        np.testing.assert_allclose(pair.pc0 + pair.flow, pair.pc1, atol=2e-4)
-        expected_ego = invert(ego_pose(anchor)) @ ego_pose(anchor - k)
-        np.testing.assert_allclose(pair.ego1_from_ego0, expected_ego, atol=1e-5)
-        np.testing.assert_allclose(pair.residual_flow()[:-n_object], 0.0, atol=2e-4)  # static rows
-        assert pair.dynamic.sum() == n_object and pair.dynamic[-n_object:].all()
-        np.testing.assert_array_equal(pair.instance, np.r_[np.zeros(300), np.ones(n_object)].astype(np.int32))
-        np.testing.assert_array_equal(pair.classes, 3 * pair.instance)
+        pair, expected = data.pair(0, horizon=k), truth.pair(anchor - k, k)
+        np.testing.assert_array_equal(pair.pc0, expected.pc0)
+        np.testing.assert_array_equal(pair.pc1, expected.pc1)
+        np.testing.assert_allclose(pair.ego1_from_ego0, expected.ego1_from_ego0, atol=1e-6)
+        np.testing.assert_allclose(pair.flow, expected.flow, atol=1e-5)  # float32 transforms in the file: ~2e-6 m
+        np.testing.assert_array_equal(pair.dynamic, expected.dynamic)
+        assert expected.dynamic.sum() > 100  # moving agents are in the test
+        np.testing.assert_array_equal(pair.instance > 0, expected.instance > 0)
+        ids = np.unique(np.stack([pair.instance, expected.instance]), axis=1)
+        assert len(np.unique(ids[0])) == len(np.unique(ids[1])) == ids.shape[1]  # a renumbering, one to one
+        foreground = (expected.classes > 0).astype(np.int32)
+        classes = WAYMO_CLASSES[expected.classes] if dataset == "waymo" else foreground
+        np.testing.assert_array_equal(pair.classes, classes)
         assert pair.dt == pytest.approx(k / frequency)
         assert pair.ground0 is None and pair.sample_id == f"val/seg/000/{k}"
 
 
+def test_waymo_classes_come_from_fb_labels_not_sem_labels(tmp_path):
+    """Waymo boxes signs too: their points carry an instance but sem 2 and fb 0, so they stay background."""
+    arrays, truth = sample_arrays(), world("waymo")
+    rows = np.flatnonzero(arrays["time_indice"] == 1)  # frame c = 1 is scan 3
+    sign = rows[(truth.classes[3] == 0) & ~truth.ground[3]][:50]
+    arrays["inst_labels"][sign] = len(arrays["bbox_tsfm"])
+    static = np.tile(np.eye(4, dtype=np.float32), (1, 5, 1, 1))
+    write_dataset(tmp_path, inst_labels=arrays["inst_labels"], bbox_tsfm=np.concatenate([arrays["bbox_tsfm"], static]))
+    pair, expected = reader(tmp_path).pair(0, horizon=1), truth.pair(3, 1)
+    on_sign = np.isin(rows, sign)
+    assert on_sign.sum() == 50 and (pair.instance[on_sign] > 0).all() and (pair.classes[on_sign] == 0).all()
+    np.testing.assert_array_equal(pair.classes, WAYMO_CLASSES[expected.classes])
+    np.testing.assert_allclose(pair.flow, expected.flow, atol=1e-5)
+
+
 def test_sequence_gives_pairs_between_past_frames(tmp_path):
     write_dataset(tmp_path)
-    sequence, dynamic = PCAccumulationDataset(tmp_path, "val").sequence(0)
+    sequence, dynamic = reader(tmp_path).sequence(0)
     assert len(sequence) == 5 and len(dynamic) == 5
     pair = sequence.pair(0, 2)  # the oldest frame (c = 4) to c = 2, neither the anchor
-    np.testing.assert_allclose(pair.pc0 + pair.flow, pair.pc1, atol=2e-4)
+    np.testing.assert_allclose(pair.flow, world("waymo").pair(0, 2).flow, atol=1e-5)
 
 
 def test_split_file_lists_samples(tmp_path):
     write_dataset(tmp_path)
-    (tmp_path / "test_info.txt").write_text("val/seg/000.npz\n\n")
+    (tmp_path / "test_info.txt").write_text("/val/seg/000.npz\n\n")  # the reference's lines start with a slash
     dataset = PCAccumulationDataset(tmp_path, "test")
     assert dataset.files == [tmp_path / "val" / "seg" / "000.npz"]
     with pytest.raises(FramePairError, match="nope.txt: split file not found"):
@@ -106,15 +160,21 @@ def test_no_samples_is_an_error(tmp_path):
         PCAccumulationDataset(tmp_path, "val")
 
 
+def test_unknown_sem_labels_encoding(tmp_path):
+    with pytest.raises(ValueError, match="sem_labels must be one of waymo, nuscenes, got 'kitti'"):
+        PCAccumulationDataset(tmp_path, "val", sem_labels="kitti")
+
+
 def test_pickles(tmp_path):
     write_dataset(tmp_path)
-    clone = pickle.loads(pickle.dumps(PCAccumulationDataset(tmp_path, "val")))
-    assert clone.pair(0, 4).pc0.shape == (380, 3)
+    clone = pickle.loads(pickle.dumps(reader(tmp_path)))
+    np.testing.assert_array_equal(clone.pair(0, 4).pc0, world("waymo").points[0])
 
 
-def _error(root, frames=5) -> str:
+def _error(root, dataset="waymo", frames=None) -> str:
+    options = {} if frames is None else {"frames": frames}
     with pytest.raises(FramePairError) as error:
-        PCAccumulationDataset(root, "val", frames=frames).pair(0)
+        PCAccumulationDataset(root, "val", sem_labels=dataset, **options).pair(0)
     assert "\n" not in str(error.value) and "000.npz" in str(error.value)
     return str(error.value)
 
@@ -125,8 +185,7 @@ def test_missing_key(tmp_path):
 
 
 def test_wrong_shape(tmp_path):
-    arrays = sample_arrays(5)
-    write_dataset(tmp_path, raw_points=arrays["raw_points"][:, :2])
+    write_dataset(tmp_path, raw_points=sample_arrays()["raw_points"][:, :2])
     assert "raw_points must be a numeric (N, 3) array" in _error(tmp_path)
 
 
@@ -136,15 +195,14 @@ def test_empty_scan(tmp_path):
 
 
 def test_frame_without_points(tmp_path):
-    arrays = sample_arrays(5)
-    time = arrays["time_indice"].copy()
+    time = sample_arrays()["time_indice"]
     time[time == 2] = 1
     write_dataset(tmp_path, time_indice=time)
     assert "time_indice must cover frames 0..4, each non-empty" in _error(tmp_path)
 
 
 def test_nan_rows(tmp_path):
-    points = sample_arrays(5)["raw_points"]
+    points = sample_arrays()["raw_points"]
     points[[0, 5, 9]] = np.nan
     write_dataset(tmp_path, raw_points=points)
     assert "raw_points has 3 rows with NaN" in _error(tmp_path)
@@ -157,47 +215,77 @@ def test_truncated_file(tmp_path):
 
 
 def test_missing_pose(tmp_path):
-    write_dataset(tmp_path, ego_motion_gt=sample_arrays(5)["ego_motion_gt"][:4])
+    write_dataset(tmp_path, ego_motion_gt=sample_arrays()["ego_motion_gt"][:4])
     assert "ego_motion_gt must have shape (5, 4, 4) for 5 frames, got (4, 4, 4)" in _error(tmp_path)
 
 
 def test_wrong_frame_count_for_the_dataset(tmp_path):
-    write_dataset(tmp_path, frames=5)
+    write_dataset(tmp_path)
     assert "for 11 frames" in _error(tmp_path, frames=11)
 
 
 def test_mismatched_label_length(tmp_path):
-    write_dataset(tmp_path, sd_labels=np.zeros(10))
-    assert "sd_labels must have shape (1900,) like raw_points, got (10,)" in _error(tmp_path)
+    write_dataset(tmp_path, sd_labels=np.zeros(10, np.int64))
+    count = len(sample_arrays()["raw_points"])
+    assert f"sd_labels must have shape ({count},) like raw_points, got (10,)" in _error(tmp_path)
+
+
+def test_waymo_sem_labels_must_be_per_point(tmp_path):
+    write_dataset(tmp_path, sem_labels=sample_arrays("nuscenes")["sem_labels"])
+    assert "sem_labels must have shape" in _error(tmp_path)
+
+
+def test_nuscenes_sem_labels_cover_the_anchor_only(tmp_path):
+    write_dataset(tmp_path, "nuscenes")
+    arrays = sample_arrays("nuscenes")
+    assert len(arrays["sem_labels"]) == (arrays["time_indice"] == 0).sum() < len(arrays["raw_points"])
+    assert reader(tmp_path, "nuscenes").pair(0).classes.max() == 1
+
+
+def test_labels_that_are_not_binary(tmp_path):
+    fb = sample_arrays()["fb_labels"]
+    fb[7] = 2
+    write_dataset(tmp_path, fb_labels=fb)
+    assert "fb_labels must hold only 0 and 1" in _error(tmp_path)
+
+
+def test_foreground_point_with_a_background_class(tmp_path):
+    arrays = sample_arrays()
+    sem = arrays["sem_labels"]
+    sem[np.flatnonzero(arrays["fb_labels"])[:4]] = 2
+    write_dataset(tmp_path, sem_labels=sem)
+    assert "4 foreground points (fb_labels 1) have sem_labels outside 0 (vehicle), 1 (pedestrian), 3 (cyclist)" in (
+        _error(tmp_path))
 
 
 def test_instance_without_motion(tmp_path):
-    write_dataset(tmp_path, bbox_tsfm=sample_arrays(5)["bbox_tsfm"][:1])
+    write_dataset(tmp_path, bbox_tsfm=sample_arrays()["bbox_tsfm"][:1])
     assert "inst_labels must lie in 0..0" in _error(tmp_path)
 
 
 def test_non_rigid_object_motion(tmp_path):
-    boxes = sample_arrays(5)["bbox_tsfm"]
-    boxes[1, 2, 0, 0] = 2.0
-    write_dataset(tmp_path, bbox_tsfm=boxes)
-    assert "bbox_tsfm[1, 2] is not rigid" in _error(tmp_path)
+    arrays = sample_arrays()
+    k = int(arrays["inst_labels"][arrays["time_indice"] == 2].max())
+    arrays["bbox_tsfm"][k, 2, 0, 0] = 2.0
+    write_dataset(tmp_path, bbox_tsfm=arrays["bbox_tsfm"])
+    assert f"bbox_tsfm[{k}, 2] is not rigid" in _error(tmp_path)
 
 
 def test_extra_pickled_keys_are_never_loaded(tmp_path):
     write_dataset(tmp_path, scene_info=np.array({"segment": "abc"}, dtype=object))
-    pair = PCAccumulationDataset(tmp_path, "val").pair(0)
-    np.testing.assert_allclose(pair.pc0 + pair.flow, pair.pc1, atol=2e-4)
+    np.testing.assert_allclose(reader(tmp_path).pair(0).flow, world("waymo").pair(3, 1).flow, atol=1e-5)
 
 
 def test_object_motion_of_frames_without_the_object_is_ignored(tmp_path):
-    arrays = sample_arrays(5)
-    keep = ~((arrays["time_indice"] == 2) & (arrays["inst_labels"] == 1))  # the object is not seen in frame 2
-    boxes = arrays["bbox_tsfm"]
-    boxes[1, 2] = 0.0  # and its motion there is a zero placeholder
-    write_dataset(tmp_path, bbox_tsfm=boxes, **{key: arrays[key][keep] for key in ("raw_points", "time_indice",
-                  "sd_labels", "fb_labels", "inst_labels", "sem_labels")})  # fmt: skip
-    dataset = PCAccumulationDataset(tmp_path, "val")
-    for k in (1, 3, 4):
-        pair = dataset.pair(0, horizon=k)
-        np.testing.assert_allclose(pair.pc0 + pair.flow, pair.pc1, atol=2e-4)
-    assert dataset.pair(0, horizon=2).instance.sum() == 0
+    arrays = sample_arrays()
+    k = int(arrays["inst_labels"][(arrays["time_indice"] == 2) & (arrays["sd_labels"] == 1)].max())
+    keep = ~((arrays["time_indice"] == 2) & (arrays["inst_labels"] == k))  # the object is not seen in frame 2
+    arrays["bbox_tsfm"][k, 2] = 0.0  # and its motion there is a zero placeholder
+    per_point = ("raw_points", "time_indice", "sd_labels", "fb_labels", "inst_labels", "sem_labels")
+    write_dataset(tmp_path, bbox_tsfm=arrays["bbox_tsfm"], **{key: arrays[key][keep] for key in per_point})
+    dataset, truth = reader(tmp_path), world("waymo")
+    for horizon in (1, 3, 4):
+        np.testing.assert_allclose(dataset.pair(0, horizon).flow, truth.pair(4 - horizon, horizon).flow, atol=1e-5)
+    pair = dataset.pair(0, horizon=2)
+    assert k not in pair.instance
+    np.testing.assert_allclose(pair.flow, truth.pair(2, 2).flow[keep[arrays["time_indice"] == 2]], atol=1e-5)

@@ -17,7 +17,7 @@ CAR_MOTION = make_transform(yaw=0.01, translation=(1.0, 0.0, 0.0))  # 10 m/s ove
 
 
 def dump_arrays(pad0=20, pad1=30, index_kind="indices") -> dict:
-    """pc1 = static + car, pc2 = static + moved car (same rows), each NaN-padded; valid rows listed first."""
+    """pc1 = static + car, pc2 = static + moved car (same rows), each NaN-padded after the valid rows."""
     pc1 = np.concatenate([STATIC, CAR])
     pc2 = np.concatenate([STATIC, transform_points(CAR_MOTION, CAR)])
     flow = pc2 - pc1
@@ -29,7 +29,7 @@ def dump_arrays(pad0=20, pad1=30, index_kind="indices") -> dict:
         "pc2": np.concatenate([pc2, nan1]).astype(np.float32),
         "gt_flow_0_1": np.concatenate([flow, nan0]).astype(np.float32),
         "pc1_flows_valid_idx": valid0,
-        "pc2_flows_valid_idx": np.arange(len(pc2) + pad1),  # padding listed as valid too: dropped as NaN rows
+        "pc2_flows_valid_idx": np.arange(len(pc2)),
         "pc1_classes": np.r_[classes, np.full(pad0, -1)].astype(np.int64),
         "pc2_classes": np.r_[classes, np.full(pad1, -1)].astype(np.int64),
     }
@@ -103,8 +103,22 @@ def test_mismatched_flow_length(tmp_path):
 
 
 def test_empty_scan(tmp_path):
-    write_dump(tmp_path, pc1_flows_valid_idx=np.arange(250, 270))  # only padding rows
+    write_dump(tmp_path, pc1_flows_valid_idx=np.zeros(0, np.int64))
     assert "pc1 has no valid points" in _error(tmp_path)
+
+
+@pytest.mark.parametrize("index_kind", ["indices", "mask"])
+def test_padding_marked_valid_is_an_error(tmp_path, index_kind):
+    valid = np.arange(255) if index_kind == "indices" else np.r_[np.ones(255, bool), np.zeros(15, bool)]
+    write_dump(tmp_path, pc1_flows_valid_idx=valid)  # 5 NaN padding rows among the valid ones
+    assert "pc1 has 5 NaN or Inf rows among its 255 valid rows" in _error(tmp_path)
+
+
+def test_nan_point_inside_the_scan(tmp_path):
+    pc2 = dump_arrays()["pc2"]
+    pc2[17, 1] = np.nan
+    write_dump(tmp_path, pc2=pc2)
+    assert "pc2 has 1 NaN or Inf rows among its 250 valid rows" in _error(tmp_path)
 
 
 def test_nan_flow_on_a_real_point(tmp_path):

@@ -1,24 +1,38 @@
 """Waymo and nuScenes as preprocessed by PCAccumulation (Huang et al., ECCV 2022): the ICP-Flow paper's data.
 
-One ``.npz`` per sample holds F consecutive frames (Waymo 5 at 10 Hz, nuScenes 11 at 20 Hz):
+One ``.npz`` per sample holds F consecutive frames (Waymo 5 at 10 Hz, nuScenes 11 at 20 Hz), as PCAccumulation's
+``dataset_toolbox/prep_nuscene_waymo_sf`` writes them (integers int64, transforms float32):
 
-* ``raw_points`` (m, >= 3): all frames stacked, each frame's points in its own ego frame (before compensation);
+* ``raw_points`` (m, 3): all frames stacked, each frame's points in its own sensor frame (before compensation;
+  Waymo: the vehicle frame, top LiDAR only; nuScenes: the LiDAR frame);
 * ``time_indice`` (m,): 0 is the anchor (the latest frame), c is c frames in the past;
-* ``sd_labels`` (m,) static 0 / dynamic 1; ``fb_labels`` (m,) background 0 / foreground 1; ``inst_labels`` (m,)
-  0 = background; ``sem_labels`` (m,);
+* ``fb_labels`` (m,): 1 = foreground (Waymo: vehicle, pedestrian, cyclist boxes; nuScenes: vehicle, human and
+  animal boxes), 0 = background (Waymo's signs too);
+* ``sd_labels`` (m,): 1 = dynamic (the point's box moves faster than a speed threshold), else 0;
+* ``inst_labels`` (m,): index into ``bbox_tsfm``, 0 = no box (Waymo numbers sign boxes too: static, identity);
+* ``sem_labels``: Waymo (m,) the box type - 1, i.e. 0 vehicle, 1 pedestrian, 2 background or sign, 3 cyclist;
+  nuScenes: the 16-class lidarseg labels of the anchor frame's points only (not (m,));
 * ``ego_motion_gt`` (F, 4, 4): frame c into the anchor frame (identity for the anchor);
 * ``bbox_tsfm`` (K, F, 4, 4): instance k's rigid motion from frame c to the anchor, in the anchor frame, so the
-  ground-truth position in the anchor of a point p of frame c is ``bbox_tsfm[inst, c] @ ego_motion_gt[c] @ p``.
+  ground-truth position in the anchor of a point p of frame c is ``bbox_tsfm[inst, c] @ ego_motion_gt[c] @ p``
+  (identity for static boxes and for frames where a box is not annotated).
 
 Samples are listed by a split file ``<root>/<split>_info.txt`` (one path per line, relative to ``root``; the
 reference's ``assets/configs/datasets/<name>/<split>_info.txt``), or else found as ``<root>/<split>/**/*.npz``.
 
-``pair(index, horizon=k)`` is frame c = k (pc0, its own ego frame) -> the anchor (pc1, its ego frame), built by
-:class:`icpflow.frames.FrameSequence` with the anchor frame as world: ``pose0 = ego_motion_gt[k]``, ``pose1 =
-identity``, object poses ``inv(bbox_tsfm[inst, c])`` per frame, which gives exactly the FULL flow above minus p.
-``classes`` = ``sem_labels`` (int32, 0 = background as stored), ``instance`` = ``inst_labels``, ``dynamic`` =
-``sd_labels`` (the dataset's own static/dynamic labels); no ground labels. ``max_horizon`` is F - 1. A
-non-rigid ``bbox_tsfm`` entry is an error where its instance has points in that frame, ignored elsewhere.
+``pair(index, horizon=k)`` is frame c = k (pc0, its own sensor frame) -> the anchor (pc1, its sensor frame),
+built by :class:`icpflow.frames.FrameSequence` with the anchor frame as world: ``pose0 = ego_motion_gt[k]``,
+``pose1 = identity``, object poses ``inv(bbox_tsfm[inst, c])`` per frame, which gives exactly the FULL flow above
+minus p. Labels of pc0, in the project's rule (0 = background):
+
+* ``classes`` int32: 0 where ``fb_labels`` is 0; on foreground points, Waymo (``sem_labels="waymo"``):
+  ``WAYMO_CLASSES`` (1 vehicle, 2 pedestrian, 3 cyclist; a foreground point with another ``sem_labels`` is an
+  error); nuScenes (``sem_labels="nuscenes"``, whose semantic labels cover only the anchor = pc1): 1, foreground
+  of unknown class;
+* ``instance`` = ``inst_labels`` as stored; ``dynamic`` = ``sd_labels``; no ground labels.
+
+``max_horizon`` is F - 1. A non-rigid ``bbox_tsfm`` entry is an error where its instance has points in that
+frame, ignored elsewhere.
 """
 
 from __future__ import annotations
@@ -35,7 +49,10 @@ from icpflow.geometry import invert, rigid_problem
 KEYS = (
     "raw_points", "time_indice", "sd_labels", "fb_labels", "inst_labels", "sem_labels", "ego_motion_gt", "bbox_tsfm",
 )  # fmt: skip
-PER_POINT = ("time_indice", "sd_labels", "fb_labels", "inst_labels", "sem_labels")
+PER_POINT = ("time_indice", "sd_labels", "fb_labels", "inst_labels")
+#: Waymo ``sem_labels`` of foreground points -> project ``classes`` 1 vehicle, 2 pedestrian, 3 cyclist (2 = background)
+WAYMO_CLASSES = {0: 1, 1: 2, 3: 3}
+SEM_LABELS = ("waymo", "nuscenes")
 
 
 class PCAccumulationDataset(PairDataset):
@@ -49,8 +66,12 @@ class PCAccumulationDataset(PairDataset):
         frequency_hz: float = 10.0,
         name: str = "waymo",
         split_file: str | Path | None = None,
+        sem_labels: str = "waymo",
     ) -> None:
+        if sem_labels not in SEM_LABELS:
+            raise ValueError(f"{name}: sem_labels must be one of {', '.join(SEM_LABELS)}, got {sem_labels!r}")
         self.root = Path(root)
+        self.sem_labels = sem_labels
         self.split = split
         self.frames = int(frames)
         self.frequency_hz = float(frequency_hz)
@@ -75,7 +96,7 @@ class PCAccumulationDataset(PairDataset):
 
     def metadata(self) -> dict:
         return {**super().metadata(), "root": str(self.root), "split": self.split, "frames": self.frames,
-                "frequency_hz": self.frequency_hz}  # fmt: skip
+                "frequency_hz": self.frequency_hz, "sem_labels": self.sem_labels}  # fmt: skip
 
     def pair(self, index: int, horizon: int = 1) -> FramePair:
         if not 1 <= horizon <= self.max_horizon:
@@ -99,6 +120,10 @@ class PCAccumulationDataset(PairDataset):
             raise fail(path, "time_indice must hold whole frame numbers")
         time = time.astype(np.int64)
         inst = data["inst_labels"].astype(np.int64)
+        for key in ("fb_labels", "sd_labels"):
+            if not np.isin(data[key], (0, 1)).all():
+                raise fail(path, f"{key} must hold only 0 and 1")
+        classes = self._classes(path, data)
         ego, boxes = data["ego_motion_gt"].astype(np.float64), data["bbox_tsfm"].astype(np.float64)
         frames = self.frames
         if ego.shape != (frames, 4, 4):
@@ -126,10 +151,28 @@ class PCAccumulationDataset(PairDataset):
             points=[points[m] for m in masks],
             poses=ego[order],
             timestamps_ns=np.round(np.arange(frames) * 1e9 / self.frequency_hz).astype(np.int64),
-            classes=[data["sem_labels"][m].astype(np.int32) for m in masks],
+            classes=[classes[m] for m in masks],
             instance=[inst[m].astype(np.int32) for m in masks],
             object_poses=object_poses,
             log_id=self.sample_id(index),
             source=str(path),
         )
         return sequence, [data["sd_labels"][m].astype(bool) for m in masks]
+
+    def _classes(self, path: Path, data: dict[str, np.ndarray]) -> np.ndarray:
+        """(m,) int32 project classes of every stacked point (see the module docstring)."""
+        foreground = data["fb_labels"] == 1
+        if self.sem_labels == "nuscenes":
+            return foreground.astype(np.int32)
+        sem = data["sem_labels"]
+        if sem.shape != foreground.shape:
+            raise fail(path, f"sem_labels must have shape {foreground.shape} like raw_points, got {sem.shape}")
+        bad = foreground & ~np.isin(sem, list(WAYMO_CLASSES))
+        if bad.any():
+            raise fail(path, f"{int(bad.sum())} foreground points (fb_labels 1) have sem_labels outside 0 (vehicle), "
+                             "1 (pedestrian), 3 (cyclist)")
+        table = np.zeros(max(WAYMO_CLASSES) + 1, np.int32)
+        table[list(WAYMO_CLASSES)] = list(WAYMO_CLASSES.values())
+        classes = np.zeros(len(sem), np.int32)
+        classes[foreground] = table[sem[foreground].astype(np.int64)]
+        return classes

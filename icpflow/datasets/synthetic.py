@@ -2,12 +2,15 @@
 
 Nothing is read from disk. Sequence i of a split is the world of seed ``seed + SPLIT_OFFSETS[split] * SPLIT_STRIDE
 + i`` (splits are disjoint for fewer than ``SPLIT_STRIDE`` sequences), ``frames_per_sequence`` scans at
-``frequency_hz`` (see :mod:`icpflow.synthetic`). Sample ``index`` is the pair (t, t + 1) of sequence
-``index // (frames - 1)`` with ``t = index % (frames - 1)``; ``pair(index, horizon=k)`` is (t0, t0 + k) with
-``t0 = min(t, frames - 1 - k)``. Ground truth: full flow, classes (``icpflow.synthetic.CLASSES``, mapped onto the
-AV2 meta-classes by ``AV2_META_CLASSES``), instance ids (0 = background; parked vehicles have their own), dynamic
-(world speed > 0.5 m/s), ground masks, poses and timestamps. Sequences are generated on demand; the last one is
-kept, so iterating in order costs one generation per sequence.
+``frequency_hz`` (see :mod:`icpflow.synthetic`). As the other readers, samples are the scans t for which
+t + ``max_horizon`` exists: sample ``index`` is scan ``t = index % (frames - max_horizon)`` of sequence
+``index // (frames - max_horizon)``, and ``pair(index, horizon=k)`` is (t, t + k) for every k <= ``max_horizon``
+(all starting at the same scan, as tracker mode needs). The LiDAR's beams spread evenly over ``elevation_deg``
+(low, high) degrees (None: the beam count's default, see ``icpflow.synthetic.lidar.ELEVATIONS``). Ground truth:
+full flow, classes (``icpflow.synthetic.CLASSES``, mapped onto the AV2 meta-classes by ``AV2_META_CLASSES``),
+instance ids (0 = background; parked vehicles have their own), dynamic (world speed > 0.5 m/s), ground masks, poses
+and timestamps. Sequences are generated on demand; the last one is kept, so iterating in order costs one
+generation per sequence.
 """
 
 from __future__ import annotations
@@ -42,6 +45,8 @@ class SyntheticDataset(PairDataset):
         dropout: float = 0.03,
         sensor_height: float = 1.9,
         density: float = 1.0,
+        max_horizon: int = 1,
+        elevation_deg: tuple[float, float] | None = None,
     ) -> None:
         if split not in SPLIT_OFFSETS:
             raise ValueError(f"synthetic: unknown split {split!r}, expected one of {sorted(SPLIT_OFFSETS)}")
@@ -49,6 +54,14 @@ class SyntheticDataset(PairDataset):
             raise ValueError(f"synthetic: num_sequences must lie in 1..{SPLIT_STRIDE}, got {num_sequences}")
         if frames_per_sequence < 2:
             raise ValueError(f"synthetic: frames_per_sequence must be >= 2, got {frames_per_sequence}")
+        if not 1 <= max_horizon < frames_per_sequence:
+            raise ValueError(f"synthetic: max_horizon must lie in 1..{frames_per_sequence - 1} for "
+                             f"{frames_per_sequence} frames per sequence, got {max_horizon}")
+        if elevation_deg is not None:
+            elevation_deg = tuple(float(v) for v in elevation_deg)
+            if len(elevation_deg) != 2 or not -90 < elevation_deg[0] < elevation_deg[1] < 90:
+                raise ValueError(f"synthetic: elevation_deg must be [low, high] degrees, -90 < low < high < 90, "
+                                 f"got {list(elevation_deg)}")
         self.split = split
         self.num_sequences = int(num_sequences)
         self.frames = int(frames_per_sequence)
@@ -57,12 +70,16 @@ class SyntheticDataset(PairDataset):
         self.density = float(density)
         self.lidar = Lidar(beams=int(beams), azimuth_resolution_deg=float(azimuth_resolution_deg),
                            max_range=float(max_range), range_noise=float(range_noise), dropout=float(dropout),
-                           height=float(sensor_height))
-        self.max_horizon = self.frames - 1
+                           height=float(sensor_height), elevation_deg=elevation_deg)
+        self.max_horizon = int(max_horizon)
         self._cached: tuple[int, FrameSequence] | None = None
 
     def __len__(self) -> int:
-        return self.num_sequences * (self.frames - 1)
+        return self.num_sequences * self._per_sequence()
+
+    def _per_sequence(self) -> int:
+        """Samples per sequence: the scans t with t + max_horizon in the sequence."""
+        return self.frames - self.max_horizon
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_cached": None}
@@ -76,7 +93,7 @@ class SyntheticDataset(PairDataset):
 
     def sample_id(self, index: int) -> str:
         self._check(index)
-        s, t = divmod(index, self.frames - 1)
+        s, t = divmod(index, self._per_sequence())
         return f"{self.log_id(s)}/{t:06d}+1"
 
     def metadata(self) -> dict:
@@ -84,14 +101,15 @@ class SyntheticDataset(PairDataset):
                 "frames": self.frames, "frequency_hz": self.frequency_hz, "seed": self.seed,
                 "beams": self.lidar.beams, "azimuth_resolution_deg": self.lidar.azimuth_resolution_deg,
                 "max_range": self.lidar.max_range, "range_noise": self.lidar.range_noise,
-                "dropout": self.lidar.dropout, "sensor_height": self.lidar.height, "density": self.density}
+                "dropout": self.lidar.dropout, "sensor_height": self.lidar.height, "density": self.density,
+                "elevation_deg": np.degrees(self.lidar.elevations()[[0, -1]]).round(6).tolist()}
 
     def pair(self, index: int, horizon: int = 1) -> FramePair:
         self._check(index)
         if not 1 <= horizon <= self.max_horizon:
             raise IndexError(f"{self.name}: horizon {horizon} outside 1..{self.max_horizon}")
-        s, t = divmod(index, self.frames - 1)
-        return self.sequence(s).pair(min(t, self.frames - 1 - horizon), horizon)
+        s, t = divmod(index, self._per_sequence())
+        return self.sequence(s).pair(t, horizon)
 
     def sequence(self, sequence_index: int) -> FrameSequence:
         """Sequence ``sequence_index`` as a FrameSequence (generated, or the cached last one)."""

@@ -11,10 +11,10 @@ Layout: ``<root>/<split>_zero_flow/<log_id>/<index>.npz``, each with
 What a pair holds: the dump carries no ego pose, so the common frame stands for both ego frames:
 ``ego1_from_ego0`` is the identity, ``pc0``/``pc1`` are the kept rows as given, and ``flow`` is
 ``gt_flow_0_1`` as given, so ``pc0 + flow`` lies in pc1's frame and the flow is at once full and residual.
-Padding rows (NaN points among the kept rows) are dropped together with their labels; NaN flow on a real point
-is an error. ``classes`` = ``pc1_classes + 1`` (int32, 0 = none, else AV2 category index + 1, as the AV2 reader);
-``dynamic`` = flow of at least 0.05 m per 0.1 s (0.5 m/s); ``ground0``/``ground1`` from the dump's masks when
-present, else all False (the dump is ground-removed); ``dt`` = 0.1 s.
+Padding rows (NaN points) must lie outside the valid rows, which alone are read: a NaN or Inf point or flow
+among the valid rows is an error. ``classes`` = ``pc1_classes + 1`` (int32, 0 = none, else AV2 category index
++ 1, as the AV2 reader); ``dynamic`` = flow of at least 0.05 m per 0.1 s (0.5 m/s); ``ground0``/``ground1`` from
+the dump's masks when present, else all False (the dump is ground-removed); ``dt`` = 0.1 s.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ NUM_CATEGORIES = 30
 
 
 def _kept_rows(path, name: str, points: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Row indices selected by ``valid`` (indices or mask), minus NaN padding rows of ``points``."""
+    """Row indices selected by ``valid`` (indices or mask); every selected point must be finite."""
     if points.ndim != 2 or points.shape[1] != 3:
         raise fail(path, f"{name} must have shape (M, 3), got {points.shape}")
     if valid.dtype == np.bool_:
@@ -48,9 +48,12 @@ def _kept_rows(path, name: str, points: np.ndarray, valid: np.ndarray) -> np.nda
         rows = valid.astype(np.int64)
     else:
         raise fail(path, f"{name}_flows_valid_idx must be 1-D integer indices or a bool mask, got {valid.dtype}")
-    rows = rows[np.isfinite(points[rows]).all(axis=1)]
     if len(rows) == 0:
         raise fail(path, f"{name} has no valid points")
+    bad = int((~np.isfinite(points[rows])).any(axis=1).sum())
+    if bad:
+        raise fail(path, f"{name} has {bad} NaN or Inf rows among its {len(rows)} valid rows "
+                         f"({name}_flows_valid_idx must leave out the padding)")
     return rows
 
 
