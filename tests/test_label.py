@@ -1,6 +1,8 @@
 """The labelling stage end to end: the real teacher on a small synthetic world (32 beams, 2 deg azimuth)."""
 
 import json
+import multiprocessing
+import os
 import re
 import shutil
 import signal
@@ -18,6 +20,7 @@ from hydra import compose, initialize_config_dir
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.frames import FramePairError
 from icpflow.labelling.cli import label, teacher_config
+from icpflow.labelling.run import DIED, LabelJob, available_cores, label_shard, thread_limit
 from icpflow.shards import ShardDataset, verify_shard
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.tracker import long_horizon_flow
@@ -61,6 +64,13 @@ def _script(out_dir, *overrides):
     return [sys.executable, str(REPO / "label.py"), *SMALL, f"out_dir={out_dir}", *overrides]
 
 
+#: environment of a label.py subprocess that can import the datasets defined in this file (module test_label)
+TESTS_ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO / "tests"),
+                                                                       os.environ.get("PYTHONPATH")]))}
+SUMMARY = re.compile(r"label: (\d+) samples labelled, (\d+) skipped \(already done\), (\d+) failed; "
+                     r"mean \d+\.\d\d s/sample per worker, \d+\.\d\d samples/s in \d+\.\d s -> (.+)")
+
+
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
     """An uninterrupted single-worker run: 5 samples in shards of 2, 2, 1."""
@@ -92,14 +102,47 @@ def test_round_trip_holds_reader_input_and_teacher_output(reference):
     with h5py.File(reference / "shard_000000.h5") as f:
         stored = yaml.safe_load(f.attrs["config"])
         assert stored["teacher"]["speed"] == cfg.speed and stored["shard_size"] == 2
-        assert stored["dataset"]["reader"]["beams"] == 32
+        assert stored["dataset"]["reader"]["beams"] == 32 and stored["dataset"]["root"] is None
         assert f.attrs["config_hash"] == json.loads((reference / "index.json").read_text())["config_hash"]
     assert (reference / "failures.jsonl").read_text() == ""
 
 
-def test_worker_count_does_not_change_output(reference, tmp_path):
-    assert label(_cfg(tmp_path, "workers=2"), progress=False) == 0
+def test_worker_count_does_not_change_output(reference, tmp_path, capsys):
+    assert label(_cfg(tmp_path, "workers=2"), progress=True) == 0
     _assert_same(reference, tmp_path)
+    out, err = capsys.readouterr()
+    assert SUMMARY.fullmatch(out.strip()).groups() == ("5", "0", "0", str(tmp_path))
+    final = err.split("\r")[-1].strip()  # the progress bar as it is left: rate in samples/s, elapsed<ETA
+    assert re.fullmatch(r"labelling: 100%\|.*\| 5/5 \[\d\d:\d\d<00:00, +\d+\.\d\d samples/s\]", final), final
+    assert "s/sample" not in err
+
+
+def test_threads_per_worker_are_the_cores_divided_by_the_workers():
+    import numba
+    from threadpoolctl import threadpool_info
+
+    before = numba.get_num_threads()
+    with thread_limit(1):
+        assert numba.get_num_threads() == 1
+        assert all(pool["num_threads"] == 1 for pool in threadpool_info())
+    assert numba.get_num_threads() == before
+    assert available_cores() == len(os.sched_getaffinity(0))
+
+
+def test_a_worker_runs_hdbscan_on_its_share_of_threads_without_changing_the_hash(tmp_path, monkeypatch):
+    import icpflow.teacher
+
+    built = []
+    monkeypatch.setattr(icpflow.teacher, "ICPFlow", built.append)  # label_shard builds its teacher from this name
+    teacher = teacher_config(_cfg(tmp_path))
+    assert teacher.hdbscan_n_jobs == 2
+    job = LabelJob(SyntheticDataset(**READER), teacher, tmp_path, "teacher: {}\n")
+    label_shard(job, 0, [], threads=1)
+    label_shard(job, 1, [], threads=8)
+    assert [cfg.hdbscan_n_jobs for cfg in built] == [1, 2]  # never more than the config asks for
+    assert built[0].replace(hdbscan_n_jobs=2) == teacher and job.teacher_cfg == teacher
+    with h5py.File(tmp_path / "shard_000000.h5") as f:
+        assert f.attrs["config"] == "teacher: {}\n" and f.attrs["config_hash"] == job.hash
 
 
 def test_resume_after_sigkill_matches_uninterrupted_run(reference, tmp_path):
@@ -156,6 +199,7 @@ def test_refusal_message_is_one_line(reference, tmp_path):
     assert run.returncode == 2
     lines = [line for line in run.stderr.splitlines() if not line.startswith("label: dataset.teacher keys")]
     assert len(lines) == 1 and "labelled with another config" in lines[0] and "overwrite=true" in lines[0]
+    assert "teacher.min_cluster_size: 30 -> 25" in lines[0]
 
 
 def test_truncated_and_corrupt_shards_are_redone(reference, tmp_path, capsys):
@@ -204,10 +248,11 @@ def test_failures_are_recorded_and_the_run_goes_on(tmp_path, capsys):
     labelled = [s["index"] for shard in index["shards"] for s in shard["samples"]]
     assert sorted(labelled + [f["index"] for f in failures]) == [0, 1, 2, 3, 4]
     out = capsys.readouterr()
-    assert "3 samples labelled, 0 skipped (already done), 2 failed" in out.out and "failed synthetic-train-0-32b/000001+1" in out.err
+    assert SUMMARY.fullmatch(out.out.strip()).groups() == ("3", "0", "2", str(tmp_path))
+    assert "failed synthetic-train-0-32b/000001+1" in out.err
     assert _all_valid(tmp_path) == 3
     assert label(cfg, progress=False) == 1  # a rerun keeps the record and skips everything
-    assert "0 samples labelled" in capsys.readouterr().out
+    assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups() == ("0", "3", "2", str(tmp_path))
 
 
 def test_shard_split_jobs_add_up_to_the_whole(reference, tmp_path):
@@ -244,25 +289,235 @@ def test_missing_or_empty_root_is_one_line(tmp_path, root):
     assert not (tmp_path / "out").exists()
 
 
-def test_long_horizon_direct_and_tracker(tmp_path):
-    dataset = SyntheticDataset(**READER)
-    cfg = teacher_config(_cfg(tmp_path))
+def _sweep_times(points):
+    """Capture time of each point of a spinning LiDAR (one turn in 0.1 s, starting behind the sensor)."""
+    return ((np.arctan2(points[:, 1], points[:, 0]) + np.pi) / (2 * np.pi) * 0.1).astype(np.float32)
+
+
+class TimedSynthetic(SyntheticDataset):
+    """The small synthetic world with per-point capture times, so the teacher's de-skew step has work."""
+
+    def pair(self, index, horizon=1):
+        pair = super().pair(index, horizon)
+        return pair.replace(time0=_sweep_times(pair.pc0), time1=_sweep_times(pair.pc1))
+
+
+def test_long_horizon_direct_and_tracker_pass_point_times(tmp_path):
+    dataset = TimedSynthetic(**READER, max_horizon=2)
+    common = [f"dataset.reader._target_={__name__}.TimedSynthetic", "dataset.reader.max_horizon=2", "horizon=2",
+              "limit=2", "icpflow.deskew=true"]
+    cfg = teacher_config(_cfg(tmp_path, *common))
+    assert cfg.deskew
     direct_out, tracked_out = tmp_path / "direct", tmp_path / "tracker"
-    assert label(_cfg(direct_out, "horizon=2", "limit=2"), progress=False) == 0
-    assert label(_cfg(tracked_out, "horizon=2", "tracker=true", "limit=2"), progress=False) == 0
+    assert label(_cfg(direct_out, *common), progress=False) == 0
+    assert label(_cfg(tracked_out, *common, "tracker=true"), progress=False) == 0
     pair = dataset.pair(1, horizon=2)
     direct, tracked = _samples(direct_out)[1], _samples(tracked_out)[1]
-    expected = ICPFlow(cfg)(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1, gap=2)
+    assert direct["sample_id"] == tracked["sample_id"] == pair.sample_id == "synthetic-train-0-32b/000001+2"
+    expected = ICPFlow(cfg)(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1, pair.time0,
+                            pair.time1, gap=2, dt=pair.dt)
+    assert expected.n_deskewed > 0
     np.testing.assert_array_equal(direct["pc1"], pair.pc1)
     np.testing.assert_array_equal(direct["flow"], expected.flow)
     np.testing.assert_array_equal(direct["gt_flow"], pair.flow)
     np.testing.assert_array_equal(tracked["pc1"], pair.pc1)
     np.testing.assert_allclose(tracked["ego1_from_ego0"], pair.ego1_from_ego0, atol=1e-9)
     assert (tracked["cluster"] == -1).all()
-    steps = [dataset.pair(1, horizon=1), pair]
-    egos = [steps[0].ego1_from_ego0, pair.ego1_from_ego0 @ np.linalg.inv(steps[0].ego1_from_ego0)]
-    chained = long_horizon_flow(ICPFlow(cfg), [pair.pc0, steps[0].pc1, pair.pc1], egos,
-                                [pair.ground0, steps[0].ground1, pair.ground1], mode="tracker")
+    step = dataset.pair(1, horizon=1)
+    scans = [pair.pc0, step.pc1, pair.pc1]
+    egos = [step.ego1_from_ego0, pair.ego1_from_ego0 @ np.linalg.inv(step.ego1_from_ego0)]
+    grounds = [pair.ground0, step.ground1, pair.ground1]
+    chained = long_horizon_flow(ICPFlow(cfg), scans, egos, grounds, mode="tracker",
+                                times=[pair.time0, step.time1, pair.time1], dts=[step.dt, pair.dt - step.dt])
     np.testing.assert_array_equal(tracked["flow"], chained.flow)
     np.testing.assert_array_equal(tracked["confidence"], chained.confidence)
     assert chained.chained.any() and not np.array_equal(tracked["flow"], direct["flow"])
+    timeless = long_horizon_flow(ICPFlow(cfg), scans, egos, grounds, mode="tracker")
+    assert not np.array_equal(timeless.flow, chained.flow)  # the times reach the teacher and matter
+
+
+@pytest.mark.parametrize("horizon, override, message", [
+    (5, "dataset.reader.max_horizon=5", "horizon=5 exceeds the teacher's max_frame_gap 4 (icpflow.max_frame_gap=...)"),
+    (2, "dataset.reader.frames_per_sequence=2", "dataset synthetic: synthetic: max_horizon must lie in 1..1 for 2 "
+     "frames per sequence, got 2 (with dataset.reader.max_horizon=2)"),
+])
+def test_horizon_beyond_teacher_or_dataset_is_refused(tmp_path, capsys, horizon, override, message):
+    cfg = _cfg(tmp_path / "out", f"horizon={horizon}", override)
+    assert label(cfg, progress=False) == 2
+    assert capsys.readouterr().err == f"label: {message}\n"
+    assert not (tmp_path / "out").exists()
+
+
+def test_failure_ids_name_the_pair_of_the_horizon(tmp_path):
+    cfg = _cfg(tmp_path, f"dataset.reader._target_={__name__}.FlakySynthetic", "dataset.reader.max_horizon=2",
+               "horizon=2")
+    assert label(cfg, progress=False) == 1
+    failures = [json.loads(line) for line in (tmp_path / "failures.jsonl").read_text().splitlines()]
+    # sample 1 fails in the reader (no pair: the reader's id of the sample), sample 3 in the teacher (the pair's id)
+    assert [(f["index"], f["sample_id"]) for f in failures] == [(1, "synthetic-train-0-32b/000001+1"),
+                                                                (3, "synthetic-train-0-32b/000003+2")]
+    index = json.loads((tmp_path / "index.json").read_text())
+    assert [s["sample_id"] for shard in index["shards"] for s in shard["samples"]] == [
+        "synthetic-train-0-32b/000000+2", "synthetic-train-0-32b/000002+2"]
+
+
+def _write_pairs(root: Path, names: list[str], seeds: list[int]) -> None:
+    """``<root>/<name>.npz`` pairs (the pairs dataset) made from samples ``seeds`` of the small synthetic world."""
+    dataset = SyntheticDataset(**READER)
+    root.mkdir(parents=True, exist_ok=True)
+    for name, seed in zip(names, seeds, strict=True):
+        pair = dataset.pair(seed)
+        np.savez(root / f"{name}.npz", pc0=pair.pc0, pc1=pair.pc1, ego1_from_ego0=pair.ego1_from_ego0,
+                 ground0=pair.ground0, ground1=pair.ground1)
+
+
+def _pairs_cfg(out_dir, root, *overrides):
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose("label", ["dataset=pairs", f"dataset.root={root}", f"out_dir={out_dir}", "workers=1",
+                                 *overrides])
+
+
+def test_another_root_into_the_same_out_dir_is_refused(tmp_path, capsys):
+    _write_pairs(tmp_path / "a", ["000000"], [0])
+    _write_pairs(tmp_path / "b", ["000000"], [1])  # same names, other data
+    out = tmp_path / "out"
+    assert label(_pairs_cfg(out, tmp_path / "a"), progress=False) == 0
+    capsys.readouterr()
+    assert label(_pairs_cfg(out, tmp_path / "b"), progress=False) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "labelled with another config" in err
+    assert f"dataset.root: {tmp_path / 'a'} -> {tmp_path / 'b'}" in err
+    with h5py.File(out / "shard_000000.h5") as f:
+        assert yaml.safe_load(f.attrs["config"])["dataset"]["root"] == str(tmp_path / "a")
+
+
+def test_resume_redoes_shards_whose_samples_changed(tmp_path, capsys):
+    root, out = tmp_path / "pairs", tmp_path / "out"
+    _write_pairs(root, ["a", "c", "d"], [0, 1, 2])
+    assert label(_pairs_cfg(out, root, "shard_size=1"), progress=False) == 0
+    _write_pairs(root, ["b"], [3])  # sorts between a and c: the samples after it move up one index
+    capsys.readouterr()
+    assert label(_pairs_cfg(out, root, "shard_size=1"), progress=False) == 0
+    assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups() == ("3", "1", "0", str(out))
+    assert ShardDataset(out).sample_ids == ["a", "b", "c", "d"]
+    stored, fresh = _samples(out), [SyntheticDataset(**READER).pair(seed) for seed in (0, 3, 1, 2)]
+    for got, pair in zip(stored, fresh, strict=True):
+        np.testing.assert_array_equal(got["pc0"], pair.pc0)
+
+
+@pytest.mark.parametrize("option, message", [
+    ("runner=ray", "runner=ray needs the ray package, which is not installed (pip install 'ray>=2.9')"),
+    ("compression=zstd", "compression must be one of none, gzip, lzf, got 'zstd'"),
+    ("runner=spark", "runner must be local or ray, got 'spark'"),
+    ("workers=0", "workers must be an integer >= 1, got 0"),
+])
+def test_bad_options_are_one_line(tmp_path, capsys, monkeypatch, option, message):
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if ray were not installed
+    assert label(_cfg(tmp_path / "out", option), progress=False) == 2
+    assert capsys.readouterr().err == f"label: {message}\n"
+    assert not (tmp_path / "out").exists()
+
+
+def test_gzip_compression_through_label_py(reference, tmp_path):
+    run = subprocess.run(_script(tmp_path, "compression=gzip", "workers=1"), cwd=tmp_path, capture_output=True,
+                         text=True)
+    assert run.returncode == 0, run.stderr
+    _assert_same(reference, tmp_path)
+    with h5py.File(tmp_path / "shard_000000.h5") as f, h5py.File(reference / "shard_000000.h5") as g:
+        assert f["samples/00000/flow"].compression == "gzip" and g["samples/00000/flow"].compression is None
+        assert f.attrs["config_hash"] == g.attrs["config_hash"]  # compression does not change the labels
+
+
+def _running_in_group(group: int) -> list[int]:
+    """Processes of process group ``group`` that still run (zombies left to a non-reaping init do not count)."""
+    running = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # it ended meanwhile
+            continue
+        if int(fields[2]) == group and fields[0] != "Z":
+            running.append(int(stat.parent.name))
+    return running
+
+
+class SlowSynthetic(SyntheticDataset):
+    """The small synthetic world, 2 s per sample from sample 2 on (time to interrupt the run)."""
+
+    def pair(self, index, horizon=1):
+        if index >= 2:
+            time.sleep(2)
+        return super().pair(index, horizon)
+
+
+def test_ctrl_c_to_the_process_group_with_two_workers(reference, tmp_path):
+    args = [f"dataset.reader._target_=test_label.SlowSynthetic", "workers=2"]
+    process = subprocess.Popen(_script(tmp_path, *args), cwd=tmp_path, env=TESTS_ENV, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not (tmp_path / "shard_000000.h5.json").exists() and process.poll() is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    os.killpg(process.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the main process and its workers
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    deadline = time.monotonic() + 15  # workers being torn down may take a moment under load
+    while _running_in_group(process.pid) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert _running_in_group(process.pid) == []  # no worker outlives the run
+    assert _all_valid(tmp_path) == 2 and sorted(p.name for p in tmp_path.glob("shard_*")) == [
+        "shard_000000.h5", "shard_000000.h5.json"]
+    run = subprocess.run(_script(tmp_path, *args), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert SUMMARY.search(run.stdout).groups()[:3] == ("3", "2", "0")
+    _assert_same(reference, tmp_path)
+
+
+class KillingSynthetic(SyntheticDataset):
+    """The small synthetic world whose reader kills its worker process on sample 3 (as a crash in native code or
+    the out-of-memory killer would), and which names the number of threads a worker runs on in ``log_id``."""
+
+    def pair(self, index, horizon=1):
+        import numba
+
+        if index == 3 and multiprocessing.parent_process() is not None:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return super().pair(index, horizon).replace(log_id=f"threads {numba.get_num_threads()}")
+
+
+def test_a_worker_that_dies_fails_its_sample_only(reference, tmp_path, capsys):
+    cfg = _cfg(tmp_path, f"dataset.reader._target_={__name__}.KillingSynthetic", "workers=2")
+    assert label(cfg, progress=False) == 1
+    out, err = capsys.readouterr()
+    assert SUMMARY.fullmatch(out.strip()).groups() == ("4", "0", "1", str(tmp_path))
+    assert "Traceback" not in err and "failed synthetic-train-0-32b/000003+1" in err
+    failures = [json.loads(line) for line in (tmp_path / "failures.jsonl").read_text().splitlines()]
+    assert failures == [{"index": 3, "sample_id": "synthetic-train-0-32b/000003+1",
+                         "file": "synthetic-train-0-32b/000003+1", "reason": DIED}]
+    got, expected = _samples(tmp_path), _samples(reference)
+    assert [s["sample_id"] for s in got] == [expected[i]["sample_id"] for i in (0, 1, 2, 4)]
+    threads = f"threads {max(1, available_cores() // 2)}"
+    for sample, want in zip(got, [expected[i] for i in (0, 1, 2, 4)], strict=True):
+        assert sample.pop("log_id") == threads and want.pop("log_id") == "synthetic-train-0-32b"
+        for key in want:
+            np.testing.assert_array_equal(sample[key], want[key], err_msg=key)
+    assert label(cfg, progress=False) == 1  # the record stands: nothing is run again
+    assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups() == ("0", "4", "1", str(tmp_path))
+
+
+def test_multirun_jobs_label_the_union(reference, tmp_path):
+    flaky = "dataset.reader._target_=test_label.FlakySynthetic"  # samples 1 and 3 fail: each job ends with status 1
+    command = _script(tmp_path / "labels", flaky, "workers=1", "shard_index=0,1", "num_shards=2")
+    run = subprocess.run([*command[:2], "-m", *command[2:]], cwd=tmp_path, env=TESTS_ENV, capture_output=True,
+                         text=True)
+    assert run.returncode == 0, run.stderr
+    assert [m.group(1, 2, 3) for m in SUMMARY.finditer(run.stdout)] == [("2", "0", "1"), ("1", "0", "1")]
+    index = json.loads((tmp_path / "labels" / "index.json").read_text())
+    assert [shard["file"] for shard in index["shards"]] == [f"shard_00000{i}.h5" for i in range(3)]
+    failures = (tmp_path / "labels" / "failures.jsonl").read_text().splitlines()
+    assert [json.loads(line)["index"] for line in failures] == [1, 3]
+    got, expected = _samples(tmp_path / "labels"), _samples(reference)
+    for sample, want in zip(got, [expected[i] for i in (0, 2, 4)], strict=True):
+        for key in want:
+            np.testing.assert_array_equal(sample[key], want[key], err_msg=key)

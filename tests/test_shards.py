@@ -11,7 +11,7 @@ import torch
 import icpflow
 from icpflow.labelling.plan import plan_shards
 from icpflow.shards import SCHEMA_VERSION, ShardDataset, ShardError, verify_shard, write_index, write_shard
-from icpflow.shards.schema import group_name
+from icpflow.shards.schema import COMPRESSIONS, group_name
 
 
 def _sample(seed: int, n0: int, n1: int, gt: bool) -> dict:
@@ -159,3 +159,29 @@ def test_plan_shards_split_is_a_partition():
     assert plan_shards(10, 3, shard_index=5, num_shards=8) == []
     with pytest.raises(ValueError, match="shard_index must be in 0..1"):
         plan_shards(10, 3, shard_index=2, num_shards=2)
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_every_compression_round_trips(tmp_path, compression):
+    sample = _sample(5, 60, 70, True)
+    write_shard(tmp_path / "shard_000000.h5", [sample], "", "h", compression)
+    assert verify_shard(tmp_path / "shard_000000.h5", "h", 1) == 1
+    with h5py.File(tmp_path / "shard_000000.h5") as f:
+        group = f[group_name(0)]
+        assert group["pc0"].compression == (None if compression == "none" else compression)
+        for key, value in sample.items():
+            if key != "attrs":
+                np.testing.assert_array_equal(group[key][()], value, err_msg=key)
+
+
+def test_unknown_compression_is_refused_before_writing(tmp_path):
+    with pytest.raises(ValueError, match="^write_shard: compression must be one of none, gzip, lzf, got 'zstd'$"):
+        write_shard(tmp_path / "shard_000000.h5", [_sample(0, 5, 5, False)], "", "h", "zstd")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_reader_refuses_an_index_that_is_not_a_labelling_index(written):
+    root, _ = written
+    (root / "index.json").write_text(json.dumps({"shards": [{"file": "shard_000000.h5", "samples": [{"index": 0}]}]}))
+    with pytest.raises(ValueError, match=r"index.json: not a labelling index \(KeyError: 'sample_id'\)$"):
+        ShardDataset(root)

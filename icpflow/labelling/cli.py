@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
-import os
+import importlib.util
 import sys
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from icpflow.datasets.from_config import dataset_root, open_dataset
 from icpflow.labelling.plan import plan_shards
-from icpflow.labelling.run import LabelError, LabelJob, run_labelling
+from icpflow.labelling.run import LabelError, LabelJob, available_cores, run_labelling
+from icpflow.shards.schema import COMPRESSIONS
 
 
 def teacher_config(cfg: DictConfig):
@@ -34,65 +36,67 @@ def teacher_config(cfg: DictConfig):
 
 
 def labeller_yaml(cfg: DictConfig, teacher) -> str:
-    """The config that determines the labels (hashed): dataset reader minus its root, teacher fields, horizon,
-    tracker, shard size. Paths, workers, runner, limit and compression do not change labels and are left out."""
+    """The config that identifies a run (hashed): which samples are read (dataset reader, its absolute root,
+    split), the teacher fields, horizon, tracker and shard size. Workers, runner, limit, the job split and
+    compression change neither the samples nor the labels and are left out."""
     reader = OmegaConf.to_container(cfg.dataset.reader, resolve=True)
     reader.pop("root", None)
-    content = {"dataset": {"name": cfg.dataset.name, "reader": reader}, "split": cfg.split,
-               "teacher": dataclasses.asdict(teacher), "horizon": int(cfg.horizon), "tracker": bool(cfg.tracker),
-               "shard_size": int(cfg.shard_size)}
+    content = {"dataset": {"name": cfg.dataset.name, "root": dataset_root(cfg), "reader": reader},
+               "split": cfg.split, "teacher": dataclasses.asdict(teacher), "horizon": int(cfg.horizon),
+               "tracker": bool(cfg.tracker), "shard_size": int(cfg.shard_size)}
     return OmegaConf.to_yaml(OmegaConf.create(content), sort_keys=True)
 
 
-def open_dataset(cfg: DictConfig):
-    """Instantiate the reader; a missing or empty root becomes one line (LabelError)."""
-    from hydra.utils import instantiate
-
-    name = cfg.dataset.name
-    root = cfg.dataset.get("root", None) if not OmegaConf.is_missing(cfg.dataset, "root") else "???"
-    if root == "???":
-        raise LabelError(f"dataset {name}: dataset.root is not set (pass dataset.root=/path/to/{name})")
-    if root is not None:
-        path = Path(root)
-        if not path.is_dir():
-            raise LabelError(f"dataset {name}: root {path} does not exist or is not a directory")
-        if not any(path.iterdir()):
-            raise LabelError(f"dataset {name}: root {path} is empty")
-    try:
-        dataset = instantiate(cfg.dataset.reader)
-    except Exception as error:  # hydra wraps the reader's own one-line error
-        cause = error.__cause__ or error
-        raise LabelError(f"dataset {name}: {str(cause).splitlines()[0] if str(cause) else type(cause).__name__}")
-    if len(dataset) == 0:
-        raise LabelError(f"dataset {name}: no samples under {root} (split {cfg.split})")
-    return dataset
+def check_options(cfg: DictConfig) -> str | None:
+    """Validate the options that need no dataset; returns the compression filter (None: uncompressed)."""
+    if cfg.runner not in ("local", "ray"):
+        raise LabelError(f"runner must be local or ray, got {cfg.runner!r}")
+    if cfg.runner == "ray" and importlib.util.find_spec("ray") is None:
+        raise LabelError("runner=ray needs the ray package, which is not installed (pip install 'ray>=2.9')")
+    compression = "none" if cfg.compression is None else cfg.compression
+    if compression not in COMPRESSIONS:
+        raise LabelError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
+    for name in ("horizon", "shard_size", "workers", "num_shards", "limit"):
+        value = cfg[name]
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise LabelError(f"{name} must be an integer >= 1, got {value!r}")
+    return None if compression == "none" else compression
 
 
 def label(cfg: DictConfig, progress: bool = True) -> int:
     """Run the labelling stage of ``cfg`` (conf/label.yaml); print the summary; return the exit status.
 
-    0: all samples labelled; 1: some samples failed (see failures.jsonl); 2: the run could not start;
+    0: all samples labelled; 1: some samples failed (see failures.jsonl); 2: the run could not start or go on;
     130: interrupted (only complete shards are kept).
     """
     try:
-        dataset = open_dataset(cfg)
+        compression = check_options(cfg)
         teacher = teacher_config(cfg)
-        if int(cfg.horizon) > getattr(dataset, "max_horizon", 1):
-            raise LabelError(f"dataset {cfg.dataset.name}: horizon={cfg.horizon} exceeds its max_horizon "
-                             f"{dataset.max_horizon}")
-        workers = int(cfg.workers) if cfg.workers else os.cpu_count() or 1
-        job = LabelJob(dataset, teacher, Path(cfg.out_dir), labeller_yaml(cfg, teacher), int(cfg.horizon),
-                       bool(cfg.tracker), cfg.compression)
+        horizon = int(cfg.horizon)
+        if horizon > teacher.max_frame_gap:
+            raise LabelError(f"horizon={horizon} exceeds the teacher's max_frame_gap {teacher.max_frame_gap} "
+                             f"(icpflow.max_frame_gap=...)")
+        dataset = open_dataset(cfg, horizon)
+        workers = int(cfg.workers) if cfg.workers else available_cores()
+        job = LabelJob(dataset, teacher, Path(cfg.out_dir), labeller_yaml(cfg, teacher), horizon, bool(cfg.tracker),
+                       compression)
         plan = plan_shards(len(dataset), int(cfg.shard_size), cfg.limit, int(cfg.shard_index), int(cfg.num_shards))
         summary = run_labelling(job, plan, workers, cfg.runner, cfg.ray.address, bool(cfg.overwrite), progress)
-    except (LabelError, ValueError) as error:
+    except (LabelError, ValueError, OSError) as error:  # OSError: out_dir not writable, disk full
         print(f"label: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("label: interrupted; complete shards are kept, rerun the same command to resume", file=sys.stderr)
         return 130
-    print(f"label: {summary['done']} samples labelled, {summary['skipped']} skipped (already done), "
-          f"{summary['failed']} failed, {summary['seconds_per_sample']:.2f} s/sample -> {job.out_dir}")
+    print(summary_line(summary, job.out_dir))
     for failure in summary["failures"][:10]:
         print(f"  failed {failure['sample_id']} ({failure['file']}): {failure['reason']}", file=sys.stderr)
     return 1 if summary["failed"] else 0
+
+
+def summary_line(summary: dict, out_dir: Path) -> str:
+    """The end-of-run line: samples done, skipped and failed, mean worker s/sample, samples/s over the wall time."""
+    rate = summary["done"] / summary["seconds"] if summary["seconds"] > 0 else 0.0
+    return (f"label: {summary['done']} samples labelled, {summary['skipped']} skipped (already done), "
+            f"{summary['failed']} failed; mean {summary['seconds_per_sample']:.2f} s/sample per worker, "
+            f"{rate:.2f} samples/s in {summary['seconds']:.1f} s -> {out_dir}")

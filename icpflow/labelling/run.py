@@ -1,27 +1,49 @@
-"""Label shards with the teacher: local process pool or Ray, resumable, failures recorded, Ctrl-C safe."""
+"""Label shards with the teacher: local processes or Ray, resumable, failures recorded, Ctrl-C safe."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
+import signal
 import time
+from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from icpflow.frames import FramePairError
-
 from icpflow.shards.schema import shard_name
 from icpflow.shards.verify import ShardError, verify_shard
 from icpflow.shards.writer import write_failures, write_index, write_shard, write_text_atomic
+
+#: failure reason of a sample during which a worker process died
+DIED = ("WorkerDied: the worker process died labelling this sample (killed, e.g. out of memory, or crashed in "
+        "native code)")
 
 
 def config_hash(config_yaml: str) -> str:
     """Short stable hash of the labeller config text."""
     return hashlib.sha256(config_yaml.encode()).hexdigest()[:16]
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity: SLURM and cgroup allocations), else ``os.cpu_count()``."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+class LabelError(RuntimeError):
+    """A labelling run cannot start or go on (config mismatch, bad option, a worker died outside a sample).
+    The message is one line."""
 
 
 @dataclass
@@ -42,8 +64,33 @@ class LabelJob:
         self.hash = config_hash(self.config_yaml)
 
 
+@contextmanager
+def thread_limit(threads: int, torch_too: bool = False):
+    """Run the block with numba, BLAS/OpenMP and (``torch_too``) torch on at most ``threads`` threads each;
+    the previous numba and torch settings come back afterwards."""
+    import numba
+    from threadpoolctl import threadpool_limits
+
+    numba_before = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    torch_before = None
+    if torch_too:
+        import torch
+
+        torch_before = torch.get_num_threads()
+        torch.set_num_threads(threads)
+    try:
+        with threadpool_limits(threads):
+            yield
+    finally:
+        numba.set_num_threads(numba_before)
+        if torch_before is not None:
+            torch.set_num_threads(torch_before)
+
+
 def tracked_sample(dataset, teacher, index: int, horizon: int, pair):
-    """Tracker mode: teacher calls on every consecutive pair of (t .. t + horizon), chained (see teacher.tracker)."""
+    """Tracker mode: teacher calls on every consecutive pair of (t .. t + horizon), chained (see teacher.tracker),
+    with each scan's per-point times and the seconds between consecutive scans."""
     from icpflow.teacher.tracker import long_horizon_flow
 
     steps = [dataset.pair(index, horizon=j) for j in range(1, horizon)] + [pair]
@@ -53,22 +100,25 @@ def tracked_sample(dataset, teacher, index: int, horizon: int, pair):
     grounds = [pair.ground0] + [step.ground1 for step in steps]
     if any(g is None for g in grounds):
         grounds = None
+    times = [pair.time0] + [step.time1 for step in steps]
+    if any(t is None for t in times):
+        times = None
+    dts = [steps[0].dt] + [later.dt - earlier.dt for earlier, later in zip(steps, steps[1:])]
     egos, previous = None, np.eye(4)
     if all(step.ego1_from_ego0 is not None for step in steps):
         egos = []
         for step in steps:
             egos.append(step.ego1_from_ego0 @ np.linalg.inv(previous))
             previous = step.ego1_from_ego0
-    result = long_horizon_flow(teacher, scans, egos, grounds, mode="tracker")
+    result = long_horizon_flow(teacher, scans, egos, grounds, mode="tracker", times=times, dts=dts)
     ground0 = pair.ground0 if pair.ground0 is not None else np.zeros(len(pair.pc0), bool)
     ground1 = pair.ground1 if pair.ground1 is not None else np.zeros(len(pair.pc1), bool)
     cluster = np.full(len(pair.pc0), -1, np.int32)  # chains span several clusterings: no single id
     return result.flow, result.confidence, cluster, ground0, ground1, result.ego_k_from_0
 
 
-def _sample(dataset, teacher, index: int, horizon: int, tracker: bool) -> dict:
-    """One labelled sample as written to a shard (see ``icpflow.shards.schema``)."""
-    pair = dataset.pair(index, horizon=horizon)
+def _sample(dataset, teacher, pair, index: int, horizon: int, tracker: bool) -> dict:
+    """One labelled sample of ``pair`` as written to a shard (see ``icpflow.shards.schema``)."""
     if tracker and horizon > 1:
         flow, confidence, cluster, ground0, ground1, ego = tracked_sample(dataset, teacher, index, horizon, pair)
     else:
@@ -84,48 +134,65 @@ def _sample(dataset, teacher, index: int, horizon: int, tracker: bool) -> dict:
         "cluster": np.asarray(cluster, np.int32),
         "gt_flow": pair.flow, "gt_flow_valid": pair.flow_valid, "gt_classes": pair.classes,
         "gt_dynamic": pair.dynamic,
-        "attrs": {"sample_id": pair.sample_id or dataset.sample_id(index), "log_id": pair.log_id, "index": index,
+        "attrs": {"sample_id": pair.sample_id or reader_id(dataset, index), "log_id": pair.log_id, "index": index,
                   "timestamp0_ns": -1 if pair.timestamp0_ns is None else int(pair.timestamp0_ns),
                   "timestamp1_ns": -1 if pair.timestamp1_ns is None else int(pair.timestamp1_ns),
                   "dt": float(pair.dt)},
     }
 
 
-def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None) -> dict:
+def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None, threads: int | None = None,
+                lost: dict | None = None) -> dict:
     """Label ``indices`` and write shard ``shard``; a sample that raises is recorded, not fatal.
 
-    ``ticks``: optional queue (or callable) told ``1`` after each sample, for the progress bar.
+    ``ticks``: optional queue (or callable) told ``(index, False)`` when a sample starts and ``(index, True)`` when
+    it is finished. ``threads``: run the teacher on at most this many threads (numba, BLAS, hdbscan's n_jobs;
+    the labels do not change). ``lost``: ``{index: failure record}`` of samples that killed a worker before; they
+    are recorded as failures without being run again.
 
-    Returns ``{"shard", "file", "samples": [{"sample_id", "index", "n0", "n1"}], "failures": [...], "seconds"}``.
+    Returns ``{"shard", "file", "samples": [{"sample_id", "index", "n0", "n1"}], "failures": [...], "seconds"}``;
+    a failure's ``sample_id`` is the pair's id, or the reader's ``sample_id(index)`` when the pair could not be read.
     """
     from icpflow.teacher import ICPFlow
 
     start = time.perf_counter()
-    teacher = ICPFlow(job.teacher_cfg)
+    threads = threads or available_cores()
+    cfg = job.teacher_cfg
+    teacher = ICPFlow(cfg.replace(hdbscan_n_jobs=min(cfg.hdbscan_n_jobs, threads)))
+    tell = (ticks if callable(ticks) else ticks.put) if ticks is not None else (lambda message: None)
+    lost = lost or {}
     samples, records, failures = [], [], []
-    for index in indices:
-        try:
-            sample = _sample(job.dataset, teacher, index, job.horizon, job.tracker)
-        except Exception as error:  # any reader or teacher failure skips this sample only
-            sample_id = _safe_id(job.dataset, index)
-            source = getattr(error, "filename", None) or sample_id
-            if isinstance(error, FramePairError):  # its message starts with the file it came from
-                source = str(error).split(": ", 1)[0]
-            reason = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
-            failures.append({"index": index, "sample_id": sample_id, "file": str(source), "reason": reason})
-        else:
-            samples.append(sample)
-            records.append({"sample_id": sample["attrs"]["sample_id"], "index": index,
-                            "n0": int(sample["pc0"].shape[0]), "n1": int(sample["pc1"].shape[0])})
-        if ticks is not None:
-            (ticks if callable(ticks) else ticks.put)(1)
+    with thread_limit(threads, torch_too=cfg.icp_backend == "torch"):
+        for index in indices:
+            if index in lost:
+                failures.append(lost[index])
+                tell((index, True))
+                continue
+            tell((index, False))
+            pair = None
+            try:
+                pair = job.dataset.pair(index, horizon=job.horizon)
+                sample = _sample(job.dataset, teacher, pair, index, job.horizon, job.tracker)
+            except Exception as error:  # any reader or teacher failure skips this sample only
+                sample_id = pair.sample_id if pair is not None and pair.sample_id else reader_id(job.dataset, index)
+                source = getattr(error, "filename", None) or sample_id
+                if isinstance(error, FramePairError):  # its message starts with the file it came from
+                    source = str(error).split(": ", 1)[0]
+                reason = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+                failures.append({"index": index, "sample_id": sample_id, "file": str(source), "reason": reason})
+            else:
+                samples.append(sample)
+                records.append({"sample_id": sample["attrs"]["sample_id"], "index": index,
+                                "n0": int(sample["pc0"].shape[0]), "n1": int(sample["pc1"].shape[0])})
+            tell((index, True))
     name = shard_name(shard)
     write_shard(job.out_dir / name, samples, job.config_yaml, job.hash, job.compression)
     return {"shard": shard, "file": name, "samples": records, "failures": failures,
             "seconds": time.perf_counter() - start}
 
 
-def _safe_id(dataset, index: int) -> str:
+def reader_id(dataset, index: int) -> str:
+    """The reader's ``sample_id(index)``, or ``index <index>`` when even that fails."""
     try:
         return dataset.sample_id(index)
     except Exception:
@@ -144,10 +211,11 @@ def _record(job: LabelJob, shard: int) -> dict | None:
     return record if record.get("config_hash") == job.hash else None
 
 
-def _done(job: LabelJob, shard: int, indices: list[int]) -> dict | None:
-    """The stored result of a complete, valid shard of this config covering ``indices``, or None."""
+def _done(job: LabelJob, shard: int, indices: list[int], ids: list[str]) -> dict | None:
+    """The stored result of a complete, valid shard of this config covering ``indices`` whose reader sample ids
+    were ``ids`` when it was labelled, or None."""
     record = _record(job, shard)
-    if record is None:
+    if record is None or record.get("ids") != ids:
         return None
     covered = sorted([r["index"] for r in record["samples"]] + [f["index"] for f in record["failures"]])
     if covered != indices:
@@ -157,6 +225,29 @@ def _done(job: LabelJob, shard: int, indices: list[int]) -> dict | None:
     except ShardError:
         return None
     return record
+
+
+def _flat(node, prefix: str = "") -> dict:
+    if not isinstance(node, dict):
+        return {prefix: node}
+    return {k: v for key, value in node.items() for k, v in _flat(value, f"{prefix}{key}.").items()}
+
+
+def config_changes(old_yaml: str, new_yaml: str, shown: int = 3) -> str:
+    """``key: old -> new, ...`` for the first ``shown`` settings that differ between two labeller configs."""
+    try:
+        old, new = _flat(yaml.safe_load(old_yaml)), _flat(yaml.safe_load(new_yaml))
+    except yaml.YAMLError:
+        return "unreadable config.yaml"
+    keys = sorted(key for key in old.keys() | new.keys() if old.get(key) != new.get(key))
+    text = ", ".join(f"{key.rstrip('.')}: {old.get(key)} -> {new.get(key)}" for key in keys[:shown])
+    return text + (f" and {len(keys) - shown} more" if len(keys) > shown else "")
+
+
+def _remove_temporaries(out_dir: Path, shard: int) -> None:
+    name = shard_name(shard)
+    for stale in [*out_dir.glob(f"{name}.tmp-*"), *out_dir.glob(f"{name}.json.tmp-*")]:
+        stale.unlink(missing_ok=True)
 
 
 def prepare(job: LabelJob, plan: list[tuple[int, list[int]]], overwrite: bool) -> None:
@@ -171,23 +262,18 @@ def prepare(job: LabelJob, plan: list[tuple[int, list[int]]], overwrite: bool) -
     if marker.is_file() and config_hash(marker.read_text()) != job.hash:
         if not overwrite:
             raise LabelError(f"{job.out_dir}: labelled with another config (hash {config_hash(marker.read_text())}, "
-                             f"now {job.hash}); pass overwrite=true to relabel, or choose another out_dir")
+                             f"now {job.hash}: {config_changes(marker.read_text(), job.config_yaml)}); pass "
+                             f"overwrite=true to relabel, or choose another out_dir")
         for state in job.out_dir.glob("shard_*.h5.json"):
             if json.loads(state.read_text()).get("config_hash") != job.hash:
                 state.unlink()
                 (job.out_dir / state.name[: -len(".json")]).unlink(missing_ok=True)
     for shard, _ in plan:
-        name = shard_name(shard)
-        for stale in [*job.out_dir.glob(f"{name}.tmp-*"), *job.out_dir.glob(f"{name}.json.tmp-*")]:
-            stale.unlink(missing_ok=True)
+        _remove_temporaries(job.out_dir, shard)
         if overwrite:
             _state_path(job.out_dir, shard).unlink(missing_ok=True)
-            (job.out_dir / name).unlink(missing_ok=True)
+            (job.out_dir / shard_name(shard)).unlink(missing_ok=True)
     write_text_atomic(marker, job.config_yaml)
-
-
-class LabelError(RuntimeError):
-    """A labelling run cannot start (config mismatch, bad runner). The message is one line."""
 
 
 def write_manifests(job: LabelJob) -> list[dict]:
@@ -219,31 +305,79 @@ def _end_helpers() -> None:
 
 
 def _worker_init() -> None:
+    """A worker leaves Ctrl-C to the main process, which ends it (a terminal sends SIGINT to the whole group)."""
     from multiprocessing.util import Finalize
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     Finalize(None, _end_helpers, exitpriority=100)
 
 
-def _pool_results(job, todo, workers, tick):
-    """Shard results from a spawn process pool, as they finish; per-sample ticks go to ``tick``."""
+def _end_now(executor: ProcessPoolExecutor) -> None:
+    """Terminate a one-process executor's worker even mid-shard (no public API for this before Python 3.14)."""
+    for process in list((executor._processes or {}).values()):
+        process.terminate()
+    executor.shutdown(wait=True, cancel_futures=True)
+
+
+def _pool_results(job, todo, workers, threads, tick):
+    """Shard results from ``workers`` spawned processes, as they finish; ``tick(n)`` per finished sample.
+
+    Each process is its own one-worker executor, so a process that dies (killed, out of memory, a crash in native
+    code) is known to have died in its own shard, at the sample it had started: that sample is recorded as a
+    failure, the shard is labelled again without it in a fresh process, and the other shards go on. A process
+    that dies outside a sample stops the run (LabelError). On exit (done, Ctrl-C, error) every process is ended.
+    """
     context = get_context("spawn")
-    with context.Manager() as manager, ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_init) as pool:
-        queue = manager.Queue()
-        pending = {pool.submit(label_shard, job, shard, indices, queue) for shard, indices in todo}
+    queue = deque((shard, indices, {}) for shard, indices in todo)
+    running, idle = {}, []
+    started, finished = set(), set()
+    with context.Manager() as manager:
+        ticks = manager.Queue()
         try:
-            while pending:
-                finished, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
-                while not queue.empty():
-                    tick(queue.get())
-                for future in finished:
-                    yield future.result()
+            while queue or running:
+                while queue and len(running) < workers:
+                    if not idle:
+                        idle.append(ProcessPoolExecutor(1, mp_context=context, initializer=_worker_init))
+                    executor = idle.pop()
+                    shard, indices, lost = queue.popleft()
+                    future = executor.submit(label_shard, job, shard, indices, ticks, threads, lost)
+                    running[future] = (executor, shard, indices, lost)
+                done, _ = wait(running, timeout=0.5, return_when=FIRST_COMPLETED)
+                while not ticks.empty():  # a worker's messages are queued before it moves on, so before it dies
+                    index, ended = ticks.get()
+                    (finished if ended else started).add(index)
+                    tick(int(ended))
+                for future in done:
+                    executor, shard, indices, lost = running.pop(future)
+                    crashed = [i for i in indices if i in started and i not in finished]
+                    counted = sum(i in finished for i in indices)
+                    started.difference_update(indices)
+                    finished.difference_update(indices)
+                    try:
+                        result = future.result()
+                    except BrokenProcessPool:
+                        executor.shutdown(wait=True)
+                        _remove_temporaries(job.out_dir, shard)
+                        if not crashed:
+                            raise LabelError(f"a worker process died outside any sample of {shard_name(shard)} "
+                                             f"(killed, or a crash loading the teacher); complete shards are kept")
+                        tick(-counted)  # the retry counts them again
+                        sample_id = reader_id(job.dataset, crashed[0])
+                        failure = {"index": crashed[0], "sample_id": sample_id, "file": sample_id, "reason": DIED}
+                        queue.appendleft((shard, indices, {**lost, crashed[0]: failure}))
+                        continue
+                    idle.append(executor)
+                    yield result
         finally:
-            for future in pending:
-                future.cancel()
+            for executor, shard, _, _ in running.values():
+                _end_now(executor)
+                _remove_temporaries(job.out_dir, shard)
+            for executor in idle:
+                executor.shutdown(wait=True)
 
 
 def _ray_results(job, todo, address, workers, tick):
-    """Shard results from Ray tasks (one per shard, 1 CPU each), as they finish; ticks per shard."""
+    """Shard results from Ray tasks (one per shard, 1 CPU and 1 thread each), as they finish; ticks per shard."""
     import ray
 
     if not ray.is_initialized():
@@ -252,7 +386,7 @@ def _ray_results(job, todo, address, workers, tick):
         else:
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
     remote = ray.remote(num_cpus=1)(label_shard)
-    pending = [remote.remote(job, shard, indices) for shard, indices in todo]
+    pending = [remote.remote(job, shard, indices, None, 1) for shard, indices in todo]
     try:
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
@@ -264,46 +398,62 @@ def _ray_results(job, todo, address, workers, tick):
             ray.cancel(ref, force=True)
 
 
+def _in_process_results(job, todo, threads, tick):
+    """Shard results labelled one after the other in this process."""
+    for shard, indices in todo:
+        yield label_shard(job, shard, indices, lambda message: tick(int(message[1])), threads)
+
+
 def run_labelling(job: LabelJob, plan: list[tuple[int, list[int]]], workers: int = 1, runner: str = "local",
                   ray_address: str | None = None, overwrite: bool = False, progress: bool = True) -> dict:
     """Label every shard of ``plan`` not already complete; then write ``index.json`` and ``failures.jsonl``.
 
-    Each finished shard is recorded at once (``shard_XXXXXX.h5.json``), so a killed run loses only shards in
-    flight. Returns ``{"done", "skipped", "failed", "seconds_per_sample", "failures"}``: samples labelled now,
-    samples of shards found complete, failed samples of this plan, mean teacher+reader seconds per labelled sample.
+    Each finished shard is recorded at once (``shard_XXXXXX.h5.json``, with the reader's sample ids of its
+    indices), so a killed run loses only shards in flight. ``workers`` local processes share the available cores
+    (each runs the teacher on ``cores // workers`` threads). Returns ``{"done", "skipped", "failed",
+    "seconds_per_sample", "seconds", "failures"}``: samples labelled now, samples of shards found complete, failed
+    samples of this plan, mean reader + teacher seconds per labelled sample in a worker, wall-clock seconds.
     """
     from tqdm import tqdm
 
     if runner not in ("local", "ray"):
         raise LabelError(f"runner must be local or ray, got {runner!r}")
+    start = time.perf_counter()
     prepare(job, plan, overwrite)
+    ids = {shard: [reader_id(job.dataset, i) for i in indices] for shard, indices in plan}
     results, todo = {}, []
     for shard, indices in plan:
-        record = _done(job, shard, indices)
+        record = _done(job, shard, indices, ids[shard])
         if record is None:
             todo.append((shard, indices))
         else:
             results[shard] = record
     skipped = sum(len(r["samples"]) for r in results.values())
     seconds, done = 0.0, 0
-    bar = tqdm(total=sum(len(indices) for _, indices in todo), unit="sample", disable=not progress,
-               dynamic_ncols=True, desc="labelling")
+    bar = tqdm(total=sum(len(indices) for _, indices in todo), unit=" samples", disable=not progress,
+               dynamic_ncols=True, desc="labelling",
+               bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, "
+                          "{rate_noinv_fmt}]")
+    parallel = min(workers, len(todo))
     if runner == "ray":
         stream = _ray_results(job, todo, ray_address, workers, bar.update)
-    elif workers > 1 and len(todo) > 1:
-        stream = _pool_results(job, todo, workers, bar.update)
+    elif parallel > 1:
+        stream = _pool_results(job, todo, parallel, max(1, available_cores() // parallel), bar.update)
     else:
-        stream = (label_shard(job, shard, indices, bar.update) for shard, indices in todo)
+        stream = _in_process_results(job, todo, available_cores(), bar.update)
     try:
         for result in stream:
             write_text_atomic(_state_path(job.out_dir, result["shard"]),
-                              json.dumps({**result, "config_hash": job.hash}, sort_keys=True))
+                              json.dumps({**result, "config_hash": job.hash, "ids": ids[result["shard"]]},
+                                         sort_keys=True))
             results[result["shard"]] = result
             seconds += result["seconds"]
             done += len(result["samples"])
     finally:
+        stream.close()
         bar.close()
         write_manifests(job)
     failures = [f for shard in sorted(results) for f in results[shard]["failures"]]
     return {"done": done, "skipped": skipped, "failed": len(failures),
-            "seconds_per_sample": seconds / done if done else 0.0, "failures": failures}
+            "seconds_per_sample": seconds / done if done else 0.0, "seconds": time.perf_counter() - start,
+            "failures": failures}

@@ -26,10 +26,13 @@ class ShardDataset:
         index_path = self.root / "index.json"
         if not index_path.is_file():
             raise FileNotFoundError(f"{index_path}: no index (run label.py first)")
-        index = json.loads(index_path.read_text())
-        self.entries = [(shard["file"], position) for shard in index["shards"] for position in range(len(shard["samples"]))]
-        #: sample id of each entry, in order (from the index, without opening a shard)
-        self.sample_ids = [sample["sample_id"] for shard in index["shards"] for sample in shard["samples"]]
+        try:
+            shards = json.loads(index_path.read_text())["shards"]
+            self.entries = [(shard["file"], position) for shard in shards for position in range(len(shard["samples"]))]
+            #: sample id of each entry, in order (from the index, without opening a shard)
+            self.sample_ids = [sample["sample_id"] for shard in shards for sample in shard["samples"]]
+        except (ValueError, KeyError, TypeError) as error:
+            raise ValueError(f"{index_path}: not a labelling index ({type(error).__name__}: {error})") from None
         self._files: dict[str, h5py.File] = {}
         self._pid = os.getpid()
 

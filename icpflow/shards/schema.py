@@ -10,6 +10,8 @@ int32, and optionally ``gt_flow`` (N0, 3) float32, ``gt_flow_valid`` (N0,) bool,
 """
 
 SCHEMA_VERSION = 1
+#: the ``compression`` settings of the writer (HDF5 filters; none = uncompressed)
+COMPRESSIONS = ("none", "gzip", "lzf")
 
 #: dataset name -> (dtype, trailing shape; None = per point of the named cloud)
 REQUIRED = {

@@ -11,7 +11,7 @@ import h5py
 import numpy as np
 
 import icpflow
-from icpflow.shards.schema import SCHEMA_VERSION, group_name
+from icpflow.shards.schema import COMPRESSIONS, SCHEMA_VERSION, group_name
 
 
 def _temporary(path: Path) -> Path:
@@ -31,8 +31,10 @@ def write_shard(path: Path, samples: list[dict], config_yaml: str, config_hash: 
     """Write ``samples`` (dicts of arrays plus an ``attrs`` dict, see ``schema``) to ``path`` atomically.
 
     The file is written under ``<path>.tmp-<random>``, flushed, fsynced, then renamed over ``path``. Every array
-    carries Fletcher-32 checksums; ``compression`` is an HDF5 filter (``gzip``, ``lzf``) or None.
+    carries Fletcher-32 checksums; ``compression`` is an HDF5 filter (``gzip``, ``lzf``), ``none`` or None.
     """
+    if compression is not None and compression not in COMPRESSIONS:
+        raise ValueError(f"write_shard: compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
     path = Path(path)
     tmp = _temporary(path)
     opts = {"fletcher32": True}  # per-chunk checksums: a corrupted byte fails verification
