@@ -1,7 +1,10 @@
 """Evaluate scene-flow methods against ground truth (see conf/eval.yaml and icpflow.evaluation).
 
     python eval.py [dataset=<name>] [split=val] [method=[zero,ego,icpflow,student,shards]] [checkpoint=...]
-        [shards=<label out_dir>] [horizon=k] [tracker=true] [limit=N] [bev=N] [out_dir=...]
+        [shards=<label out_dir>] [horizon=k | horizon=[1,2,3,4] | horizon=1..4] [tracker=true | tracker=[false,true]]
+        [limit=N] [bev=N] [render=N] [out_dir=...]
+
+Several horizons give the long-horizon table (EPE against the time gap, one row per method and horizon).
 """
 
 import sys

@@ -1,7 +1,9 @@
 """Scatter reductions over pillar ids written with ``scatter_reduce`` (exports to ONNX with the dynamo exporter).
 
 ``ids`` (P,) int64 index rows of an output with ``num_slots`` rows; ``index_add`` is avoided on purpose: the legacy
-ONNX exporter mis-exports it silently (see NOTES.md).
+ONNX exporter mis-exports it silently (see NOTES.md). New tensors are made with ``Tensor.new_zeros`` /
+``new_ones``, which a TorchScript trace records without a device, so a traced model runs on the device of its
+inputs (``torch.zeros(..., device=x.device)`` would bake the tracing device in).
 """
 
 import torch
@@ -9,14 +11,14 @@ import torch
 
 def scatter_sum(values: torch.Tensor, ids: torch.Tensor, num_slots: int) -> torch.Tensor:
     """Row sums: (num_slots, C) with ``out[k] = sum of values[p] over p with ids[p] == k``; values (P, C)."""
-    out = torch.zeros(num_slots, values.shape[1], dtype=values.dtype, device=values.device)
+    out = values.new_zeros((num_slots, values.shape[1]))
     index = ids[:, None].expand(-1, values.shape[1])
     return out.scatter_reduce(0, index, values, reduce="sum", include_self=True)
 
 
 def scatter_mean(values: torch.Tensor, ids: torch.Tensor, num_slots: int) -> torch.Tensor:
     """Row means (num_slots, C) of values (P, C) grouped by ``ids``; rows without any point are 0."""
-    ones = torch.ones(values.shape[0], 1, dtype=values.dtype, device=values.device)
+    ones = values.new_ones((values.shape[0], 1))
     summed = scatter_sum(torch.cat([values, ones], dim=1), ids, num_slots)
     counts = summed[:, -1:].clamp(min=1.0)
     return summed[:, :-1] / counts
@@ -33,5 +35,5 @@ def from_pseudo_image(image: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
     """Gather (P, C) rows of a (B, C, nx, ny) image at flat pillar ids; the dump id reads a row of zeros."""
     channels = image.shape[1]
     rows = image.permute(0, 2, 3, 1).reshape(-1, channels)
-    rows = torch.cat([rows, torch.zeros(1, channels, dtype=rows.dtype, device=rows.device)], dim=0)
+    rows = torch.cat([rows, rows.new_zeros((1, channels))], dim=0)
     return rows[ids]

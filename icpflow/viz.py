@@ -1,13 +1,18 @@
-"""Bird's-eye-view pictures of a frame pair and its flow (matplotlib, headless).
+"""Pictures of a frame pair and its flow, headless: bird's-eye views (matplotlib) and 3D renders (open3d).
 
-All panels are drawn in the ego frame of t + dt (pc1's frame), x forward to the right, y to the left upwards.
-Flow colour encodes the RESIDUAL (ego-compensated) flow, because full flow is dominated by the ego motion:
-hue = direction in the xy-plane, from grey (still) to full colour at ``max_speed`` m/s.
+Everything is drawn in the ego frame of t + dt (pc1's frame); BEV panels have x forward to the right, y to the left
+upwards. pc0 moved by the ego motion is blue, pc1 red, pc0 + flow green (``PC0_COLOUR``, ``PC1_COLOUR``,
+``MOVED_COLOUR``). Flow colour encodes the RESIDUAL (ego-compensated) flow, because full flow is dominated by the
+ego motion: hue = direction in the xy-plane, from grey (still) to full colour at ``max_speed`` m/s.
 """
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -15,10 +20,12 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.colors import hsv_to_rgb  # noqa: E402
+from matplotlib.colors import hsv_to_rgb, to_rgb, to_rgba_array  # noqa: E402
 
 from icpflow.frames import FramePair  # noqa: E402
 from icpflow.geometry import full_to_residual, transform_points  # noqa: E402
+
+PC0_COLOUR, PC1_COLOUR, MOVED_COLOUR = to_rgb("tab:blue"), to_rgb("tab:red"), to_rgb("tab:green")
 
 
 def flow_colours(residual: np.ndarray, dt: float, max_speed: float = 10.0) -> np.ndarray:
@@ -32,7 +39,7 @@ def flow_colours(residual: np.ndarray, dt: float, max_speed: float = 10.0) -> np
 
 
 def _scatter(ax, points, colour, size, label=None):
-    ax.scatter(points[:, 0], points[:, 1], s=size, c=colour, linewidths=0, label=label, rasterized=True)
+    ax.scatter(points[:, 0], points[:, 1], s=size, c=to_rgba_array(colour), linewidths=0, label=label, rasterized=True)
 
 
 def plot_bev(
@@ -61,14 +68,14 @@ def plot_bev(
     ground = pair.ground0 if pair.ground0 is not None else np.zeros(len(pair.pc0), bool)
 
     ax = axes.flat[0]
-    _scatter(ax, pair.pc1, "tab:red", size, "pc1")
-    _scatter(ax, transform_points(ego, pair.pc0), "tab:blue", size, "pc0 (ego-compensated)")
+    _scatter(ax, pair.pc1, PC1_COLOUR, size, "pc1")
+    _scatter(ax, transform_points(ego, pair.pc0), PC0_COLOUR, size, "pc0 (ego-compensated)")
     ax.set_title("pc0 (blue, ego-compensated) and pc1 (red)")
     index = 1
     for name, flow in flows:
         ax = axes.flat[index]
-        _scatter(ax, pair.pc1, "tab:red", size)
-        _scatter(ax, pair.pc0 + flow, "tab:green", size)
+        _scatter(ax, pair.pc1, PC1_COLOUR, size)
+        _scatter(ax, pair.pc0 + flow, MOVED_COLOUR, size)
         ax.set_title(f"pc0 + {name} flow (green) and pc1 (red)")
         ax = axes.flat[index + 1]
         residual = full_to_residual(flow, pair.pc0, ego)
@@ -94,5 +101,84 @@ def plot_bev(
     tmp = path.with_name(path.name + ".tmp.png")
     fig.savefig(tmp, dpi=80)
     plt.close(fig)
+    os.replace(tmp, path)
+    return path
+
+
+@contextlib.contextmanager
+def _stdout_to_stderr():
+    """Send file descriptor 1 (where C++ libraries print) to stderr for the duration."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+_PROBE = "from open3d.visualization import rendering; rendering.OffscreenRenderer(16, 16).render_to_image()"
+
+
+@functools.cache
+def offscreen_problem() -> str | None:
+    """None if open3d can render offscreen here, else a one-line reason. Probed once per process in a child
+    process, because open3d aborts the whole process when it finds no Vulkan driver."""
+    try:
+        done = subprocess.run([sys.executable, "-c", _PROBE], capture_output=True, text=True, timeout=300)
+    except subprocess.TimeoutExpired:
+        return "open3d offscreen rendering did not start within 300 s"
+    if done.returncode == 0:
+        return None
+    lines = [line.strip() for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+    return (f"open3d offscreen rendering is unavailable here ({lines[-1] if lines else f'exit {done.returncode}'}); "
+            "it needs libusb-1.0-0, libvulkan1 and mesa-vulkan-drivers")
+
+
+def render_pair(
+    pair: FramePair,
+    path: str | os.PathLike,
+    predicted: np.ndarray | None = None,
+    size: tuple[int, int] = (1280, 720),
+    extent: float = 40.0,
+    point_size: float = 2.0,
+) -> Path:
+    """Write an open3d offscreen render of ``pair`` to the PNG ``path``, ``size`` = (width, height) pixels.
+
+    In the ego frame of t + dt: pc0 moved by the ego motion (blue), pc1 (red) and pc0 + ``predicted`` (N0, 3)
+    FULL flow (green; the ground truth when None, left out without either), points within ``extent`` m in x and
+    y, seen from behind and above the ego vehicle. Unlit, no post-processing: the points have exactly these
+    colours on white. Call :func:`offscreen_problem` first (without Vulkan open3d aborts the process).
+    """
+    import open3d as o3d
+    from open3d.visualization import rendering
+
+    ego = pair.ego1_from_ego0 if pair.ego1_from_ego0 is not None else np.eye(4)
+    flow = predicted if predicted is not None else pair.flow
+    clouds = [("pc0", transform_points(ego, pair.pc0), PC0_COLOUR), ("pc1", pair.pc1, PC1_COLOUR)]
+    if flow is not None:
+        clouds.append(("pc0 + flow", pair.pc0 + flow, MOVED_COLOUR))
+    width, height = (int(v) for v in size)
+    with _stdout_to_stderr():  # its engine logs to stdout; keep stdout for eval.py's tables
+        renderer = rendering.OffscreenRenderer(width, height)
+        renderer.scene.set_background([1.0, 1.0, 1.0, 1.0])
+        renderer.scene.view.set_post_processing(False)  # no tone mapping: colours stay exact
+        material = rendering.MaterialRecord()
+        material.shader, material.point_size = "defaultUnlit", float(point_size)
+        for name, points, colour in clouds:
+            inside = points[np.abs(points[:, :2]).max(axis=1) <= extent]
+            if len(inside):
+                cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(inside.astype(np.float64)))
+                cloud.paint_uniform_color(colour)
+                renderer.scene.add_geometry(name, cloud, material)
+        renderer.setup_camera(60.0, [0.3 * extent, 0.0, 0.0], [-0.8 * extent, 0.0, 0.6 * extent], [0.0, 0.0, 1.0])
+        image = renderer.render_to_image()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.png")
+    if not o3d.io.write_image(str(tmp), image):
+        raise OSError(f"{path}: open3d could not write the render")
     os.replace(tmp, path)
     return path

@@ -1,16 +1,22 @@
-"""eval.py / icpflow.evaluation: the table equals the metrics module's numbers; shards, failures, bad input."""
+"""eval.py / icpflow.evaluation: the tables equal the metrics module's numbers (baselines, teacher over several
+horizons with and without the tracker, a trained student); shards, failures, renders, bad input."""
 
+import csv
 import json
 import subprocess
 import sys
 from pathlib import Path
 
+import matplotlib.image
 import numpy as np
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 
 from icpflow import metrics
 from icpflow.baselines import ego_only_flow, zero_flow
+from icpflow.datasets.from_config import raise_max_horizon
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.evaluation import MetricOptions, evaluate, run_eval
 from icpflow.shards.writer import write_index, write_shard
@@ -30,32 +36,41 @@ def dataset():
     return SyntheticDataset(**READER)
 
 
+def expected_summary(dataset, pairs_and_flows) -> dict:
+    """What the metrics module says about (pair, full flow) pairs: the paper's table, Threeway EPE, bucketed EPE."""
+    paper, three, buckets = metrics.MetricAccumulator(), 0, 0
+    threeway_meta = {c: "BACKGROUND" if m == "BACKGROUND" else "FOREGROUND" for c, m in dataset.class_to_meta.items()}
+    for pair, flow in pairs_and_flows:
+        paper.add(metrics.frame_pair_stats(pair, flow, crop=32.0))
+        args = (pair.pc0, flow, pair.flow, pair.ego1_from_ego0, pair.classes)
+        three = three + metrics.av2_bucket_stats(*args, ground=pair.ground0, flow_valid=pair.flow_valid,
+                                                 edges=metrics.THREEWAY_EDGES, class_to_meta=threeway_meta,
+                                                 metas=("BACKGROUND", "FOREGROUND"))
+        buckets = buckets + metrics.av2_bucket_stats(*args, ground=pair.ground0, flow_valid=pair.flow_valid,
+                                                     class_to_meta=dataset.class_to_meta)
+    return {"paper": paper.table(), "threeway": metrics.threeway_epe(three),
+            "dynamic_normalized_epe": metrics.bucketed_epe(buckets)["mean"][1]}
+
+
+def assert_same_numbers(ours: dict, expected: dict) -> None:
+    """A method's summary in metrics.json equals :func:`expected_summary` (NaN written as null)."""
+    for weighting, table in expected["paper"].items():
+        for category, row in table.items():
+            for column in (*metrics.COLUMNS, "count"):
+                want, got = row[column], ours["paper"][weighting][category][column]
+                assert (got is None and np.isnan(want)) or got == pytest.approx(want, abs=1e-12)
+    assert ours["threeway"] == pytest.approx(expected["threeway"], abs=1e-12)
+    assert ours["bucketed"]["mean"]["dynamic_normalized_epe"] == pytest.approx(expected["dynamic_normalized_epe"],
+                                                                               abs=1e-12)
+
+
 def test_eval_reproduces_the_metrics_module(tmp_path, dataset, capsys):
     assert run_eval(_cfg(tmp_path, "bev=1"), progress=False) == 0
     document = json.loads((tmp_path / "metrics.json").read_text())
     assert document["pairs"] == [dataset.sample_id(i) for i in range(len(dataset))]
     for name, predict in (("zero", zero_flow), ("ego", ego_only_flow)):
-        paper, three, buckets = metrics.MetricAccumulator(), 0, 0
-        for i in range(len(dataset)):
-            pair = dataset[i]
-            flow = predict(pair)
-            paper.add(metrics.frame_pair_stats(pair, flow, crop=32.0))
-            args = (pair.pc0, flow, pair.flow, pair.ego1_from_ego0, pair.classes)
-            three = three + metrics.av2_bucket_stats(
-                *args, ground=pair.ground0, flow_valid=pair.flow_valid, edges=metrics.THREEWAY_EDGES,
-                class_to_meta={c: "BACKGROUND" if m == "BACKGROUND" else "FOREGROUND"
-                               for c, m in dataset.class_to_meta.items()}, metas=("BACKGROUND", "FOREGROUND"))
-            buckets = buckets + metrics.av2_bucket_stats(*args, ground=pair.ground0, flow_valid=pair.flow_valid,
-                                                         class_to_meta=dataset.class_to_meta)
-        ours = document["methods"][name]
-        for weighting, table in paper.table().items():
-            for category, row in table.items():
-                for column in (*metrics.COLUMNS, "count"):
-                    expected, got = row[column], ours["paper"][weighting][category][column]
-                    assert (got is None and np.isnan(expected)) or got == pytest.approx(expected, abs=1e-12)
-        assert ours["threeway"] == pytest.approx(metrics.threeway_epe(three), abs=1e-12)
-        assert ours["bucketed"]["mean"]["dynamic_normalized_epe"] == pytest.approx(
-            metrics.bucketed_epe(buckets)["mean"][1], abs=1e-12)
+        pairs = [dataset[i] for i in range(len(dataset))]
+        assert_same_numbers(document["methods"][name], expected_summary(dataset, [(p, predict(p)) for p in pairs]))
     # ego flow is exact on the static background and scores EPE 1 normalised on movers
     ego = document["methods"]["ego"]
     assert ego["paper"]["point_weighted"]["static_bg"]["EPE"] < 1e-5
@@ -92,7 +107,7 @@ def test_a_bad_pair_is_recorded_and_skipped_for_every_method(dataset):
     methods = {"zero": lambda pair, index: zero_flow(pair), "ego": lambda pair, index: ego_only_flow(pair)}
     result = evaluate(_BrokenAt(dataset, 0), methods, MetricOptions(class_to_meta=dataset.class_to_meta))
     assert result.pairs == [dataset.sample_id(1)]
-    assert result.failures == [{"index": 0, "sample_id": dataset.sample_id(0),
+    assert result.failures == [{"index": 0, "sample_id": dataset.sample_id(0), "horizon": 1,
                                 "reason": "OSError: corrupt.bin: truncated file"}]
     assert {s["pairs"] for s in result.summaries.values()} == {1}
 
@@ -142,12 +157,128 @@ def test_stored_labels_of_other_points_are_refused(tmp_path, dataset, capsys):
     (["method=magic"], "unknown method 'magic'"),
     (["method=student"], "method student needs checkpoint="),
     (["method=shards", "shards=/nonexistent/labels"], "/nonexistent/labels/index.json: no index"),
-    (["horizon=5"], "horizon=5 outside 1..2"),
+    (["method=shards", "shards=/nonexistent/labels", "horizon=[1,2]"], "method shards scores the one horizon"),
+    (["horizon=5"], "horizon=5"),  # outside 1..2, or no sample has t + 5 in a 3-scan sequence
+    (["horizon=[0,1]"], "horizon must list distinct frame gaps >= 1"),
+    (["horizon=one"], "horizon must be an integer, a list or first..last"),
+    (["tracker=[true,true]"], "tracker must be true, false or [false,true]"),
+    (["method=icpflow", "horizon=3", "dataset.reader.frames_per_sequence=5", "icpflow.max_frame_gap=2"],
+     "icpflow: horizon=3 exceeds the teacher's max_frame_gap 2"),
 ])
 def test_bad_requests_get_one_line(tmp_path, capsys, overrides, message):
     assert run_eval(_cfg(tmp_path, *overrides), progress=False) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+
+
+def test_readers_taking_max_horizon_get_the_largest_horizon():
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose("eval", ["dataset=sequence", "dataset.root=/data"])  # ScanSequenceDataset(max_horizon=...)
+        pca = compose("eval", ["dataset=waymo", "dataset.root=/data"])  # max_horizon fixed by its files
+    assert cfg.dataset.reader.max_horizon == 1
+    assert raise_max_horizon(cfg, 3) and cfg.dataset.reader.max_horizon == 3
+    assert not raise_max_horizon(cfg, 2) and cfg.dataset.reader.max_horizon == 3  # a larger one is kept
+    assert not raise_max_horizon(pca, 3) and "max_horizon" not in pca.dataset.reader
+
+
+def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
+    from icpflow.labelling.cli import teacher_config
+    from icpflow.labelling.run import tracked_sample
+    from icpflow.teacher import ICPFlow
+
+    cfg = _cfg(tmp_path, "method=[zero,icpflow]", "horizon=1..2", "tracker=[false,true]", "bev=1")
+    assert run_eval(cfg, progress=False) == 0
+    document = json.loads((tmp_path / "metrics.json").read_text())
+    dataset = instantiate(document["config"]["dataset"]["reader"])  # the reader as the run opened it
+    pairs = {k: dataset.pair(0, horizon=k) for k in (1, 2)}
+    assert document["horizons"] == [1, 2]
+    assert document["pairs"] == {str(k): [pairs[k].sample_id] for k in (1, 2)}
+    assert pairs[1].timestamp0_ns == pairs[2].timestamp0_ns  # the same start scan at both horizons
+    teacher = ICPFlow(teacher_config(cfg))
+    direct = {k: teacher(p.pc0, p.pc1, ego1_from_ego0=p.ego1_from_ego0, ground0=p.ground0, ground1=p.ground1,
+                         gap=k, dt=p.dt).flow for k, p in pairs.items()}
+    flows = {"zero": {k: zero_flow(p) for k, p in pairs.items()}, "icpflow": direct,
+             "icpflow+tracker": {1: direct[1], 2: tracked_sample(dataset, teacher, 0, 2, pairs[2])[0]}}
+    rows = document["table"]["rows"]
+    assert [(row["method"], row["horizon"]) for row in rows] == [(m, k) for m in flows for k in (1, 2)]
+    for row in rows:
+        name, k = row["method"], row["horizon"]
+        expected = expected_summary(dataset, [(pairs[k], flows[name][k])])
+        assert_same_numbers(document["methods"][name][str(k)], expected)
+        assert row["dt_s"] == pytest.approx(pairs[k].dt) and pairs[k].dt == pytest.approx(0.1 * k, abs=1e-3)
+        for category in metrics.CATEGORIES:
+            assert row[f"EPE_{category}"] == pytest.approx(expected["paper"]["point_weighted"][category]["EPE"],
+                                                           abs=1e-12)
+    by_key = {(row["method"], row["horizon"]): row for row in rows}
+    assert by_key["icpflow", 2]["EPE_overall"] != by_key["icpflow+tracker", 2]["EPE_overall"]  # the tracker ran
+    with open(tmp_path / "metrics.csv", newline="") as handle:
+        table = list(csv.DictReader(handle))
+    assert [(r["method"], int(r["horizon"]), float(r["EPE_dynamic_fg"])) for r in table] == [
+        (row["method"], row["horizon"], pytest.approx(row["EPE_dynamic_fg"], rel=1e-12)) for row in rows]
+    printed = capsys.readouterr().out
+    assert "horizons 1, 2" in printed and printed.count("icpflow+tracker") == 2
+    assert sorted(p.relative_to(tmp_path / "bev").as_posix() for p in (tmp_path / "bev").rglob("*.png")) == sorted(
+        f"k{k}/{pairs[k].sample_id.replace('/', '_')}_{name}.png" for k in (1, 2) for name in flows)
+
+
+TINY_STUDENT = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-16.0, 16.0], "y_range": [-16.0, 16.0],
+                "z_range": [-3.0, 3.0], "cell": 0.5, "pillar_channels": 8, "stage_channels": [8, 16, 32],
+                "stage_blocks": [1, 1, 1]}
+
+
+def tiny_student_checkpoint(path: Path, pair) -> Path:
+    """A training checkpoint (the ``fastflow3d.checkpoint`` contract) of a tiny FastFlow3D after 5 Adam steps
+    towards ``pair``'s true residual flow, so that its weights and BatchNorm statistics are not the initial ones."""
+    from fastflow3d.loss import distillation_loss
+    from fastflow3d.model import FastFlow3D, compensate
+
+    torch.manual_seed(0)
+    model = FastFlow3D(**{k: v for k, v in TINY_STUDENT.items() if k != "_target_"}).train()
+    pc0, pc1 = torch.from_numpy(compensate(pair.pc0, pair.ego1_from_ego0)), torch.from_numpy(pair.pc1)
+    batch0, batch1 = torch.zeros(len(pc0), dtype=torch.int64), torch.zeros(len(pc1), dtype=torch.int64)
+    target = torch.from_numpy(pair.residual_flow())
+    optimiser = torch.optim.Adam(model.parameters(), lr=2e-3)
+    for _ in range(5):
+        residual, valid = model(pc0, batch0, pc1, batch1, 1)
+        loss = distillation_loss(residual, target, batch0, valid, 1)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+    torch.save({"state_dict": {f"model.{key}": value for key, value in model.state_dict().items()},
+                "hyper_parameters": {"cfg": {"model": dict(TINY_STUDENT)}}, "epoch": 0, "global_step": 5}, path)
+    return path
+
+
+def test_student_row_reproduces_the_metrics_module(tmp_path, dataset):
+    from fastflow3d.predictor import Predictor
+
+    checkpoint = tiny_student_checkpoint(tmp_path / "student.ckpt", dataset[0])
+    assert run_eval(_cfg(tmp_path / "eval", "method=[ego,student]", f"checkpoint={checkpoint}", "bev=0"),
+                    progress=False) == 0
+    document = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    predictor = Predictor.load(checkpoint)
+    pairs = [dataset[i] for i in range(len(dataset))]
+    flows = [predictor(p.pc0, p.pc1, p.ego1_from_ego0) for p in pairs]
+    assert_same_numbers(document["methods"]["student"], expected_summary(dataset, list(zip(pairs, flows))))
+    # the network moves points off the ego flow: its row is not the ego baseline's
+    overall = {name: document["methods"][name]["paper"]["point_weighted"]["overall"]["EPE"]
+               for name in ("ego", "student")}
+    assert overall["student"] != pytest.approx(overall["ego"], abs=1e-6)
+
+
+def test_render_writes_one_picture_per_method(tmp_path, dataset):
+    from icpflow.viz import offscreen_problem
+
+    problem = offscreen_problem()
+    if problem:
+        pytest.skip(problem)
+    assert run_eval(_cfg(tmp_path, "method=[zero,ego]", "limit=1", "bev=0", "render=1", "render_size=[160,120]"),
+                    progress=False) == 0
+    stem = dataset.sample_id(0).replace("/", "_")
+    pictures = sorted((tmp_path / "render").glob("*.png"))
+    assert [p.name for p in pictures] == [f"{stem}_ego.png", f"{stem}_zero.png"]
+    assert all(matplotlib.image.imread(p).shape[:2] == (120, 160) for p in pictures)
+    assert not (tmp_path / "bev").exists()
 
 
 def test_eval_script_runs(tmp_path):

@@ -159,6 +159,19 @@ def test_torchscript_trace_dynamic_point_counts():
         assert torch.equal(got_valid, valid)
 
 
+def test_torchscript_trace_follows_the_input_device():
+    """No tensor of the trace is made on the tracing device (CPU), so it runs where its inputs are: checked in the
+    graph and by running it on the meta device (no GPU needed)."""
+    model = FastFlow3D(**SMALL).eval()
+    traced = torch.jit.trace(SingleSample(model), (*random_flat(300, 0, 7), *random_flat(250, 0, 8)),
+                             check_trace=False)
+    assert 'Device = prim::Constant[value="cpu"]' not in str(traced.inlined_graph)
+    (pc0, b0), (pc1, b1) = random_flat(120, 0, 9), random_flat(90, 0, 10)
+    residual, valid = traced.to("meta")(pc0.to("meta"), b0.to("meta"), pc1.to("meta"), b1.to("meta"))
+    assert residual.device.type == valid.device.type == "meta"
+    assert residual.shape == (120, 3) and valid.shape == (120,)
+
+
 def test_speed_weight_hand_values():
     # speeds 0, 0.5, 0.75, 1.0, 2.0 m/s at dt 0.1 s -> displacements 0, 0.05, 0.075, 0.1, 0.2 m
     pseudo = torch.tensor([[0.0, 0, 0], [0.05, 0, 0], [0, 0.075, 0], [0, 0, 0.1], [0.12, 0.16, 0.0]])
