@@ -1,4 +1,4 @@
-"""Lightning callbacks of the training stage."""
+"""Lightning callbacks of the training stage: ``last.ckpt`` kept current, and a final validation."""
 
 from __future__ import annotations
 
@@ -36,3 +36,24 @@ class LastCheckpoint(L.Callback):
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._save(trainer)
+
+
+class ValidateAtEnd(L.Callback):
+    """Validate after the last training batch when the schedule would not (so a best checkpoint always exists).
+
+    A run that stops at ``max_steps`` (or at the end of ``max_epochs`` with step-based validation) between two
+    scheduled validations ends unvalidated. On the batch that ends training this asks Lightning to stop
+    (``trainer.should_stop``), which makes its loop run validation right after that batch; a batch that is a
+    scheduled validation point is validated once, not twice. Validation gated by ``check_val_every_n_epoch`` stays
+    gated (an epoch that is not a validation epoch is not validated).
+    """
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs, batch,
+                           batch_idx: int) -> None:
+        if trainer.fast_dev_run:
+            return
+        loop = trainer.fit_loop
+        last_step = 0 < trainer.max_steps <= trainer.global_step
+        last_epoch = loop.max_epochs is not None and 0 < loop.max_epochs <= trainer.current_epoch + 1
+        if last_step or (last_epoch and loop.epoch_loop.batch_progress.is_last_batch):
+            trainer.should_stop = True

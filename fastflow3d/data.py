@@ -4,7 +4,8 @@ One sample (``StudentDataset[i]``) holds torch tensors:
 
 - ``pc0`` (N0, 3) float32, ego frame of t (as stored); ``pc0_compensated`` (N0, 3): the same points moved into the
   ego frame of t + dt (``fastflow3d.model.compensate``), the network's input; ``pc1`` (N1, 3) float32, ego frame of
-  t + dt; ``ego1_from_ego0`` (4, 4) float64; ``dt`` float64 seconds; ``ground0`` (N0,) bool;
+  t + dt; ``ego1_from_ego0`` (4, 4) float64; ``dt`` float64 seconds; ``ground0`` (N0,) / ``ground1`` (N1,) bool (the
+  shards' masks; with ``data.remove_ground`` the network sees only the other points, see ``fastflow3d.module``);
 - ``pseudo`` (N0, 3) float32: the teacher's RESIDUAL (ego-compensated) flow, the distillation target;
   ``confidence`` (N0,) float32; ``cluster`` (N0,) int32 (teacher cluster id, -1 = none);
 - when the shard has ground truth: ``gt`` (N0, 3) float32 RESIDUAL flow, ``gt_valid`` (N0,) bool, ``gt_classes``
@@ -12,17 +13,20 @@ One sample (``StudentDataset[i]``) holds torch tensors:
 - ``sample_id`` str.
 
 :func:`collate` concatenates samples into one flat batch (the model's input layout, see ``fastflow3d.voxelize``):
-per-point tensors are concatenated, ``batch0`` / ``batch1`` (P0,) / (P1,) int64 give each point's sample,
-``ego1_from_ego0`` is (B, 4, 4), ``dt`` (B,), ``sample_id`` a list and ``batch_size`` an int.
+per-point tensors are concatenated (P0 rows, or P1 for ``pc1`` and ``ground1``), ``batch0`` / ``batch1`` (P0,) /
+(P1,) int64 give each point's sample, ``ego1_from_ego0`` is (B, 4, 4), ``dt`` (B,), ``sample_id`` a list and
+``batch_size`` an int.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import h5py
 import lightning as L
 import numpy as np
 import torch
+import yaml
 from torch.utils.data import DataLoader, Dataset
 
 from fastflow3d.model import compensate
@@ -31,6 +35,10 @@ from icpflow.shards.reader import ShardDataset
 
 GT_KEYS = ("gt", "gt_valid", "gt_classes")
 PER_POINT0 = ("pc0", "pc0_compensated", "ground0", "pseudo", "confidence", "cluster", *GT_KEYS)
+PER_POINT1 = ("pc1", "ground1")
+#: ICPFlowConfig fields the student needs at inference: ground masks (``icpflow.teacher.ground``) and ego motion
+TEACHER_FIELDS = ("ground", "sensor_height", "patchwork_max_range", "patchwork_z_offset", "range_z", "ground_slack",
+                  "kiss_voxel_size", "kiss_max_range", "ego_refine_voxel")
 
 
 class DataError(ValueError):
@@ -64,6 +72,7 @@ class StudentDataset(Dataset):
             "ego1_from_ego0": torch.from_numpy(ego),
             "dt": torch.tensor(raw["dt"], dtype=torch.float64),
             "ground0": torch.from_numpy(raw["ground0"]),
+            "ground1": torch.from_numpy(raw["ground1"]),
             "pseudo": torch.from_numpy(full_to_residual(raw["flow"], pc0, ego)),
             "confidence": torch.from_numpy(raw["confidence"]),
             "cluster": torch.from_numpy(raw["cluster"]),
@@ -81,8 +90,7 @@ def collate(samples: list[dict]) -> dict:
     """Flat batch of samples (module docstring); ground truth is kept only if every sample has it."""
     has_gt = all("gt" in s for s in samples)
     keys = [k for k in PER_POINT0 if has_gt or k not in GT_KEYS]
-    batch = {key: torch.cat([s[key] for s in samples]) for key in keys}
-    batch["pc1"] = torch.cat([s["pc1"] for s in samples])
+    batch = {key: torch.cat([s[key] for s in samples]) for key in (*keys, *PER_POINT1)}
     for name, cloud in (("batch0", "pc0"), ("batch1", "pc1")):
         batch[name] = torch.cat([torch.full((len(s[cloud]),), i, dtype=torch.int64) for i, s in enumerate(samples)])
     batch["ego1_from_ego0"] = torch.stack([s["ego1_from_ego0"] for s in samples])
@@ -97,6 +105,17 @@ def split_samples(batch: dict, key: str = "batch0") -> list[slice]:
     counts = torch.bincount(batch[key].cpu(), minlength=batch["batch_size"]).tolist()
     ends = np.cumsum(counts).tolist()
     return [slice(end - count, end) for count, end in zip(counts, ends)]
+
+
+def labeller_teacher(shard_dir) -> dict | None:
+    """The teacher settings (ICPFlowConfig fields, dict) that labelled ``shard_dir``: the ``teacher`` block of its
+    first shard's ``config`` attribute (``label.py``'s labeller config); None when the shard has none."""
+    shards = StudentDataset(shard_dir).shards
+    with h5py.File(shards.root / shards.entries[0][0], "r") as handle:
+        text = handle.attrs.get("config")
+    content = yaml.safe_load(text) if isinstance(text, str) else None
+    teacher = content.get("teacher") if isinstance(content, dict) else None
+    return teacher if isinstance(teacher, dict) else None
 
 
 class ShardDataModule(L.LightningDataModule):

@@ -9,9 +9,10 @@ The exported network is the single-sample FastFlow3D (:class:`SingleSampleNet`):
 
 The full flow in the project convention is ``residual + ego_flow(pc0, ego1_from_ego0)``
 (``fastflow3d.predictor.Predictor`` does this). An export directory holds ``fastflow3d.onnx`` and/or
-``fastflow3d.pt`` and ``metadata.json`` (grid, model settings, conventions, versions, hashes of the source
-checkpoint and of each exported file, the parity measured at export). ONNX uses the dynamo exporter: the legacy
-exporter mis-exports scatter ops without a warning, so every export is run once against eager before it is kept.
+``fastflow3d.pt`` and ``metadata.json`` (grid, model settings, preprocessing (ground removal and the teacher's
+ground and ego-motion settings), conventions, versions, hashes of the source checkpoint and of each exported file,
+the parity measured at export). ONNX uses the dynamo exporter: the legacy exporter mis-exports scatter ops without a
+warning, so every export is run once against eager before it is kept.
 """
 
 from __future__ import annotations
@@ -85,8 +86,22 @@ def grid_metadata(model: FastFlow3D) -> dict:
             "cell": grid.cell, "nx": grid.nx, "ny": grid.ny}
 
 
-def network_metadata(model: FastFlow3D, model_config: dict | None = None, checkpoint=None) -> dict:
-    """Metadata shared by exports and checkpoints: grid, model settings, conventions, versions, source hash."""
+def preprocessing_metadata(cfg: dict) -> dict:
+    """What runs before the network, from a training config: ``remove_ground`` (the network was trained on, and
+    takes, non-ground points only) and ``teacher`` (ICPFlowConfig fields for the ground masks and the ego motion of
+    raw scans, ``fastflow3d.data.TEACHER_FIELDS``; None = ``ICPFlowConfig()``'s). A config without ``data`` (a
+    checkpoint from before ground removal) means all points and default settings."""
+    data = cfg.get("data") or {}
+    return {"remove_ground": bool(data.get("remove_ground", False)), "teacher": data.get("teacher"),
+            "note": "with remove_ground, the inputs are the non-ground points of each scan (ground masks by "
+                    "icpflow.teacher.ground.GroundSegmenter with these teacher fields, or given); ground pc0 points "
+                    "get the ego flow"}
+
+
+def network_metadata(model: FastFlow3D, model_config: dict | None = None, checkpoint=None,
+                     preprocessing: dict | None = None) -> dict:
+    """Metadata shared by exports and checkpoints: grid, model settings, preprocessing (see
+    :func:`preprocessing_metadata`), conventions, versions, source hash."""
     source = None
     if checkpoint is not None:
         source = {"path": str(Path(checkpoint).resolve()), "sha256": sha256_file(checkpoint)}
@@ -95,6 +110,7 @@ def network_metadata(model: FastFlow3D, model_config: dict | None = None, checkp
         "network": "FastFlow3D (single sample)",
         "grid": grid_metadata(model),
         "model": model_config,
+        "preprocessing": preprocessing or preprocessing_metadata({}),
         "inputs": [{"name": INPUT_NAMES[0], "shape": ["N0", 3], "dtype": "float32"},
                    {"name": INPUT_NAMES[1], "shape": ["N1", 3], "dtype": "float32"}],
         "outputs": [{"name": OUTPUT_NAMES[0], "shape": ["N0", 3], "dtype": "float32"},
@@ -187,7 +203,7 @@ def measure_parity(net: SingleSampleNet, runner) -> float:
 
 
 def export_model(model: FastFlow3D, out_dir: str | os.PathLike, formats=FORMATS, *, model_config: dict | None = None,
-                 checkpoint=None, tolerance: float = PARITY_TOLERANCE) -> dict:
+                 checkpoint=None, preprocessing: dict | None = None, tolerance: float = PARITY_TOLERANCE) -> dict:
     """Export ``model`` (eval mode is set) in ``formats`` to ``out_dir``; returns the metadata written.
 
     Each export is loaded back and compared with eager on random clouds of several sizes; an export off by more
@@ -201,7 +217,7 @@ def export_model(model: FastFlow3D, out_dir: str | os.PathLike, formats=FORMATS,
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / METADATA_NAME).unlink(missing_ok=True)  # a directory without metadata is not a (complete) export
     net = SingleSampleNet(model.eval()).eval()
-    metadata = network_metadata(model, model_config, checkpoint)
+    metadata = network_metadata(model, model_config, checkpoint, preprocessing)
     metadata["files"], metadata["parity_max_abs_m"] = {}, {}
     from fastflow3d.predictor import OnnxRuntimeNetwork, load_network  # imports this module
 
@@ -246,7 +262,8 @@ def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike 
         raise ExportError(f"{checkpoint}: checkpoint not found")
     model, cfg = load_student(checkpoint, map_location="cpu")
     out_dir = checkpoint.parent / "export" if out_dir is None else Path(out_dir)
-    export_model(model, out_dir, formats, model_config=dict(cfg.get("model") or {}), checkpoint=checkpoint)
+    export_model(model, out_dir, formats, model_config=dict(cfg.get("model") or {}), checkpoint=checkpoint,
+                 preprocessing=preprocessing_metadata(cfg))
     return out_dir
 
 

@@ -8,9 +8,12 @@ MODEL: an export directory, ``.onnx``, ``.pt`` or ``.ckpt`` (``fastflow3d.predic
 the first three columns are x, y, z in metres in the sensor's own frame. Ego motion: ``--poses`` (two
 world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a (2, 4, 4) ``.npy``),
 ``--ego`` (one (4, 4) ``ego1_from_ego0``: 12 or 16 values, or a ``.npy``), or neither (estimated by KISS-ICP).
-Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow`` is in
-scan1's frame), ``residual`` (ego-compensated), ``in_grid``, ``ego1_from_ego0``, ``ego_estimated``; a ``.npy``
-output holds the flow alone. Errors are one line on stderr, exit status 2.
+A model trained with ground removal gets the non-ground points of each scan, found with the teacher's ground
+segmentation and the settings saved with the model (``fastflow3d.predictor``); ground points of scan0 move with the
+ego motion. Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow``
+is in scan1's frame), ``residual`` (ego-compensated), ``in_grid`` (the network predicted the point), ``ground0``
+(left out as ground), ``ego1_from_ego0``, ``ego_estimated``; a ``.npy`` output holds the flow alone. Errors are one
+line on stderr, exit status 2.
 """
 
 from __future__ import annotations
@@ -72,7 +75,7 @@ def read_transforms(path: Path, count: int) -> np.ndarray:
 
 
 def write_flow(path: Path, prediction) -> None:
-    """``.npy``: the full flow; ``.npz``: flow, residual, in_grid, ego1_from_ego0, ego_estimated. Atomic."""
+    """``.npy``: the full flow; ``.npz``: flow, residual, in_grid, ground0, ego1_from_ego0, ego_estimated. Atomic."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
@@ -81,7 +84,8 @@ def write_flow(path: Path, prediction) -> None:
                 np.save(handle, prediction.flow)
             else:
                 np.savez(handle, flow=prediction.flow, residual=prediction.residual, in_grid=prediction.in_grid,
-                         ego1_from_ego0=prediction.ego1_from_ego0, ego_estimated=np.bool_(prediction.ego_estimated))
+                         ground0=prediction.ground0, ego1_from_ego0=prediction.ego1_from_ego0,
+                         ego_estimated=np.bool_(prediction.ego_estimated))
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -126,7 +130,8 @@ def infer(args) -> tuple[Path, Path | None]:
     bev = None
     if not args.no_bev:
         bev = args.bev or out.with_suffix(".png")
-        pair = FramePair(pc0=pc0, pc1=pc1, ego1_from_ego0=prediction.ego1_from_ego0, source=str(args.scan0))
+        pair = FramePair(pc0=pc0, pc1=pc1, ego1_from_ego0=prediction.ego1_from_ego0,
+                         ground0=prediction.ground0 if predictor.remove_ground else None, source=str(args.scan0))
         source = "estimated" if prediction.ego_estimated else "given"
         plot_bev(pair, bev, predicted=prediction.flow, extent=args.extent,
                  title=f"{args.scan0.name} -> {args.scan1.name}: FastFlow3D ({predictor.backend}), ego motion {source}")

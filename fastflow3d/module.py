@@ -4,12 +4,17 @@ metrics.
 Config keys read (``conf/train.yaml``): ``model`` (FastFlow3D, see ``fastflow3d.checkpoint``), ``loss`` (``name``:
 ``distillation`` on the teacher's pseudo-labels with optional ``speed_weight`` / ``confidence_weight``, or
 ``supervised`` on ground truth with ``background_weight``), ``optim`` (Adam ``lr``, ``weight_decay``; MultiStepLR
-``milestones`` in epochs and ``gamma``), ``metrics`` (``crop``, ``bev_every``) and ``out_dir``.
+``milestones`` in epochs and ``gamma``), ``metrics`` (``crop``, ``bev_every``), ``data.remove_ground`` and ``out_dir``.
 
-Validation scores the full flow (network residual + ego flow; pc0 points outside the grid get the ego flow) with
-``icpflow.metrics.pair_stats``: against the shards' ground truth when they carry it, else against the pseudo-labels
-with "foreground" = points the teacher clustered (``val/against_gt`` is 1 or 0, and the TensorBoard text
-``val/against`` says ``gt`` or ``pseudo``). Logged: ``train/loss``, ``val/loss``, ``val/<category>/<column>``
+With ``data.remove_ground`` (ZeroFlow's setting) the network sees only the non-ground points of pc0 and pc1 (the
+shards' ``ground0`` / ``ground1``); ground pc0 points get residual 0 (full flow = ego flow) and are left out of the
+loss, which covers the non-ground pc0 points inside the grid.
+
+Validation scores the full flow of every pc0 point (network residual + ego flow; pc0 points outside the grid or, with
+ground removal, on the ground get the ego flow) with ``icpflow.metrics.frame_pair_stats`` (ground excluded there):
+against the shards' ground truth when they carry it, else against the pseudo-labels with "foreground" = points the
+teacher clustered (``val/against_gt`` is 1 or 0, and the TensorBoard text ``val/against`` says ``gt`` or
+``pseudo``). Logged: ``train/loss``, ``val/loss``, ``val/<category>/<column>``
 (point-weighted, categories dynamic_fg, static_fg, static_bg, overall; columns EPE, AccS, AccR, Outliers) and a BEV
 image every ``bev_every`` validations (also written to ``<out_dir>/bev/``).
 """
@@ -47,12 +52,20 @@ class StudentModule(L.LightningModule):
         self.against = None
 
     def forward(self, batch: dict):
-        """(residual (P0, 3), valid (P0,)) of a collated batch."""
-        return self.model(batch["pc0_compensated"], batch["batch0"], batch["pc1"], batch["batch1"],
-                          batch["batch_size"])
+        """(residual (P0, 3), valid (P0,)) of a collated batch; valid = the network predicted the point (inside the
+        grid and, with ``data.remove_ground``, not ground); residual is 0 elsewhere."""
+        if not self.cfg["data"]["remove_ground"]:
+            return self.model(batch["pc0_compensated"], batch["batch0"], batch["pc1"], batch["batch1"],
+                              batch["batch_size"])
+        keep0, keep1 = ~batch["ground0"], ~batch["ground1"]
+        kept, kept_valid = self.model(batch["pc0_compensated"][keep0], batch["batch0"][keep0], batch["pc1"][keep1],
+                                      batch["batch1"][keep1], batch["batch_size"])
+        residual = kept.new_zeros(len(keep0), 3).index_put((keep0,), kept)
+        valid = torch.zeros_like(keep0).index_put((keep0,), kept_valid)
+        return residual, valid
 
     def loss(self, pred: torch.Tensor, valid: torch.Tensor, batch: dict) -> torch.Tensor:
-        """The configured loss of residual predictions (P0, 3) on in-grid points."""
+        """The configured loss of residual predictions (P0, 3) on the points the network predicted (``valid``)."""
         options, size = self.cfg["loss"], batch["batch_size"]
         if options["name"] == "supervised":
             if "gt" not in batch:

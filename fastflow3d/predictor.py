@@ -7,6 +7,13 @@ runs the network, which gives the residual (ego-compensated) flow, and adds the 
 FULL flow in the project convention (``pc0 + flow`` is the position at t + dt in the ego frame of t + dt). Points
 outside the network's grid get the ego flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the
 two scans with the teacher's step (KISS-ICP, then point-to-plane refinement; ``icpflow.teacher.ego_motion``).
+
+A model trained with ground removal (``preprocessing.remove_ground`` in its metadata, ``data.remove_ground`` in its
+checkpoint's config) sees only the non-ground points of each scan: the masks passed in (``ground0``, ``ground1``) or,
+without them, those of ``icpflow.teacher.ground.GroundSegmenter`` on the raw scans with the teacher settings saved
+with the model; ground pc0 points get the ego flow. The teacher settings saved with the model (or ``ICPFlowConfig()``
+for a model without them) also drive the ego-motion estimate. A bare ``.onnx`` / ``.pt`` without its
+``metadata.json`` carries none of this: it is run on every point.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from fastflow3d.export import (
     OUTPUT_NAMES,
     SingleSampleNet,
     network_metadata,
+    preprocessing_metadata,
     sha256_file,
 )
 from fastflow3d.model import compensate
@@ -41,12 +49,15 @@ class PredictorError(ValueError):
 
 @dataclass(frozen=True)
 class Prediction:
-    """One pair's result. ``flow`` (N0, 3) float32 FULL flow; ``residual`` (N0, 3) float32 ego-compensated flow
-    (0 outside the grid); ``in_grid`` (N0,) bool; ``ego1_from_ego0`` (4, 4) float64 used (given or estimated)."""
+    """One pair's result. ``flow`` (N0, 3) float32 FULL flow; ``residual`` (N0, 3) float32 ego-compensated flow (0
+    where the network did not predict); ``in_grid`` (N0,) bool: the network predicted the point (inside the grid and
+    not left out as ground); ``ground0`` (N0,) bool: left out as ground (all False for a model that sees ground);
+    ``ego1_from_ego0`` (4, 4) float64 used (given or estimated)."""
 
     flow: np.ndarray
     residual: np.ndarray
     in_grid: np.ndarray
+    ground0: np.ndarray
     ego1_from_ego0: np.ndarray
     ego_estimated: bool
 
@@ -130,15 +141,22 @@ class Predictor:
     """A FastFlow3D network behind the project's conventions (see the module docstring)."""
 
     def __init__(self, network, metadata: dict, backend: str, ego_config=None):
-        """``network(pc0_compensated, pc1) -> (residual, valid)`` on float32 numpy arrays; ``ego_config`` holds
-        the ego-motion settings (``kiss_voxel_size``, ``kiss_max_range``, ``ego_refine_voxel``; default: the
-        teacher's ``ICPFlowConfig()``)."""
-        self.network, self.metadata, self.backend = network, metadata, backend
-        if ego_config is None:
-            from icpflow.teacher.config import ICPFlowConfig
+        """``network(pc0_compensated, pc1) -> (residual, valid)`` on float32 numpy arrays; ``metadata`` as an export
+        writes it (its ``preprocessing`` says whether to remove ground and with which teacher settings);
+        ``ego_config`` an ICPFlowConfig for the ego motion (``kiss_voxel_size``, ``kiss_max_range``,
+        ``ego_refine_voxel``; default: the teacher settings saved with the model)."""
+        from icpflow.teacher.config import ICPFlowConfig
 
-            ego_config = ICPFlowConfig()
-        self.ego_config = ego_config
+        self.network, self.metadata, self.backend = network, metadata, backend
+        preprocessing = metadata.get("preprocessing") or {}
+        self.remove_ground = bool(preprocessing.get("remove_ground", False))
+        try:
+            self.teacher = ICPFlowConfig(**(preprocessing.get("teacher") or {}))
+        except (TypeError, ValueError) as error:
+            raise PredictorError(f"model metadata: preprocessing.teacher is not a set of ICPFlowConfig fields "
+                                 f"({' '.join(str(error).split())})") from None
+        self.ego_config = self.teacher if ego_config is None else ego_config
+        self._segmenter = None
 
     @classmethod
     def load(cls, path: str | os.PathLike, backend: str | None = None, device: str = "cpu",
@@ -175,25 +193,47 @@ class Predictor:
             from fastflow3d.checkpoint import load_student
 
             model, cfg = load_student(path, map_location=device)
-            metadata = network_metadata(model, dict(cfg.get("model") or {}), path)
+            metadata = network_metadata(model, dict(cfg.get("model") or {}), path, preprocessing_metadata(cfg))
             return cls(TorchNetwork(SingleSampleNet(model).eval(), device), metadata, "eager", ego_config)
         return cls(load_network(path, kind, device), sibling_metadata(path, kind), kind, ego_config)
 
-    def __call__(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None) -> np.ndarray:
-        """(N0, 3) float32 FULL flow of pc0 (N0, 3) towards pc1 (N1, 3); the ego motion is estimated if None."""
-        return self.predict(pc0, pc1, ego1_from_ego0).flow
+    def __call__(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> np.ndarray:
+        """(N0, 3) float32 FULL flow of pc0 (N0, 3) towards pc1 (N1, 3), each in its own ego frame; the ego motion
+        is estimated if None; ground masks (N0,) / (N1,) bool are computed if None and the model removes ground."""
+        return self.predict(pc0, pc1, ego1_from_ego0, ground0, ground1).flow
 
-    def predict(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None) -> Prediction:
-        """Full flow with the residual, grid mask and ego motion behind it (see :class:`Prediction`)."""
+    def predict(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> Prediction:
+        """Full flow with the residual, masks and ego motion behind it (see :class:`Prediction`)."""
         pc0, pc1 = as_points("pc0", pc0), as_points("pc1", pc1)
         estimated = ego1_from_ego0 is None
         ego = self.estimate_ego_motion(pc0, pc1) if estimated else np.asarray(ego1_from_ego0, dtype=np.float64)
         problem = rigid_problem(ego)
         if problem:
             raise PredictorError(f"{'estimated ' if estimated else ''}ego1_from_ego0 {problem}")
-        residual, valid = self.network(compensate(pc0, ego), pc1)
-        residual = np.where(valid[:, None], residual, 0.0).astype(np.float32)
-        return Prediction(residual_to_full(residual, pc0, ego), residual, valid.astype(bool), ego, estimated)
+        ground0, ground1 = self.ground_mask("ground0", pc0, ground0), self.ground_mask("ground1", pc1, ground1)
+        residual, in_grid = np.zeros((len(pc0), 3), np.float32), np.zeros(len(pc0), bool)
+        keep0, keep1 = ~ground0, ~ground1
+        if keep0.any() and keep1.any():  # the network needs points in both scans
+            kept, valid = self.network(compensate(pc0[keep0], ego), pc1[keep1])
+            in_grid[keep0] = valid
+            residual[keep0] = np.where(valid[:, None], kept, 0.0)
+        return Prediction(residual_to_full(residual, pc0, ego), residual, in_grid, ground0, ego, estimated)
+
+    def ground_mask(self, name: str, points: np.ndarray, given) -> np.ndarray:
+        """(N,) bool mask of the points the network leaves out: none unless the model removes ground; then the
+        given mask, or the teacher's ground segmentation of the raw (N, 3) scan."""
+        if not self.remove_ground:
+            return np.zeros(len(points), bool)
+        if given is None:
+            if self._segmenter is None:
+                from icpflow.teacher.ground import GroundSegmenter
+
+                self._segmenter = GroundSegmenter(self.teacher)
+            return self._segmenter(points)
+        mask = np.asarray(given)
+        if mask.dtype != bool or mask.shape != (len(points),):
+            raise PredictorError(f"{name} must be a bool ({len(points)},) mask, got {mask.dtype} {mask.shape}")
+        return mask
 
     def estimate_ego_motion(self, pc0: np.ndarray, pc1: np.ndarray) -> np.ndarray:
         """(4, 4) float64 ``ego1_from_ego0`` from the two scans (KISS-ICP + refinement, the teacher's step 1)."""

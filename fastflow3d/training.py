@@ -1,24 +1,31 @@
-"""``train.py``: from the Hydra config (``conf/train.yaml``) to a Lightning fit of the student on pseudo-flow shards.
+"""``train.py``: from the Hydra config (``conf/train.yaml``) to a Lightning fit of the student on pseudo-flow shards,
+ending with the export of the best checkpoint.
 
 Everything a run writes lands under ``out_dir``: ``checkpoints/`` (best on validation dynamic EPE and
-``last.ckpt``), ``tensorboard/``, ``bev/`` and ``hydra/``. ``ckpt_path=last`` resumes from
+``last.ckpt``), ``tensorboard/``, ``bev/``, ``export/`` and ``hydra/``. ``ckpt_path=last`` resumes from
 ``<checkpoint_dir>/last.ckpt`` (optimiser, schedule and step count included); any other value is a checkpoint file.
+The saved config's ``data.teacher`` holds the teacher's ground and ego-motion settings (``TEACHER_FIELDS`` of
+``fastflow3d.data``) that the Predictor uses on raw scans.
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from fastflow3d.data import DataError, ShardDataModule, StudentDataset
+from fastflow3d.data import TEACHER_FIELDS, DataError, ShardDataModule, StudentDataset, labeller_teacher
+from fastflow3d.export import FORMATS, export_checkpoint
 from fastflow3d.module import StudentModule
+
+log = logging.getLogger(__name__)
 
 
 class TrainError(RuntimeError):
-    """A training run cannot start. The message is one line."""
+    """A training run cannot start, or its final export failed. The message is one line."""
 
 
 def check_data(cfg: DictConfig) -> None:
@@ -34,6 +41,34 @@ def check_data(cfg: DictConfig) -> None:
             raise TrainError(f"loss.name=supervised needs ground truth, but data.train={path} has none")
 
 
+def inference_teacher(cfg: DictConfig) -> dict:
+    """The teacher settings saved with the model (``TEACHER_FIELDS`` -> value): ``data.teacher`` (an optional
+    ``preset``, then fields) or, when it is null, the settings of the teacher that labelled ``data.train``."""
+    from icpflow.teacher.config import ICPFlowConfig
+
+    given = cfg.data.get("teacher")
+    if given is None:
+        source, values = f"data.train={cfg.data.train}", labeller_teacher(cfg.data.train)
+        if values is None:
+            raise TrainError(f"data.teacher is null and the shards of data.train={cfg.data.train} carry no teacher "
+                             "config; set it, e.g. data.teacher={preset:waymo}")
+        values = {key: values[key] for key in TEACHER_FIELDS if key in values}
+    elif not OmegaConf.is_dict(given):
+        raise TrainError(f"data.teacher must be null or a dict of preset and ICPFlowConfig fields, got {given!r}")
+    else:
+        source, values = "data.teacher", OmegaConf.to_container(given, resolve=True)
+        unknown = sorted(set(values) - {"preset", *TEACHER_FIELDS})
+        if unknown:
+            raise TrainError(f"data.teacher: {', '.join(unknown)} not used at inference; give preset and/or "
+                             f"{', '.join(TEACHER_FIELDS)}")
+    preset = values.pop("preset", None)
+    try:
+        teacher = ICPFlowConfig.preset(preset, **values) if preset else ICPFlowConfig(**values)
+    except ValueError as error:
+        raise TrainError(f"{source}: {error}") from None
+    return {key: getattr(teacher, key) for key in TEACHER_FIELDS}
+
+
 def resolve_ckpt_path(cfg: DictConfig) -> str | None:
     """The checkpoint to resume from: None, ``<checkpoint_dir>/last.ckpt`` for ``last``, or the given file."""
     value = cfg.get("ckpt_path")
@@ -46,6 +81,16 @@ def resolve_ckpt_path(cfg: DictConfig) -> str | None:
     return str(path)
 
 
+def export_formats(cfg: DictConfig) -> tuple[str, ...]:
+    """``export.formats`` checked before training (an unknown name would otherwise fail only at the end)."""
+    formats = tuple(cfg.export.formats or ())
+    unknown = [name for name in formats if name not in FORMATS]
+    if unknown:
+        raise TrainError(f"export.formats: unknown {', '.join(map(str, unknown))}; use a list of "
+                         f"{', '.join(FORMATS)}, or [] for no export")
+    return formats
+
+
 def build_trainer(cfg: DictConfig) -> L.Trainer:
     """The Lightning Trainer of ``cfg.trainer`` (Trainer keyword arguments) with the configured logger and callbacks."""
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
@@ -54,16 +99,41 @@ def build_trainer(cfg: DictConfig) -> L.Trainer:
     return L.Trainer(**trainer_kwargs, logger=logger, callbacks=callbacks, default_root_dir=cfg.out_dir)
 
 
+def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -> Path | None:
+    """Export the best checkpoint (``last.ckpt`` when there is none, with a warning) to ``export.dir``; returns the
+    directory, or None when there is nothing to do (no formats, fast_dev_run, interrupted run, not rank 0)."""
+    if not formats or trainer.fast_dev_run or trainer.interrupted or not trainer.is_global_zero:
+        return None
+    best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
+    source = Path(best) if best and Path(best).is_file() else Path(cfg.checkpoint_dir) / "last.ckpt"
+    if not source.is_file():
+        raise TrainError(f"training ended with no checkpoint to export in {cfg.checkpoint_dir}")
+    if source.name == "last.ckpt":
+        log.warning("no best checkpoint (no validation ran?): exporting %s instead", source)
+    try:
+        out_dir = export_checkpoint(source, cfg.export.dir, formats)
+    except (ValueError, RuntimeError, OSError) as error:
+        raise TrainError(f"training finished but exporting {source} failed: {' '.join(str(error).split())} "
+                         f"(retry with `python export.py checkpoint={source}`)") from None
+    log.info("exported %s (%s) to %s", source.name, ", ".join(formats), out_dir)
+    return out_dir
+
+
 def fit(cfg: DictConfig) -> L.Trainer:
-    """Train the student as ``cfg`` says; returns the Trainer after ``fit`` (raises TrainError if it cannot start)."""
+    """Train the student as ``cfg`` says, then export its best checkpoint; returns the Trainer after ``fit``
+    (raises TrainError if it cannot start or the export fails)."""
     check_data(cfg)
     ckpt_path = resolve_ckpt_path(cfg)
+    formats = export_formats(cfg)
     plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    plain["data"]["teacher"] = inference_teacher(cfg)
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     module = StudentModule(plain)
     if cfg.compile:
         module.model.compile(dynamic=True)
-    datamodule = ShardDataModule(**plain["data"])
+    data = plain["data"]
+    datamodule = ShardDataModule(data["train"], data["val"], data["batch_size"], data["workers"])
     trainer = build_trainer(cfg)
     trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
+    export_best(trainer, cfg, formats)
     return trainer

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from fastflow3d.checkpoint import load_student
+from fastflow3d.data import TEACHER_FIELDS
 from fastflow3d.export import FILE_NAMES, METADATA_NAME, SingleSampleNet, export_checkpoint, run_export, sha256_file
 from fastflow3d.infer import main as infer_main
 from fastflow3d.loss import distillation_loss
@@ -23,6 +24,7 @@ from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, residual_to_full
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.ego_motion import estimate_ego_motion
+from icpflow.teacher.ground import GroundSegmenter
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
@@ -127,6 +129,8 @@ def test_metadata_describes_the_export(export_dir, checkpoint):
     assert [entry["name"] for entry in metadata["inputs"]] == ["pc0_compensated", "pc1"]
     assert [entry["name"] for entry in metadata["outputs"]] == ["residual", "valid"]
     assert "ego1_from_ego0 * pc0 - pc0" in metadata["flow_convention"]
+    # a checkpoint whose config has no data block (trained on every point, default teacher settings)
+    assert metadata["preprocessing"]["remove_ground"] is False and metadata["preprocessing"]["teacher"] is None
     for name in ("onnx", "torchscript"):
         entry = metadata["files"][name]
         assert entry["path"] == FILE_NAMES[name] and entry["sha256"] == sha256_file(export_dir / entry["path"])
@@ -173,6 +177,60 @@ def test_predictor_estimates_ego_motion_without_transform(export_dir, pairs, tea
     given = predictor.predict(pair.pc0, pair.pc1, teacher_ego)
     assert not given.ego_estimated
     np.testing.assert_allclose(estimated.flow, given.flow, atol=1e-6, rtol=0)
+
+
+@pytest.fixture(scope="module")
+def ground_checkpoint(checkpoint):
+    """The same trained weights in a checkpoint whose config says the network saw non-ground points only, with the
+    teacher settings of the synthetic dataset (a 1.9 m high sensor over a z = 0 ground)."""
+    teacher = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
+    saved = torch.load(checkpoint, weights_only=True)
+    saved["hyper_parameters"]["cfg"]["data"] = {"remove_ground": True,
+                                                "teacher": {key: getattr(teacher, key) for key in TEACHER_FIELDS}}
+    path = checkpoint.parent / "ground" / "best.ckpt"
+    path.parent.mkdir()
+    torch.save(saved, path)
+    return path, teacher
+
+
+def test_ground_removal_model_sees_non_ground_points_only(ground_checkpoint, eager, pairs, tmp_path):
+    path, teacher = ground_checkpoint
+    export_dir = export_checkpoint(path, formats=("torchscript",))
+    preprocessing = json.loads((export_dir / METADATA_NAME).read_text())["preprocessing"]
+    assert preprocessing["remove_ground"] is True and preprocessing["teacher"]["sensor_height"] == 1.9
+    pair = pairs[0]
+    ground0, ground1 = GroundSegmenter(teacher)(pair.pc0), GroundSegmenter(teacher)(pair.pc1)
+    assert 0.2 < ground0.mean() < 0.9 and 0.2 < ground1.mean() < 0.9
+
+    def expected_flow(g0, g1):
+        with torch.no_grad():
+            kept, valid = eager(torch.from_numpy(compensate(pair.pc0[~g0], pair.ego1_from_ego0)),
+                                torch.from_numpy(pair.pc1[~g1]))
+        residual = np.zeros_like(pair.pc0)
+        residual[~g0] = kept.numpy()
+        return residual_to_full(residual, pair.pc0, pair.ego1_from_ego0), valid.numpy()
+
+    flow, valid = expected_flow(ground0, ground1)
+    ego = ego_flow(pair.pc0, pair.ego1_from_ego0)
+    for predictor in (Predictor.load(path), Predictor.load(export_dir)):
+        assert predictor.remove_ground and predictor.teacher == ICPFlowConfig(**preprocessing["teacher"])
+        prediction = predictor.predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)  # masks computed as the teacher does
+        assert np.array_equal(prediction.ground0, ground0) and np.array_equal(prediction.in_grid[~ground0], valid)
+        assert not prediction.in_grid[ground0].any()
+        np.testing.assert_allclose(prediction.flow[ground0], ego[ground0], atol=1e-6, rtol=0)
+        assert np.abs(prediction.flow - flow).max() <= TOLERANCE
+    # masks passed in are used as given (here the synthetic world's exact ground)
+    given = predictor.predict(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1)
+    assert np.array_equal(given.ground0, pair.ground0) and not np.array_equal(pair.ground0, ground0)
+    assert np.abs(given.flow - expected_flow(pair.ground0, pair.ground1)[0]).max() <= TOLERANCE
+    with pytest.raises(PredictorError, match=r"ground1 must be a bool \(\d+,\) mask"):
+        predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1[1:])
+    # the CLI on raw files: masks computed, written with the flow
+    scan0, scan1 = write_scan(tmp_path / "a.npy", pair.pc0), write_scan(tmp_path / "b.npy", pair.pc1)
+    poses, out = write_poses(tmp_path / "poses.txt", [pair.pose0, pair.pose1]), tmp_path / "flow.npz"
+    assert infer_main([str(export_dir), str(scan0), str(scan1), "--poses", str(poses), "--out", str(out)]) == 0
+    with np.load(out) as result:
+        assert np.array_equal(result["ground0"], ground0) and np.abs(result["flow"] - flow).max() <= TOLERANCE
 
 
 def test_predictor_rejects_bad_inputs(export_dir, tmp_path):

@@ -1,6 +1,9 @@
-"""Training stage: configs compose, flat batches, fast_dev_run, overfitting one pair, resume, checkpoint contract."""
+"""Training stage: configs compose, flat batches, ground removal, fast_dev_run, a final validation, the export at
+the end, TensorBoard logs, overfitting one pair, resume, checkpoint contract."""
 
 import inspect
+import json
+import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -14,13 +17,16 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from fastflow3d.checkpoint import CheckpointError, build_student, load_student
-from fastflow3d.data import DataError, StudentDataset, collate
+from fastflow3d.data import TEACHER_FIELDS, DataError, StudentDataset, collate
+from fastflow3d.export import FILE_NAMES, METADATA_NAME
 from fastflow3d.model import FastFlow3D
 from fastflow3d.module import StudentModule
 from fastflow3d.training import TrainError, fit
+from fastflow3d.voxelize import Grid
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, transform_points
 from icpflow.shards.writer import write_index, write_shard
+from icpflow.teacher.config import ICPFlowConfig
 
 REPO = Path(__file__).resolve().parents[1]
 CONF = REPO / "conf"
@@ -28,7 +34,19 @@ GROUPS = ("data", "model", "trainer", "logger", "callbacks", "experiment")
 # 32 x 32 pillars of 1 m and narrow encoders: a training step takes milliseconds
 TINY = ["model.x_range=[-16.0,16.0]", "model.y_range=[-16.0,16.0]", "model.cell=1.0", "model.pillar_channels=16",
         "model.stage_channels=[16,32,64]", "data.workers=0", "trainer.log_every_n_steps=1",
-        "+trainer.enable_progress_bar=false", "+trainer.enable_model_summary=false"]
+        "+trainer.enable_progress_bar=false", "+trainer.enable_model_summary=false", "export.formats=[]"]
+XL_PARAMETERS = 110_618_147  # FastFlow3D XL (conf/model/fastflow3d_xl.yaml), any grid
+# the teacher that "labelled" the test shards (the synthetic dataset's: conf/dataset/synthetic.yaml)
+TEACHER = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """One torch thread for these small networks: much faster on a busy shared 2-core machine (no oversubscription)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 def _compose(*overrides):
@@ -67,8 +85,37 @@ def test_model_configs_build_the_issue_networks():
     assert sum(p.numel() for p in default.parameters()) == 6_815_619
     xl = _compose("model=fastflow3d_xl").model
     assert xl.cell == 0.1 and xl.pillar_channels == 64 and len(xl.stage_channels) == 4
+    assert Grid(tuple(xl.x_range), tuple(xl.y_range), tuple(xl.z_range), xl.cell).nx == 1024
     with pytest.raises(ValueError, match="_target_"):
         build_student({"_target_": "os.system", "cell": 1.0})
+
+
+def test_xl_config_is_zeroflows_and_runs_forward_and_backward():
+    """conf/model/fastflow3d_xl.yaml is ZeroFlow's FastFlow3D XL (kylevedder/zeroflow: FastFlowUNetXL and its AV2
+    configs): 0.1 m pillars over +-51.2 m (1024 x 1024), 64 pillar channels, encoders of 128 / 256 / 512 / 1024
+    channels with 3 / 5 / 5 / 5 extra convs, decoders (2048, 1024, 1024) ... (256, 128, 128), a 128-channel output and
+    a head on 4 * 64 + 3 features. The network is built on a +-3.2 m crop (64 x 64; the weights do not depend on
+    the grid) and runs one batch of two samples forward and backward."""
+    xl = OmegaConf.to_container(_compose("model=fastflow3d_xl").model)
+    assert xl["x_range"] == xl["y_range"] == [-51.2, 51.2] and xl["z_range"] == [-3.0, 3.0] and xl["cell"] == 0.1
+    model = build_student({**xl, "x_range": [-3.2, 3.2], "y_range": [-3.2, 3.2]})
+    assert model.embedder.linear.out_features == 64
+    assert [[block[0].out_channels for block in stage] for stage in model.unet.encoder] == [
+        [128] * 4, [256] * 6, [512] * 6, [1024] * 6]
+    assert [(step.low.in_channels, step.low.out_channels, step.fuse[1].out_channels)
+            for step in model.unet.decoder] == [(2048, 1024, 1024), (1024, 512, 512), (512, 256, 256), (256, 128, 128)]
+    assert model.unet.final.out_channels == 128 and model.head[0].in_features == 259
+    assert sum(p.numel() for p in model.parameters()) == XL_PARAMETERS
+    gen = torch.Generator().manual_seed(0)
+    pc0, pc1 = (torch.rand(3000, 3, generator=gen) * torch.tensor([8.0, 8.0, 4.0]) - torch.tensor([4.0, 4.0, 2.0])
+                for _ in range(2))
+    batch = (torch.arange(3000) >= 1500).long()
+    residual, valid = model(pc0, batch, pc1, batch, 2)
+    assert residual.shape == (3000, 3) and 0 < valid.sum() < 3000 and torch.all(residual[~valid] == 0)
+    residual.square().sum().backward()
+    grads = [p.grad for p in model.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert model.unet.encoder[3][-1][0].weight.grad.abs().sum() > 0  # the deepest (1024-channel) stage learns
 
 
 def test_experiment_recipes():
@@ -86,8 +133,10 @@ def test_experiment_recipes():
 
 # ---------------------------------------------------------------------------------------------------- tiny shards
 
-def _write_shards(out_dir: Path, pairs, with_gt: bool = True, noise: float = 0.0) -> Path:
-    """Shards in the label.py layout whose pseudo-labels are the ground truth (plus Gaussian ``noise`` in m)."""
+def _write_shards(out_dir: Path, pairs, with_gt: bool = True, noise: float = 0.0,
+                  config: str = OmegaConf.to_yaml({"split": "train", "teacher": TEACHER.to_dict()})) -> Path:
+    """Shards in the label.py layout whose pseudo-labels are the ground truth (plus Gaussian ``noise`` in m), with
+    a labeller ``config`` attribute as label.py writes it."""
     rng = np.random.default_rng(0)
     samples, records = [], []
     for index, pair in enumerate(pairs):
@@ -107,7 +156,7 @@ def _write_shards(out_dir: Path, pairs, with_gt: bool = True, noise: float = 0.0
         samples.append(sample)
         records.append({"sample_id": pair.sample_id, "index": index, "n0": len(pair.pc0), "n1": len(pair.pc1)})
     out_dir.mkdir(parents=True)
-    write_shard(out_dir / "shard_000000.h5", samples, "test: true\n", "test")
+    write_shard(out_dir / "shard_000000.h5", samples, config, "test")
     write_index(out_dir / "index.json", {"config_hash": "test", "shards": [{"file": "shard_000000.h5",
                                                                           "samples": records}]})
     return out_dir
@@ -176,6 +225,48 @@ def test_loss_choice_per_sample_dt_and_confidence():
         loss(name="chamfer")
 
 
+def test_ground_removal_network_sees_non_ground_points_only(shards):
+    cfg = OmegaConf.to_container(_compose(*TINY), resolve=True)
+    assert cfg["data"]["remove_ground"]  # the default, as ZeroFlow
+    dataset = StudentDataset(shards["gt"])
+    batch = collate([dataset[0], dataset[1]])
+    ground0, ground1 = batch["ground0"], batch["ground1"]
+    assert 0 < ground0.sum() < len(ground0) and 0 < ground1.sum() < len(ground1)
+    torch.manual_seed(0)
+    module = StudentModule(cfg).eval()
+    with torch.no_grad():
+        residual, valid = module(batch)
+        kept, kept_valid = module.model(batch["pc0_compensated"][~ground0], batch["batch0"][~ground0],
+                                        batch["pc1"][~ground1], batch["batch1"][~ground1], 2)
+    assert torch.equal(residual[~ground0], kept) and torch.equal(valid[~ground0], kept_valid) and kept_valid.any()
+    assert not valid[ground0].any() and torch.all(residual[ground0] == 0)  # ground: full flow = ego flow
+    # the loss ignores ground points: pseudo-labels on the ground do not change it
+    moved = {**batch, "pseudo": torch.where(ground0[:, None], batch["pseudo"] + 5.0, batch["pseudo"])}
+    assert module.loss(residual, valid, moved) == module.loss(residual, valid, batch)
+
+    every = StudentModule({**cfg, "data": {**cfg["data"], "remove_ground": False}}).eval()
+    every.model.load_state_dict(module.model.state_dict())
+    with torch.no_grad():
+        full, full_valid = every(batch)
+    assert full_valid[ground0].any() and not torch.equal(full[~ground0], kept)  # the ground changes the pillars
+
+
+def test_teacher_settings_saved_with_the_model(shards, pairs, tmp_path):
+    from fastflow3d.training import inference_teacher
+
+    expected = {key: getattr(TEACHER, key) for key in TEACHER_FIELDS}
+    assert inference_teacher(_cfg(tmp_path, shards["gt"], shards["gt"])) == expected  # from the shards' config
+    bare = _write_shards(tmp_path / "bare", pairs[:1], config="test: true\n")
+    given = inference_teacher(_cfg(tmp_path, bare, bare, "data.teacher={preset:av2,sensor_height:1.5}"))
+    assert given == {**{key: getattr(ICPFlowConfig.preset("av2"), key) for key in TEACHER_FIELDS}, "sensor_height": 1.5}
+    with pytest.raises(TrainError, match=r"data.train=.*bare carry no teacher config; set it"):
+        fit(_cfg(tmp_path, bare, bare))
+    with pytest.raises(TrainError, match="data.teacher: min_cluster_size not used at inference"):
+        inference_teacher(_cfg(tmp_path, bare, bare, "data.teacher={min_cluster_size:3}"))
+    with pytest.raises(TrainError, match="data.teacher: ICPFlowConfig: .*ground"):
+        inference_teacher(_cfg(tmp_path, bare, bare, "data.teacher={ground:sometimes}"))
+
+
 def test_missing_or_empty_shard_dir_is_one_line(tmp_path):
     with pytest.raises(DataError, match="does not exist"):
         StudentDataset(tmp_path / "nowhere")
@@ -207,10 +298,77 @@ def test_fast_dev_run_against_gt_and_pseudo(shards, tmp_path):
     assert metrics["val/against_gt"] == 1.0 and np.isfinite(metrics["val/dynamic_fg/EPE"].item())
     assert {"val/static_fg/EPE", "val/static_bg/EPE", "val/dynamic_fg/AccS", "val/dynamic_fg/AccR"} <= set(metrics)
     trainer = fit(_cfg(tmp_path, shards["gt"], shards["pseudo"], "trainer.fast_dev_run=true",
-                       "loss.speed_weight=true", "loss.confidence_weight=true"))
+                       "loss.speed_weight=true", "loss.confidence_weight=true", "data.remove_ground=false"))
     assert trainer.callback_metrics["val/against_gt"] == 0.0
     with pytest.raises(TrainError, match="supervised needs ground truth"):
         fit(_cfg(tmp_path, shards["pseudo"], shards["pseudo"], "trainer.fast_dev_run=true", "loss.name=supervised"))
+
+
+def test_short_run_validates_at_its_last_step_and_exports_the_best_checkpoint(shards, tmp_path):
+    """python train.py ... trainer.max_steps=3: the default experiment validates every 40 steps, so only the final
+    validation makes the best checkpoint; the run ends by exporting it (the default formats) under out_dir."""
+    formats = list(_compose().export.formats)
+    cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=3", f"export.formats=[{','.join(formats)}]")
+    assert cfg.trainer.val_check_interval == 40 and formats == ["onnx", "torchscript"]
+    trainer = fit(cfg)
+    assert trainer.global_step == 3 and trainer.lightning_module.validations == 1
+    best = list((tmp_path / "run" / "checkpoints").glob("best-*.ckpt"))
+    assert len(best) == 1 and best[0].name.startswith("best-step0000003-")
+    export = tmp_path / "run" / "export"
+    assert sorted(p.name for p in export.iterdir()) == sorted([METADATA_NAME, *FILE_NAMES.values()])
+    metadata = json.loads((export / METADATA_NAME).read_text())
+    assert metadata["source_checkpoint"]["path"] == str(best[0].resolve())
+    assert set(metadata["files"]) == set(formats) and max(metadata["parity_max_abs_m"].values()) <= 1e-4
+    assert metadata["preprocessing"]["remove_ground"] is True
+    assert metadata["preprocessing"]["teacher"] == {key: getattr(TEACHER, key) for key in TEACHER_FIELDS}
+
+
+def test_export_falls_back_to_last_checkpoint_and_says_so(shards, tmp_path, caplog):
+    cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=2", "callbacks.best.save_top_k=0",
+               "export.formats=[torchscript]")
+    with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
+        fit(cfg)
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert not list(last.parent.glob("best-*")) and f"no best checkpoint (no validation ran?): exporting {last}" in \
+        caplog.text
+    metadata = json.loads((tmp_path / "run" / "export" / METADATA_NAME).read_text())
+    assert metadata["source_checkpoint"]["path"] == str(last.resolve()) and list(metadata["files"]) == ["torchscript"]
+    with pytest.raises(TrainError, match="export.formats: unknown tflite"):
+        fit(_cfg(tmp_path, shards["gt"], shards["gt"], "export.formats=[tflite]"))
+
+
+def test_tensorboard_holds_loss_lr_val_metrics_and_bev(shards, tmp_path):
+    """A short real run (4 steps, validation every 2): the event file holds train/loss, the learning rate, the
+    validation metrics and the BEV image, each validation once (the last step is a scheduled one: no extra)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=4", "trainer.val_check_interval=2",
+               "data.batch_size=1", "metrics.bev_every=1")
+    trainer = fit(cfg)
+    assert trainer.lightning_module.validations == 2
+    files = list((tmp_path / "run" / "tensorboard").rglob("events.out.tfevents.*"))
+    assert len(files) == 1
+    events = EventAccumulator(str(files[0].parent), size_guidance={"scalars": 0, "images": 0}).Reload()
+    scalars = set(events.Tags()["scalars"])
+    assert {"train/loss", "lr-Adam", "val/loss", "val/against_gt"} <= scalars
+    categories = ("dynamic_fg", "static_fg", "static_bg")
+    assert {f"val/{c}/{m}" for c in categories for m in ("EPE", "AccS", "AccR")} <= scalars
+    losses = [event.value for event in events.Scalars("train/loss")]
+    assert len(losses) == 4 and all(np.isfinite(losses))
+    assert [event.value for event in events.Scalars("lr-Adam")] == pytest.approx([cfg.optim.lr] * 4)
+    epe = events.Scalars("val/dynamic_fg/EPE")
+    assert len(epe) == 2 and all(0 < event.value < 10 for event in epe)
+    images = events.Images("val/bev")
+    assert len(images) == 2 and min(images[0].width, images[0].height) > 200
+    assert sorted(p.name for p in (tmp_path / "run" / "bev").iterdir()) == [
+        "val_step0000002.png", "val_step0000004.png"]
+
+
+def test_epoch_based_run_validates_its_last_batch(shards, tmp_path):
+    """2 epochs of 2 batches with validation every 3 batches: batch 3 is validated, and the last one (4) too."""
+    trainer = fit(_cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=-1", "trainer.max_epochs=2",
+                       "trainer.val_check_interval=3", "data.batch_size=1", "metrics.bev_every=0"))
+    assert trainer.global_step == 4 and trainer.current_epoch == 2 and trainer.lightning_module.validations == 2
 
 
 def test_overfit_one_pair_drives_dynamic_epe_down(shards, tmp_path):
@@ -226,7 +384,7 @@ def test_overfit_one_pair_drives_dynamic_epe_down(shards, tmp_path):
 def _datamodule(cfg):
     from fastflow3d.data import ShardDataModule
 
-    return ShardDataModule(**OmegaConf.to_container(cfg.data, resolve=True))
+    return ShardDataModule(cfg.data.train, cfg.data.val, cfg.data.batch_size, cfg.data.workers)
 
 
 def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
@@ -243,8 +401,10 @@ def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
     assert adam_steps == {5.0}  # the optimiser continued: a fresh start would have taken 2 steps
 
     model, cfg = load_student(last)
-    assert not model.training and cfg == OmegaConf.to_container(
+    expected = OmegaConf.to_container(
         _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=5", "ckpt_path=last", *common), resolve=True)
+    expected["data"]["teacher"] = {key: getattr(TEACHER, key) for key in TEACHER_FIELDS}  # from the shards
+    assert not model.training and cfg == expected
     assert cfg["model"]["cell"] == 1.0 and cfg["model"]["stage_channels"] == [16, 32, 64]
     batch = collate([StudentDataset(shards["gt"])[0]])
     trained = second.lightning_module.model.eval()
