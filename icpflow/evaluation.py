@@ -87,7 +87,8 @@ class ShardMethod:
 
 
 class StudentMethod:
-    """A trained FastFlow3D (checkpoint or export), given the pair's ego motion (estimated when absent)."""
+    """A trained FastFlow3D (checkpoint or export), given the pair's ego motion and ground masks as the teacher is
+    (each estimated by the Predictor when the dataset has none)."""
 
     def __init__(self, path):
         from fastflow3d.predictor import Predictor
@@ -95,7 +96,7 @@ class StudentMethod:
         self.predictor = Predictor.load(path)
 
     def __call__(self, pair: FramePair, index: int) -> np.ndarray:
-        return self.predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+        return self.predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1)
 
 
 def build_methods(names, horizons=(1,), trackers=(False,), *, dataset=None, teacher_config=None, checkpoint=None,
