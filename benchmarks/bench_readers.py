@@ -31,19 +31,22 @@ def cloud(count: int) -> np.ndarray:
     return RNG.uniform((-80, -80, -2), (80, 80, 4), (count, 3)).astype(np.float32)
 
 
-def write_pcaccumulation(root: Path, frames: int, per_frame: int, samples: int = 3) -> None:
+def write_pcaccumulation(root: Path, frames: int, per_frame: int, samples: int = 3, waymo: bool = True) -> None:
+    """Files in PCAccumulation's encoding: Waymo ``sem_labels`` (m,) = box type - 1 (0 vehicle, 1 pedestrian,
+    2 background, 3 cyclist); nuScenes ``sem_labels`` for the anchor frame's points only."""
     (root / "val").mkdir(parents=True)
     for index in range(samples):
         count = frames * per_frame
         inst = RNG.integers(0, 20, count)
+        sem = np.where(inst > 0, np.array([0, 1, 3])[inst % 3], 2)
         np.savez(
             root / "val" / f"{index:03d}.npz",
             raw_points=cloud(count),
-            time_indice=np.repeat(np.arange(frames), per_frame).astype(np.float32),
-            sd_labels=(inst > 15).astype(np.float32),
-            fb_labels=(inst > 0).astype(np.float32),
+            time_indice=np.repeat(np.arange(frames), per_frame).astype(np.int64),
+            sd_labels=(inst > 15).astype(np.int64),
+            fb_labels=(inst > 0).astype(np.int64),
             inst_labels=inst,
-            sem_labels=inst % 4,
+            sem_labels=sem if waymo else RNG.integers(0, 16, per_frame),
             ego_motion_gt=np.tile(np.eye(4, dtype=np.float32), (frames, 1, 1)),
             bbox_tsfm=np.tile(np.eye(4, dtype=np.float32), (20, frames, 1, 1)),
         )
@@ -124,13 +127,13 @@ def readers(tmp: Path) -> list[tuple[str, object, object]]:
             ("av2 (real log, cold: + raster)", measure_cold, make_av2),
         ]
     write_pcaccumulation(tmp / "waymo", 5, 60_000)
-    write_pcaccumulation(tmp / "nuscenes", 11, 30_000)
+    write_pcaccumulation(tmp / "nuscenes", 11, 30_000, waymo=False)
     write_zeroflow(tmp / "zeroflow")
     write_pairs(tmp / "pairs")
     rows += [
         ("waymo (PCAccumulation 5 x 60k, k=1)", measure, lambda: PCAccumulationDataset(tmp / "waymo", "val", 5, 10.0)),
         ("nuscenes (PCAccumulation 11 x 30k, k=1)", measure,
-         lambda: PCAccumulationDataset(tmp / "nuscenes", "val", 11, 20.0)),
+         lambda: PCAccumulationDataset(tmp / "nuscenes", "val", 11, 20.0, "nuscenes", sem_labels="nuscenes")),
         ("zeroflow_av2 (60k of 90k padded)", measure, lambda: ZeroFlowAV2Dataset(tmp / "zeroflow", "val")),
         ("pairs (.npz, 100k + flow)", measure, lambda: NpzPairsDataset(tmp / "pairs")),
     ]  # fmt: skip

@@ -16,6 +16,7 @@ Peak RSS is the process's maximum resident set size so far (``resource.getrusage
 from __future__ import annotations
 
 import argparse
+import ast
 import resource
 import statistics
 import time
@@ -138,9 +139,11 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="numba threads")
     parser.add_argument("--pairs", type=int, default=200, help="cluster pairs in the kernels-only row")
     parser.add_argument("--kernels-only", action="store_true")
+    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                        help="ICPFlowConfig overrides of the av2 preset (values parsed as Python literals)")
     args = parser.parse_args()
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
-    cfg = ICPFlowConfig.preset("av2")
+    cfg = ICPFlowConfig.preset("av2", **{k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in args.set)})
     rows = [bench_kernels(args.pairs, cfg, args.repeats)]
     if not args.kernels_only:
         for name, reader in (("av2", read_av2), ("kitti", read_kitti)):

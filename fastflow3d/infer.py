@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.datasets.io import SCAN_SUFFIXES, check_points, fail, load_npz, read_pose_lines, read_scan
+from icpflow.datasets.io import SCAN_SUFFIXES, check_points, fail, load_npz, read_poses, read_scan
 from icpflow.frames import FramePair
 from icpflow.geometry import relative_transform, rigid_problem
 
@@ -48,23 +48,7 @@ def read_raw_scan(path: Path) -> np.ndarray:
 
 def read_transforms(path: Path, count: int) -> np.ndarray:
     """Exactly ``count`` rigid (4, 4) float64 transforms from text (12 or 16 values a line) or ``.npy``."""
-    if path.suffix.lower() == ".npy":
-        try:
-            values = np.load(path, allow_pickle=False)
-        except FileNotFoundError:
-            raise fail(path, "file not found") from None
-        except (OSError, ValueError, EOFError) as error:
-            raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
-        if values.shape == (4, 4):
-            values = values[None]
-        if values.ndim != 3 or values.shape[1:] != (4, 4) or not np.issubdtype(values.dtype, np.number):
-            raise fail(path, f"expected (T, 4, 4) numeric transforms, got {values.dtype} {values.shape}")
-        transforms = values.astype(np.float64)
-    else:
-        try:
-            transforms = read_pose_lines(path)
-        except UnicodeDecodeError:
-            raise fail(path, "not a text file of transforms (use .npy for binary)") from None
+    transforms = read_poses(path)
     if len(transforms) != count:
         raise fail(path, f"holds {len(transforms)} transform(s), expected {count}")
     for number, transform in enumerate(transforms, start=1):

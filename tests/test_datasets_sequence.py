@@ -150,6 +150,6 @@ def test_bad_pose_line(tmp_path):
 def test_pose_array_of_wrong_shape(tmp_path):
     write_scans(tmp_path / "scans", ".npy")
     np.save(tmp_path / "poses.npy", np.zeros((4, 3, 4)))
-    assert "poses.npy: poses must have shape (T, 4, 4), got (4, 3, 4)" in _error(
+    assert "poses.npy: poses must have shape (T, 4, 4), got float64 (4, 3, 4)" in _error(
         tmp_path / "scans", poses_file=tmp_path / "poses.npy"
     )

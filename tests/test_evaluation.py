@@ -10,7 +10,6 @@ from pathlib import Path
 import matplotlib.image
 import numpy as np
 import pytest
-import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
@@ -20,6 +19,8 @@ from icpflow.datasets.from_config import raise_max_horizon
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.evaluation import MetricOptions, evaluate, run_eval
 from icpflow.shards.writer import write_index, write_shard
+
+from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
 
 REPO = Path(__file__).resolve().parents[1]
 READER = {"split": "val", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 1.0}
@@ -229,24 +230,7 @@ TINY_STUDENT = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-16.0, 16
 def tiny_student_checkpoint(path: Path, pair) -> Path:
     """A training checkpoint (the ``fastflow3d.checkpoint`` contract) of a tiny FastFlow3D after 5 Adam steps
     towards ``pair``'s true residual flow, so that its weights and BatchNorm statistics are not the initial ones."""
-    from fastflow3d.loss import distillation_loss
-    from fastflow3d.model import FastFlow3D, compensate
-
-    torch.manual_seed(0)
-    model = FastFlow3D(**{k: v for k, v in TINY_STUDENT.items() if k != "_target_"}).train()
-    pc0, pc1 = torch.from_numpy(compensate(pair.pc0, pair.ego1_from_ego0)), torch.from_numpy(pair.pc1)
-    batch0, batch1 = torch.zeros(len(pc0), dtype=torch.int64), torch.zeros(len(pc1), dtype=torch.int64)
-    target = torch.from_numpy(pair.residual_flow())
-    optimiser = torch.optim.Adam(model.parameters(), lr=2e-3)
-    for _ in range(5):
-        residual, valid = model(pc0, batch0, pc1, batch1, 1)
-        loss = distillation_loss(residual, target, batch0, valid, 1)
-        optimiser.zero_grad()
-        loss.backward()
-        optimiser.step()
-    torch.save({"state_dict": {f"model.{key}": value for key, value in model.state_dict().items()},
-                "hyper_parameters": {"cfg": {"model": dict(TINY_STUDENT)}}, "epoch": 0, "global_step": 5}, path)
-    return path
+    return tiny_checkpoint(path, TINY_STUDENT, pair, 5)
 
 
 def test_student_row_reproduces_the_metrics_module(tmp_path, dataset):

@@ -16,8 +16,7 @@ from fastflow3d.checkpoint import load_student
 from fastflow3d.data import TEACHER_FIELDS
 from fastflow3d.export import FILE_NAMES, METADATA_NAME, SingleSampleNet, export_checkpoint, run_export, sha256_file
 from fastflow3d.infer import main as infer_main
-from fastflow3d.loss import distillation_loss
-from fastflow3d.model import FastFlow3D, compensate
+from fastflow3d.model import compensate
 from fastflow3d.predictor import Predictor, PredictorError
 from icpflow import __version__
 from icpflow.datasets.synthetic import SyntheticDataset
@@ -25,6 +24,8 @@ from icpflow.geometry import ego_flow, residual_to_full
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.ego_motion import estimate_ego_motion
 from icpflow.teacher.ground import GroundSegmenter
+
+from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
@@ -34,15 +35,6 @@ TINY = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-6.4, 6.4], "y_ra
         "z_range": [-3.0, 3.0], "cell": 0.2, "pillar_channels": 8, "stage_channels": [8, 16, 32],
         "stage_blocks": [1, 1, 1]}
 TOLERANCE = 1e-4  # metres
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread():
-    """One torch thread for these tiny networks: as fast on an idle machine, much faster on a busy shared one."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -64,28 +56,11 @@ def pairs():
 def checkpoint(tmp_path_factory, pairs):
     """A training checkpoint of the tiny model after 15 Adam steps towards one pair's true residual flow (on 6000
     points of each scan near the grid, to keep it fast)."""
-    torch.manual_seed(0)
-    model = FastFlow3D(**{k: v for k, v in TINY.items() if k != "_target_"})
     pair = pairs[0]
     near0 = np.flatnonzero(np.abs(pair.pc0[:, :2]).max(axis=1) < 7.0)[:6000]
     near1 = np.flatnonzero(np.abs(pair.pc1[:, :2]).max(axis=1) < 7.0)[:6000]
-    pc0 = torch.from_numpy(compensate(pair.pc0[near0], pair.ego1_from_ego0))
-    pc1 = torch.from_numpy(pair.pc1[near1])
-    target = torch.from_numpy(pair.residual_flow()[near0])
-    batch0, batch1 = torch.zeros(len(pc0), dtype=torch.int64), torch.zeros(len(pc1), dtype=torch.int64)
-    optimiser = torch.optim.Adam(model.parameters(), lr=2e-3)
-    model.train()
-    for _ in range(15):
-        residual, valid = model(pc0, batch0, pc1, batch1, 1)
-        loss = distillation_loss(residual, target, batch0, valid, 1)
-        optimiser.zero_grad()
-        loss.backward()
-        optimiser.step()
     path = tmp_path_factory.mktemp("run") / "best.ckpt"
-    cfg = {"model": dict(TINY), "out_dir": str(path.parent)}
-    torch.save({"state_dict": {f"model.{key}": value for key, value in model.state_dict().items()},
-                "hyper_parameters": {"cfg": cfg}, "epoch": 0, "global_step": 15}, path)
-    return path
+    return tiny_checkpoint(path, TINY, pair, 15, near0, near1, cfg={"out_dir": str(path.parent)})
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import ego_flow, invert, transform_points
+from icpflow.geometry import invert, transform_points
 from icpflow.synthetic import AV2_META_CLASSES, CLASSES, Lidar, build_scene, scan, sequence
 from icpflow.synthetic.lidar import _ground, cast, intersect, surface_distance
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from icpflow.geometry import ego_flow, make_transform, transform_points
+from icpflow.geometry import make_transform, transform_points
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.registration import ICPParams, normals, register_plane
 

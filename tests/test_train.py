@@ -40,15 +40,6 @@ XL_PARAMETERS = 110_618_147  # FastFlow3D XL (conf/model/fastflow3d_xl.yaml), an
 TEACHER = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread():
-    """One torch thread for these small networks: much faster on a busy shared 2-core machine (no oversubscription)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _compose(*overrides):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         return compose("train", list(overrides))

@@ -175,7 +175,8 @@ def read_pose_lines(path: Path) -> np.ndarray:
 
 
 def read_poses(path: Path) -> np.ndarray:
-    """World-from-sensor poses (T, 4, 4) float64 from a text file (see :func:`read_pose_lines`) or a ``.npy``."""
+    """(T, 4, 4) float64 transforms (e.g. world-from-sensor poses) from a text file (see :func:`read_pose_lines`)
+    or a ``.npy`` of shape (T, 4, 4) or one (4, 4)."""
     if path.suffix.lower() == ".npy":
         try:
             poses = np.load(path, allow_pickle=False)
@@ -183,7 +184,12 @@ def read_poses(path: Path) -> np.ndarray:
             raise fail(path, "file not found") from None
         except (OSError, ValueError, EOFError) as error:
             raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
-        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-            raise fail(path, f"poses must have shape (T, 4, 4), got {poses.shape}")
+        if poses.shape == (4, 4):
+            poses = poses[None]
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4) or not np.issubdtype(poses.dtype, np.number):
+            raise fail(path, f"poses must have shape (T, 4, 4), got {poses.dtype} {poses.shape}")
         return poses.astype(np.float64)
-    return read_pose_lines(path)
+    try:
+        return read_pose_lines(path)
+    except UnicodeDecodeError:
+        raise fail(path, "not a text file of poses (use .npy for binary)") from None

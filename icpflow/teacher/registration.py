@@ -306,32 +306,42 @@ def _icp(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_only):
 
 
 @numba.njit(cache=True)
-def _register_one(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_only, inlier_d2, eval_cell):
-    """ICP of moving (M, 3) onto fixed (N, 3) and its quality: (transform, mean error, IoU ratio, iterations)."""
-    fixed_grid = _grid(fixed, eval_cell)
-    moved = _transform(moving, init)
+def _quality(moving, fixed, transform, fixed_grid, inlier_d2, eval_cell):
+    """(mean error, IoU ratio) of ``transform`` applied to moving (M, 3) against fixed (N, 3) with its ``_grid``
+    (see the module docstring: the smaller of the two directions each)."""
+    moved = _transform(moving, transform)
     err_fwd, inl_fwd = _nn_stats(moved, fixed, fixed_grid, eval_cell, inlier_d2)
-    transform, n_iter = _icp(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_only)
-    if n_iter > 0:
-        moved_icp = _transform(moving, transform)
-        err_icp, inl_icp = _nn_stats(moved_icp, fixed, fixed_grid, eval_cell, inlier_d2)
-        if err_icp < err_fwd:  # otherwise ICP made it worse: keep the initial transform
-            moved, err_fwd, inl_fwd = moved_icp, err_icp, inl_icp
-        else:
-            transform = init
     err_bwd, inl_bwd = _nn_stats(fixed, moved, _grid(moved, eval_cell), eval_cell, inlier_d2)
     n_all = moving.shape[0] + fixed.shape[0]
-    iou = min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
-    return transform, min(err_fwd, err_bwd), iou, n_iter
+    return min(err_fwd, err_bwd), min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
+
+
+@numba.njit(cache=True)
+def _register_one(moving, fixed, fixed_normals, init, max_corr, max_iter, rel_rmse, yaw_only, plane, inlier_d2,
+                  eval_cell):
+    """Register moving (M, 3) onto fixed (N, 3) from ``init``, point-to-point (keeping ``init`` when ICP did not
+    lower the forward mean distance) or, with ``plane``, point-to-plane along ``fixed_normals`` (N, 3); returns
+    (transform, mean error, IoU ratio, iterations)."""
+    fixed_grid = _grid(fixed, eval_cell)
+    if plane:
+        transform, n_iter = _icp_plane(moving, fixed, fixed_normals, init, max_corr, _PLANE_MAX_ITER)
+    else:
+        transform, n_iter = _icp(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_only)
+        if n_iter > 0:
+            before, _ = _nn_stats(_transform(moving, init), fixed, fixed_grid, eval_cell, inlier_d2)
+            after, _ = _nn_stats(_transform(moving, transform), fixed, fixed_grid, eval_cell, inlier_d2)
+            if not after < before:  # ICP made it worse: keep the initial transform
+                transform = init
+    error, iou = _quality(moving, fixed, transform, fixed_grid, inlier_d2, eval_cell)
+    return transform, error, iou, n_iter
 
 
 @numba.njit(cache=True, parallel=True)
-def _register_batch(
-    mov_all, mov_off, fix_all, fix_off, inits, max_corr, max_iter, rel_rmse, yaw_only, inlier_dist, eval_cell,
-    n_workers,
-):
-    """:func:`_register_one` for P packed pairs. Worker w takes pairs w, w + n_workers, ...: with the pairs
-    sorted by decreasing size this balances the load, which numba's contiguous split of a prange does not."""
+def _register_batch(mov_all, mov_off, fix_all, fix_off, nrm_all, inits, max_corr, max_iter, rel_rmse, yaw_only,
+                    plane, inlier_dist, eval_cell, n_workers):
+    """:func:`_register_one` for P packed pairs (``nrm_all`` packed like ``fix_all`` with ``plane``, else unused).
+    Worker w takes pairs w, w + n_workers, ...: with the pairs sorted by decreasing size this balances the load,
+    which numba's contiguous split of a prange does not."""
     n_pairs = inits.shape[0]
     transforms = np.zeros((n_pairs, 4, 4))
     errors = np.full(n_pairs, np.inf)
@@ -342,12 +352,33 @@ def _register_batch(
         for p in range(w, n_pairs, n_workers):
             moving = mov_all[mov_off[p] : mov_off[p + 1]]
             fixed = fix_all[fix_off[p] : fix_off[p + 1]]
+            fixed_normals = nrm_all[fix_off[p] : fix_off[p + 1]] if plane else nrm_all
             transforms[p] = inits[p]
             if moving.shape[0] > 0 and fixed.shape[0] > 0:
                 transforms[p], errors[p], ious[p], iters[p] = _register_one(
-                    moving, fixed, inits[p].copy(), max_corr, max_iter, rel_rmse, yaw_only, inlier_d2, eval_cell
+                    moving, fixed, fixed_normals, inits[p].copy(), max_corr, max_iter, rel_rmse, yaw_only, plane,
+                    inlier_d2, eval_cell,
                 )
     return transforms, errors, ious, iters
+
+
+def _run_batch(movings, fixeds, starts, params: ICPParams, fixed_normals=None) -> tuple[np.ndarray, ...]:
+    """:func:`_register_batch` on lists of clouds (point-to-plane when the fixed clouds' normals are given):
+    (transforms, errors, ious, iterations) in the input order."""
+    order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
+    mov_all, mov_off = pack([movings[k] for k in order])
+    fix_all, fix_off = pack([fixeds[k] for k in order])
+    plane = fixed_normals is not None
+    nrm_all = pack([fixed_normals[k] for k in order])[0] if plane else np.zeros((0, 3))
+    out = _register_batch(
+        mov_all, mov_off, fix_all, fix_off, nrm_all, starts[order], params.max_corr, params.max_iter,
+        params.rel_rmse, params.yaw_only, plane, params.inlier_dist, _EVAL_CELL,
+        numba.get_num_threads(),
+    )
+    result = tuple(np.empty_like(a) for a in out)
+    for a, b in zip(result, out):
+        a[order] = b
+    return result
 
 
 @numba.njit(cache=True)
@@ -402,35 +433,6 @@ def _icp_plane(moving, fixed, normals, init, max_corr, max_iter):
     return transform, iterations
 
 
-@numba.njit(cache=True, parallel=True)
-def _register_plane_batch(mov_all, mov_off, fix_all, fix_off, nrm_all, inits, max_corr, inlier_dist, eval_cell,
-                          n_workers):
-    """:func:`_icp_plane` and the quality of P packed pairs, dealt round-robin to the workers."""
-    n_pairs = inits.shape[0]
-    transforms = np.zeros((n_pairs, 4, 4))
-    errors = np.full(n_pairs, np.inf)
-    ious = np.zeros(n_pairs)
-    iters = np.zeros(n_pairs, dtype=np.int64)
-    inlier_d2 = inlier_dist * inlier_dist
-    for w in numba.prange(n_workers):
-        for p in range(w, n_pairs, n_workers):
-            moving = mov_all[mov_off[p] : mov_off[p + 1]]
-            fixed = fix_all[fix_off[p] : fix_off[p + 1]]
-            transforms[p] = inits[p]
-            if moving.shape[0] == 0 or fixed.shape[0] == 0:
-                continue
-            transform, iters[p] = _icp_plane(moving, fixed, nrm_all[fix_off[p] : fix_off[p + 1]], inits[p].copy(),
-                                             max_corr, _PLANE_MAX_ITER)
-            moved = _transform(moving, transform)
-            err_fwd, inl_fwd = _nn_stats(moved, fixed, _grid(fixed, eval_cell), eval_cell, inlier_d2)
-            err_bwd, inl_bwd = _nn_stats(fixed, moved, _grid(moved, eval_cell), eval_cell, inlier_d2)
-            n_all = moving.shape[0] + fixed.shape[0]
-            transforms[p] = transform
-            errors[p] = min(err_fwd, err_bwd)
-            ious[p] = min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
-    return transforms, errors, ious, iters
-
-
 def normals(points: np.ndarray, neighbours: int = PLANE_NEIGHBOURS) -> np.ndarray:
     """(N, 3) float64 unit normals of (N, 3) points: the smallest principal axis of each point's ``neighbours``
     nearest points (itself included; fewer when the cloud is smaller). Sign arbitrary."""
@@ -457,16 +459,7 @@ def register_plane(pairs: list[tuple[np.ndarray, np.ndarray]], inits: np.ndarray
         return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
     movings = [subsample(np.asarray(a, np.float64).reshape(-1, 3), params.max_points, params.seed) for a, _ in pairs]
     fixeds = [subsample(np.asarray(b, np.float64).reshape(-1, 3), params.max_points, params.seed) for _, b in pairs]
-    fixed_normals = [normals(b) for b in fixeds]
-    order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
-    mov_all, mov_off = pack([movings[k] for k in order])
-    fix_all, fix_off = pack([fixeds[k] for k in order])
-    nrm_all, _ = pack([fixed_normals[k] for k in order])
-    out = _register_plane_batch(mov_all, mov_off, fix_all, fix_off, nrm_all, inits[order], params.max_corr,
-                                params.inlier_dist, _EVAL_CELL, numba.get_num_threads())
-    transforms, errors, ious, iters = (np.empty_like(a) for a in out)
-    for a, b in zip((transforms, errors, ious, iters), out):
-        a[order] = b
+    transforms, errors, ious, iters = _run_batch(movings, fixeds, inits, params, [normals(b) for b in fixeds])
     return RegistrationResult(transforms, errors, ious, iters)
 
 
@@ -593,17 +586,7 @@ def register_clusters(
         fixeds.append(src if swapped[p] else dst)
         starts[p] = invert(inits[p]) if swapped[p] else inits[p]
     if backend == "cpu":
-        # Largest pairs first, dealt round-robin to the workers (see _register_batch).
-        order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
-        mov_all, mov_off = pack([movings[k] for k in order])
-        fix_all, fix_off = pack([fixeds[k] for k in order])
-        out = _register_batch(
-            mov_all, mov_off, fix_all, fix_off, starts[order], params.max_corr, params.max_iter, params.rel_rmse,
-            params.yaw_only, params.inlier_dist, _EVAL_CELL, numba.get_num_threads(),
-        )
-        transforms, errors, ious, iters = (np.empty_like(a) for a in out)
-        for a, b in zip((transforms, errors, ious, iters), out):
-            a[order] = b
+        transforms, errors, ious, iters = _run_batch(movings, fixeds, starts, params)
     else:
         transforms, errors, ious, iters = _register_torch(movings, fixeds, starts, params)
     for p in np.flatnonzero(swapped):
