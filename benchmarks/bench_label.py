@@ -1,6 +1,6 @@
 """Labelling throughput with 1 and 2 workers, and shard size / read speed per compression.
 
-    .venv/bin/python benchmarks/bench_label.py [--repeats 3] [--samples 8] [--shard-size 2] [hydra overrides...]
+    .venv/bin/python benchmarks/bench_label.py [--repeats 3] [--samples 8] [--shard-size 2] [--pinned] [overrides...]
 
 Labels the first ``samples`` samples of the default synthetic world (conf/label.yaml; extra arguments are Hydra
 overrides such as ``dataset.reader.beams=32``) into a temporary folder with 1 and then 2 local workers; samples/s
@@ -39,13 +39,14 @@ REPO = Path(__file__).resolve().parents[1]
 CONF = REPO / "conf"
 
 
-def labelling_rate(overrides: list[str], workers: int, repeats: int) -> tuple[float, float]:
+def labelling_rate(overrides: list[str], workers: int, repeats: int, cores: str | None = None) -> tuple[float, float]:
     """Median samples/s of ``label.py`` runs with ``workers`` processes: of the whole command, and steady-state
-    (``workers`` over the summary's mean seconds per sample per worker, i.e. without start-up)."""
+    (``workers`` over the summary's mean seconds per sample per worker, i.e. without start-up). ``cores``: run the
+    command under ``taskset -c cores`` (label.py then sizes its threads to that affinity)."""
     rates, steady = [], []
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            command = [sys.executable, str(REPO / "label.py"), *overrides, f"out_dir={tmp}/labels",
+            command = (["taskset", "-c", cores] if cores else []) + [sys.executable, str(REPO / "label.py"), *overrides, f"out_dir={tmp}/labels",
                        f"workers={workers}", f"hydra.run.dir={tmp}/hydra"]
             start = time.perf_counter()
             run = subprocess.run(command, capture_output=True, text=True)
@@ -110,15 +111,22 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--samples", type=int, default=8)
     parser.add_argument("--shard-size", type=int, default=2)
+    parser.add_argument("--pinned", action="store_true",
+                        help="also time 1 worker pinned to one core (taskset -c 0): the per-core scaling of workers")
     args, extra = parser.parse_known_args()
     overrides = [f"limit={args.samples}", f"shard_size={args.shard_size}", *extra]
-    one = labelling_rate(overrides, 1, args.repeats)
-    two = labelling_rate(overrides, 2, args.repeats)
+    rows = {"1": labelling_rate(overrides, 1, args.repeats)}
+    if args.pinned:
+        rows["1 (one core)"] = labelling_rate(overrides, 1, args.repeats, cores="0")
+    rows["2"] = labelling_rate(overrides, 2, args.repeats)
     print(f"labelling {args.samples} samples, shard_size {args.shard_size}, overrides {extra or 'none'}")
-    print(f"{'workers':>8} {'samples/s (command)':>20} {'samples/s (steady)':>19}")
-    for workers, (whole, steady) in ((1, one), (2, two)):
-        print(f"{workers:>8} {whole:>20.3f} {steady:>19.3f}")
-    print(f"ratio 2/1: {two[0] / one[0]:.2f} (command), {two[1] / one[1]:.2f} (steady) (target >= 1.8)")
+    print(f"{'workers':>13} {'samples/s (command)':>20} {'samples/s (steady)':>19}")
+    for workers, (whole, steady) in rows.items():
+        print(f"{workers:>13} {whole:>20.3f} {steady:>19.3f}")
+    for base in rows:
+        if base != "2":
+            print(f"ratio 2 / {base}: {rows['2'][0] / rows[base][0]:.2f} (command), "
+                  f"{rows['2'][1] / rows[base][1]:.2f} (steady) (target >= 1.8)")
     print(f"\n{'compression':<12} {'kB/sample':>10} {'read samples/s':>15} {'read MB/s':>10}")
     for name, size, rate, mbps in compression_rows(overrides, args.repeats):
         print(f"{name:<12} {size / 1e3:>10.1f} {rate:>15.1f} {mbps:>10.1f}")
