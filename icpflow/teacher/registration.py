@@ -306,34 +306,28 @@ def _icp(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_only):
 
 
 @numba.njit(cache=True)
-def _quality(moving, fixed, transform, fixed_grid, inlier_d2, eval_cell):
-    """(mean error, IoU ratio) of ``transform`` applied to moving (M, 3) against fixed (N, 3) with its ``_grid``
-    (see the module docstring: the smaller of the two directions each)."""
-    moved = _transform(moving, transform)
-    err_fwd, inl_fwd = _nn_stats(moved, fixed, fixed_grid, eval_cell, inlier_d2)
-    err_bwd, inl_bwd = _nn_stats(fixed, moved, _grid(moved, eval_cell), eval_cell, inlier_d2)
-    n_all = moving.shape[0] + fixed.shape[0]
-    return min(err_fwd, err_bwd), min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
-
-
-@numba.njit(cache=True)
 def _register_one(moving, fixed, fixed_normals, init, max_corr, max_iter, rel_rmse, yaw_only, plane, inlier_d2,
                   eval_cell):
     """Register moving (M, 3) onto fixed (N, 3) from ``init``, point-to-point (keeping ``init`` when ICP did not
     lower the forward mean distance) or, with ``plane``, point-to-plane along ``fixed_normals`` (N, 3); returns
-    (transform, mean error, IoU ratio, iterations)."""
+    (transform, mean error, IoU ratio, iterations), error and IoU ratio as in the module docstring (the smaller of
+    the two directions each)."""
     fixed_grid = _grid(fixed, eval_cell)
     if plane:
         transform, n_iter = _icp_plane(moving, fixed, fixed_normals, init, max_corr, _PLANE_MAX_ITER)
     else:
         transform, n_iter = _icp(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_only)
-        if n_iter > 0:
-            before, _ = _nn_stats(_transform(moving, init), fixed, fixed_grid, eval_cell, inlier_d2)
-            after, _ = _nn_stats(_transform(moving, transform), fixed, fixed_grid, eval_cell, inlier_d2)
-            if not after < before:  # ICP made it worse: keep the initial transform
-                transform = init
-    error, iou = _quality(moving, fixed, transform, fixed_grid, inlier_d2, eval_cell)
-    return transform, error, iou, n_iter
+    moved = _transform(moving, transform)
+    err_fwd, inl_fwd = _nn_stats(moved, fixed, fixed_grid, eval_cell, inlier_d2)
+    if not plane and n_iter > 0:
+        moved_init = _transform(moving, init)
+        err_init, inl_init = _nn_stats(moved_init, fixed, fixed_grid, eval_cell, inlier_d2)
+        if not err_fwd < err_init:  # ICP made it worse: keep the initial transform
+            transform, moved, err_fwd, inl_fwd = init, moved_init, err_init, inl_init
+    err_bwd, inl_bwd = _nn_stats(fixed, moved, _grid(moved, eval_cell), eval_cell, inlier_d2)
+    n_all = moving.shape[0] + fixed.shape[0]
+    iou = min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
+    return transform, min(err_fwd, err_bwd), iou, n_iter
 
 
 @numba.njit(cache=True, parallel=True)
