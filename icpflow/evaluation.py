@@ -33,6 +33,7 @@ import numpy as np
 
 from icpflow import metrics
 from icpflow.baselines import ego_only_flow, zero_flow
+from icpflow.datasets.base import sample_id_or_index
 from icpflow.frames import FramePair
 
 METHODS = ("zero", "ego", "icpflow", "student", "shards")
@@ -54,9 +55,9 @@ class TeacherMethod:
 
     def __call__(self, pair: FramePair, index: int) -> np.ndarray:
         if self.tracker and self.horizon > 1:
-            from icpflow.labelling.run import tracked_sample
+            from icpflow.teacher.tracker import sample_tracker_flow
 
-            return tracked_sample(self.dataset, self.teacher, index, self.horizon, pair)[0]
+            return sample_tracker_flow(self.teacher, self.dataset, index, self.horizon, pair).flow
         return self.teacher(pair.pc0, pair.pc1, ego1_from_ego0=pair.ego1_from_ego0, ground0=pair.ground0,
                             ground1=pair.ground1, time0=pair.time0, time1=pair.time1, gap=self.horizon,
                             dt=pair.dt).flow
@@ -268,7 +269,7 @@ def evaluate_horizons(dataset, methods: dict[int, dict[str, Method]], options: M
             try:
                 scored.append((horizon, *_predict(dataset, index, horizon, row)))
             except Exception as error:  # a bad sample is recorded and skipped for every method and horizon
-                failures.append({"index": index, "sample_id": _safe_id(dataset, index), "horizon": horizon,
+                failures.append({"index": index, "sample_id": sample_id_or_index(dataset, index), "horizon": horizon,
                                  "reason": f"{type(error).__name__}: "
                                            f"{str(error).splitlines()[0] if str(error) else ''}"})
                 break
@@ -276,7 +277,7 @@ def evaluate_horizons(dataset, methods: dict[int, dict[str, Method]], options: M
             for horizon, pair, flows, seconds in scored:
                 for name, flow in flows.items():
                     scores[horizon][name].add(pair, flow, seconds[name], options)
-                done[horizon].append(pair.sample_id or _safe_id(dataset, index))
+                done[horizon].append(pair.sample_id or sample_id_or_index(dataset, index))
                 if on_pair is not None:
                     on_pair(len(done[horizon]) - 1, horizon, pair, flows)
     settings = {"crop": options.crop, "include_ground": options.include_ground, "relative_to": options.relative_to,
@@ -300,13 +301,6 @@ def _predict(dataset, index: int, horizon: int, methods: dict[str, Method]):
                 raise ValueError(f"method {name} returned flow of shape {flow.shape} for pc0 {pair.pc0.shape}")
         flows[name], seconds[name] = by_object[id(method)]
     return pair, flows, seconds
-
-
-def _safe_id(dataset, index: int) -> str:
-    try:
-        return dataset.sample_id(index)
-    except Exception:  # the id itself may be what is broken
-        return f"#{index}"
 
 
 # ---------------------------------------------------------------------------------------------------- output

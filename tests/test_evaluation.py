@@ -184,7 +184,7 @@ def test_readers_taking_max_horizon_get_the_largest_horizon():
 
 def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
     from icpflow.labelling.cli import teacher_config
-    from icpflow.labelling.run import tracked_sample
+    from icpflow.teacher.tracker import sample_tracker_flow
     from icpflow.teacher import ICPFlow
 
     cfg = _cfg(tmp_path, "method=[zero,icpflow]", "horizon=1..2", "tracker=[false,true]", "bev=1")
@@ -199,7 +199,7 @@ def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
     direct = {k: teacher(p.pc0, p.pc1, ego1_from_ego0=p.ego1_from_ego0, ground0=p.ground0, ground1=p.ground1,
                          gap=k, dt=p.dt).flow for k, p in pairs.items()}
     flows = {"zero": {k: zero_flow(p) for k, p in pairs.items()}, "icpflow": direct,
-             "icpflow+tracker": {1: direct[1], 2: tracked_sample(dataset, teacher, 0, 2, pairs[2])[0]}}
+             "icpflow+tracker": {1: direct[1], 2: sample_tracker_flow(teacher, dataset, 0, 2, pairs[2]).flow}}
     rows = document["table"]["rows"]
     assert [(row["method"], row["horizon"]) for row in rows] == [(m, k) for m in flows for k in (1, 2)]
     for row in rows:

@@ -41,3 +41,12 @@ class PairDataset(ABC):
     def metadata(self) -> dict:
         """Facts about the dataset that end up in shard attributes and reports."""
         return {"name": self.name, "size": len(self), "max_horizon": self.max_horizon}
+
+
+def sample_id_or_index(dataset, index: int) -> str:
+    """``dataset.sample_id(index)`` for failure records, or ``index <index>`` when even that fails (the id itself
+    may be what is broken)."""
+    try:
+        return dataset.sample_id(index)
+    except Exception:
+        return f"index {index}"

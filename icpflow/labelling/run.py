@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from icpflow.datasets.base import sample_id_or_index
 from icpflow.frames import FramePairError
 from icpflow.shards.schema import shard_name
 from icpflow.shards.verify import ShardError, verify_shard
@@ -88,39 +89,16 @@ def thread_limit(threads: int, torch_too: bool = False):
             torch.set_num_threads(torch_before)
 
 
-def tracked_sample(dataset, teacher, index: int, horizon: int, pair):
-    """Tracker mode: teacher calls on every consecutive pair of (t .. t + horizon), chained (see teacher.tracker),
-    with each scan's per-point times and the seconds between consecutive scans."""
-    from icpflow.teacher.tracker import long_horizon_flow
-
-    steps = [dataset.pair(index, horizon=j) for j in range(1, horizon)] + [pair]
-    if any(not np.array_equal(step.pc0, pair.pc0) for step in steps):
-        raise ValueError(f"tracker: the pairs (t, t + j), j < {horizon}, of this sample do not start at the same scan")
-    scans = [pair.pc0] + [step.pc1 for step in steps]
-    grounds = [pair.ground0] + [step.ground1 for step in steps]
-    if any(g is None for g in grounds):
-        grounds = None
-    times = [pair.time0] + [step.time1 for step in steps]
-    if any(t is None for t in times):
-        times = None
-    dts = [steps[0].dt] + [later.dt - earlier.dt for earlier, later in zip(steps, steps[1:])]
-    egos, previous = None, np.eye(4)
-    if all(step.ego1_from_ego0 is not None for step in steps):
-        egos = []
-        for step in steps:
-            egos.append(step.ego1_from_ego0 @ np.linalg.inv(previous))
-            previous = step.ego1_from_ego0
-    result = long_horizon_flow(teacher, scans, egos, grounds, mode="tracker", times=times, dts=dts)
-    ground0 = pair.ground0 if pair.ground0 is not None else np.zeros(len(pair.pc0), bool)
-    ground1 = pair.ground1 if pair.ground1 is not None else np.zeros(len(pair.pc1), bool)
-    cluster = np.full(len(pair.pc0), -1, np.int32)  # chains span several clusterings: no single id
-    return result.flow, result.confidence, cluster, ground0, ground1, result.ego_k_from_0
-
-
 def _sample(dataset, teacher, pair, index: int, horizon: int, tracker: bool) -> dict:
     """One labelled sample of ``pair`` as written to a shard (see ``icpflow.shards.schema``)."""
     if tracker and horizon > 1:
-        flow, confidence, cluster, ground0, ground1, ego = tracked_sample(dataset, teacher, index, horizon, pair)
+        from icpflow.teacher.tracker import sample_tracker_flow
+
+        result = sample_tracker_flow(teacher, dataset, index, horizon, pair)
+        flow, confidence, ego = result.flow, result.confidence, result.ego_k_from_0
+        ground0 = pair.ground0 if pair.ground0 is not None else np.zeros(len(pair.pc0), bool)
+        ground1 = pair.ground1 if pair.ground1 is not None else np.zeros(len(pair.pc1), bool)
+        cluster = np.full(len(pair.pc0), -1, np.int32)  # chains span several clusterings: no single id
     else:
         result = teacher(pair.pc0, pair.pc1, ego1_from_ego0=pair.ego1_from_ego0, ground0=pair.ground0,
                          ground1=pair.ground1, time0=pair.time0, time1=pair.time1, gap=horizon, dt=pair.dt)
@@ -134,7 +112,8 @@ def _sample(dataset, teacher, pair, index: int, horizon: int, tracker: bool) -> 
         "cluster": np.asarray(cluster, np.int32),
         "gt_flow": pair.flow, "gt_flow_valid": pair.flow_valid, "gt_classes": pair.classes,
         "gt_dynamic": pair.dynamic,
-        "attrs": {"sample_id": pair.sample_id or reader_id(dataset, index), "log_id": pair.log_id, "index": index,
+        "attrs": {"sample_id": pair.sample_id or sample_id_or_index(dataset, index), "log_id": pair.log_id,
+                  "index": index,
                   "timestamp0_ns": -1 if pair.timestamp0_ns is None else int(pair.timestamp0_ns),
                   "timestamp1_ns": -1 if pair.timestamp1_ns is None else int(pair.timestamp1_ns),
                   "dt": float(pair.dt)},
@@ -174,7 +153,8 @@ def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None, threa
                 pair = job.dataset.pair(index, horizon=job.horizon)
                 sample = _sample(job.dataset, teacher, pair, index, job.horizon, job.tracker)
             except Exception as error:  # any reader or teacher failure skips this sample only
-                sample_id = pair.sample_id if pair is not None and pair.sample_id else reader_id(job.dataset, index)
+                sample_id = (pair.sample_id if pair is not None and pair.sample_id
+                             else sample_id_or_index(job.dataset, index))
                 source = getattr(error, "filename", None) or sample_id
                 if isinstance(error, FramePairError):  # its message starts with the file it came from
                     source = str(error).split(": ", 1)[0]
@@ -189,14 +169,6 @@ def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None, threa
     write_shard(job.out_dir / name, samples, job.config_yaml, job.hash, job.compression)
     return {"shard": shard, "file": name, "samples": records, "failures": failures,
             "seconds": time.perf_counter() - start}
-
-
-def reader_id(dataset, index: int) -> str:
-    """The reader's ``sample_id(index)``, or ``index <index>`` when even that fails."""
-    try:
-        return dataset.sample_id(index)
-    except Exception:
-        return f"index {index}"
 
 
 def _state_path(out_dir: Path, shard: int) -> Path:
@@ -362,7 +334,7 @@ def _pool_results(job, todo, workers, threads, tick):
                             raise LabelError(f"a worker process died outside any sample of {shard_name(shard)} "
                                              f"(killed, or a crash loading the teacher); complete shards are kept")
                         tick(-counted)  # the retry counts them again
-                        sample_id = reader_id(job.dataset, crashed[0])
+                        sample_id = sample_id_or_index(job.dataset, crashed[0])
                         failure = {"index": crashed[0], "sample_id": sample_id, "file": sample_id, "reason": DIED}
                         queue.appendleft((shard, indices, {**lost, crashed[0]: failure}))
                         continue
@@ -420,7 +392,7 @@ def run_labelling(job: LabelJob, plan: list[tuple[int, list[int]]], workers: int
         raise LabelError(f"runner must be local or ray, got {runner!r}")
     start = time.perf_counter()
     prepare(job, plan, overwrite)
-    ids = {shard: [reader_id(job.dataset, i) for i in indices] for shard, indices in plan}
+    ids = {shard: [sample_id_or_index(job.dataset, i) for i in indices] for shard, indices in plan}
     results, todo = {}, []
     for shard, indices in plan:
         record = _done(job, shard, indices, ids[shard])

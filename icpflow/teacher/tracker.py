@@ -101,4 +101,29 @@ def _chain(steps, n0: int):
     return motion, confidence, alive
 
 
-__all__ = ["HorizonResult", "long_horizon_flow"]
+def sample_tracker_flow(teacher, dataset, index: int, horizon: int, pair=None) -> HorizonResult:
+    """Tracker mode on sample ``index`` of a reader (``icpflow.datasets.base.PairDataset``): the pairs
+    (t, t + j), j = 1 .. ``horizon``, chained with each scan's ground masks and per-point times and the seconds
+    between consecutive scans; ``pair`` is ``dataset.pair(index, horizon)`` when the caller already has it."""
+    pair = dataset.pair(index, horizon=horizon) if pair is None else pair
+    steps = [dataset.pair(index, horizon=j) for j in range(1, horizon)] + [pair]
+    if any(not np.array_equal(step.pc0, pair.pc0) for step in steps):
+        raise ValueError(f"tracker: the pairs (t, t + j), j < {horizon}, of this sample do not start at the same scan")
+    scans = [pair.pc0] + [step.pc1 for step in steps]
+    grounds = [pair.ground0] + [step.ground1 for step in steps]
+    if any(g is None for g in grounds):
+        grounds = None
+    times = [pair.time0] + [step.time1 for step in steps]
+    if any(t is None for t in times):
+        times = None
+    dts = [steps[0].dt] + [later.dt - earlier.dt for earlier, later in zip(steps, steps[1:])]
+    egos, previous = None, np.eye(4)
+    if all(step.ego1_from_ego0 is not None for step in steps):
+        egos = []
+        for step in steps:
+            egos.append(step.ego1_from_ego0 @ np.linalg.inv(previous))
+            previous = step.ego1_from_ego0
+    return long_horizon_flow(teacher, scans, egos, grounds, mode="tracker", times=times, dts=dts)
+
+
+__all__ = ["HorizonResult", "long_horizon_flow", "sample_tracker_flow"]
