@@ -22,6 +22,7 @@ import numpy as np
 
 from icpflow import metrics
 from icpflow.geometry import ego_flow, invert, relative_transform
+from icpflow.labelling.cli import teacher_config
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,19 +36,17 @@ VARIANTS = {
 }
 
 
-def dataset_teacher(name: str) -> tuple[str, dict]:
-    """The teacher preset and field overrides that ``conf/dataset/<name>.yaml`` gives label.py and eval.py."""
-    from omegaconf import OmegaConf
+def dataset_teacher(name: str, fields: dict) -> ICPFlowConfig:
+    """The teacher that ``label.py dataset=<name>`` runs (its preset and ``dataset.teacher``), with ``fields``."""
+    from hydra import compose, initialize_config_dir
 
-    node = OmegaConf.load(ROOT / "conf" / "dataset" / f"{name}.yaml")
-    teacher = node.get("teacher")
-    return str(node.preset), OmegaConf.to_container(teacher) if teacher else {}
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return teacher_config(compose("label", [f"dataset={name}"])).replace(**fields)
 
 
 def run_variant(overrides, pairs, dataset: str, crop: float, use_ground: bool, use_times: bool, base: dict):
     """(point-weighted table of ``icpflow.metrics``, median s/pair, mean EPE over each pair's ``dynamic`` points)."""
-    preset, fields = dataset_teacher(dataset)
-    teacher = None if overrides is None else ICPFlow(ICPFlowConfig.preset(preset, **{**fields, **base, **overrides}))
+    teacher = None if overrides is None else ICPFlow(dataset_teacher(dataset, {**base, **overrides}))
     scores, seconds, dynamic_errors = metrics.MetricAccumulator(), [], []
     if teacher is not None:  # warm-up: numba caches, hdbscan's worker pool
         teacher(pairs[0].pc0, pairs[0].pc1, pairs[0].ego1_from_ego0)
