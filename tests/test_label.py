@@ -165,9 +165,15 @@ def test_resume_after_sigkill_matches_uninterrupted_run(reference, tmp_path):
     _assert_same(reference, tmp_path)
 
 
+def _default_sigint() -> None:
+    """In the child before exec: Ctrl-C back to its default, so the test does not depend on how pytest was started
+    (a shell starts background jobs with SIGINT ignored, and an ignored SIGINT stays ignored across exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
     process = subprocess.Popen(_script(tmp_path, "workers=1"), cwd=tmp_path, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+                               stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
     deadline = time.monotonic() + 120
     while not (tmp_path / "shard_000000.h5.json").exists() and process.poll() is None:
         assert time.monotonic() < deadline
@@ -453,7 +459,7 @@ class SlowSynthetic(SyntheticDataset):
 def test_ctrl_c_to_the_process_group_with_two_workers(reference, tmp_path):
     args = [f"dataset.reader._target_=test_label.SlowSynthetic", "workers=2"]
     process = subprocess.Popen(_script(tmp_path, *args), cwd=tmp_path, env=TESTS_ENV, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, start_new_session=True)
+                               stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_default_sigint)
     deadline = time.monotonic() + 120
     while not (tmp_path / "shard_000000.h5.json").exists() and process.poll() is None:
         assert time.monotonic() < deadline
