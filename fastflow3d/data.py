@@ -29,6 +29,7 @@ import torch
 import yaml
 from torch.utils.data import DataLoader, Dataset
 
+from fastflow3d.augment import Augmentation
 from fastflow3d.model import compensate
 from icpflow.geometry import full_to_residual
 from icpflow.shards.reader import ShardDataset
@@ -46,10 +47,13 @@ class DataError(ValueError):
 
 
 class StudentDataset(Dataset):
-    """The samples of one shard directory (a ``label.py`` out_dir) as torch tensors (module docstring)."""
+    """The samples of one shard directory (a ``label.py`` out_dir) as torch tensors (module docstring); with
+    ``augment`` (training only) each read is a fresh random augmentation (``fastflow3d.augment``) drawn from torch's
+    random state (seeded per DataLoader worker by Lightning's ``seed_everything(workers=True)``)."""
 
-    def __init__(self, shard_dir):
+    def __init__(self, shard_dir, augment: Augmentation | None = None):
         self.root = Path(shard_dir)
+        self.augment = augment
         if not self.root.is_dir():
             raise DataError(f"{self.root}: shard directory does not exist")
         try:
@@ -64,6 +68,8 @@ class StudentDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict:
         raw = self.shards[index]
+        if self.augment is not None:
+            raw = self.augment(raw, np.random.default_rng(int(torch.randint(0, 2**62, (1,)).item())))
         pc0, ego = raw["pc0"], raw["ego1_from_ego0"]
         sample = {
             "pc0": torch.from_numpy(pc0),
@@ -119,17 +125,19 @@ def labeller_teacher(shard_dir) -> dict | None:
 
 
 class ShardDataModule(L.LightningDataModule):
-    """Train / val shard directories -> DataLoaders of flat batches (``workers`` loader processes per loader)."""
+    """Train / val shard directories -> DataLoaders of flat batches (``workers`` loader processes per loader);
+    ``augment`` (``Augmentation`` fields, or None) applies to the training samples only."""
 
-    def __init__(self, train, val, batch_size: int = 8, workers: int = 0):
+    def __init__(self, train, val, batch_size: int = 8, workers: int = 0, augment: dict | None = None):
         super().__init__()
         self.train_dir, self.val_dir = train, val
         self.batch_size, self.workers = int(batch_size), int(workers)
+        self.augment = Augmentation(**augment) if augment else None
         self.train_set = self.val_set = None
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit") and self.train_set is None:
-            self.train_set = StudentDataset(self.train_dir)
+            self.train_set = StudentDataset(self.train_dir, self.augment)
         if stage in (None, "fit", "validate") and self.val_set is None:
             self.val_set = StudentDataset(self.val_dir)
 

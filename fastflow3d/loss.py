@@ -1,45 +1,67 @@
-"""Training losses on flat batches: ZeroFlow distillation on pseudo-labels and a supervised loss on ground truth.
+"""Training losses on flat batches: EPE against a target flow (the teacher's pseudo-labels, or ground truth in
+comparison runs) with a choice of point weighting.
 
 All flows are ego-compensated (residual) flows (P, 3) in metres per frame gap; ``batch`` (P,) int64 gives each
-point's sample; ``valid`` (P,) bool marks the points that count (e.g. inside the grid).
+point's sample; ``valid`` (P,) bool marks the points that count (e.g. inside the grid); ``dt`` seconds, a number or
+(P,) per point. Weightings (``loss.weighting``):
+
+- ``uniform``: the mean EPE of each sample's points;
+- ``speed``: ZeroFlow's importance weight ``max(0.1, min(1, 1.8 v - 0.8))`` of the target speed v (m/s);
+- ``buckets``: the points of a sample are split by target speed at ``bucket_edges`` (m/s); the loss is the sum
+  over the non-empty buckets of their mean EPE. Static points keep the weight they have in ``uniform`` (the slowest
+  bucket's mean), and the few moving points get buckets of their own instead of drowning in the static majority.
+
+Every loss is a per-sample value averaged over the samples that have valid points.
 """
+
+from __future__ import annotations
 
 import torch
 
 from fastflow3d.scatter import scatter_sum
 
+WEIGHTINGS = ("uniform", "speed", "buckets")
 
-def speed_weight(pseudo: torch.Tensor, dt: float | torch.Tensor = 0.1) -> torch.Tensor:
-    """ZeroFlow's importance weight ``max(0.1, min(1, 1.8 v - 0.8))``, v = pseudo-label speed in m/s; (P,).
 
-    ``dt`` in seconds: a number, or (P,) per point (a batch mixing frame rates)."""
-    speed = torch.linalg.vector_norm(pseudo, dim=1) / dt
+def speed_weight(target: torch.Tensor, dt: float | torch.Tensor = 0.1) -> torch.Tensor:
+    """ZeroFlow's importance weight ``max(0.1, min(1, 1.8 v - 0.8))``, v = target speed in m/s; (P,)."""
+    speed = torch.linalg.vector_norm(target, dim=1) / dt
     return (1.8 * speed - 0.8).clamp(min=0.1, max=1.0)
 
 
-def weighted_epe(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor, batch: torch.Tensor,
-                 valid: torch.Tensor, batch_size: int) -> torch.Tensor:
-    """Per sample mean over valid points of ``weight * ||pred - target||_2``, averaged over samples with points."""
-    error = weight * torch.linalg.vector_norm(pred - target, dim=1)
+def speed_buckets(target: torch.Tensor, dt: float | torch.Tensor, edges) -> torch.Tensor:
+    """(P,) int64 bucket of each point's target speed (m/s): 0 below ``edges[0]``, ..., ``len(edges)`` above."""
+    speed = torch.linalg.vector_norm(target, dim=1) / dt
+    bounds = torch.as_tensor(list(edges), dtype=speed.dtype, device=speed.device)
+    return torch.bucketize(speed, bounds, right=True)
+
+
+def grouped_mean_sum(error: torch.Tensor, group: torch.Tensor, groups_per_sample: int, batch: torch.Tensor,
+                     valid: torch.Tensor, batch_size: int) -> torch.Tensor:
+    """Mean over samples (with valid points) of the sum over each sample's non-empty groups of the mean ``error``
+    (P,) of the group's valid points; ``group`` (P,) int64 in ``[0, groups_per_sample)``."""
     mask = valid.to(error.dtype)
-    sums = scatter_sum(torch.stack([error * mask, mask], dim=1), batch, batch_size)
-    has_points = sums[:, 1] > 0
-    per_sample = sums[:, 0] / sums[:, 1].clamp(min=1.0)
-    return (per_sample * has_points).sum() / has_points.sum().clamp(min=1)
+    slots = batch * groups_per_sample + group
+    sums = scatter_sum(torch.stack([error * mask, mask], dim=1), slots, batch_size * groups_per_sample)
+    sums = sums.reshape(batch_size, groups_per_sample, 2)
+    means = sums[..., 0] / sums[..., 1].clamp(min=1.0)
+    has_points = sums[..., 1].sum(dim=1) > 0
+    return means.sum(dim=1).sum() / has_points.sum().clamp(min=1)
 
 
-def distillation_loss(pred: torch.Tensor, pseudo: torch.Tensor, batch: torch.Tensor, valid: torch.Tensor,
-                      batch_size: int, use_speed_weight: bool = False, dt: float | torch.Tensor = 0.1,
-                      confidence: torch.Tensor | None = None) -> torch.Tensor:
-    """ZeroFlow loss on pseudo-labels; optional speed weight (``dt`` in s) and per-point confidence (P,) weight."""
-    weight = speed_weight(pseudo, dt) if use_speed_weight else torch.ones_like(pred[:, 0])
-    if confidence is not None:
-        weight = weight * confidence
-    return weighted_epe(pred, pseudo, weight, batch, valid, batch_size)
-
-
-def supervised_loss(pred: torch.Tensor, gt: torch.Tensor, foreground: torch.Tensor, batch: torch.Tensor,
-                    valid: torch.Tensor, batch_size: int, background_weight: float = 0.1) -> torch.Tensor:
-    """Loss on ground-truth residual flow; foreground (P,) bool points weigh 1, background ``background_weight``."""
-    weight = torch.where(foreground, torch.ones_like(pred[:, 0]), torch.full_like(pred[:, 0], background_weight))
-    return weighted_epe(pred, gt, weight, batch, valid, batch_size)
+def flow_loss(pred: torch.Tensor, target: torch.Tensor, batch: torch.Tensor, valid: torch.Tensor, batch_size: int,
+              weighting: str = "uniform", dt: float | torch.Tensor = 0.1, bucket_edges=(0.4, 1.0),
+              point_weight: torch.Tensor | None = None) -> torch.Tensor:
+    """EPE of ``pred`` against ``target`` with the module docstring's ``weighting``; ``point_weight`` (P,) (e.g. the
+    teacher's confidence, or a background weight) multiplies each point's error."""
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"loss.weighting must be one of {', '.join(WEIGHTINGS)}, got {weighting!r}")
+    error = torch.linalg.vector_norm(pred - target, dim=1)
+    if point_weight is not None:
+        error = error * point_weight
+    if weighting == "speed":
+        error = error * speed_weight(target, dt)
+    if weighting == "buckets":
+        group = speed_buckets(target, dt, bucket_edges)
+        return grouped_mean_sum(error, group, len(bucket_edges) + 1, batch, valid, batch_size)
+    return grouped_mean_sum(error, torch.zeros_like(batch), 1, batch, valid, batch_size)

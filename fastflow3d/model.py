@@ -23,6 +23,7 @@ DEFAULT_CONFIG = {
     "pillar_channels": 32,
     "stage_channels": (64, 128, 256),
     "stage_blocks": (3, 5, 5),
+    "norm": "batch",
 }
 XL_CONFIG = {**DEFAULT_CONFIG, "cell": 0.1, "pillar_channels": 64, "stage_channels": (128, 256, 512, 1024),
              "stage_blocks": (3, 5, 5, 5)}
@@ -33,16 +34,27 @@ def compensate(pc0: np.ndarray, ego1_from_ego0: np.ndarray) -> np.ndarray:
     return transform_points(ego1_from_ego0, pc0)
 
 
+NORMS = ("batch", "group")
+
+
+def norm_layer(norm: str, channels: int, embedder: bool = False) -> nn.Module:
+    """``batch``: BatchNorm (ZeroFlow's; the embedder's with eps 1e-3, momentum 0.01); ``group``: GroupNorm with
+    groups of 8 channels (one group over a point's channels in the embedder), which has no running statistics."""
+    if norm == "batch":
+        return nn.BatchNorm1d(channels, eps=1e-3, momentum=0.01) if embedder else nn.BatchNorm2d(channels)
+    return nn.GroupNorm(1 if embedder else max(1, channels // 8), channels)
+
+
 class ConvNormAct(nn.Sequential):
-    """Conv2d (with bias) + BatchNorm2d + GELU."""
+    """Conv2d (with bias) + norm (``norm_layer``) + GELU."""
 
-    def __init__(self, c_in: int, c_out: int, stride: int = 1):
-        super().__init__(nn.Conv2d(c_in, c_out, 3, stride, 1), nn.BatchNorm2d(c_out), nn.GELU())
+    def __init__(self, c_in: int, c_out: int, stride: int = 1, norm: str = "batch"):
+        super().__init__(nn.Conv2d(c_in, c_out, 3, stride, 1), norm_layer(norm, c_out), nn.GELU())
 
 
-def encoder_stage(c_in: int, c_out: int, blocks: int) -> nn.Sequential:
+def encoder_stage(c_in: int, c_out: int, blocks: int, norm: str = "batch") -> nn.Sequential:
     """One stride-2 conv c_in -> c_out then ``blocks`` convs c_out -> c_out (resolution halves)."""
-    return nn.Sequential(ConvNormAct(c_in, c_out, 2), *[ConvNormAct(c_out, c_out) for _ in range(blocks)])
+    return nn.Sequential(ConvNormAct(c_in, c_out, 2, norm), *[ConvNormAct(c_out, c_out, 1, norm) for _ in range(blocks)])
 
 
 class UpsampleSkip(nn.Module):
@@ -63,11 +75,11 @@ class UpsampleSkip(nn.Module):
 class UNet(nn.Module):
     """Shared encoder on both pseudo-images (B, C, H, W); skips concatenate both scans; output (B, 2C, H, W)."""
 
-    def __init__(self, pillar_channels: int, stage_channels, stage_blocks):
+    def __init__(self, pillar_channels: int, stage_channels, stage_blocks, norm: str = "batch"):
         super().__init__()
         widths = [pillar_channels, *stage_channels]
         self.encoder = nn.ModuleList(
-            encoder_stage(c_in, c_out, n) for c_in, c_out, n in zip(widths[:-1], widths[1:], stage_blocks))
+            encoder_stage(c_in, c_out, n, norm) for c_in, c_out, n in zip(widths[:-1], widths[1:], stage_blocks))
         skips = [2 * w for w in widths]  # concatenated widths, finest first
         self.decoder = nn.ModuleList(
             UpsampleSkip(skips[i + 1], skips[i], skips[i]) for i in reversed(range(len(skips) - 1)))
@@ -85,17 +97,18 @@ class UNet(nn.Module):
 
 
 class PillarEmbedder(nn.Module):
-    """Per-point Linear(9 -> C, no bias) + BatchNorm1d(eps 1e-3, momentum 0.01) + ReLU, mean per pillar."""
+    """Per-point Linear(9 -> C, no bias) + norm (BatchNorm1d(eps 1e-3, momentum 0.01), or a per-point GroupNorm)
+    + ReLU, mean per pillar."""
 
-    def __init__(self, channels: int):
+    def __init__(self, channels: int, norm: str = "batch"):
         super().__init__()
         self.linear = nn.Linear(9, channels, bias=False)
-        self.norm = nn.BatchNorm1d(channels, eps=1e-3, momentum=0.01)
+        self.norm = norm_layer(norm, channels, embedder=True)
 
     def forward(self, features: torch.Tensor, ids: torch.Tensor, valid: torch.Tensor, num_slots: int):
         """Pillar rows (num_slots, C) from point features (P, 9); batch statistics use in-range points only."""
         h = self.linear(features)
-        if self.training:
+        if self.training and isinstance(self.norm, nn.BatchNorm1d):
             normed = torch.zeros_like(h)
             normed[valid] = self.norm(h[valid])
         else:
@@ -112,16 +125,18 @@ class FastFlow3D(nn.Module):
     def __init__(self, x_range=DEFAULT_CONFIG["x_range"], y_range=DEFAULT_CONFIG["y_range"],
                  z_range=DEFAULT_CONFIG["z_range"], cell=DEFAULT_CONFIG["cell"],
                  pillar_channels=DEFAULT_CONFIG["pillar_channels"], stage_channels=DEFAULT_CONFIG["stage_channels"],
-                 stage_blocks=DEFAULT_CONFIG["stage_blocks"]):
+                 stage_blocks=DEFAULT_CONFIG["stage_blocks"], norm=DEFAULT_CONFIG["norm"]):
         super().__init__()
+        if norm not in NORMS:
+            raise ValueError(f"FastFlow3D: norm must be one of {', '.join(NORMS)}, got {norm!r}")
         if len(stage_channels) != len(stage_blocks):
             raise ValueError(f"FastFlow3D: {len(stage_channels)} stage_channels but {len(stage_blocks)} stage_blocks")
         self.grid = Grid(tuple(x_range), tuple(y_range), tuple(z_range), float(cell))
         factor = 2 ** len(stage_channels)
         if self.grid.nx % factor or self.grid.ny % factor:
             raise ValueError(f"FastFlow3D: grid {self.grid.nx}x{self.grid.ny} not divisible by {factor}")
-        self.embedder = PillarEmbedder(pillar_channels)
-        self.unet = UNet(pillar_channels, tuple(stage_channels), tuple(stage_blocks))
+        self.embedder = PillarEmbedder(pillar_channels, norm)
+        self.unet = UNet(pillar_channels, tuple(stage_channels), tuple(stage_blocks), norm)
         self.head = nn.Sequential(nn.Linear(4 * pillar_channels + 3, 32), nn.GELU(), nn.Linear(32, 3))
 
     def embed(self, points: torch.Tensor, batch: torch.Tensor, batch_size: int):

@@ -2,9 +2,10 @@
 metrics.
 
 Config keys read (``conf/train.yaml``): ``model`` (FastFlow3D, see ``fastflow3d.checkpoint``), ``loss`` (``name``:
-``distillation`` on the teacher's pseudo-labels with optional ``speed_weight`` / ``confidence_weight``, or
-``supervised`` on ground truth with ``background_weight``), ``optim`` (Adam ``lr``, ``weight_decay``; MultiStepLR
-``milestones`` in epochs and ``gamma``), ``metrics`` (``crop``, ``bev_every``), ``data.remove_ground`` and ``out_dir``.
+``distillation`` on the teacher's pseudo-labels, optionally weighted by their ``confidence_weight``, or
+``supervised`` on ground truth with ``background_weight``; ``weighting`` and ``bucket_edges``, see
+``fastflow3d.loss``), ``optim`` and ``scheduler`` (Hydra ``_partial_``
+targets, ``conf/optim``, ``conf/scheduler``; the schedule is counted in optimiser steps), ``metrics`` (``crop``, ``bev_every``), ``data.remove_ground`` and ``out_dir``.
 
 With ``data.remove_ground`` (ZeroFlow's setting) the network sees only the non-ground points of pc0 and pc1 (the
 shards' ``ground0`` / ``ground1``); ground pc0 points get residual 0 (full flow = ego flow) and are left out of the
@@ -26,10 +27,11 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
+from hydra.utils import instantiate
 
 from fastflow3d.checkpoint import build_student
 from fastflow3d.data import split_samples
-from fastflow3d.loss import distillation_loss, supervised_loss
+from fastflow3d.loss import flow_loss
 from icpflow import metrics
 from icpflow.frames import FramePair
 from icpflow.geometry import residual_to_full
@@ -65,16 +67,21 @@ class StudentModule(L.LightningModule):
         return residual, valid
 
     def loss(self, pred: torch.Tensor, valid: torch.Tensor, batch: dict) -> torch.Tensor:
-        """The configured loss of residual predictions (P0, 3) on the points the network predicted (``valid``)."""
+        """The configured loss of residual predictions (P0, 3) on the points the network predicted (``valid``):
+        against the pseudo-labels (``distillation``) or the ground truth (``supervised``, background points
+        weighted by ``background_weight``), weighted as ``loss.weighting`` says (``fastflow3d.loss``)."""
         options, size = self.cfg["loss"], batch["batch_size"]
+        dt = batch["dt"].to(pred.dtype)[batch["batch0"]]
+        weighting = {"weighting": options["weighting"], "dt": dt, "bucket_edges": options["bucket_edges"]}
         if options["name"] == "supervised":
             if "gt" not in batch:
                 raise ValueError(f"loss.name=supervised needs ground truth, but samples {batch['sample_id']} have none")
-            return supervised_loss(pred, batch["gt"], batch["gt_classes"] > 0, batch["batch0"],
-                                   valid & batch["gt_valid"], size, options["background_weight"])
-        return distillation_loss(pred, batch["pseudo"], batch["batch0"], valid, size,
-                                 use_speed_weight=options["speed_weight"], dt=batch["dt"].float()[batch["batch0"]],
-                                 confidence=batch["confidence"] if options["confidence_weight"] else None)
+            background = torch.full_like(pred[:, 0], float(options["background_weight"]))
+            weight = torch.where(batch["gt_classes"] > 0, torch.ones_like(background), background)
+            return flow_loss(pred, batch["gt"], batch["batch0"], valid & batch["gt_valid"], size, **weighting,
+                             point_weight=weight)
+        confidence = batch["confidence"] if options["confidence_weight"] else None
+        return flow_loss(pred, batch["pseudo"], batch["batch0"], valid, size, **weighting, point_weight=confidence)
 
     def training_step(self, batch: dict, batch_index: int) -> torch.Tensor:
         pred, valid = self(batch)
@@ -153,8 +160,9 @@ class StudentModule(L.LightningModule):
     # ------------------------------------------------------------------------------------------------ optimiser
 
     def configure_optimizers(self):
-        options = self.cfg["optim"]
-        optimiser = torch.optim.Adam(self.parameters(), lr=options["lr"], weight_decay=options["weight_decay"])
-        schedule = torch.optim.lr_scheduler.MultiStepLR(optimiser, milestones=list(options["milestones"]),
-                                                        gamma=options["gamma"])
-        return {"optimizer": optimiser, "lr_scheduler": {"scheduler": schedule, "interval": "epoch"}}
+        """``optim`` and ``scheduler`` are Hydra ``_partial_`` targets: ``optim(params)`` and
+        ``scheduler(optimiser, total_steps=...)`` (``fastflow3d.schedules``), stepped every optimiser step."""
+        optimiser = instantiate(self.cfg["optim"])(self.parameters())
+        total_steps = int(self.trainer.estimated_stepping_batches)
+        schedule = instantiate(self.cfg["scheduler"])(optimiser, total_steps=total_steps)
+        return {"optimizer": optimiser, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}

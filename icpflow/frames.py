@@ -221,12 +221,13 @@ class FrameSequence:
             world = transform_points(self.poses[t], pc0.astype(np.float64))
             instance = self.instance[t]
             moved = world.copy()
-            for inst in np.unique(instance):
+            order = np.argsort(instance, kind="stable")  # each instance's rows, found in one pass
+            ids, starts = np.unique(instance[order], return_index=True)
+            for inst, rows in zip(ids, np.split(order, starts[1:])):
                 if inst == 0 or int(inst) not in self.object_poses:
                     continue
                 obj = self.object_poses[int(inst)]
-                mask = instance == inst
-                moved[mask] = transform_points(obj[t + k] @ invert(obj[t]), world[mask])
+                moved[rows] = transform_points(obj[t + k] @ invert(obj[t]), world[rows])
             at_t1 = transform_points(ego1_from_world, moved)
             flow = (at_t1 - pc0.astype(np.float64)).astype(np.float32)
             dt = (self.timestamps_ns[t + k] - self.timestamps_ns[t]) * 1e-9

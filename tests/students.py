@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from fastflow3d.loss import distillation_loss
+from fastflow3d.loss import flow_loss
 from fastflow3d.model import FastFlow3D, compensate
 
 
@@ -25,7 +25,7 @@ def tiny_checkpoint(path, model_cfg: dict, pair, steps: int, keep0=None, keep1=N
     optimiser = torch.optim.Adam(model.parameters(), lr=2e-3)
     for _ in range(steps):
         residual, valid = model(pc0, batch0, pc1, batch1, 1)
-        loss = distillation_loss(residual, target, batch0, valid, 1)
+        loss = flow_loss(residual, target, batch0, valid, 1)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()

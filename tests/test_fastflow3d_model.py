@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.loss import distillation_loss, speed_weight, supervised_loss
+from fastflow3d.loss import flow_loss, speed_weight
 from fastflow3d.model import FastFlow3D, compensate
 from fastflow3d.scatter import scatter_mean, scatter_sum
 from fastflow3d.voxelize import Grid, voxelize
@@ -95,7 +95,7 @@ def test_gradients_reach_every_parameter():
     pc0, b0 = flat_batch([torch.rand(300, 3, generator=gen) * 14 - 7, torch.rand(200, 3, generator=gen) * 14 - 7])
     pc1, b1 = flat_batch([torch.rand(300, 3, generator=gen) * 14 - 7, torch.rand(200, 3, generator=gen) * 14 - 7])
     residual, valid = model(pc0, b0, pc1, b1, batch_size=2)
-    distillation_loss(residual, torch.randn_like(residual), b0, valid, 2).backward()
+    flow_loss(residual, torch.randn_like(residual), b0, valid, 2).backward()
     missing = [n for n, p in model.named_parameters() if p.grad is None or not torch.any(p.grad != 0)]
     assert missing == []
 
@@ -178,30 +178,37 @@ def test_speed_weight_hand_values():
     torch.testing.assert_close(speed_weight(pseudo, dt=0.1), torch.tensor([0.1, 0.1, 0.55, 1.0, 1.0]))
 
 
-def test_distillation_loss_hand_cases():
+def test_flow_loss_hand_cases():
     pred = torch.tensor([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [9.0, 9.0, 9.0], [0.0, 2.0, 0.0]])
     pseudo = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
     batch = torch.tensor([0, 0, 0, 0, 1])
     valid = torch.tensor([True, True, True, False, True])
     # sample 0: errors 5, 1, 1 (the invalid point is ignored) -> 7/3; sample 1: 2; batch mean (7/3 + 2) / 2
-    plain = distillation_loss(pred, pseudo, batch, valid, batch_size=2)
+    plain = flow_loss(pred, pseudo, batch, valid, batch_size=2)
     assert plain.item() == pytest.approx((7 / 3 + 2) / 2)
     # speed weight: pseudo speeds 0, 10, 0, -, 0 m/s -> weights 0.1, 1, 0.1, -, 0.1
-    weighted = distillation_loss(pred, pseudo, batch, valid, batch_size=2, use_speed_weight=True)
+    weighted = flow_loss(pred, pseudo, batch, valid, batch_size=2, weighting="speed")
     assert weighted.item() == pytest.approx(((0.5 + 1 + 0.1) / 3 + 0.2) / 2)
+    # buckets at 0.4 and 1.0 m/s: sample 0 has static errors 5, 1 (mean 3) and one fast point (error 1) -> 3 + 1
+    buckets = flow_loss(pred, pseudo, batch, valid, batch_size=2, weighting="buckets", bucket_edges=(0.4, 1.0))
+    assert buckets.item() == pytest.approx((3 + 1 + 2) / 2)
     confidence = torch.tensor([0.0, 1.0, 0.5, 1.0, 0.25])
-    conf = distillation_loss(pred, pseudo, batch, valid, batch_size=2, confidence=confidence)
+    conf = flow_loss(pred, pseudo, batch, valid, batch_size=2, point_weight=confidence)
     assert conf.item() == pytest.approx(((0 + 1 + 0.5) / 3 + 0.5) / 2)
     # an empty sample does not count in the batch mean
-    empty = distillation_loss(pred, pseudo, batch, valid, batch_size=3)
+    empty = flow_loss(pred, pseudo, batch, valid, batch_size=3)
     assert empty.item() == pytest.approx(plain.item())
+    with pytest.raises(ValueError, match="loss.weighting must be one of"):
+        flow_loss(pred, pseudo, batch, valid, batch_size=2, weighting="chamfer")
 
 
-def test_supervised_loss_weights_background():
-    pred = torch.tensor([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
-    gt = torch.zeros(2, 3)
-    loss = supervised_loss(pred, gt, torch.tensor([True, False]), torch.tensor([0, 0]), torch.tensor([True, True]), 1)
-    assert loss.item() == pytest.approx((1.0 + 0.1 * 2.0) / 2)
+def test_bucket_loss_speeds_use_each_points_dt():
+    """0.05 m is 0.5 m/s at dt 0.1 s (the middle bucket) but 1 m/s at dt 0.05 s (the fast bucket)."""
+    from fastflow3d.loss import speed_buckets
+
+    target = torch.tensor([[0.05, 0.0, 0.0], [0.05, 0.0, 0.0], [0.01, 0.0, 0.0], [0.2, 0.0, 0.0]])
+    dt = torch.tensor([0.1, 0.05, 0.1, 0.1])
+    assert speed_buckets(target, dt, (0.4, 1.0)).tolist() == [1, 2, 0, 2]
 
 
 def synthetic_pair(seed):
@@ -233,7 +240,7 @@ def test_overfit_one_synthetic_pair():
     for _ in range(150):
         pred, valid = model(*inputs)
         epes.append(torch.linalg.vector_norm(pred - target, dim=1)[valid].mean().item())
-        loss = distillation_loss(pred, target, inputs[1], valid, 1)
+        loss = flow_loss(pred, target, inputs[1], valid, 1)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()

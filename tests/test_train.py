@@ -30,7 +30,7 @@ from icpflow.teacher.config import ICPFlowConfig
 
 REPO = Path(__file__).resolve().parents[1]
 CONF = REPO / "conf"
-GROUPS = ("data", "model", "trainer", "logger", "callbacks", "experiment")
+GROUPS = ("data", "model", "trainer", "logger", "callbacks", "optim", "scheduler", "experiment")
 # 32 x 32 pillars of 1 m and narrow encoders: a training step takes milliseconds
 TINY = ["model.x_range=[-16.0,16.0]", "model.y_range=[-16.0,16.0]", "model.cell=1.0", "model.pillar_channels=16",
         "model.stage_channels=[16,32,64]", "data.workers=0", "trainer.log_every_n_steps=1",
@@ -68,6 +68,14 @@ def test_every_config_composes(group, option, tmp_path):
                for c in callbacks)
     assert str(Path(cfg.checkpoint_dir).parent) == str(tmp_path)
     assert isinstance(instantiate(cfg.logger), L.pytorch.loggers.TensorBoardLogger)
+    # optimiser and schedule are partials: optim(params), scheduler(optimiser, total_steps=...)
+    weight = torch.nn.Parameter(torch.zeros(1))
+    optimiser = instantiate(cfg.optim)(params=[weight])
+    schedule = instantiate(cfg.scheduler)(optimiser, total_steps=50)
+    for _ in range(50):
+        optimiser.step()
+        schedule.step()
+    assert all(group["lr"] >= 0 for group in optimiser.param_groups)
 
 
 def test_model_configs_build_the_issue_networks():
@@ -111,10 +119,11 @@ def test_xl_config_is_zeroflows_and_runs_forward_and_backward():
 
 def test_experiment_recipes():
     paper = _compose("experiment=paper")
-    assert paper.optim.lr == 2e-4 and list(paper.optim.milestones) == [25] and paper.optim.gamma == 0.1
+    assert paper.optim.lr == 2e-4 and paper.optim._target_ == "torch.optim.Adam"
+    assert list(paper.scheduler.milestones) == [0.5] and paper.scheduler.gamma == 0.1  # x0.1 after 25 of 50 epochs
     assert paper.trainer.max_epochs == 50 and paper.model.cell == 0.2
     zeroflow = _compose("experiment=zeroflow")
-    assert zeroflow.optim.lr == 2e-6
+    assert zeroflow.optim.lr == 2e-6 and list(zeroflow.scheduler.milestones) == [] and zeroflow.data.augment is None
     assert zeroflow.data.batch_size * zeroflow.trainer.accumulate_grad_batches == 64
     quick = _compose()  # python train.py with no arguments
     assert quick.data.train == "outputs/labels/synthetic/train" and quick.data.val == "outputs/labels/synthetic/val"
@@ -206,12 +215,15 @@ def test_loss_choice_per_sample_dt_and_confidence():
         module = StudentModule({**cfg, "loss": {**cfg["loss"], **options}})
         return module.loss(pred, valid, batch).item()
 
-    assert loss() == pytest.approx((0.025 + 0.025) / 2)
+    assert loss(weighting="uniform") == pytest.approx((0.025 + 0.025) / 2)
     # 0.05 m is 0.5 m/s at dt 0.1 s (weight 0.1) but 1 m/s at dt 0.05 s (weight 1)
-    assert loss(speed_weight=True) == pytest.approx((0.1 * 0.05 / 2 + 1.0 * 0.05 / 2) / 2)
-    assert loss(confidence_weight=True) == pytest.approx((0.05 / 2 + 0.5 * 0.05 / 2) / 2)
-    # supervised: background weighs 0.1; all errors are 1
-    assert loss(name="supervised") == pytest.approx(((1 + 0.1) / 2 + (0.1 + 0.1) / 2) / 2)
+    assert loss(weighting="speed") == pytest.approx((0.1 * 0.05 / 2 + 1.0 * 0.05 / 2) / 2)
+    # buckets (0.4, 1.0 m/s): each sample has one static point (error 0) and one moving point (error 0.05)
+    assert loss(weighting="buckets") == pytest.approx((0.05 + 0.05) / 2)
+    assert loss(weighting="uniform", confidence_weight=True) == pytest.approx((0.05 / 2 + 0.5 * 0.05 / 2) / 2)
+    # supervised: background weighs background_weight; all errors are 1
+    assert loss(name="supervised", weighting="uniform", background_weight=0.1) == pytest.approx(
+        ((1 + 0.1) / 2 + (0.1 + 0.1) / 2) / 2)
     with pytest.raises(ValueError, match="loss.name must be one of"):
         loss(name="chamfer")
 
@@ -289,7 +301,7 @@ def test_fast_dev_run_against_gt_and_pseudo(shards, tmp_path):
     assert metrics["val/against_gt"] == 1.0 and np.isfinite(metrics["val/dynamic_fg/EPE"].item())
     assert {"val/static_fg/EPE", "val/static_bg/EPE", "val/dynamic_fg/AccS", "val/dynamic_fg/AccR"} <= set(metrics)
     trainer = fit(_cfg(tmp_path, shards["gt"], shards["pseudo"], "trainer.fast_dev_run=true",
-                       "loss.speed_weight=true", "loss.confidence_weight=true", "data.remove_ground=false"))
+                       "loss.weighting=speed", "loss.confidence_weight=true", "data.remove_ground=false"))
     assert trainer.callback_metrics["val/against_gt"] == 0.0
     with pytest.raises(TrainError, match="supervised needs ground truth"):
         fit(_cfg(tmp_path, shards["pseudo"], shards["pseudo"], "trainer.fast_dev_run=true", "loss.name=supervised"))
@@ -334,7 +346,7 @@ def test_tensorboard_holds_loss_lr_val_metrics_and_bev(shards, tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=4", "trainer.val_check_interval=2",
-               "data.batch_size=1", "metrics.bev_every=1")
+               "data.batch_size=1", "metrics.bev_every=1", "scheduler=constant")
     trainer = fit(cfg)
     assert trainer.lightning_module.validations == 2
     files = list((tmp_path / "run" / "tensorboard").rglob("events.out.tfevents.*"))
@@ -364,7 +376,7 @@ def test_epoch_based_run_validates_its_last_batch(shards, tmp_path):
 
 def test_overfit_one_pair_drives_dynamic_epe_down(shards, tmp_path):
     cfg = _cfg(tmp_path, shards["one"], shards["one"], "trainer.max_steps=150", "trainer.val_check_interval=150",
-               "optim.lr=1e-3", "loss.speed_weight=true", "metrics.bev_every=0", "metrics.crop=16.0")
+               "optim.lr=1e-3", "loss.weighting=speed", "metrics.bev_every=0", "metrics.crop=16.0")
     before = L.Trainer(logger=False, enable_progress_bar=False, enable_model_summary=False).validate(
         StudentModule(OmegaConf.to_container(cfg, resolve=True)), datamodule=_datamodule(cfg), verbose=False)[0]
     trainer = fit(cfg)
