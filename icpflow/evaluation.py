@@ -399,7 +399,7 @@ def write_horizon_results(results: dict[int, EvaluationResult], out_dir, weighti
 
 
 def _write_json_csv(out_dir, document: dict, rows: list[dict], columns: list[str]) -> tuple[Path, Path]:
-    from icpflow.shards.writer import write_text_atomic
+    from icpflow.atomic import write_text_atomic
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -22,7 +22,8 @@ from icpflow.datasets.base import sample_id_or_index
 from icpflow.frames import FramePairError
 from icpflow.shards.schema import shard_name
 from icpflow.shards.verify import ShardError, verify_shard
-from icpflow.shards.writer import write_failures, write_index, write_shard, write_text_atomic
+from icpflow.atomic import write_text_atomic
+from icpflow.shards.writer import write_failures, write_index, write_shard
 
 #: failure reason of a sample during which a worker process died
 DIED = ("WorkerDied: the worker process died labelling this sample (killed, e.g. out of memory, or crashed in "
