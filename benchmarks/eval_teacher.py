@@ -22,7 +22,7 @@ import numpy as np
 
 from icpflow import metrics
 from icpflow.geometry import ego_flow, invert, relative_transform
-from icpflow.labelling.cli import teacher_config
+from icpflow.teacher.config import teacher_config
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -10,7 +10,7 @@ from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
 from icpflow.datasets.base import PairDataset
-from icpflow.labelling.cli import teacher_config
+from icpflow.teacher.config import teacher_config
 from icpflow.teacher import ICPFlowConfig
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"

@@ -19,7 +19,8 @@ from hydra import compose, initialize_config_dir
 
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.frames import FramePairError
-from icpflow.labelling.cli import label, teacher_config
+from icpflow.labelling.cli import label
+from icpflow.teacher.config import teacher_config
 from icpflow.labelling.run import DIED, LabelJob, available_cores, label_shard, thread_limit
 from icpflow.shards import ShardDataset, verify_shard
 from icpflow.teacher import ICPFlow

@@ -227,4 +227,25 @@ def from_hydra(node) -> ICPFlowConfig:
     return ICPFlowConfig.preset(preset, **overrides)
 
 
-__all__ = ["ICPFlowConfig", "PRESETS", "from_hydra"]
+def teacher_config(cfg) -> ICPFlowConfig:
+    """The teacher of a run config (label.py's, eval.py's): the dataset's preset, then ``dataset.teacher``, then the
+    non-null ``icpflow.*`` fields.
+
+    A ``dataset.teacher`` key that is not a teacher field is an error (ValueError naming it).
+    """
+    from omegaconf import OmegaConf
+
+    known = {f.name for f in fields(ICPFlowConfig)}
+    block = cfg.dataset.get("teacher")
+    per_dataset = OmegaConf.to_container(block, resolve=True) if block is not None else {}
+    unknown = sorted(set(per_dataset) - known)
+    if unknown:
+        raise ValueError(f"dataset {cfg.dataset.name}: dataset.teacher has keys that are not ICPFlowConfig fields: "
+                         f"{', '.join(unknown)}")
+    values = dict(per_dataset)
+    chosen = OmegaConf.to_container(cfg.icpflow, resolve=True)
+    values.update({key: value for key, value in chosen.items() if value is not None})
+    return from_hydra(values)
+
+
+__all__ = ["ICPFlowConfig", "PRESETS", "from_hydra", "teacher_config"]
