@@ -87,8 +87,16 @@ def measure_parity(net: SingleSampleNet, runner) -> float:
     return worst
 
 
-def export_model(model: FastFlow3D, out_dir: str | os.PathLike, formats=FORMATS, *, model_config: dict | None = None,
-                 checkpoint=None, preprocessing: dict | None = None, tolerance: float = PARITY_TOLERANCE) -> dict:
+def export_model(
+    model: FastFlow3D,
+    out_dir: str | os.PathLike,
+    formats=FORMATS,
+    *,
+    model_config: dict | None = None,
+    checkpoint=None,
+    preprocessing: dict | None = None,
+    tolerance: float = PARITY_TOLERANCE,
+) -> dict:
     """Export ``model`` (eval mode is set) in ``formats`` to ``out_dir``; returns the metadata written.
 
     Each export is loaded back and compared with eager on random clouds of several sizes; an export off by more
@@ -111,14 +119,16 @@ def export_model(model: FastFlow3D, out_dir: str | os.PathLike, formats=FORMATS,
             try:
                 WRITERS[name](net, path, example)
             except ImportError:  # the ONNX exporter without onnxscript
-                raise ExportError("ONNX export needs onnx, onnxscript and onnxruntime: pip install 'icpflow[export]'"
-                                  ) from None
+                raise ExportError(
+                    "ONNX export needs onnx, onnxscript and onnxruntime: pip install 'icpflow[export]'"
+                ) from None
             runner = OnnxRuntimeNetwork(path, ["CPUExecutionProvider"]) if name == "onnx" else load_network(path, name)
             error = measure_parity(net, runner)
         if not error <= tolerance:
             path.unlink()
-            raise ExportError(f"{path}: {name} export differs from eager by {error:.3g} m (> {tolerance:g} m); "
-                              "not kept")
+            raise ExportError(
+                f"{path}: {name} export differs from eager by {error:.3g} m (> {tolerance:g} m); not kept"
+            )
         metadata["files"][name] = {"path": path.name, "sha256": sha256_file(path)}
         metadata["parity_max_abs_m"][name] = error
     if "onnx" in formats:
@@ -127,8 +137,7 @@ def export_model(model: FastFlow3D, out_dir: str | os.PathLike, formats=FORMATS,
     return metadata
 
 
-def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None,
-                      formats=FORMATS) -> Path:
+def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None, formats=FORMATS) -> Path:
     """Export a training checkpoint (``fastflow3d.checkpoint.load_student``); ``out_dir`` defaults to
     ``<checkpoint's directory>/export``. Returns the export directory."""
     from fastflow3d.checkpoint import load_student
@@ -138,8 +147,14 @@ def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike 
         raise ExportError(f"{checkpoint}: checkpoint not found")
     model, cfg = load_student(checkpoint, map_location="cpu")
     out_dir = checkpoint.parent / "export" if out_dir is None else Path(out_dir)
-    export_model(model, out_dir, formats, model_config=dict(cfg.get("model") or {}), checkpoint=checkpoint,
-                 preprocessing=preprocessing_metadata(cfg))
+    export_model(
+        model,
+        out_dir,
+        formats,
+        model_config=dict(cfg.get("model") or {}),
+        checkpoint=checkpoint,
+        preprocessing=preprocessing_metadata(cfg),
+    )
     return out_dir
 
 
@@ -166,7 +181,9 @@ def run_export(cfg) -> int:
         return 2
     metadata = json.loads((out_dir / METADATA_NAME).read_text())
     for name, entry in metadata["files"].items():
-        print(f"export: {name} -> {out_dir / entry['path']} (max |export - eager| "
-              f"{metadata['parity_max_abs_m'][name]:.2e} m)")
+        print(
+            f"export: {name} -> {out_dir / entry['path']} (max |export - eager| "
+            f"{metadata['parity_max_abs_m'][name]:.2e} m)"
+        )
     print(f"export: metadata -> {out_dir / METADATA_NAME}")
     return 0

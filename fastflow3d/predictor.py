@@ -3,9 +3,10 @@
 ``path`` is an export directory (``metadata.json`` plus ``fastflow3d.onnx`` and/or ``fastflow3d.pt2``, see
 ``fastflow3d.artifact``), one exported file (``.onnx`` runs in ONNX Runtime, ``.pt2`` is a ``torch.export`` program,
 ``.pt`` a TorchScript export of an older version) or a training checkpoint (``.ckpt``, run eagerly). The predictor
-moves pc0 into the ego frame of t + dt with ``ego1_from_ego0``, runs the network, which gives the residual (ego-compensated) flow, and adds the ego flow back, so the result is
-FULL flow in the project convention (``pc0 + flow`` is the position at t + dt in the ego frame of t + dt). Points
-outside the network's grid get the ego flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the
+moves pc0 into the ego frame of t + dt with ``ego1_from_ego0``, runs the network, which gives the residual
+(ego-compensated) flow, and adds the ego flow back, so the result is FULL flow in the project convention
+(``pc0 + flow`` is the position at t + dt in the ego frame of t + dt). Points outside the network's grid get the ego
+flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the
 two scans with the teacher's step (KISS-ICP, then point-to-plane refinement; ``icpflow.teacher.ego_motion``).
 
 A model trained with ground removal (``preprocessing.remove_ground`` in its metadata, ``data.remove_ground`` in its

@@ -126,8 +126,8 @@ def _write_labels(out_dir: Path, dataset, flows, shift: float = 0.0) -> None:
     samples = []
     for i, flow in enumerate(flows):
         pair = dataset[i]
-        samples.append({"pc0": pair.pc0 + np.float32(shift), "pc1": pair.pc1, "ground0": pair.ground0, "ground1": pair.ground1,
-                        "ego1_from_ego0": pair.ego1_from_ego0, "flow": flow,
+        samples.append({"pc0": pair.pc0 + np.float32(shift), "pc1": pair.pc1, "ground0": pair.ground0,
+                        "ground1": pair.ground1, "ego1_from_ego0": pair.ego1_from_ego0, "flow": flow,
                         "confidence": np.ones(len(pair.pc0), np.float32),
                         "cluster": np.zeros(len(pair.pc0), np.int32),
                         "attrs": {"sample_id": pair.sample_id, "log_id": pair.log_id, "index": i,
@@ -186,9 +186,9 @@ def test_readers_taking_max_horizon_get_the_largest_horizon():
 
 
 def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
+    from icpflow.teacher import ICPFlow
     from icpflow.teacher.config import teacher_config
     from icpflow.teacher.tracker import sample_tracker_flow
-    from icpflow.teacher import ICPFlow
 
     cfg = _cfg(tmp_path, "method=[zero,icpflow]", "horizon=1..2", "tracker=[false,true]", "bev=1")
     assert run_eval(cfg, progress=False) == 0

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import torch
 
+from fastflow3d.artifact import FILE_NAMES, METADATA_NAME, ArtifactError, SingleSampleNet, sha256_file
 from fastflow3d.checkpoint import load_student
 from fastflow3d.data import TEACHER_FIELDS
-from fastflow3d.artifact import FILE_NAMES, METADATA_NAME, ArtifactError, SingleSampleNet, sha256_file
 from fastflow3d.export import export_checkpoint, run_export
 from fastflow3d.infer import main as infer_main
 from fastflow3d.model import compensate

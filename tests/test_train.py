@@ -16,9 +16,9 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from fastflow3d.artifact import FILE_NAMES, METADATA_NAME
 from fastflow3d.checkpoint import CheckpointError, build_student, load_student
 from fastflow3d.data import TEACHER_FIELDS, DataError, StudentDataset, collate
-from fastflow3d.artifact import FILE_NAMES, METADATA_NAME
 from fastflow3d.model import FastFlow3D
 from fastflow3d.module import StudentModule
 from fastflow3d.training import TrainError, fit
