@@ -31,12 +31,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
 from fastflow3d.artifact import FILE_NAMES, OnnxRuntimeNetwork, SingleSampleNet, TorchNetwork, load_network
+from fastflow3d.checkpoint import build_student
 from fastflow3d.export import PARITY_TOLERANCE, export_model
 from fastflow3d.model import FastFlow3D
 from fastflow3d.predictor import Predictor
 from icpflow.geometry import make_transform
+
+#: the paper's FastFlow3D settings (the one place of the model's settings); --cell changes the pillar size
+PAPER_MODEL = Path(__file__).resolve().parents[1] / "conf" / "model" / "fastflow3d.yaml"
 
 
 def random_scan(points: int, seed: int) -> np.ndarray:
@@ -122,7 +127,7 @@ def main():
     unknown = sorted(set(backends) - {"eager", "compile", "pt2", "onnx"})
     if unknown:
         sys.exit(f"bench_latency: unknown backend(s) {', '.join(unknown)}; use eager, compile, pt2, onnx")
-    model = FastFlow3D(cell=args.cell).eval()
+    model = build_student({**OmegaConf.to_container(OmegaConf.load(PAPER_MODEL)), "cell": args.cell}).eval()
     pc0, pc1 = random_scan(args.points, 0), random_scan(args.points, 1)
     ego = make_transform(yaw=0.01, translation=(1.0, 0.05, 0.0))
     load = os.getloadavg()

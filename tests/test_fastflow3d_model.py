@@ -1,8 +1,11 @@
 """FastFlow3D student: voxelisation, scatter, model shapes/params/gradients, export parity, losses, overfitting."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from fastflow3d.loss import distillation_loss, speed_weight, supervised_loss
 from fastflow3d.model import FastFlow3D, compensate
@@ -10,7 +13,12 @@ from fastflow3d.scatter import scatter_mean, scatter_sum
 from fastflow3d.voxelize import Grid, voxelize
 from icpflow.geometry import make_transform, residual_to_full, transform_points
 
+#: FastFlow3D's arguments as conf/model/fastflow3d.yaml (the one place of the model's settings) gives them
+PAPER = {key: value for key, value in yaml.safe_load(
+    (Path(__file__).resolve().parents[1] / "conf" / "model" / "fastflow3d.yaml").read_text()).items()
+    if key != "_target_"}
 SMALL = {"x_range": (-8.0, 8.0), "y_range": (-8.0, 8.0), "z_range": (-3.0, 3.0), "cell": 0.5}  # 32 x 32
+SMALL_MODEL = {**PAPER, **SMALL}
 
 
 def flat_batch(clouds):
@@ -65,7 +73,7 @@ def test_scatter_equals_python_loop():
 
 
 def test_shapes_small_grid_batched():
-    model = FastFlow3D(**SMALL).eval()
+    model = FastFlow3D(**SMALL_MODEL).eval()
     gen = torch.Generator().manual_seed(1)
     pc0, b0 = flat_batch([torch.randn(70, 3, generator=gen) * 6, torch.randn(50, 3, generator=gen) * 6])
     pc1, b1 = flat_batch([torch.randn(60, 3, generator=gen) * 6, torch.randn(40, 3, generator=gen) * 6])
@@ -81,7 +89,7 @@ def test_shapes_small_grid_batched():
 
 
 def test_parameter_count_default_and_layers():
-    model = FastFlow3D()
+    model = FastFlow3D(**PAPER)
     assert (model.grid.nx, model.grid.ny) == (512, 512)
     assert sum(p.numel() for p in model.parameters()) == 6_815_619
     assert model.embedder.linear.bias is None
@@ -90,7 +98,7 @@ def test_parameter_count_default_and_layers():
 
 
 def test_gradients_reach_every_parameter():
-    model = FastFlow3D(**SMALL).train()
+    model = FastFlow3D(**SMALL_MODEL).train()
     gen = torch.Generator().manual_seed(2)
     pc0, b0 = flat_batch([torch.rand(300, 3, generator=gen) * 14 - 7, torch.rand(200, 3, generator=gen) * 14 - 7])
     pc1, b1 = flat_batch([torch.rand(300, 3, generator=gen) * 14 - 7, torch.rand(200, 3, generator=gen) * 14 - 7])
@@ -147,7 +155,7 @@ class SingleSample(torch.nn.Module):
 
 
 def test_torchscript_trace_dynamic_point_counts():
-    model = FastFlow3D(**SMALL).eval()
+    model = FastFlow3D(**SMALL_MODEL).eval()
     traced = torch.jit.trace(SingleSample(model), (*random_flat(300, 0, 7), *random_flat(250, 0, 8)),
                              check_trace=False)
     for seed, n0, n1 in [(9, 1000, 800), (10, 50, 3000)]:
@@ -162,7 +170,7 @@ def test_torchscript_trace_dynamic_point_counts():
 def test_torchscript_trace_follows_the_input_device():
     """No tensor of the trace is made on the tracing device (CPU), so it runs where its inputs are: checked in the
     graph and by running it on the meta device (no GPU needed)."""
-    model = FastFlow3D(**SMALL).eval()
+    model = FastFlow3D(**SMALL_MODEL).eval()
     traced = torch.jit.trace(SingleSample(model), (*random_flat(300, 0, 7), *random_flat(250, 0, 8)),
                              check_trace=False)
     assert 'Device = prim::Constant[value="cpu"]' not in str(traced.inlined_graph)
@@ -227,7 +235,7 @@ def test_overfit_one_synthetic_pair():
     inputs = (torch.from_numpy(compensate(pc0, ego1_from_ego0)), torch.zeros(len(pc0), dtype=torch.int64),
               torch.from_numpy(pc1), torch.zeros(len(pc1), dtype=torch.int64))
     target = torch.from_numpy(residual)
-    model = FastFlow3D(x_range=(-16.0, 16.0), y_range=(-16.0, 16.0), cell=1.0)
+    model = FastFlow3D(**{**PAPER, "x_range": (-16.0, 16.0), "y_range": (-16.0, 16.0), "cell": 1.0})
     optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)  # 2e-3 diverges on this pair
     epes = []
     for _ in range(150):
@@ -248,7 +256,7 @@ def test_overfit_one_synthetic_pair():
 def test_onnx_dynamo_parity_full_model(tmp_path):
     ort = pytest.importorskip("onnxruntime")
     pytest.importorskip("onnxscript")
-    model = FastFlow3D(**SMALL).eval()
+    model = FastFlow3D(**SMALL_MODEL).eval()
     path = tmp_path / "fastflow3d.onnx"
     p0, p1 = torch.export.Dim("p0", min=2), torch.export.Dim("p1", min=2)
     torch.onnx.export(SingleSample(model), (*random_flat(300, 0, 11), *random_flat(200, 0, 12)), str(path),
