@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
+from torch.export.passes import move_to_device_pass
 
 import icpflow
 from fastflow3d.model import FastFlow3D
@@ -294,7 +295,10 @@ def load_network(path: Path, kind: str, device: str = "cpu"):
         return OnnxRuntimeNetwork(path)
     try:
         if kind == "pt2":
-            module = torch.export.load(str(path)).module().to(device)
+            program = torch.export.load(str(path))
+            if torch.device(device).type != "cpu":  # exported on the CPU; not yet checked on a GPU
+                program = move_to_device_pass(program, device)
+            module = program.module()
         else:  # legacy TorchScript exports (torch.jit is deprecated; read while older exports are in use)
             module = torch.jit.load(str(path), map_location=device).eval()
     except Exception as error:  # damaged or foreign files raise many types (RuntimeError, zipfile, pickle errors)

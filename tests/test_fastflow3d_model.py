@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from torch.export.passes import move_to_device_pass
 
 from fastflow3d.loss import distillation_loss, speed_weight, supervised_loss
 from fastflow3d.model import FastFlow3D, compensate
@@ -154,28 +155,34 @@ class SingleSample(torch.nn.Module):
         return self.model(pc0, batch0, pc1, batch1, 1)
 
 
-def test_torchscript_trace_dynamic_point_counts():
+def exported_small_model():
+    """The small model in eval mode and its ``torch.export`` program (dynamic point counts), traced on 300 / 250
+    points."""
     model = FastFlow3D(**SMALL_MODEL).eval()
-    traced = torch.jit.trace(SingleSample(model), (*random_flat(300, 0, 7), *random_flat(250, 0, 8)),
-                             check_trace=False)
+    n0, n1 = torch.export.Dim("n0", min=1), torch.export.Dim("n1", min=1)
+    example = (*random_flat(300, 0, 7), *random_flat(250, 0, 8))
+    program = torch.export.export(SingleSample(model), example, dynamic_shapes=({0: n0}, {0: n0}, {0: n1}, {0: n1}))
+    return model, program
+
+
+def test_torch_export_dynamic_point_counts():
+    model, program = exported_small_model()
     for seed, n0, n1 in [(9, 1000, 800), (10, 50, 3000)]:
         pc0, b0 = random_flat(n0, 0, seed)
         pc1, b1 = random_flat(n1, 0, seed + 100)
         expected, valid = model(pc0, b0, pc1, b1, 1)
-        got, got_valid = traced(pc0, b0, pc1, b1)
+        got, got_valid = program.module()(pc0, b0, pc1, b1)
         torch.testing.assert_close(got, expected, atol=1e-5, rtol=0)
         assert torch.equal(got_valid, valid)
 
 
-def test_torchscript_trace_follows_the_input_device():
-    """No tensor of the trace is made on the tracing device (CPU), so it runs where its inputs are: checked in the
-    graph and by running it on the meta device (no GPU needed)."""
-    model = FastFlow3D(**SMALL_MODEL).eval()
-    traced = torch.jit.trace(SingleSample(model), (*random_flat(300, 0, 7), *random_flat(250, 0, 8)),
-                             check_trace=False)
-    assert 'Device = prim::Constant[value="cpu"]' not in str(traced.inlined_graph)
+def test_torch_export_program_moves_to_another_device():
+    """The CPU-exported program runs where it is moved (``artifact.load_network`` does this for a GPU): checked on
+    the meta device (no GPU needed)."""
+    _, program = exported_small_model()
+    moved = move_to_device_pass(program, "meta")
     (pc0, b0), (pc1, b1) = random_flat(120, 0, 9), random_flat(90, 0, 10)
-    residual, valid = traced.to("meta")(pc0.to("meta"), b0.to("meta"), pc1.to("meta"), b1.to("meta"))
+    residual, valid = moved.module()(pc0.to("meta"), b0.to("meta"), pc1.to("meta"), b1.to("meta"))
     assert residual.device.type == valid.device.type == "meta"
     assert residual.shape == (120, 3) and valid.shape == (120,)
 
