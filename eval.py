@@ -1,4 +1,5 @@
-"""Evaluate scene-flow methods against ground truth (see conf/eval.yaml and icpflow.evaluation).
+"""Evaluate scene-flow methods against ground truth (see conf/eval.yaml and icpflow.evaluation); the student comes
+from fastflow3d.eval_method.
 
     python eval.py [dataset=<name>] [split=val] [method=[zero,ego,icpflow,student,shards]] [checkpoint=...]
         [shards=<label out_dir>] [horizon=k | horizon=[1,2,3,4] | horizon=1..4] [tracker=true | tracker=[false,true]]
@@ -12,12 +13,13 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
+from fastflow3d.eval_method import student_method
 from icpflow.evaluation import run_eval
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="eval")
 def main(cfg: DictConfig) -> None:
-    status = run_eval(cfg)
+    status = run_eval(cfg, extra_methods={"student": student_method})
     if status:
         sys.exit(status)
 

@@ -1,7 +1,8 @@
 """Export a trained FastFlow3D checkpoint for inference outside this code base (see conf/export.yaml and
-fastflow3d.export): ONNX (ONNX Runtime) and/or TorchScript with dynamic point counts, plus metadata.json.
+fastflow3d.export): ONNX (ONNX Runtime) and/or a torch.export program (.pt2) with dynamic point counts, plus
+metadata.json.
 
-    python export.py checkpoint=<path.ckpt> [format=onnx|torchscript|all] [out_dir=<dir>]
+    python export.py checkpoint=<path.ckpt> [format=onnx|pt2|all] [out_dir=<dir>]
 """
 
 import sys

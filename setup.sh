@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Create .venv with the CPU build of torch, this project (editable) and its test/av2/export extras. Idempotent.
+# Create .venv with the CPU build of torch, this project (editable) and its test/av2/export/lint extras. Idempotent.
 # Usage: bash setup.sh   (PYTHON=python3.11 bash setup.sh to pick the interpreter)
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -29,7 +29,7 @@ pip=(.venv/bin/python -m pip install -q --disable-pip-version-check)
 # The CPU build first: an unpinned torch would pull a multi-GB CUDA build. Elsewhere than this machine use
 # --index-url https://download.pytorch.org/whl/cpu for the same effect.
 "${pip[@]}" torch==2.13.0
-"${pip[@]}" -c .ci/constraints.txt -e ".[test,av2,export]"
+"${pip[@]}" -c .ci/constraints.txt -e ".[dev]"
 # bucketed-scene-flow-eval (metric parity tests) declares the CUDA open3d: install it without its dependencies.
 "${pip[@]}" -c .ci/constraints.txt --no-deps bucketed-scene-flow-eval==2.0.25
 "${pip[@]}" -c .ci/constraints.txt fvcore iopath opencv-python-headless pyquaternion

@@ -46,8 +46,9 @@ def labelling_rate(overrides: list[str], workers: int, repeats: int, cores: str 
     rates, steady = [], []
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as tmp:
-            command = (["taskset", "-c", cores] if cores else []) + [sys.executable, str(REPO / "label.py"), *overrides, f"out_dir={tmp}/labels",
-                       f"workers={workers}", f"hydra.run.dir={tmp}/hydra"]
+            command = (["taskset", "-c", cores] if cores else []) + [
+                sys.executable, str(REPO / "label.py"), *overrides, f"out_dir={tmp}/labels", f"workers={workers}",
+                f"hydra.run.dir={tmp}/hydra"]
             start = time.perf_counter()
             run = subprocess.run(command, capture_output=True, text=True)
             seconds = time.perf_counter() - start

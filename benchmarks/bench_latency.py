@@ -1,13 +1,14 @@
-"""FastFlow3D inference latency per frame pair: eager PyTorch, torch.compile, TorchScript and ONNX Runtime.
+"""FastFlow3D inference latency per frame pair: eager PyTorch, torch.compile, torch.export (.pt2) and ONNX
+Runtime.
 
 Usage: python benchmarks/bench_latency.py [--device cpu|cuda] [--points 80000] [--runs 20] [--warmup 3]
-    [--cell 0.2] [--threads N] [--backends eager,compile,torchscript,onnx]
+    [--cell 0.2] [--threads N] [--backends eager,compile,pt2,onnx]
 
 Times the exported single-sample network (voxelisation + UNet + per-point head; numpy in, numpy out, so host <->
 device copies are included on a GPU) on two uniform random scans of ``--points`` points each over the default
 102.4 m x 102.4 m x 6 m range (AV2 size after ground removal: about 80k points), grid 512 x 512 at 0.2 m. The
 model has random weights (latency does not depend on them). Exports are made on the CPU and checked against eager
-by ``fastflow3d.export``; the TorchScript trace then runs on ``--device``, ONNX Runtime with the CUDA execution
+by ``fastflow3d.export``; the ``torch.export`` program then runs on ``--device``, ONNX Runtime with the CUDA execution
 provider on ``cuda`` (the row is left out, with a note, when onnxruntime has no CUDA provider) and the CPU one on
 ``cpu``; torch.compile (``dynamic=True``, default mode) is checked against eager before it is timed. Default
 backends: all four on ``cuda``; on ``cpu`` all but torch.compile, whose first call takes minutes there (about 2 min
@@ -30,11 +31,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
-from fastflow3d.export import PARITY_TOLERANCE, SingleSampleNet, export_model
+from fastflow3d.artifact import FILE_NAMES, OnnxRuntimeNetwork, SingleSampleNet, TorchNetwork, load_network
+from fastflow3d.checkpoint import build_student
+from fastflow3d.export import PARITY_TOLERANCE, export_model
 from fastflow3d.model import FastFlow3D
-from fastflow3d.predictor import OnnxRuntimeNetwork, Predictor, TorchNetwork, load_network
+from fastflow3d.predictor import Predictor
 from icpflow.geometry import make_transform
+
+#: the paper's FastFlow3D settings (the one place of the model's settings); --cell changes the pillar size
+PAPER_MODEL = Path(__file__).resolve().parents[1] / "conf" / "model" / "fastflow3d.yaml"
 
 
 def random_scan(points: int, seed: int) -> np.ndarray:
@@ -107,7 +114,7 @@ def main():
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--cell", type=float, default=0.2)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    parser.add_argument("--backends", default=None, help="comma-separated subset of eager,compile,torchscript,onnx "
+    parser.add_argument("--backends", default=None, help="comma-separated subset of eager,compile,pt2,onnx "
                         "(default: all on cuda, all but compile on cpu)")
     args = parser.parse_args()
     device = args.device
@@ -115,12 +122,12 @@ def main():
         sys.exit("bench_latency: --device cuda but torch sees no CUDA device (a CPU build of torch?)")
     torch.set_num_threads(args.threads)
     torch.backends.cudnn.benchmark = device == "cuda"
-    default = "eager,compile,torchscript,onnx" if device == "cuda" else "eager,torchscript,onnx"
+    default = "eager,compile,pt2,onnx" if device == "cuda" else "eager,pt2,onnx"
     backends = [name.strip() for name in (args.backends or default).split(",") if name.strip()]
-    unknown = sorted(set(backends) - {"eager", "compile", "torchscript", "onnx"})
+    unknown = sorted(set(backends) - {"eager", "compile", "pt2", "onnx"})
     if unknown:
-        sys.exit(f"bench_latency: unknown backend(s) {', '.join(unknown)}; use eager, compile, torchscript, onnx")
-    model = FastFlow3D(cell=args.cell).eval()
+        sys.exit(f"bench_latency: unknown backend(s) {', '.join(unknown)}; use eager, compile, pt2, onnx")
+    model = build_student({**OmegaConf.to_container(OmegaConf.load(PAPER_MODEL)), "cell": args.cell}).eval()
     pc0, pc1 = random_scan(args.points, 0), random_scan(args.points, 1)
     ego = make_transform(yaw=0.01, translation=(1.0, 0.05, 0.0))
     load = os.getloadavg()
@@ -128,7 +135,7 @@ def main():
           f"{device_name(device)}, {os.cpu_count()} logical CPUs, torch {args.threads} threads, torch "
           f"{torch.__version__}, load average at start {load[0]:.2f}")
     with tempfile.TemporaryDirectory() as tmp:
-        formats = [name for name in ("onnx", "torchscript") if name in backends]
+        formats = [name for name in ("onnx", "pt2") if name in backends]
         start = time.perf_counter()
         metadata = export_model(model, tmp, formats) if formats else {"parity_max_abs_m": {}}
         if formats:
@@ -139,8 +146,8 @@ def main():
             networks["eager"] = TorchNetwork(SingleSampleNet(copy.deepcopy(model).to(device)).eval(), device)
         if "compile" in backends:
             networks["torch.compile"] = compiled_network(model, device, pc0, pc1)
-        if "torchscript" in backends:
-            networks["torchscript"] = load_network(Path(tmp) / "fastflow3d.pt", "torchscript", device)
+        if "pt2" in backends:
+            networks["pt2"] = load_network(Path(tmp) / FILE_NAMES["pt2"], "pt2", device)
         if "onnx" in backends:
             providers = onnx_providers(device)
             if providers is None:

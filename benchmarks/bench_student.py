@@ -7,11 +7,16 @@ Input: two uniform random scans in range (AV2-size after ground removal, about 8
 import argparse
 import statistics
 import time
+from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
+from fastflow3d.checkpoint import build_student
 from fastflow3d.loss import distillation_loss
-from fastflow3d.model import FastFlow3D
+
+#: the paper's FastFlow3D settings (the one place of the model's settings); --cell changes the pillar size
+PAPER_MODEL = Path(__file__).resolve().parents[1] / "conf" / "model" / "fastflow3d.yaml"
 
 
 def random_scan(points: int, batch: int, seed: int):
@@ -42,7 +47,7 @@ def main():
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    model = FastFlow3D(cell=args.cell)
+    model = build_student({**OmegaConf.to_container(OmegaConf.load(PAPER_MODEL)), "cell": args.cell})
     pc0, b0 = random_scan(args.points, args.batch, 0)
     pc1, b1 = random_scan(args.points, args.batch, 1)
     target = torch.randn(len(pc0), 3) * 0.1

@@ -28,7 +28,8 @@ import numpy as np
 from icpflow.geometry import make_transform, transform_points
 from icpflow.teacher.checks import passes
 from icpflow.teacher.config import ICPFlowConfig
-from icpflow.teacher.histogram import initial_translations, params_from_config as hist_params
+from icpflow.teacher.histogram import initial_translations
+from icpflow.teacher.histogram import params_from_config as hist_params
 from icpflow.teacher.pipeline import STAGES
 from icpflow.teacher.registration import register_clusters
 

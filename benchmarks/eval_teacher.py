@@ -22,8 +22,8 @@ import numpy as np
 
 from icpflow import metrics
 from icpflow.geometry import ego_flow, invert, relative_transform
-from icpflow.labelling.cli import teacher_config
 from icpflow.teacher import ICPFlow, ICPFlowConfig
+from icpflow.teacher.config import teacher_config
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -68,11 +68,11 @@ def run_variant(overrides, pairs, dataset: str, crop: float, use_ground: bool, u
 
 def print_table(title: str, rows: dict) -> None:
     print(f"\n{title}")
-    print("| variant | s/pair | dynamic EPE (all) | " + " | ".join(f"{c} EPE / Acc-S / Acc-R" for c in metrics.CATEGORIES[:3])
-          + " |")
+    columns = " | ".join(f"{c} EPE / Acc-S / Acc-R" for c in metrics.CATEGORIES[:3])
+    print(f"| variant | s/pair | dynamic EPE (all) | {columns} |")
     print("|---|---|---|" + "---|" * 3)
     for name, (table, seconds, dynamic) in rows.items():
-        cells = ["%.4f / %.4f / %.4f" % (table[c]["EPE"], table[c]["AccS"], table[c]["AccR"])
+        cells = [f"{table[c]['EPE']:.4f} / {table[c]['AccS']:.4f} / {table[c]['AccR']:.4f}"
                  for c in metrics.CATEGORIES[:3]]
         print(f"| {name} | {seconds:.2f} | {dynamic:.4f} | " + " | ".join(cells) + " |")
 

@@ -2,17 +2,19 @@
 
 from __future__ import annotations
 
-import os
+from contextlib import nullcontext
 from pathlib import Path
 
 import lightning as L
+
+from icpflow.atomic import atomic_path
 
 
 class LastCheckpoint(L.Callback):
     """Keep ``<dirpath>/last.ckpt`` at the latest state: after every validation and when training ends.
 
     (Lightning's ModelCheckpoint refreshes ``last.ckpt`` only when it also saves a top-k checkpoint, so it can lag
-    behind.) The file is written under a temporary name and renamed, so a crash never leaves it half-written.
+    behind.) The file is written atomically (``icpflow.atomic``), so a crash never leaves it half-written.
     """
 
     def __init__(self, dirpath):
@@ -22,12 +24,10 @@ class LastCheckpoint(L.Callback):
     def _save(self, trainer: L.Trainer) -> None:
         if trainer.fast_dev_run or trainer.sanity_checking or trainer.global_step == self.saved_step:
             return
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        if trainer.is_global_zero:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-        trainer.save_checkpoint(tmp, weights_only=False)  # every rank takes part; the strategy writes on rank 0
-        if trainer.is_global_zero:
-            os.replace(tmp, self.path)
+        # every rank takes part in save_checkpoint; the strategy writes on rank 0 only, which renames it in place
+        target = atomic_path(self.path, make_parents=True) if trainer.is_global_zero else nullcontext(self.path)
+        with target as path:
+            trainer.save_checkpoint(path, weights_only=False)
         trainer.strategy.barrier("LastCheckpoint")
         self.saved_step = trainer.global_step
 

@@ -1,9 +1,9 @@
 """Scene flow of two raw scan files with a trained FastFlow3D; writes the flow and a bird's-eye-view PNG.
 
     python -m fastflow3d.infer MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
-        [--bev FILE.png | --no-bev] [--backend onnx|torchscript] [--device cpu]
+        [--bev FILE.png | --no-bev] [--backend onnx|pt2|torchscript] [--device cpu]
 
-MODEL: an export directory, ``.onnx``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz`` (array
+MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz`` (array
 ``points`` or ``pc``), ``.npy`` (N, >= 3), KITTI ``.bin`` (float32 x, y, z, reflectance), ``.ply`` or ``.pcd``;
 the first three columns are x, y, z in metres in the sensor's own frame. Ego motion: ``--poses`` (two
 world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a (2, 4, 4) ``.npy``),
@@ -19,12 +19,13 @@ line on stderr, exit status 2.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from fastflow3d.artifact import FORMATS, LEGACY_FORMATS
+from icpflow.atomic import atomic_path
 from icpflow.datasets.io import SCAN_SUFFIXES, check_points, fail, load_npz, read_poses, read_scan
 from icpflow.frames import FramePair
 from icpflow.geometry import relative_transform, rigid_problem
@@ -60,24 +61,18 @@ def read_transforms(path: Path, count: int) -> np.ndarray:
 
 def write_flow(path: Path, prediction) -> None:
     """``.npy``: the full flow; ``.npz``: flow, residual, in_grid, ground0, ego1_from_ego0, ego_estimated. Atomic."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as handle:
-            if path.suffix == ".npy":
-                np.save(handle, prediction.flow)
-            else:
-                np.savez(handle, flow=prediction.flow, residual=prediction.residual, in_grid=prediction.in_grid,
-                         ground0=prediction.ground0, ego1_from_ego0=prediction.ego1_from_ego0,
-                         ego_estimated=np.bool_(prediction.ego_estimated))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_path(path, make_parents=True) as tmp, open(tmp, "wb") as handle:
+        if path.suffix == ".npy":
+            np.save(handle, prediction.flow)
+        else:
+            np.savez(handle, flow=prediction.flow, residual=prediction.residual, in_grid=prediction.in_grid,
+                     ground0=prediction.ground0, ego1_from_ego0=prediction.ego1_from_ego0,
+                     ego_estimated=np.bool_(prediction.ego_estimated))
 
 
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m fastflow3d.infer", description=__doc__.splitlines()[0])
-    parser.add_argument("model", type=Path, help="export directory, .onnx, .pt or .ckpt")
+    parser.add_argument("model", type=Path, help="export directory, .onnx, .pt2, .pt (older TorchScript) or .ckpt")
     parser.add_argument("scan0", type=Path, help="scan at t (.npz, .npy, .bin, .ply, .pcd)")
     parser.add_argument("scan1", type=Path, help="scan at t + dt")
     ego = parser.add_mutually_exclusive_group()
@@ -88,8 +83,8 @@ def parse_args(argv):
     pictures.add_argument("--bev", type=Path, help="BEV PNG (default: the output's name with .png)")
     pictures.add_argument("--no-bev", action="store_true", help="write no picture")
     parser.add_argument("--extent", type=float, default=40.0, help="half-width of the picture in metres")
-    parser.add_argument("--backend", choices=("onnx", "torchscript"), help="format of an export directory")
-    parser.add_argument("--device", default="cpu", help="torch device for TorchScript and checkpoints")
+    parser.add_argument("--backend", choices=(*FORMATS, *LEGACY_FORMATS), help="format of an export directory")
+    parser.add_argument("--device", default="cpu", help="torch device for .pt2, .pt and checkpoints")
     return parser.parse_args(argv)
 
 

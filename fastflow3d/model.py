@@ -15,19 +15,6 @@ from fastflow3d.scatter import from_pseudo_image, scatter_mean, to_pseudo_image
 from fastflow3d.voxelize import Grid, voxelize
 from icpflow.geometry import transform_points
 
-DEFAULT_CONFIG = {
-    "x_range": (-51.2, 51.2),
-    "y_range": (-51.2, 51.2),
-    "z_range": (-3.0, 3.0),
-    "cell": 0.2,
-    "pillar_channels": 32,
-    "stage_channels": (64, 128, 256),
-    "stage_blocks": (3, 5, 5),
-    "norm": "batch",
-}
-XL_CONFIG = {**DEFAULT_CONFIG, "cell": 0.1, "pillar_channels": 64, "stage_channels": (128, 256, 512, 1024),
-             "stage_blocks": (3, 5, 5, 5)}
-
 
 def compensate(pc0: np.ndarray, ego1_from_ego0: np.ndarray) -> np.ndarray:
     """Model input for pc0: its (N, 3) points moved into the ego frame of t + dt."""
@@ -120,12 +107,14 @@ class FastFlow3D(nn.Module):
     """FastFlow3D on flat batches. ``forward(pc0, batch0, pc1, batch1, batch_size)`` -> (residual (P0, 3), valid).
 
     pc0 (P0, 3) ego-compensated, pc1 (P1, 3), batch0/batch1 int64 sample indices in ``[0, batch_size)``.
+
+    Every argument but ``norm`` is required: the settings live in one place, ``conf/model/*.yaml``
+    (``fastflow3d.yaml`` is FastFlow3D as ZeroFlow implements it; the others extend it), and a checkpoint carries
+    them all (``norm`` defaults to ``batch`` for checkpoints written before it existed).
     """
 
-    def __init__(self, x_range=DEFAULT_CONFIG["x_range"], y_range=DEFAULT_CONFIG["y_range"],
-                 z_range=DEFAULT_CONFIG["z_range"], cell=DEFAULT_CONFIG["cell"],
-                 pillar_channels=DEFAULT_CONFIG["pillar_channels"], stage_channels=DEFAULT_CONFIG["stage_channels"],
-                 stage_blocks=DEFAULT_CONFIG["stage_blocks"], norm=DEFAULT_CONFIG["norm"]):
+    def __init__(self, *, x_range, y_range, z_range, cell, pillar_channels, stage_channels, stage_blocks,
+                 norm="batch"):
         super().__init__()
         if norm not in NORMS:
             raise ValueError(f"FastFlow3D: norm must be one of {', '.join(NORMS)}, got {norm!r}")

@@ -1,50 +1,52 @@
 """Run a trained FastFlow3D on a pair of scans: ``Predictor.load(path)`` then ``predictor(pc0, pc1)`` -> full flow.
 
-``path`` is an export directory (``metadata.json`` plus ``fastflow3d.onnx`` and/or ``fastflow3d.pt``, see
-``fastflow3d.export``), one exported file (``.onnx`` runs in ONNX Runtime, ``.pt`` is TorchScript) or a training
-checkpoint (``.ckpt``, run eagerly). The predictor moves pc0 into the ego frame of t + dt with ``ego1_from_ego0``,
-runs the network, which gives the residual (ego-compensated) flow, and adds the ego flow back, so the result is
-FULL flow in the project convention (``pc0 + flow`` is the position at t + dt in the ego frame of t + dt). Points
-outside the network's grid get the ego flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the
+``path`` is an export directory (``metadata.json`` plus ``fastflow3d.onnx`` and/or ``fastflow3d.pt2``, see
+``fastflow3d.artifact``), one exported file (``.onnx`` runs in ONNX Runtime, ``.pt2`` is a ``torch.export`` program,
+``.pt`` a TorchScript export of an older version) or a training checkpoint (``.ckpt``, run eagerly). The predictor
+moves pc0 into the ego frame of t + dt with ``ego1_from_ego0``, runs the network, which gives the residual
+(ego-compensated) flow, and adds the ego flow back, so the result is FULL flow in the project convention
+(``pc0 + flow`` is the position at t + dt in the ego frame of t + dt). Points outside the network's grid get the ego
+flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the
 two scans with the teacher's step (KISS-ICP, then point-to-plane refinement; ``icpflow.teacher.ego_motion``).
 
 A model trained with ground removal (``preprocessing.remove_ground`` in its metadata, ``data.remove_ground`` in its
 checkpoint's config) sees only the non-ground points of each scan: the masks passed in (``ground0``, ``ground1``) or,
 without them, those of ``icpflow.teacher.ground.GroundSegmenter`` on the raw scans with the teacher settings saved
 with the model; ground pc0 points get the ego flow. The teacher settings saved with the model (or ``ICPFlowConfig()``
-for a model without them) also drive the ego-motion estimate. A bare ``.onnx`` / ``.pt`` without its
+for a model without them) also drive the ego-motion estimate. A bare ``.onnx`` / ``.pt2`` / ``.pt`` without its
 ``metadata.json`` carries none of this: it is run on every point.
 """
 
 from __future__ import annotations
 
-import importlib.util
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from fastflow3d.export import (
+from fastflow3d.artifact import (
     FORMATS,
-    INPUT_NAMES,
+    LEGACY_FORMATS,
     METADATA_NAME,
-    OUTPUT_NAMES,
+    SUFFIX_FORMATS,
+    ArtifactError,
     SingleSampleNet,
+    TorchNetwork,
+    choose_format,
+    listed_file,
+    load_network,
     network_metadata,
     preprocessing_metadata,
-    sha256_file,
+    read_metadata,
+    sibling_metadata,
 )
 from fastflow3d.model import compensate
 from icpflow.geometry import residual_to_full, rigid_problem
 
-SUFFIX_FORMATS = {".onnx": "onnx", ".pt": "torchscript", ".ckpt": "checkpoint"}
 
-
-class PredictorError(ValueError):
-    """A model that cannot be loaded or inputs that cannot be used. The message is one line and names the cause."""
+class PredictorError(ArtifactError):
+    """A model that cannot be used or inputs that cannot be used. The message is one line and names the cause."""
 
 
 @dataclass(frozen=True)
@@ -60,70 +62,6 @@ class Prediction:
     ground0: np.ndarray
     ego1_from_ego0: np.ndarray
     ego_estimated: bool
-
-
-class OnnxRuntimeNetwork:
-    """An exported ``.onnx`` in ONNX Runtime: ``(pc0_compensated, pc1) -> (residual, valid)`` numpy arrays."""
-
-    def __init__(self, path: Path, providers=None):
-        try:
-            import onnxruntime
-        except ImportError:
-            raise PredictorError(f"{path}: running .onnx needs onnxruntime (pip install 'icpflow[export]')") from None
-        available = onnxruntime.get_available_providers()
-        if providers is None:
-            providers = [name for name in ("CUDAExecutionProvider", "CPUExecutionProvider") if name in available]
-        try:
-            self.session = onnxruntime.InferenceSession(str(path), providers=list(providers))
-        except Exception as error:  # onnxruntime raises its own exception types for damaged or foreign files
-            raise PredictorError(f"{path}: cannot load ONNX model: {' '.join(str(error).split())}") from None
-        names = tuple(entry.name for entry in self.session.get_inputs())
-        if names != INPUT_NAMES:
-            raise PredictorError(f"{path}: ONNX inputs are {names}, expected {INPUT_NAMES} (not a FastFlow3D export)")
-
-    def __call__(self, pc0_compensated: np.ndarray, pc1: np.ndarray):
-        residual, valid = self.session.run(list(OUTPUT_NAMES), {INPUT_NAMES[0]: pc0_compensated, INPUT_NAMES[1]: pc1})
-        return residual, valid
-
-
-class TorchNetwork:
-    """A :class:`SingleSampleNet` or its TorchScript trace on ``device``: numpy in, numpy out."""
-
-    def __init__(self, module, device: str = "cpu"):
-        self.module, self.device = module, torch.device(device)
-
-    def __call__(self, pc0_compensated: np.ndarray, pc1: np.ndarray):
-        with torch.inference_mode():
-            residual, valid = self.module(torch.from_numpy(pc0_compensated).to(self.device),
-                                          torch.from_numpy(pc1).to(self.device))
-        return residual.cpu().numpy(), valid.cpu().numpy()
-
-
-def read_metadata(path: Path) -> dict:
-    """``metadata.json`` of an export directory (one-line error if missing or not an export's)."""
-    try:
-        metadata = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise PredictorError(f"{path.parent}: no {METADATA_NAME} (not an export directory; see export.py)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise PredictorError(f"{path}: cannot read export metadata: {' '.join(str(error).split())}") from None
-    if not isinstance(metadata, dict) or not isinstance(metadata.get("files"), dict):
-        raise PredictorError(f"{path}: not FastFlow3D export metadata (no 'files' entry)")
-    return metadata
-
-
-def sibling_metadata(path: Path, kind: str) -> dict:
-    """The metadata next to an exported file if it describes exactly this file (same name and hash), else {}."""
-    meta_path = path.parent / METADATA_NAME
-    if not meta_path.is_file():
-        return {}
-    try:
-        metadata = read_metadata(meta_path)
-    except PredictorError:
-        return {}
-    entry = metadata["files"].get(kind) or {}
-    same = entry.get("path") == path.name and entry.get("sha256") == sha256_file(path)
-    return metadata if same else {}
 
 
 def as_points(name: str, values) -> np.ndarray:
@@ -161,30 +99,24 @@ class Predictor:
     @classmethod
     def load(cls, path: str | os.PathLike, backend: str | None = None, device: str = "cpu",
              ego_config=None) -> Predictor:
-        """From an export directory, a ``.onnx``, a ``.pt`` (TorchScript) or a ``.ckpt``.
+        """From an export directory, a ``.onnx``, a ``.pt2``, a legacy ``.pt`` (TorchScript) or a ``.ckpt``.
 
-        ``backend`` picks the format of an export directory (``onnx`` or ``torchscript``; default ONNX when
-        onnxruntime is installed and the export has it). ``device`` applies to TorchScript and checkpoints; ONNX
-        Runtime uses CUDA when its CUDA provider is installed, else the CPU.
+        ``backend`` picks the format of an export directory (``onnx``, ``pt2`` or, for older exports,
+        ``torchscript``; default ONNX when onnxruntime is installed and the export has it). ``device`` applies to
+        PyTorch formats and checkpoints; ONNX Runtime uses CUDA when its CUDA provider is installed, else the CPU.
+        Raises :class:`ArtifactError` (one line) for a path that is not a readable artifact.
         """
         path = Path(path)
         if path.is_dir():
             metadata = read_metadata(path / METADATA_NAME)
             kind = backend or choose_format(metadata["files"])
-            if kind not in FORMATS:
+            if kind not in FORMATS + LEGACY_FORMATS:
                 raise PredictorError(f"{path}: unknown backend {kind!r}; use one of {', '.join(FORMATS)}")
-            entry = metadata["files"].get(kind)
-            if not entry:
-                raise PredictorError(f"{path}: the export has no {kind} file (has {', '.join(metadata['files'])})")
-            file = path / entry["path"]
-            if not file.is_file():
-                raise PredictorError(f"{file}: file listed in {METADATA_NAME} is missing")
-            if sha256_file(file) != entry.get("sha256"):
-                raise PredictorError(f"{file}: file changed after export (sha256 differs from {METADATA_NAME})")
+            file = listed_file(path, metadata, kind)
             return cls(load_network(file, kind, device), metadata, kind, ego_config)
-        kind = SUFFIX_FORMATS.get(path.suffix.lower())
+        kind = "checkpoint" if path.suffix.lower() == ".ckpt" else SUFFIX_FORMATS.get(path.suffix.lower())
         if kind is None:
-            raise PredictorError(f"{path}: expected an export directory, .onnx, .pt (TorchScript) or .ckpt")
+            raise PredictorError(f"{path}: expected an export directory, .onnx, .pt2, .pt (TorchScript) or .ckpt")
         if not path.is_file():
             raise PredictorError(f"{path}: file not found")
         if backend is not None and backend != kind:
@@ -244,22 +176,3 @@ class Predictor:
         except (RuntimeError, ValueError, MemoryError) as error:
             raise PredictorError(f"ego-motion estimation failed ({type(error).__name__}: "
                                  f"{' '.join(str(error).split())})") from None
-
-
-def choose_format(files: dict) -> str:
-    """ONNX when the export has it and onnxruntime is installed (or there is nothing else), else TorchScript."""
-    if "onnx" in files and ("torchscript" not in files or importlib.util.find_spec("onnxruntime") is not None):
-        return "onnx"
-    return "torchscript"
-
-
-def load_network(path: Path, kind: str, device: str):
-    """The runnable network of one exported file."""
-    if kind == "onnx":
-        return OnnxRuntimeNetwork(path)
-    try:
-        module = torch.jit.load(str(path), map_location=device)
-    except (RuntimeError, ValueError) as error:
-        raise PredictorError(f"{path}: cannot load TorchScript: {' '.join(str(error).split())[:300]}") from None
-    return TorchNetwork(module.eval(), device)
-

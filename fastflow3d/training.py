@@ -17,8 +17,9 @@ import lightning as L
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from fastflow3d.artifact import FORMATS
 from fastflow3d.data import TEACHER_FIELDS, DataError, ShardDataModule, StudentDataset, labeller_teacher
-from fastflow3d.export import FORMATS, export_checkpoint
+from fastflow3d.export import export_checkpoint
 from fastflow3d.module import StudentModule
 
 log = logging.getLogger(__name__)

@@ -8,7 +8,8 @@ __all__ = ["FramePair", "FramePairError", "FrameSequence", "ICPFlow", "ICPFlowCo
 
 
 def __getattr__(name: str):
-    """Lazy exports: ``from icpflow import ICPFlow, ICPFlowConfig`` without importing the teacher on ``import icpflow``."""
+    """Lazy exports: ``from icpflow import ICPFlow, ICPFlowConfig`` without importing the teacher on
+    ``import icpflow``."""
     if name in ("ICPFlow", "ICPFlowConfig"):
         from icpflow import teacher
 

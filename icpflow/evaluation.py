@@ -1,13 +1,16 @@
 """Evaluate scene-flow methods on a dataset with ground truth: one table, a row per method (``eval.py``).
 
 A method is a callable ``method(pair, index) -> (N0, 3) float32 FULL flow`` (project convention, pc0's ego frame
-of t -> positions in the ego frame of t + dt), built by :func:`build_methods` from its name:
+of t -> positions in the ego frame of t + dt), built by :func:`build_methods` from its name; the teacher package's
+own methods are built here:
 
 - ``zero``: zero full flow; ``ego``: ego flow only (every point static in the world);
 - ``icpflow``: the teacher (``conf/icpflow``), ``tracker=true`` chains it through intermediate frames
   (``tracker=[false,true]``: one row each, ``icpflow`` and ``icpflow+tracker``);
-- ``student``: a FastFlow3D checkpoint or export (``checkpoint=``), through ``fastflow3d.predictor.Predictor``;
 - ``shards``: the pseudo-labels a ``label.py`` run wrote (``shards=<out_dir>``), matched by sample id.
+
+Other methods come in as factories by name (``run_eval(cfg, extra_methods={name: factory(cfg) -> method})``):
+``eval.py`` adds ``student`` (``fastflow3d.eval_method``), so this package never imports the student.
 
 Every method sees the same pairs; each pair's metric sums go into a :class:`MethodScores` (the paper's splits,
 point-weighted and per pair; AV2 Threeway and bucketed normalised EPE; seconds per pair). A pair whose reading or
@@ -20,14 +23,16 @@ same start scans t for each k, one row per (method, k) with the mean real dt of 
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import json
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any
 
 import numpy as np
 
@@ -36,8 +41,10 @@ from icpflow.baselines import ego_only_flow, zero_flow
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.frames import FramePair
 
-METHODS = ("zero", "ego", "icpflow", "student", "shards")
+METHODS = ("zero", "ego", "icpflow", "shards")
 Method = Callable[[FramePair, int], np.ndarray]
+#: a method from the run config (``eval.py``'s); raises :class:`EvaluationError` when the config does not allow it
+MethodFactory = Callable[[Any], Method]
 
 
 class EvaluationError(ValueError):
@@ -87,27 +94,16 @@ class ShardMethod:
         return stored["flow"]
 
 
-class StudentMethod:
-    """A trained FastFlow3D (checkpoint or export), given the pair's ego motion and ground masks as the teacher is
-    (each estimated by the Predictor when the dataset has none)."""
-
-    def __init__(self, path):
-        from fastflow3d.predictor import Predictor
-
-        self.predictor = Predictor.load(path)
-
-    def __call__(self, pair: FramePair, index: int) -> np.ndarray:
-        return self.predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1)
-
-
-def build_methods(names, horizons=(1,), trackers=(False,), *, dataset=None, teacher_config=None, checkpoint=None,
-                  shards=None) -> dict[int, dict[str, Method]]:
+def build_methods(names, horizons=(1,), trackers=(False,), *, dataset=None, teacher_config=None, shards=None,
+                  extra: dict[str, Callable[[], Method]] | None = None) -> dict[int, dict[str, Method]]:
     """Per horizon k, the methods scored on pairs (t, t + k) by row name, each ``method(pair, index) -> full flow``.
 
     ``icpflow`` gives one row per value of ``trackers``: ``icpflow``, and ``icpflow+tracker`` when both are asked
     for. At horizon 1 the tracker has nothing to chain: both rows are then the same object (called once per pair).
-    The other methods, and the teacher's ``ICPFlow``, are built once and shared by every horizon.
+    The other methods, and the teacher's ``ICPFlow``, are built once and shared by every horizon. ``extra`` gives
+    the methods of other packages by name, each built by calling it (no arguments).
     """
+    extra = extra or {}
     names, trackers = list(names), list(trackers)
     if not names or len(set(names)) != len(names):
         raise EvaluationError(f"method must name distinct methods, got {names}")
@@ -123,20 +119,16 @@ def build_methods(names, horizons=(1,), trackers=(False,), *, dataset=None, teac
             from icpflow.teacher import ICPFlow
 
             shared[name] = ICPFlow(teacher_config)
-        elif name == "student":
-            if not checkpoint:
-                raise EvaluationError("method student needs checkpoint=<.ckpt or export>")
-            if not Path(checkpoint).exists():
-                raise EvaluationError(f"{checkpoint}: checkpoint does not exist")
-            shared[name] = StudentMethod(checkpoint)
         elif name == "shards":
             if not shards:
                 raise EvaluationError("method shards needs shards=<a label.py out_dir>")
             if len(horizons) > 1:
                 raise EvaluationError("method shards scores the one horizon its labels were made for; give one horizon")
             shared[name] = ShardMethod(shards)
+        elif name in extra:
+            shared[name] = extra[name]()
         else:
-            raise EvaluationError(f"unknown method {name!r}, expected one of {', '.join(METHODS)}")
+            raise EvaluationError(f"unknown method {name!r}, expected one of {', '.join([*METHODS, *extra])}")
     methods = {}
     for horizon in horizons:
         row = {}
@@ -399,7 +391,7 @@ def write_horizon_results(results: dict[int, EvaluationResult], out_dir, weighti
 
 
 def _write_json_csv(out_dir, document: dict, rows: list[dict], columns: list[str]) -> tuple[Path, Path]:
-    from icpflow.shards.writer import write_text_atomic
+    from icpflow.atomic import write_text_atomic
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -425,18 +417,19 @@ def _nan_to_none(value):
 
 # ---------------------------------------------------------------------------------------------------- eval.py
 
-def run_eval(cfg, progress: bool = True) -> int:
+def run_eval(cfg, progress: bool = True, extra_methods: dict[str, MethodFactory] | None = None) -> int:
     """``eval.py``: evaluate ``cfg.method`` (a name or a list) on ``cfg.dataset`` / ``cfg.split`` at ``cfg.horizon``
     (a gap or several); print the table, write ``metrics.json`` and ``metrics.csv`` under ``cfg.out_dir``, with
     ``bev/`` (matplotlib) and ``render/`` (open3d) pictures ``<pair>_<method>.png`` (under ``k<gap>/`` when several
     gaps are scored).
 
-    Returns the exit status: 0 scored, 1 some pairs failed (listed in metrics.json), 2 could not start.
+    ``extra_methods``: methods of other packages by name, each ``factory(cfg) -> method`` (``eval.py`` gives
+    ``student``). Returns the exit status: 0 scored, 1 some pairs failed (listed in metrics.json), 2 could not start.
     """
     from omegaconf import OmegaConf
 
     from icpflow.datasets.from_config import open_dataset
-    from icpflow.labelling.cli import teacher_config
+    from icpflow.teacher.config import teacher_config
     from icpflow.viz import offscreen_problem, plot_bev, render_pair
 
     names = list(cfg.method) if OmegaConf.is_list(cfg.method) else [cfg.method]
@@ -451,8 +444,9 @@ def run_eval(cfg, progress: bool = True) -> int:
         problem = offscreen_problem() if int(cfg.render) > 0 else None
         if problem:
             raise EvaluationError(f"render={cfg.render}: {problem}")
-        methods = build_methods(names, horizons, trackers, dataset=dataset, teacher_config=teacher,
-                                checkpoint=cfg.checkpoint, shards=cfg.shards)
+        extra = {name: functools.partial(factory, cfg) for name, factory in (extra_methods or {}).items()}
+        methods = build_methods(names, horizons, trackers, dataset=dataset, teacher_config=teacher, shards=cfg.shards,
+                                extra=extra)
     except (EvaluationError, ValueError, RuntimeError) as error:
         print(f"eval: {error}", file=sys.stderr)
         return 2

@@ -153,7 +153,7 @@ class FramePair:
         """(N0, 3) float32 pc0 moved into the ego frame of t + dt by the ego motion (ego compensation)."""
         return transform_points(self._require_ego(), self.pc0)
 
-    def replace(self, **changes) -> "FramePair":
+    def replace(self, **changes) -> FramePair:
         """A validated copy with some fields replaced."""
         return replace(self, **changes)
 

@@ -22,6 +22,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import hsv_to_rgb, to_rgb, to_rgba_array  # noqa: E402
 
+from icpflow.atomic import atomic_path  # noqa: E402
 from icpflow.frames import FramePair  # noqa: E402
 from icpflow.geometry import full_to_residual, transform_points  # noqa: E402
 
@@ -96,13 +97,12 @@ def plot_bev(
         ax.axis("off")
     fig.suptitle(title or pair.sample_id or "frame pair")
     fig.tight_layout(rect=(0, 0, 1, 0.97))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=80)
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    try:
+        with atomic_path(path, make_parents=True) as tmp:
+            fig.savefig(tmp, dpi=80)
+    finally:
+        plt.close(fig)
+    return Path(path)
 
 
 @contextlib.contextmanager
@@ -175,10 +175,7 @@ def render_pair(
                 renderer.scene.add_geometry(name, cloud, material)
         renderer.setup_camera(60.0, [0.3 * extent, 0.0, 0.0], [-0.8 * extent, 0.0, 0.6 * extent], [0.0, 0.0, 1.0])
         image = renderer.render_to_image()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.png")
-    if not o3d.io.write_image(str(tmp), image):
-        raise OSError(f"{path}: open3d could not write the render")
-    os.replace(tmp, path)
-    return path
+    with atomic_path(path, make_parents=True) as tmp:
+        if not o3d.io.write_image(str(tmp), image):
+            raise OSError(f"{path}: open3d could not write the render")
+    return Path(path)

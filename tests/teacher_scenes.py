@@ -23,7 +23,10 @@ def box_surface(size, rng, spacing: float = 0.08) -> np.ndarray:
     return np.concatenate(faces)
 
 
-def scene(ego1_from_ego0=None, seed: int = 0, moving=((make_transform(yaw=0.05, translation=(1.2, 0.3, 0.0))),)):
+MOVING_BOX_MOTIONS = (make_transform(yaw=0.05, translation=(1.2, 0.3, 0.0)),)
+
+
+def scene(ego1_from_ego0=None, seed: int = 0, moving=MOVING_BOX_MOTIONS):
     """Two scans of a scene in their ego frames, with the exact full flow of pc0.
 
     Boxes (l, w, h) at fixed places; the first ``len(moving)`` boxes move by the given motions (in the ego frame

@@ -10,8 +10,8 @@ from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
 from icpflow.datasets.base import PairDataset
-from icpflow.labelling.cli import teacher_config
 from icpflow.teacher import ICPFlowConfig
+from icpflow.teacher.config import teacher_config
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -13,6 +13,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
+from fastflow3d.eval_method import student_method
 from icpflow import metrics
 from icpflow.baselines import ego_only_flow, zero_flow
 from icpflow.datasets.from_config import raise_max_horizon
@@ -21,6 +22,8 @@ from icpflow.evaluation import MetricOptions, evaluate, run_eval
 from icpflow.shards.writer import write_index, write_shard
 
 from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
+
+STUDENT = {"student": student_method}  # what eval.py adds to the teacher package's methods
 
 REPO = Path(__file__).resolve().parents[1]
 READER = {"split": "val", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 1.0}
@@ -123,8 +126,8 @@ def _write_labels(out_dir: Path, dataset, flows, shift: float = 0.0) -> None:
     samples = []
     for i, flow in enumerate(flows):
         pair = dataset[i]
-        samples.append({"pc0": pair.pc0 + np.float32(shift), "pc1": pair.pc1, "ground0": pair.ground0, "ground1": pair.ground1,
-                        "ego1_from_ego0": pair.ego1_from_ego0, "flow": flow,
+        samples.append({"pc0": pair.pc0 + np.float32(shift), "pc1": pair.pc1, "ground0": pair.ground0,
+                        "ground1": pair.ground1, "ego1_from_ego0": pair.ego1_from_ego0, "flow": flow,
                         "confidence": np.ones(len(pair.pc0), np.float32),
                         "cluster": np.zeros(len(pair.pc0), np.int32),
                         "attrs": {"sample_id": pair.sample_id, "log_id": pair.log_id, "index": i,
@@ -167,7 +170,7 @@ def test_stored_labels_of_other_points_are_refused(tmp_path, dataset, capsys):
      "icpflow: horizon=3 exceeds the teacher's max_frame_gap 2"),
 ])
 def test_bad_requests_get_one_line(tmp_path, capsys, overrides, message):
-    assert run_eval(_cfg(tmp_path, *overrides), progress=False) == 2
+    assert run_eval(_cfg(tmp_path, *overrides), progress=False, extra_methods=STUDENT) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
 
@@ -183,9 +186,9 @@ def test_readers_taking_max_horizon_get_the_largest_horizon():
 
 
 def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
-    from icpflow.labelling.cli import teacher_config
-    from icpflow.teacher.tracker import sample_tracker_flow
     from icpflow.teacher import ICPFlow
+    from icpflow.teacher.config import teacher_config
+    from icpflow.teacher.tracker import sample_tracker_flow
 
     cfg = _cfg(tmp_path, "method=[zero,icpflow]", "horizon=1..2", "tracker=[false,true]", "bev=1")
     assert run_eval(cfg, progress=False) == 0
@@ -238,7 +241,7 @@ def test_student_row_reproduces_the_metrics_module(tmp_path, dataset):
 
     checkpoint = tiny_student_checkpoint(tmp_path / "student.ckpt", dataset[0])
     assert run_eval(_cfg(tmp_path / "eval", "method=[ego,student]", f"checkpoint={checkpoint}", "bev=0"),
-                    progress=False) == 0
+                    progress=False, extra_methods=STUDENT) == 0
     document = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     predictor = Predictor.load(checkpoint)
     pairs = [dataset[i] for i in range(len(dataset))]

@@ -1,4 +1,5 @@
-"""Export (ONNX, TorchScript) parity with eager, the Predictor on arrays and raw scan files, and the CLIs' errors.
+"""Export (ONNX, torch.export) parity with eager, older TorchScript exports, the Predictor on arrays and raw scan
+files, and the CLIs' errors.
 
 One tiny FastFlow3D (+-6.4 m, 0.2 m cells, 64 x 64 grid) is trained a few steps on a synthetic pair so that its
 weights and BatchNorm statistics are not the initial ones, saved as a training checkpoint (the checkpoint contract
@@ -6,15 +7,17 @@ of ``fastflow3d.checkpoint``) and exported once for the whole module.
 """
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from fastflow3d.artifact import FILE_NAMES, METADATA_NAME, ArtifactError, SingleSampleNet, sha256_file
 from fastflow3d.checkpoint import load_student
 from fastflow3d.data import TEACHER_FIELDS
-from fastflow3d.export import FILE_NAMES, METADATA_NAME, SingleSampleNet, export_checkpoint, run_export, sha256_file
+from fastflow3d.export import export_checkpoint, run_export
 from fastflow3d.infer import main as infer_main
 from fastflow3d.model import compensate
 from fastflow3d.predictor import Predictor, PredictorError
@@ -106,14 +109,14 @@ def test_metadata_describes_the_export(export_dir, checkpoint):
     assert "ego1_from_ego0 * pc0 - pc0" in metadata["flow_convention"]
     # a checkpoint whose config has no data block (trained on every point, default teacher settings)
     assert metadata["preprocessing"]["remove_ground"] is False and metadata["preprocessing"]["teacher"] is None
-    for name in ("onnx", "torchscript"):
+    for name in ("onnx", "pt2"):
         entry = metadata["files"][name]
         assert entry["path"] == FILE_NAMES[name] and entry["sha256"] == sha256_file(export_dir / entry["path"])
         assert metadata["parity_max_abs_m"][name] <= TOLERANCE
     assert sorted(p.name for p in export_dir.iterdir()) == sorted([METADATA_NAME, *FILE_NAMES.values()])
 
 
-@pytest.mark.parametrize("backend", ["onnx", "torchscript"])
+@pytest.mark.parametrize("backend", ["onnx", "pt2"])
 def test_export_parity_on_synthetic_pairs(export_dir, expected, pairs, backend):
     predictor = Predictor.load(export_dir, backend=backend)
     assert predictor.backend == backend
@@ -135,9 +138,27 @@ def test_checkpoint_and_single_files_load(export_dir, checkpoint, expected, pair
     from_ckpt = Predictor.load(checkpoint)
     assert from_ckpt.backend == "eager" and from_ckpt.metadata["grid"]["nx"] == 64
     np.testing.assert_allclose(from_ckpt(pair.pc0, pair.pc1, pair.ego1_from_ego0), flow, atol=1e-6, rtol=0)
-    for name, backend in (("fastflow3d.onnx", "onnx"), ("fastflow3d.pt", "torchscript")):
+    for name, backend in (("fastflow3d.onnx", "onnx"), ("fastflow3d.pt2", "pt2")):
         predictor = Predictor.load(export_dir / name)
         assert predictor.backend == backend and predictor.metadata["model"] == TINY
+        assert np.abs(predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0) - flow).max() <= TOLERANCE
+
+
+def test_older_torchscript_exports_still_load(export_dir, eager, expected, pairs, tmp_path):
+    """An export directory of an older version (``fastflow3d.pt``, TorchScript, listed as ``torchscript``) runs as
+    before, by directory and as a bare file."""
+    legacy = tmp_path / "legacy"
+    legacy.mkdir()
+    example = tuple(torch.from_numpy(cloud[:500]) for cloud in (pairs[0].pc0, pairs[0].pc1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", (DeprecationWarning, FutureWarning))  # torch.jit is deprecated
+        torch.jit.save(torch.jit.trace(eager, example, check_trace=False), str(legacy / "fastflow3d.pt"))
+    metadata = json.loads((export_dir / METADATA_NAME).read_text())
+    metadata["files"] = {"torchscript": {"path": "fastflow3d.pt", "sha256": sha256_file(legacy / "fastflow3d.pt")}}
+    (legacy / METADATA_NAME).write_text(json.dumps(metadata))
+    pair, (flow, _) = pairs[2], expected[2]
+    for predictor in (Predictor.load(legacy), Predictor.load(legacy / "fastflow3d.pt")):
+        assert predictor.backend == "torchscript" and predictor.metadata["model"] == TINY
         assert np.abs(predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0) - flow).max() <= TOLERANCE
 
 
@@ -170,7 +191,7 @@ def ground_checkpoint(checkpoint):
 
 def test_ground_removal_model_sees_non_ground_points_only(ground_checkpoint, eager, pairs, tmp_path):
     path, teacher = ground_checkpoint
-    export_dir = export_checkpoint(path, formats=("torchscript",))
+    export_dir = export_checkpoint(path, formats=("pt2",))
     preprocessing = json.loads((export_dir / METADATA_NAME).read_text())["preprocessing"]
     assert preprocessing["remove_ground"] is True and preprocessing["teacher"]["sensor_height"] == 1.9
     pair = pairs[0]
@@ -215,15 +236,15 @@ def test_predictor_rejects_bad_inputs(export_dir, tmp_path):
         predictor(points, np.zeros((10, 4), np.float32), np.eye(4))
     with pytest.raises(PredictorError, match="not rigid"):
         predictor(points, points, np.diag([2.0, 1.0, 1.0, 1.0]))
-    with pytest.raises(PredictorError, match="not an export directory"):
+    with pytest.raises(ArtifactError, match="not an export directory"):
         Predictor.load(tmp_path)
     copy = tmp_path / "copy"
     copy.mkdir()
-    for name in (METADATA_NAME, FILE_NAMES["torchscript"]):
+    for name in (METADATA_NAME, FILE_NAMES["pt2"]):
         (copy / name).write_bytes((export_dir / name).read_bytes())
-    (copy / FILE_NAMES["torchscript"]).write_bytes(b"changed")
-    with pytest.raises(PredictorError, match="changed after export"):
-        Predictor.load(copy, backend="torchscript")
+    (copy / FILE_NAMES["pt2"]).write_bytes(b"changed")
+    with pytest.raises(ArtifactError, match="changed after export"):
+        Predictor.load(copy, backend="pt2")
 
 
 def write_scan(path: Path, points: np.ndarray) -> Path:
@@ -264,7 +285,7 @@ def test_infer_cli_on_raw_files_with_and_without_poses(export_dir, pairs, expect
     assert (tmp_path / "flow.bin.png").stat().st_size > 10_000
     scan0, scan1 = write_scan(tmp_path / "a.npy", pair.pc0), write_scan(tmp_path / "b.npy", pair.pc1)
     out = tmp_path / "estimated.npy"
-    assert infer_main([str(export_dir / "fastflow3d.pt"), str(scan0), str(scan1), "--out", str(out), "--no-bev"]) == 0
+    assert infer_main([str(export_dir / "fastflow3d.pt2"), str(scan0), str(scan1), "--out", str(out), "--no-bev"]) == 0
     got = np.load(out)
     assert got.shape == pair.pc0.shape and got.dtype == np.float32
     with_teacher_ego = Predictor.load(export_dir).predict(pair.pc0, pair.pc1, teacher_ego)
@@ -306,7 +327,7 @@ def test_export_cli(checkpoint, tmp_path, capsys):
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         base = compose(config_name="export")
         out = tmp_path / "ts"
-        chosen = compose(config_name="export", overrides=[f"checkpoint={checkpoint}", "format=torchscript",
+        chosen = compose(config_name="export", overrides=[f"checkpoint={checkpoint}", "format=pt2",
                                                           f"out_dir={out}"])
     assert run_export(base) == 2 and "pass checkpoint=" in capsys.readouterr().err
     base.checkpoint = str(tmp_path / "none.ckpt")
@@ -315,6 +336,6 @@ def test_export_cli(checkpoint, tmp_path, capsys):
     status, err = run_export(base), capsys.readouterr().err
     assert status == 2 and "unknown export format" in err and err.count("\n") == 1
     assert run_export(chosen) == 0
-    assert sorted(p.name for p in out.iterdir()) == [FILE_NAMES["torchscript"], METADATA_NAME]
-    assert json.loads((out / METADATA_NAME).read_text())["files"].keys() == {"torchscript"}
+    assert sorted(p.name for p in out.iterdir()) == [FILE_NAMES["pt2"], METADATA_NAME]
+    assert json.loads((out / METADATA_NAME).read_text())["files"].keys() == {"pt2"}
     assert f"{out / METADATA_NAME}" in capsys.readouterr().out

@@ -1,8 +1,12 @@
 """FastFlow3D student: voxelisation, scatter, model shapes/params/gradients, export parity, losses, overfitting."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
+import yaml
+from torch.export.passes import move_to_device_pass
 
 from fastflow3d.loss import flow_loss, speed_weight
 from fastflow3d.model import FastFlow3D, compensate
@@ -10,7 +14,12 @@ from fastflow3d.scatter import scatter_mean, scatter_sum
 from fastflow3d.voxelize import Grid, voxelize
 from icpflow.geometry import make_transform, residual_to_full, transform_points
 
+#: FastFlow3D's arguments as conf/model/fastflow3d.yaml (the one place of the model's settings) gives them
+PAPER = {key: value for key, value in yaml.safe_load(
+    (Path(__file__).resolve().parents[1] / "conf" / "model" / "fastflow3d.yaml").read_text()).items()
+    if key != "_target_"}
 SMALL = {"x_range": (-8.0, 8.0), "y_range": (-8.0, 8.0), "z_range": (-3.0, 3.0), "cell": 0.5}  # 32 x 32
+SMALL_MODEL = {**PAPER, **SMALL}
 
 
 def flat_batch(clouds):
@@ -65,7 +74,7 @@ def test_scatter_equals_python_loop():
 
 
 def test_shapes_small_grid_batched():
-    model = FastFlow3D(**SMALL).eval()
+    model = FastFlow3D(**SMALL_MODEL).eval()
     gen = torch.Generator().manual_seed(1)
     pc0, b0 = flat_batch([torch.randn(70, 3, generator=gen) * 6, torch.randn(50, 3, generator=gen) * 6])
     pc1, b1 = flat_batch([torch.randn(60, 3, generator=gen) * 6, torch.randn(40, 3, generator=gen) * 6])
@@ -81,7 +90,7 @@ def test_shapes_small_grid_batched():
 
 
 def test_parameter_count_default_and_layers():
-    model = FastFlow3D()
+    model = FastFlow3D(**PAPER)
     assert (model.grid.nx, model.grid.ny) == (512, 512)
     assert sum(p.numel() for p in model.parameters()) == 6_815_619
     assert model.embedder.linear.bias is None
@@ -90,7 +99,7 @@ def test_parameter_count_default_and_layers():
 
 
 def test_gradients_reach_every_parameter():
-    model = FastFlow3D(**SMALL).train()
+    model = FastFlow3D(**SMALL_MODEL).train()
     gen = torch.Generator().manual_seed(2)
     pc0, b0 = flat_batch([torch.rand(300, 3, generator=gen) * 14 - 7, torch.rand(200, 3, generator=gen) * 14 - 7])
     pc1, b1 = flat_batch([torch.rand(300, 3, generator=gen) * 14 - 7, torch.rand(200, 3, generator=gen) * 14 - 7])
@@ -146,28 +155,34 @@ class SingleSample(torch.nn.Module):
         return self.model(pc0, batch0, pc1, batch1, 1)
 
 
-def test_torchscript_trace_dynamic_point_counts():
-    model = FastFlow3D(**SMALL).eval()
-    traced = torch.jit.trace(SingleSample(model), (*random_flat(300, 0, 7), *random_flat(250, 0, 8)),
-                             check_trace=False)
+def exported_small_model():
+    """The small model in eval mode and its ``torch.export`` program (dynamic point counts), traced on 300 / 250
+    points."""
+    model = FastFlow3D(**SMALL_MODEL).eval()
+    n0, n1 = torch.export.Dim("n0", min=1), torch.export.Dim("n1", min=1)
+    example = (*random_flat(300, 0, 7), *random_flat(250, 0, 8))
+    program = torch.export.export(SingleSample(model), example, dynamic_shapes=({0: n0}, {0: n0}, {0: n1}, {0: n1}))
+    return model, program
+
+
+def test_torch_export_dynamic_point_counts():
+    model, program = exported_small_model()
     for seed, n0, n1 in [(9, 1000, 800), (10, 50, 3000)]:
         pc0, b0 = random_flat(n0, 0, seed)
         pc1, b1 = random_flat(n1, 0, seed + 100)
         expected, valid = model(pc0, b0, pc1, b1, 1)
-        got, got_valid = traced(pc0, b0, pc1, b1)
+        got, got_valid = program.module()(pc0, b0, pc1, b1)
         torch.testing.assert_close(got, expected, atol=1e-5, rtol=0)
         assert torch.equal(got_valid, valid)
 
 
-def test_torchscript_trace_follows_the_input_device():
-    """No tensor of the trace is made on the tracing device (CPU), so it runs where its inputs are: checked in the
-    graph and by running it on the meta device (no GPU needed)."""
-    model = FastFlow3D(**SMALL).eval()
-    traced = torch.jit.trace(SingleSample(model), (*random_flat(300, 0, 7), *random_flat(250, 0, 8)),
-                             check_trace=False)
-    assert 'Device = prim::Constant[value="cpu"]' not in str(traced.inlined_graph)
+def test_torch_export_program_moves_to_another_device():
+    """The CPU-exported program runs where it is moved (``artifact.load_network`` does this for a GPU): checked on
+    the meta device (no GPU needed)."""
+    _, program = exported_small_model()
+    moved = move_to_device_pass(program, "meta")
     (pc0, b0), (pc1, b1) = random_flat(120, 0, 9), random_flat(90, 0, 10)
-    residual, valid = traced.to("meta")(pc0.to("meta"), b0.to("meta"), pc1.to("meta"), b1.to("meta"))
+    residual, valid = moved.module()(pc0.to("meta"), b0.to("meta"), pc1.to("meta"), b1.to("meta"))
     assert residual.device.type == valid.device.type == "meta"
     assert residual.shape == (120, 3) and valid.shape == (120,)
 
@@ -234,7 +249,7 @@ def test_overfit_one_synthetic_pair():
     inputs = (torch.from_numpy(compensate(pc0, ego1_from_ego0)), torch.zeros(len(pc0), dtype=torch.int64),
               torch.from_numpy(pc1), torch.zeros(len(pc1), dtype=torch.int64))
     target = torch.from_numpy(residual)
-    model = FastFlow3D(x_range=(-16.0, 16.0), y_range=(-16.0, 16.0), cell=1.0)
+    model = FastFlow3D(**{**PAPER, "x_range": (-16.0, 16.0), "y_range": (-16.0, 16.0), "cell": 1.0})
     optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)  # 2e-3 diverges on this pair
     epes = []
     for _ in range(150):
@@ -255,7 +270,7 @@ def test_overfit_one_synthetic_pair():
 def test_onnx_dynamo_parity_full_model(tmp_path):
     ort = pytest.importorskip("onnxruntime")
     pytest.importorskip("onnxscript")
-    model = FastFlow3D(**SMALL).eval()
+    model = FastFlow3D(**SMALL_MODEL).eval()
     path = tmp_path / "fastflow3d.onnx"
     p0, p1 = torch.export.Dim("p0", min=2), torch.export.Dim("p1", min=2)
     torch.onnx.export(SingleSample(model), (*random_flat(300, 0, 11), *random_flat(200, 0, 12)), str(path),

@@ -19,10 +19,11 @@ from hydra import compose, initialize_config_dir
 
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.frames import FramePairError
-from icpflow.labelling.cli import label, teacher_config
+from icpflow.labelling.cli import label
 from icpflow.labelling.run import DIED, LabelJob, available_cores, label_shard, thread_limit
 from icpflow.shards import ShardDataset, verify_shard
 from icpflow.teacher import ICPFlow
+from icpflow.teacher.config import teacher_config
 from icpflow.teacher.tracker import long_horizon_flow
 
 REPO = Path(__file__).resolve().parents[1]
@@ -457,7 +458,7 @@ class SlowSynthetic(SyntheticDataset):
 
 
 def test_ctrl_c_to_the_process_group_with_two_workers(reference, tmp_path):
-    args = [f"dataset.reader._target_=test_label.SlowSynthetic", "workers=2"]
+    args = ["dataset.reader._target_=test_label.SlowSynthetic", "workers=2"]
     process = subprocess.Popen(_script(tmp_path, *args), cwd=tmp_path, env=TESTS_ENV, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_default_sigint)
     deadline = time.monotonic() + 120

@@ -5,9 +5,19 @@ import pytest
 
 from icpflow.frames import FramePair
 from icpflow.geometry import ego_flow, make_transform
-from icpflow.metrics import (AV2_META, META_CLASSES, THREEWAY_EDGES, THREEWAY_META, MetricAccumulator,
-                             av2_bucket_stats, bucketed_epe, format_table, frame_pair_stats, pair_stats,
-                             threeway_epe)
+from icpflow.metrics import (
+    AV2_META,
+    META_CLASSES,
+    THREEWAY_EDGES,
+    THREEWAY_META,
+    MetricAccumulator,
+    av2_bucket_stats,
+    bucketed_epe,
+    format_table,
+    frame_pair_stats,
+    pair_stats,
+    threeway_epe,
+)
 
 I4 = np.eye(4)
 
@@ -117,13 +127,16 @@ def _package_mean(evaluator):
 def test_parity_with_bucketed_scene_flow_eval(tmp_path):
     pytest.importorskip("bucketed_scene_flow_eval", reason="bucketed-scene-flow-eval not installed")
     from bucketed_scene_flow_eval.datasets.argoverse2.argoverse_scene_flow import CATEGORY_MAP
-    from bucketed_scene_flow_eval.datasets.argoverse2.av2_metacategories import (BUCKETED_METACATAGORIES,
-                                                                                  THREEWAY_EPE_METACATAGORIES)
+    from bucketed_scene_flow_eval.datasets.argoverse2.av2_metacategories import (
+        BUCKETED_METACATAGORIES,
+        THREEWAY_EPE_METACATAGORIES,
+    )
     from bucketed_scene_flow_eval.eval import BucketedEPEEvaluator, ThreeWayEPEEvaluator
 
     frames = [_random_av2(seed=s) for s in range(3)]
     ours = sum(av2_bucket_stats(*f[:5], ground=f[5]) for f in frames)
-    evaluator = BucketedEPEEvaluator(CATEGORY_MAP, output_path=tmp_path / "b", meta_class_lookup=BUCKETED_METACATAGORIES)
+    evaluator = BucketedEPEEvaluator(CATEGORY_MAP, output_path=tmp_path / "b",
+                                     meta_class_lookup=BUCKETED_METACATAGORIES)
     ref = _package_results(evaluator, frames)
     mine = bucketed_epe(ours)
     for meta in META_CLASSES:
@@ -177,8 +190,10 @@ def test_parity_on_real_av2_pair(tmp_path):
         pytest.skip(f"real AV2 sample absent: {AV2_LOG}")
     import pandas as pd
     from bucketed_scene_flow_eval.datasets.argoverse2.argoverse_scene_flow import CATEGORY_MAP
-    from bucketed_scene_flow_eval.datasets.argoverse2.av2_metacategories import (BUCKETED_METACATAGORIES,
-                                                                                  THREEWAY_EPE_METACATAGORIES)
+    from bucketed_scene_flow_eval.datasets.argoverse2.av2_metacategories import (
+        BUCKETED_METACATAGORIES,
+        THREEWAY_EPE_METACATAGORIES,
+    )
     from bucketed_scene_flow_eval.eval import BucketedEPEEvaluator, ThreeWayEPEEvaluator
 
     labels = pd.read_feather(AV2_LOG / "flow_labels.feather")
@@ -189,7 +204,8 @@ def test_parity_on_real_av2_pair(tmp_path):
     classes = labels["classes"].to_numpy(np.int32)
     ground = labels["is_ground_0"].to_numpy(bool)
     frame = (pc0, ego_flow(pc0, ego), gt, ego, classes, ground)  # ego flow as the prediction
-    evaluator = BucketedEPEEvaluator(CATEGORY_MAP, output_path=tmp_path / "b", meta_class_lookup=BUCKETED_METACATAGORIES)
+    evaluator = BucketedEPEEvaluator(CATEGORY_MAP, output_path=tmp_path / "b",
+                                     meta_class_lookup=BUCKETED_METACATAGORIES)
     ref = _package_results(evaluator, [frame])
     mine = bucketed_epe(av2_bucket_stats(*frame[:5], ground=ground))
     assert mine["per_class"]["CAR"][1] > 0.5  # moving cars: ego flow misses their motion

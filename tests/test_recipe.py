@@ -10,8 +10,8 @@ from fastflow3d.schedules import warmup_cosine, warmup_multistep
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import full_to_residual, transform_points
 
-SMALL = {"x_range": (-16.0, 16.0), "y_range": (-16.0, 16.0), "cell": 1.0, "pillar_channels": 16,
-         "stage_channels": (16, 32, 64)}
+SMALL = {"x_range": (-16.0, 16.0), "y_range": (-16.0, 16.0), "z_range": (-3.0, 3.0), "cell": 1.0,
+         "pillar_channels": 16, "stage_channels": (16, 32, 64), "stage_blocks": (1, 1, 1)}
 
 
 def _lrs(make, total: int) -> list[float]:

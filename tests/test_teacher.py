@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from teacher_scenes import scene  # tests/ is on sys.path (pytest prepend import mode)
 
 from icpflow.geometry import ego_flow, make_transform
 from icpflow.teacher import ICPFlow, ICPFlowConfig
@@ -17,8 +18,6 @@ from icpflow.teacher.flow import match_confidence
 from icpflow.teacher.ground import GroundSegmenter
 from icpflow.teacher.pairing import cluster_stats, plausible
 from icpflow.teacher.tracker import long_horizon_flow
-
-from teacher_scenes import scene  # tests/ is on sys.path (pytest prepend import mode)
 
 EGO = make_transform(yaw=0.02, translation=(0.8, 0.1, 0.0))
 CFG = ICPFlowConfig.preset("waymo", ground="zthreshold", range_z=0.0, ground_slack=0.1, ego_motion="given")
@@ -46,7 +45,8 @@ def result(teacher, moving_scene):
 def test_presets_follow_the_reference():
     av2, waymo, nus = (ICPFlowConfig.preset(n) for n in ("av2", "waymo", "nuscenes"))
     assert (av2.speed, av2.crop_xy, av2.min_cluster_size, av2.max_error, av2.range_z) == (1.0, 51.2, 20, 0.2, -10000.0)
-    assert (waymo.speed, waymo.crop_xy, waymo.min_cluster_size, waymo.max_error, waymo.range_z) == (1.67, 32.0, 30, 0.3, 0.04)
+    assert (waymo.speed, waymo.crop_xy, waymo.min_cluster_size, waymo.max_error, waymo.range_z) == (
+        1.67, 32.0, 30, 0.3, 0.04)
     assert (nus.range_z, nus.max_points, nus.max_error, nus.min_cluster_size) == (-1.84, 5000, 0.2, 20)
     assert waymo.window(0.5, k=1) == pytest.approx(3.34) and waymo.window(5.0, k=2) == pytest.approx(10.0)
     assert ICPFlowConfig.preset("av2", init="centroid").init == "centroid"
@@ -87,7 +87,8 @@ def test_hydra_group_null_means_preset():
 
 
 def test_lazy_export_keeps_import_light():
-    code = "import sys, icpflow; assert 'icpflow.teacher' not in sys.modules; from icpflow import ICPFlow, ICPFlowConfig; print(ICPFlow.__name__)"
+    code = ("import sys, icpflow; assert 'icpflow.teacher' not in sys.modules; "
+            "from icpflow import ICPFlow, ICPFlowConfig; print(ICPFlow.__name__)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(__file__).parents[1])
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ICPFlow"

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from teacher_scenes import box_surface  # tests/ is on sys.path (pytest prepend import mode)
 
 from icpflow.geometry import make_transform, transform_points
 from icpflow.teacher import ICPFlow, ICPFlowConfig
-from icpflow.teacher.registration import ICPParams, normals, register_plane
-
-from teacher_scenes import box_surface  # tests/ is on sys.path (pytest prepend import mode)
+from icpflow.teacher.icp import ICPParams, normals
+from icpflow.teacher.registration import register_plane
 
 EGO = make_transform(yaw=0.02, translation=(0.8, 0.1, 0.0))
 CFG = ICPFlowConfig.preset("waymo", ground="zthreshold", range_z=0.0, ground_slack=0.1, ego_motion="given")

@@ -9,8 +9,9 @@ from icpflow.teacher.checks import passes
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.histogram import HistogramParams, centroid_translation, initial_translation, initial_translations
 from icpflow.teacher.histogram import params_from_config as hist_params
-from icpflow.teacher.registration import ICPParams, register_clusters
-from icpflow.teacher.registration import params_from_config as icp_params
+from icpflow.teacher.icp import ICPParams
+from icpflow.teacher.icp import params_from_config as icp_params
+from icpflow.teacher.registration import register_clusters
 
 HIST = HistogramParams()
 ICP = ICPParams()

@@ -16,9 +16,9 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from fastflow3d.artifact import FILE_NAMES, METADATA_NAME
 from fastflow3d.checkpoint import CheckpointError, build_student, load_student
 from fastflow3d.data import TEACHER_FIELDS, DataError, StudentDataset, collate
-from fastflow3d.export import FILE_NAMES, METADATA_NAME
 from fastflow3d.model import FastFlow3D
 from fastflow3d.module import StudentModule
 from fastflow3d.training import TrainError, fit
@@ -312,7 +312,7 @@ def test_short_run_validates_at_its_last_step_and_exports_the_best_checkpoint(sh
     validation makes the best checkpoint; the run ends by exporting it (the default formats) under out_dir."""
     formats = list(_compose().export.formats)
     cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=3", f"export.formats=[{','.join(formats)}]")
-    assert cfg.trainer.val_check_interval == 40 and formats == ["onnx", "torchscript"]
+    assert cfg.trainer.val_check_interval == 40 and formats == ["onnx", "pt2"]
     trainer = fit(cfg)
     assert trainer.global_step == 3 and trainer.lightning_module.validations == 1
     best = list((tmp_path / "run" / "checkpoints").glob("best-*.ckpt"))
@@ -328,14 +328,14 @@ def test_short_run_validates_at_its_last_step_and_exports_the_best_checkpoint(sh
 
 def test_export_falls_back_to_last_checkpoint_and_says_so(shards, tmp_path, caplog):
     cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=2", "callbacks.best.save_top_k=0",
-               "export.formats=[torchscript]")
+               "export.formats=[pt2]")
     with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
         fit(cfg)
     last = tmp_path / "run" / "checkpoints" / "last.ckpt"
     assert not list(last.parent.glob("best-*")) and f"no best checkpoint (no validation ran?): exporting {last}" in \
         caplog.text
     metadata = json.loads((tmp_path / "run" / "export" / METADATA_NAME).read_text())
-    assert metadata["source_checkpoint"]["path"] == str(last.resolve()) and list(metadata["files"]) == ["torchscript"]
+    assert metadata["source_checkpoint"]["path"] == str(last.resolve()) and list(metadata["files"]) == ["pt2"]
     with pytest.raises(TrainError, match="export.formats: unknown tflite"):
         fit(_cfg(tmp_path, shards["gt"], shards["gt"], "export.formats=[tflite]"))
 

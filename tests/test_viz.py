@@ -43,7 +43,7 @@ def metres_of(panel: np.ndarray, colour, near=None, tolerance: float = 0.06) -> 
     (the black spines, limits +-EXTENT); ``near`` (x, y): only pixels within 2 m of it."""
     dark = np.all(panel[..., :3] < 0.3, axis=-1)
     spine_rows, spine_cols = np.flatnonzero(dark.mean(axis=1) > 0.5), np.flatnonzero(dark.mean(axis=0) > 0.5)
-    top, bottom, left, right = spine_rows.min(), spine_rows.max(), spine_cols.min(), spine_cols.max()
+    top, left, right = spine_rows.min(), spine_cols.min(), spine_cols.max()
     pixels_per_metre = (right - left) / (2 * EXTENT)
     near_pixel = None if near is None else (top + (EXTENT - near[1]) * pixels_per_metre,
                                             left + (near[0] + EXTENT) * pixels_per_metre)

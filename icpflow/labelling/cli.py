@@ -13,26 +13,7 @@ from icpflow.datasets.from_config import dataset_root, open_dataset
 from icpflow.labelling.plan import plan_shards
 from icpflow.labelling.run import LabelError, LabelJob, available_cores, run_labelling
 from icpflow.shards.schema import COMPRESSIONS
-
-
-def teacher_config(cfg: DictConfig):
-    """``ICPFlowConfig``: the dataset's preset, then ``dataset.teacher``, then non-null ``icpflow.*`` fields.
-
-    A ``dataset.teacher`` key that is not a teacher field is an error (ValueError naming it).
-    """
-    from icpflow.teacher.config import ICPFlowConfig, from_hydra
-
-    known = {f.name for f in dataclasses.fields(ICPFlowConfig)}
-    block = cfg.dataset.get("teacher")
-    per_dataset = OmegaConf.to_container(block, resolve=True) if block is not None else {}
-    unknown = sorted(set(per_dataset) - known)
-    if unknown:
-        raise ValueError(f"dataset {cfg.dataset.name}: dataset.teacher has keys that are not ICPFlowConfig fields: "
-                         f"{', '.join(unknown)}")
-    values = dict(per_dataset)
-    chosen = OmegaConf.to_container(cfg.icpflow, resolve=True)
-    values.update({key: value for key, value in chosen.items() if value is not None})
-    return from_hydra(values)
+from icpflow.teacher.config import teacher_config
 
 
 def labeller_yaml(cfg: DictConfig, teacher) -> str:

@@ -18,11 +18,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from icpflow.atomic import write_text_atomic
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.frames import FramePairError
 from icpflow.shards.schema import shard_name
 from icpflow.shards.verify import ShardError, verify_shard
-from icpflow.shards.writer import write_failures, write_index, write_shard, write_text_atomic
+from icpflow.shards.writer import write_failures, write_index, write_shard
 
 #: failure reason of a sample during which a worker process died
 DIED = ("WorkerDied: the worker process died labelling this sample (killed, e.g. out of memory, or crashed in "
@@ -332,7 +333,8 @@ def _pool_results(job, todo, workers, threads, tick):
                         _remove_temporaries(job.out_dir, shard)
                         if not crashed:
                             raise LabelError(f"a worker process died outside any sample of {shard_name(shard)} "
-                                             f"(killed, or a crash loading the teacher); complete shards are kept")
+                                             f"(killed, or a crash loading the teacher); complete shards are kept"
+                                             ) from None
                         tick(-counted)  # the retry counts them again
                         sample_id = sample_id_or_index(job.dataset, crashed[0])
                         failure = {"index": crashed[0], "sample_id": sample_id, "file": sample_id, "reason": DIED}

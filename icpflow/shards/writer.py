@@ -3,77 +3,38 @@
 from __future__ import annotations
 
 import json
-import os
-import uuid
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 import icpflow
+from icpflow.atomic import atomic_path, write_text_atomic
 from icpflow.shards.schema import COMPRESSIONS, SCHEMA_VERSION, group_name
-
-
-def _temporary(path: Path) -> Path:
-    """A fresh temporary name next to ``path`` (unique across processes and hosts sharing the folder)."""
-    return path.with_name(f"{path.name}.tmp-{uuid.uuid4().hex}")
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def write_shard(path: Path, samples: list[dict], config_yaml: str, config_hash: str, compression: str | None = None):
     """Write ``samples`` (dicts of arrays plus an ``attrs`` dict, see ``schema``) to ``path`` atomically.
 
-    The file is written under ``<path>.tmp-<random>``, flushed, fsynced, then renamed over ``path``. Every array
-    carries Fletcher-32 checksums; ``compression`` is an HDF5 filter (``gzip``, ``lzf``), ``none`` or None.
+    The file is written under ``<path>.tmp-<random>.h5``, fsynced, then renamed over ``path`` (``icpflow.atomic``).
+    Every array carries Fletcher-32 checksums; ``compression`` is an HDF5 filter (``gzip``, ``lzf``), ``none`` or None.
     """
     if compression is not None and compression not in COMPRESSIONS:
         raise ValueError(f"write_shard: compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
-    path = Path(path)
-    tmp = _temporary(path)
     opts = {"fletcher32": True}  # per-chunk checksums: a corrupted byte fails verification
     if compression not in (None, "none"):
         opts["compression"] = compression
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs.update(config=config_yaml, config_hash=config_hash, package_version=icpflow.__version__,
-                           schema_version=SCHEMA_VERSION, num_samples=len(samples))
-            for position, sample in enumerate(samples):
-                group = f.create_group(group_name(position))
-                for key, value in sample.items():
-                    if key == "attrs":
-                        group.attrs.update(value)
-                    elif value is not None:
-                        value = np.asarray(value)
-                        group.create_dataset(key, data=value, **(opts if value.size else {}))
-            f.flush()
-        with open(tmp, "rb+") as handle:
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a fsynced temporary file and a rename."""
-    path = Path(path)
-    tmp = _temporary(path)
-    try:
-        with open(tmp, "w") as handle:
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs.update(config=config_yaml, config_hash=config_hash, package_version=icpflow.__version__,
+                       schema_version=SCHEMA_VERSION, num_samples=len(samples))
+        for position, sample in enumerate(samples):
+            group = f.create_group(group_name(position))
+            for key, value in sample.items():
+                if key == "attrs":
+                    group.attrs.update(value)
+                elif value is not None:
+                    value = np.asarray(value)
+                    group.create_dataset(key, data=value, **(opts if value.size else {}))
 
 
 def write_index(path: Path, index: dict) -> None:

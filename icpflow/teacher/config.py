@@ -28,7 +28,8 @@ POSITIVE = (
     "kiss_voxel_size", "kiss_max_range", "patchwork_max_range", "crop_xy", "speed", "hist_bin", "hist_z_range",
     "icp_max_corr", "icp_rel_rmse", "max_error", "max_roll_pitch_deg", "conf_iou_full",
 )
-NON_NEGATIVE = ("absorb_radius", "static_tolerance", "deskew_min_speed", "ego_refine_voxel", "ground_slack", "cluster_voxel_size", "hdbscan_epsilon", "extent_ratio", "min_iou", "sensor_height")
+NON_NEGATIVE = ("absorb_radius", "static_tolerance", "deskew_min_speed", "ego_refine_voxel", "ground_slack",
+                "cluster_voxel_size", "hdbscan_epsilon", "extent_ratio", "min_iou", "sensor_height")
 POSITIVE_INT = (
     "min_cluster_size", "max_clusters", "hdbscan_leaf_size", "hdbscan_n_jobs", "max_frame_gap", "hist_z_bins",
     "nms_kernel", "top_k", "hist_max_points", "max_points", "icp_max_iter", "deskew_iters",
@@ -113,7 +114,7 @@ class ICPFlowConfig:
             raise ValueError(f"ICPFlowConfig: {problem}")
 
     @classmethod
-    def preset(cls, name: str, **overrides) -> "ICPFlowConfig":
+    def preset(cls, name: str, **overrides) -> ICPFlowConfig:
         """The reference's settings for ``name`` in {"av2", "waymo", "nuscenes"}, then ``overrides``."""
         if name not in PRESETS:
             raise ValueError(f"ICPFlowConfig: unknown preset {name!r}, expected one of {sorted(PRESETS)}")
@@ -122,7 +123,7 @@ class ICPFlowConfig:
             raise ValueError(f"ICPFlowConfig: unknown field(s) {unknown}")
         return cls(**{**PRESETS[name], **overrides})
 
-    def replace(self, **overrides) -> "ICPFlowConfig":
+    def replace(self, **overrides) -> ICPFlowConfig:
         """A copy with ``overrides`` applied (validated)."""
         unknown = sorted(set(overrides) - {f.name for f in fields(self)})
         if unknown:
@@ -183,13 +184,15 @@ def _problem(cfg: ICPFlowConfig) -> str | None:
 PRESETS: dict[str, dict] = {
     # Waymo's vehicle frame has the ground near z = 0: shifted by -sensor_height it sits where Patchwork++ expects.
     "waymo": dict(
-        dataset="waymo", static_tolerance=0.25, patchwork_z_offset=-1.723, crop_xy=32.0, range_z=0.04, ground_slack=0.3, min_cluster_size=30, max_clusters=200,
+        dataset="waymo", static_tolerance=0.25, patchwork_z_offset=-1.723, crop_xy=32.0, range_z=0.04,
+        ground_slack=0.3, min_cluster_size=30, max_clusters=200,
         hdbscan_epsilon=0.25, speed=1.67, icp_max_corr=0.1, max_points=10000, extent_ratio=0.1, max_error=0.3,
         min_iou=0.2,
     ),
     # nuScenes at 20 Hz: 0.833 m per 0.05 s frame, i.e. the same 16.7 m/s as Waymo per frame of its own.
     "nuscenes": dict(
-        dataset="nuscenes", static_tolerance=0.25, crop_xy=32.0, range_z=-1.84, ground_slack=0.3, min_cluster_size=20, max_clusters=200,
+        dataset="nuscenes", static_tolerance=0.25, crop_xy=32.0, range_z=-1.84, ground_slack=0.3, min_cluster_size=20,
+        max_clusters=200,
         hdbscan_epsilon=0.25, speed=0.833333, icp_max_corr=0.1, max_points=5000, extent_ratio=0.1, max_error=0.2,
         min_iou=0.2,
     ),
@@ -205,7 +208,9 @@ PRESETS: dict[str, dict] = {
     # 1000: 0.107 / 0.192 (with / without times, map ground) against 0.125 / 0.279 with 1000, and 0.125 / 0.276
     # against 0.121 / 0.271 with Patchwork++ ground.
     "av2": dict(
-        dataset="av2", static_tolerance=0.25, hist_max_points=300, crop_xy=51.2, range_z=-10000.0, ground_slack=0.0, patchwork_z_offset=-1.4, cluster_voxel_size=0.2, absorb_radius=0.5, deskew=True, min_cluster_size=20, max_clusters=200,
+        dataset="av2", static_tolerance=0.25, hist_max_points=300, crop_xy=51.2, range_z=-10000.0, ground_slack=0.0,
+        patchwork_z_offset=-1.4, cluster_voxel_size=0.2, absorb_radius=0.5, deskew=True, min_cluster_size=20,
+        max_clusters=200,
         hdbscan_epsilon=0.25, speed=1.0, icp_max_corr=0.1, max_points=10000, extent_ratio=0.1, max_error=0.2,
         min_iou=0.2,
     ),
@@ -227,4 +232,25 @@ def from_hydra(node) -> ICPFlowConfig:
     return ICPFlowConfig.preset(preset, **overrides)
 
 
-__all__ = ["ICPFlowConfig", "PRESETS", "from_hydra"]
+def teacher_config(cfg) -> ICPFlowConfig:
+    """The teacher of a run config (label.py's, eval.py's): the dataset's preset, then ``dataset.teacher``, then the
+    non-null ``icpflow.*`` fields.
+
+    A ``dataset.teacher`` key that is not a teacher field is an error (ValueError naming it).
+    """
+    from omegaconf import OmegaConf
+
+    known = {f.name for f in fields(ICPFlowConfig)}
+    block = cfg.dataset.get("teacher")
+    per_dataset = OmegaConf.to_container(block, resolve=True) if block is not None else {}
+    unknown = sorted(set(per_dataset) - known)
+    if unknown:
+        raise ValueError(f"dataset {cfg.dataset.name}: dataset.teacher has keys that are not ICPFlowConfig fields: "
+                         f"{', '.join(unknown)}")
+    values = dict(per_dataset)
+    chosen = OmegaConf.to_container(cfg.icpflow, resolve=True)
+    values.update({key: value for key, value in chosen.items() if value is not None})
+    return from_hydra(values)
+
+
+__all__ = ["ICPFlowConfig", "PRESETS", "from_hydra", "teacher_config"]

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 
 
-
 @dataclass
 class HorizonResult:
     """Flow (N0, 3) float32 full flow from scan 0 to scan k, confidence (N0,) float32, ``chained`` (N0,) bool

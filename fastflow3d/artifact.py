@@ -1,0 +1,306 @@
+"""The exported FastFlow3D artifact: its network, file names, metadata schema, and how it is written and read.
+
+An export directory holds ``metadata.json`` and one file per format:
+
+* ``fastflow3d.onnx``: ONNX (dynamo exporter), run in ONNX Runtime;
+* ``fastflow3d.pt2``: a ``torch.export`` ExportedProgram, run in PyTorch (``torch.export.load``);
+* ``fastflow3d.pt``: TorchScript, written by older versions of this code. It is only read (``torch.jit`` is
+  deprecated): keep it while such exports are in use, re-export their checkpoints to replace them.
+
+The network of every format is :class:`SingleSampleNet`:
+
+* inputs ``pc0_compensated`` (N0, 3) float32, pc0 moved into the ego frame of t + dt by ``ego1_from_ego0``
+  (``fastflow3d.model.compensate``), and ``pc1`` (N1, 3) float32 as scanned; N0 and N1 are dynamic;
+* outputs ``residual`` (N0, 3) float32, the ego-compensated (residual) flow of every pc0 point inside the grid
+  (0 outside), and ``valid`` (N0,) bool, True for points inside the grid.
+
+``metadata.json`` (:func:`network_metadata`) holds the grid, model settings, preprocessing (ground removal and the
+teacher's ground and ego-motion settings), conventions, versions, the source checkpoint's hash, and (``files``) the
+name and hash of each exported file with the parity measured at export. ``fastflow3d.export`` writes artifacts,
+``fastflow3d.predictor`` runs them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from torch.export.passes import move_to_device_pass
+
+import icpflow
+from fastflow3d.model import FastFlow3D
+from icpflow.atomic import atomic_path, write_text_atomic
+
+FORMATS = ("onnx", "pt2")  # what an export writes
+LEGACY_FORMATS = ("torchscript",)  # read only: exports of older versions
+FILE_NAMES = {"onnx": "fastflow3d.onnx", "pt2": "fastflow3d.pt2"}
+SUFFIX_FORMATS = {".onnx": "onnx", ".pt2": "pt2", ".pt": "torchscript"}
+METADATA_NAME = "metadata.json"
+METADATA_VERSION = 1
+INPUT_NAMES = ("pc0_compensated", "pc1")
+OUTPUT_NAMES = ("residual", "valid")
+FLOW_CONVENTION = (
+    "Inputs: pc0_compensated (N0, 3) float32 = the scan at t moved into the ego frame of t + dt by ego1_from_ego0 "
+    "(4x4 rigid, maps the ego frame of t to the ego frame of t + dt); pc1 (N1, 3) float32 = the scan at t + dt in "
+    "its own ego frame; metres. Outputs: residual (N0, 3) float32 = ego-compensated flow of each pc0 point "
+    "(0 where valid is False); valid (N0,) bool = the point lies inside the grid. Full flow (pc0 + flow is the "
+    "point's position at t + dt in the ego frame of t + dt, the Argoverse 2 convention) = residual + "
+    "(ego1_from_ego0 * pc0 - pc0); points outside the grid move with the ego motion only."
+)
+
+
+class ArtifactError(ValueError):
+    """An artifact that cannot be read or run (missing, changed, foreign). The message is one line."""
+
+
+class SingleSampleNet(nn.Module):
+    """FastFlow3D on one pair: ``forward(pc0_compensated (N0, 3), pc1 (N1, 3)) -> (residual (N0, 3), valid (N0,))``.
+
+    The batch indices are built inside (all zeros), so the exported graph takes the two point clouds only.
+    """
+
+    def __init__(self, model: FastFlow3D):
+        super().__init__()
+        self.model = model
+
+    def forward(self, pc0_compensated: torch.Tensor, pc1: torch.Tensor):
+        batch0 = torch.zeros_like(pc0_compensated[:, 0], dtype=torch.int64)
+        batch1 = torch.zeros_like(pc1[:, 0], dtype=torch.int64)
+        return self.model(pc0_compensated, batch0, pc1, batch1, 1)
+
+
+# ---------------------------------------------------------------------------------------------------- metadata
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def grid_metadata(model: FastFlow3D) -> dict:
+    """The pillar grid of ``model``: ranges and cell (metres) and the cell counts."""
+    grid = model.grid
+    return {
+        "x_range": list(grid.x_range),
+        "y_range": list(grid.y_range),
+        "z_range": list(grid.z_range),
+        "cell": grid.cell,
+        "nx": grid.nx,
+        "ny": grid.ny,
+    }
+
+
+def preprocessing_metadata(cfg: dict) -> dict:
+    """What runs before the network, from a training config: ``remove_ground`` (the network was trained on, and
+    takes, non-ground points only) and ``teacher`` (ICPFlowConfig fields for the ground masks and the ego motion of
+    raw scans, ``fastflow3d.data.TEACHER_FIELDS``; None = ``ICPFlowConfig()``'s). A config without ``data`` (a
+    checkpoint from before ground removal) means all points and default settings."""
+    data = cfg.get("data") or {}
+    return {
+        "remove_ground": bool(data.get("remove_ground", False)),
+        "teacher": data.get("teacher"),
+        "note": "with remove_ground, the inputs are the non-ground points of each scan (ground masks by "
+        "icpflow.teacher.ground.GroundSegmenter with these teacher fields, or given); ground pc0 points "
+        "get the ego flow",
+    }
+
+
+def network_metadata(
+    model: FastFlow3D, model_config: dict | None = None, checkpoint=None, preprocessing: dict | None = None
+) -> dict:
+    """Metadata shared by exports and checkpoints: grid, model settings, preprocessing (see
+    :func:`preprocessing_metadata`), conventions, versions, source hash."""
+    source = None
+    if checkpoint is not None:
+        source = {"path": str(Path(checkpoint).resolve()), "sha256": sha256_file(checkpoint)}
+    return {
+        "metadata_version": METADATA_VERSION,
+        "network": "FastFlow3D (single sample)",
+        "grid": grid_metadata(model),
+        "model": model_config,
+        "preprocessing": preprocessing or preprocessing_metadata({}),
+        "inputs": [
+            {"name": INPUT_NAMES[0], "shape": ["N0", 3], "dtype": "float32"},
+            {"name": INPUT_NAMES[1], "shape": ["N1", 3], "dtype": "float32"},
+        ],
+        "outputs": [
+            {"name": OUTPUT_NAMES[0], "shape": ["N0", 3], "dtype": "float32"},
+            {"name": OUTPUT_NAMES[1], "shape": ["N0"], "dtype": "bool"},
+        ],
+        "flow_convention": FLOW_CONVENTION,
+        "package_version": icpflow.__version__,
+        "torch_version": torch.__version__,
+        "source_checkpoint": source,
+    }
+
+
+def write_metadata(out_dir: Path, metadata: dict) -> Path:
+    """Write ``metadata`` as ``<out_dir>/metadata.json`` (indented JSON, atomically); returns its path."""
+    path = Path(out_dir) / METADATA_NAME
+    write_text_atomic(path, json.dumps(metadata, indent=2) + "\n")
+    return path
+
+
+def read_metadata(path: Path) -> dict:
+    """``metadata.json`` of an export directory (one-line error if missing or not an export's)."""
+    try:
+        metadata = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ArtifactError(f"{path.parent}: no {METADATA_NAME} (not an export directory; see export.py)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ArtifactError(f"{path}: cannot read export metadata: {' '.join(str(error).split())}") from None
+    if not isinstance(metadata, dict) or not isinstance(metadata.get("files"), dict):
+        raise ArtifactError(f"{path}: not FastFlow3D export metadata (no 'files' entry)")
+    return metadata
+
+
+def sibling_metadata(path: Path, kind: str) -> dict:
+    """The metadata next to an exported file if it describes exactly this file (same name and hash), else {}."""
+    meta_path = path.parent / METADATA_NAME
+    if not meta_path.is_file():
+        return {}
+    try:
+        metadata = read_metadata(meta_path)
+    except ArtifactError:
+        return {}
+    entry = metadata["files"].get(kind) or {}
+    same = entry.get("path") == path.name and entry.get("sha256") == sha256_file(path)
+    return metadata if same else {}
+
+
+def listed_file(export_dir: Path, metadata: dict, kind: str) -> Path:
+    """The file of format ``kind`` listed in an export directory's metadata, checked against its recorded hash."""
+    entry = metadata["files"].get(kind)
+    if not entry:
+        raise ArtifactError(f"{export_dir}: the export has no {kind} file (has {', '.join(metadata['files'])})")
+    file = export_dir / entry["path"]
+    if not file.is_file():
+        raise ArtifactError(f"{file}: file listed in {METADATA_NAME} is missing")
+    if sha256_file(file) != entry.get("sha256"):
+        raise ArtifactError(f"{file}: file changed after export (sha256 differs from {METADATA_NAME})")
+    return file
+
+
+# ---------------------------------------------------------------------------------------------------- writing
+
+
+def _dynamic_shapes() -> dict:
+    n0, n1 = torch.export.Dim("n0", min=1), torch.export.Dim("n1", min=1)
+    return {INPUT_NAMES[0]: {0: n0}, INPUT_NAMES[1]: {0: n1}}
+
+
+def write_onnx(net: SingleSampleNet, path: Path, example: tuple[torch.Tensor, torch.Tensor]) -> None:
+    """Write ``net`` as ONNX (dynamo exporter, dynamic N0 and N1, traced on ``example``) to ``path`` atomically.
+
+    Raises ImportError when onnxscript (which the dynamo exporter needs) is missing."""
+    import onnxscript  # noqa: F401
+
+    with atomic_path(path) as tmp:
+        torch.onnx.export(
+            net,
+            example,
+            str(tmp),
+            dynamo=True,
+            external_data=False,
+            verbose=False,
+            input_names=list(INPUT_NAMES),
+            output_names=list(OUTPUT_NAMES),
+            dynamic_shapes=_dynamic_shapes(),
+        )
+
+
+def write_pt2(net: SingleSampleNet, path: Path, example: tuple[torch.Tensor, torch.Tensor]) -> None:
+    """Write ``net`` as a ``torch.export`` ExportedProgram (CPU, dynamic N0 and N1, traced on ``example``) to
+    ``path`` atomically."""
+    program = torch.export.export(net, example, dynamic_shapes=_dynamic_shapes())
+    with atomic_path(path) as tmp:
+        torch.export.save(program, tmp)
+
+
+WRITERS = {"onnx": write_onnx, "pt2": write_pt2}
+
+
+def onnx_opset(path: Path) -> int:
+    """The default-domain opset of an ONNX file."""
+    import onnx
+
+    opsets = onnx.load(str(path), load_external_data=False).opset_import
+    return next(entry.version for entry in opsets if entry.domain in ("", "ai.onnx"))
+
+
+# ---------------------------------------------------------------------------------------------------- reading
+
+
+class OnnxRuntimeNetwork:
+    """An exported ``.onnx`` in ONNX Runtime: ``(pc0_compensated, pc1) -> (residual, valid)`` numpy arrays."""
+
+    def __init__(self, path: Path, providers=None):
+        try:
+            import onnxruntime
+        except ImportError:
+            raise ArtifactError(f"{path}: running .onnx needs onnxruntime (pip install 'icpflow[export]')") from None
+        available = onnxruntime.get_available_providers()
+        if providers is None:
+            providers = [name for name in ("CUDAExecutionProvider", "CPUExecutionProvider") if name in available]
+        try:
+            self.session = onnxruntime.InferenceSession(str(path), providers=list(providers))
+        except Exception as error:  # onnxruntime raises its own exception types for damaged or foreign files
+            raise ArtifactError(f"{path}: cannot load ONNX model: {' '.join(str(error).split())}") from None
+        names = tuple(entry.name for entry in self.session.get_inputs())
+        if names != INPUT_NAMES:
+            raise ArtifactError(f"{path}: ONNX inputs are {names}, expected {INPUT_NAMES} (not a FastFlow3D export)")
+
+    def __call__(self, pc0_compensated: np.ndarray, pc1: np.ndarray):
+        residual, valid = self.session.run(list(OUTPUT_NAMES), {INPUT_NAMES[0]: pc0_compensated, INPUT_NAMES[1]: pc1})
+        return residual, valid
+
+
+class TorchNetwork:
+    """A :class:`SingleSampleNet`, a loaded ExportedProgram's module or a TorchScript trace on ``device``: numpy in,
+    numpy out."""
+
+    def __init__(self, module, device: str = "cpu"):
+        self.module, self.device = module, torch.device(device)
+
+    def __call__(self, pc0_compensated: np.ndarray, pc1: np.ndarray):
+        with torch.inference_mode():
+            residual, valid = self.module(
+                torch.from_numpy(pc0_compensated).to(self.device), torch.from_numpy(pc1).to(self.device)
+            )
+        return residual.cpu().numpy(), valid.cpu().numpy()
+
+
+def choose_format(files: dict) -> str:
+    """ONNX when the export has it and onnxruntime is installed (or there is nothing else), else ``pt2``, else the
+    legacy TorchScript."""
+    others = [kind for kind in ("pt2", *LEGACY_FORMATS) if kind in files]
+    if "onnx" in files and (not others or importlib.util.find_spec("onnxruntime") is not None):
+        return "onnx"
+    return others[0] if others else "onnx"
+
+
+def load_network(path: Path, kind: str, device: str = "cpu"):
+    """The runnable network (numpy in, numpy out) of one exported file of format ``kind``."""
+    if kind == "onnx":
+        return OnnxRuntimeNetwork(path)
+    try:
+        if kind == "pt2":
+            program = torch.export.load(str(path))
+            if torch.device(device).type != "cpu":  # exported on the CPU; not yet checked on a GPU
+                program = move_to_device_pass(program, device)
+            module = program.module()
+        else:  # legacy TorchScript exports (torch.jit is deprecated; read while older exports are in use)
+            module = torch.jit.load(str(path), map_location=device).eval()
+    except Exception as error:  # damaged or foreign files raise many types (RuntimeError, zipfile, pickle errors)
+        raise ArtifactError(f"{path}: cannot load {kind}: {' '.join(str(error).split())[:300]}") from None
+    return TorchNetwork(module, device)

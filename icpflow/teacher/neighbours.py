@@ -1,0 +1,163 @@
+"""Exact nearest neighbours in small clouds (the ICP correspondences and the match quality of step 6).
+
+:func:`build_grid` sorts a cloud (N, 3) into a voxel grid (columns in xy, z cells within a column);
+:func:`nearest` answers one query exactly by visiting cubic shells of cells around it, nearest first, falling back
+to a full scan when the query is far from the cloud. :func:`nn_stats` gives the mean nearest-neighbour distance and
+inlier count of a whole query cloud; :func:`transform_cloud` maps a cloud by a (4, 4) transform. All numba, metres,
+one shared frame.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+# Grid shells searched before a nearest-neighbour query falls back to scanning every point.
+_MAX_SHELL = 3
+# Squared distances at or above this are "nothing found yet" (no z-range pruning).
+_FAR = 1e30
+
+
+@numba.njit(cache=True)
+def build_grid(points, cell):
+    """Voxel grid of (N, 3) points, sorted by xy column then z cell: (origin (3,), dims (3,), column starts
+    (nx * ny + 1,), z cell of each sorted point (N,), sorted point order (N,))."""
+    origin = np.empty(3)
+    dims = np.empty(3, dtype=np.int64)
+    for a in range(3):
+        lo, hi = points[:, a].min(), points[:, a].max()
+        origin[a] = lo
+        dims[a] = int((hi - lo) / cell) + 1
+    n = points.shape[0]
+    columns = np.empty(n, dtype=np.int64)
+    z_cells = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        cx = min(int((points[i, 0] - origin[0]) / cell), dims[0] - 1)
+        cy = min(int((points[i, 1] - origin[1]) / cell), dims[1] - 1)
+        z_cells[i] = min(int((points[i, 2] - origin[2]) / cell), dims[2] - 1)
+        columns[i] = cx * dims[1] + cy
+    order = np.argsort(columns * dims[2] + z_cells, kind="mergesort")
+    starts = np.zeros(dims[0] * dims[1] + 1, dtype=np.int64)
+    for i in range(n):
+        starts[columns[i] + 1] += 1
+    for k in range(1, starts.shape[0]):
+        starts[k] += starts[k - 1]
+    return origin, dims, starts, z_cells[order], order
+
+
+@numba.njit(cache=True)
+def _scan_column(q, points, starts, z_sorted, order, dims, cx, cy, z0, z1, best_d2, best_j):
+    """Closest point to q among grid column (cx, cy), z cells z0..z1 (already clipped)."""
+    column = cx * dims[1] + cy
+    lo, hi = starts[column], starts[column + 1]
+    while lo < hi:  # binary search for the column's first point at z cell >= z0 (tall columns hold many points)
+        mid = (lo + hi) // 2
+        if z_sorted[mid] < z0:
+            lo = mid + 1
+        else:
+            hi = mid
+    for s in range(lo, starts[column + 1]):
+        if z_sorted[s] > z1:
+            break
+        j = order[s]
+        d2 = (points[j, 0] - q[0]) ** 2 + (points[j, 1] - q[1]) ** 2 + (points[j, 2] - q[2]) ** 2
+        if d2 < best_d2:
+            best_d2, best_j = d2, j
+    return best_d2, best_j
+
+
+@numba.njit(cache=True)
+def _nearest_brute(q, points, max_d2):
+    """Nearest of ``points`` to q by a full scan: (index, squared distance), or (-1, max_d2)."""
+    best_d2, best_j = max_d2, -1
+    for j in range(points.shape[0]):
+        d2 = (points[j, 0] - q[0]) ** 2 + (points[j, 1] - q[1]) ** 2 + (points[j, 2] - q[2]) ** 2
+        if d2 < best_d2:
+            best_d2, best_j = d2, j
+    return best_j, best_d2
+
+
+@numba.njit(cache=True)
+def nearest(q, points, grid, cell, max_d2):
+    """Nearest of ``points`` to q: (index, squared distance), or (-1, max_d2) if none is closer than sqrt(max_d2).
+
+    Visits cubic shells of grid cells around q's cell, nearest shell first, and stops as soon as every unvisited
+    cell is farther than the best point found (exact), or than sqrt(max_d2). A query that would need shells
+    beyond ``_MAX_SHELL`` (far from the grid or in a large empty part of it) scans all points instead.
+    """
+    origin, dims, starts, z_sorted, order = grid
+    c0 = int(np.floor((q[0] - origin[0]) / cell))
+    c1 = int(np.floor((q[1] - origin[1]) / cell))
+    c2 = int(np.floor((q[2] - origin[2]) / cell))
+    # Chebyshev distance in cells from q's cell to the grid box
+    gap = max(0, -c0, c0 - (dims[0] - 1), -c1, c1 - (dims[1] - 1), -c2, c2 - (dims[2] - 1))
+    if gap > 1 and ((gap - 1) * cell) ** 2 >= max_d2:
+        return -1, max_d2  # the whole grid is out of reach
+    best_d2, best_j = max_d2, -1
+    r = gap
+    r_max = gap + max(dims[0], dims[1], dims[2])
+    while r <= r_max:
+        if r > 1 and ((r - 1) * cell) ** 2 >= best_d2:
+            break  # every point in shell r or beyond is at least (r - 1) cells away
+        if r > _MAX_SHELL:
+            return _nearest_brute(q, points, max_d2)
+        z_lo, z_hi = max(c2 - r, 0), min(c2 + r, dims[2] - 1)
+        for cx in range(max(c0 - r, 0), min(c0 + r, dims[0] - 1) + 1):
+            gx = max(0.0, origin[0] + cx * cell - q[0], q[0] - origin[0] - (cx + 1) * cell)
+            if gx * gx >= best_d2:
+                continue  # the whole slab of columns is farther than the best point so far
+            for cy in range(max(c1 - r, 0), min(c1 + r, dims[1] - 1) + 1):
+                gy = max(0.0, origin[1] + cy * cell - q[1], q[1] - origin[1] - (cy + 1) * cell)
+                gxy2 = gx * gx + gy * gy
+                if gxy2 >= best_d2:
+                    continue
+                z_from, z_to = z_lo, z_hi
+                if best_d2 < _FAR:  # only z cells that can still hold a closer point
+                    reach = np.sqrt(best_d2 - gxy2)
+                    z_from = max(z_lo, int(np.floor((q[2] - reach - origin[2]) / cell)))
+                    z_to = min(z_hi, int(np.floor((q[2] + reach - origin[2]) / cell)))
+                if abs(cx - c0) == r or abs(cy - c1) == r:
+                    if z_from <= z_to:
+                        best_d2, best_j = _scan_column(
+                            q, points, starts, z_sorted, order, dims, cx, cy, z_from, z_to, best_d2, best_j
+                        )
+                else:  # inside the shell's xy square: only its bottom and top cells belong to shell r
+                    if z_from <= c2 - r <= z_to:
+                        best_d2, best_j = _scan_column(
+                            q, points, starts, z_sorted, order, dims, cx, cy, c2 - r, c2 - r, best_d2, best_j
+                        )
+                    if z_from <= c2 + r <= z_to:
+                        best_d2, best_j = _scan_column(
+                            q, points, starts, z_sorted, order, dims, cx, cy, c2 + r, c2 + r, best_d2, best_j
+                        )
+        r += 1
+    return best_j, best_d2
+
+
+@numba.njit(cache=True)
+def transform_cloud(points, transform):
+    """(N, 3) points mapped by a (4, 4) transform."""
+    out = np.empty_like(points)
+    for i in range(points.shape[0]):
+        for a in range(3):
+            out[i, a] = (
+                transform[a, 0] * points[i, 0]
+                + transform[a, 1] * points[i, 1]
+                + transform[a, 2] * points[i, 2]
+                + transform[a, 3]
+            )
+    return out
+
+
+@numba.njit(cache=True)
+def nn_stats(query, points, grid, cell, inlier_d2):
+    """Exact nearest-neighbour distances from query (M, 3) to points (N, 3) with their ``build_grid``:
+    (mean distance, inlier count)."""
+    total = 0.0
+    inliers = 0
+    for i in range(query.shape[0]):
+        _, d2 = nearest(query[i], points, grid, cell, np.inf)
+        total += np.sqrt(d2)
+        if d2 < inlier_d2:
+            inliers += 1
+    return total / query.shape[0], inliers

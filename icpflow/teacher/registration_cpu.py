@@ -1,0 +1,123 @@
+"""Step 6's batch registration on the CPU (numba, parallel over pairs): register each packed pair with
+``icpflow.teacher.icp`` and measure its match quality (see ``icpflow.teacher.registration``).
+
+Nearest neighbours come from a sorted voxel grid per cluster (``icpflow.teacher.neighbours``); the quality is
+measured with exact nearest neighbours on a grid of ``_EVAL_CELL`` cells.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from icpflow.teacher.histogram import pack
+from icpflow.teacher.icp import PLANE_MAX_ITER, ICPParams, icp_point_to_plane, icp_point_to_point
+from icpflow.teacher.neighbours import build_grid, nn_stats, transform_cloud
+
+# Cell size (metres) of the grid answering exact nearest-neighbour queries in the quality evaluation.
+_EVAL_CELL = 0.3
+
+
+@numba.njit(cache=True)
+def _register_one(
+    moving, fixed, fixed_normals, init, max_corr, max_iter, rel_rmse, yaw_only, plane, inlier_d2, eval_cell
+):
+    """Register moving (M, 3) onto fixed (N, 3) from ``init``, point-to-point (keeping ``init`` when ICP did not
+    lower the forward mean distance) or, with ``plane``, point-to-plane along ``fixed_normals`` (N, 3); returns
+    (transform, mean error, IoU ratio, iterations), error and IoU ratio as in the module docstring (the smaller of
+    the two directions each)."""
+    fixed_grid = build_grid(fixed, eval_cell)
+    if plane:
+        transform, n_iter = icp_point_to_plane(moving, fixed, fixed_normals, init, max_corr, PLANE_MAX_ITER)
+    else:
+        transform, n_iter = icp_point_to_point(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_only)
+    moved = transform_cloud(moving, transform)
+    err_fwd, inl_fwd = nn_stats(moved, fixed, fixed_grid, eval_cell, inlier_d2)
+    if not plane and n_iter > 0:
+        moved_init = transform_cloud(moving, init)
+        err_init, inl_init = nn_stats(moved_init, fixed, fixed_grid, eval_cell, inlier_d2)
+        if not err_fwd < err_init:  # ICP made it worse: keep the initial transform
+            transform, moved, err_fwd, inl_fwd = init, moved_init, err_init, inl_init
+    err_bwd, inl_bwd = nn_stats(fixed, moved, build_grid(moved, eval_cell), eval_cell, inlier_d2)
+    n_all = moving.shape[0] + fixed.shape[0]
+    iou = min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
+    return transform, min(err_fwd, err_bwd), iou, n_iter
+
+
+@numba.njit(cache=True, parallel=True)
+def _register_batch(
+    mov_all,
+    mov_off,
+    fix_all,
+    fix_off,
+    nrm_all,
+    inits,
+    max_corr,
+    max_iter,
+    rel_rmse,
+    yaw_only,
+    plane,
+    inlier_dist,
+    eval_cell,
+    n_workers,
+):
+    """:func:`_register_one` for P packed pairs (``nrm_all`` packed like ``fix_all`` with ``plane``, else unused).
+    Worker w takes pairs w, w + n_workers, ...: with the pairs sorted by decreasing size this balances the load,
+    which numba's contiguous split of a prange does not."""
+    n_pairs = inits.shape[0]
+    transforms = np.zeros((n_pairs, 4, 4))
+    errors = np.full(n_pairs, np.inf)
+    ious = np.zeros(n_pairs)
+    iters = np.zeros(n_pairs, dtype=np.int64)
+    inlier_d2 = inlier_dist * inlier_dist
+    for w in numba.prange(n_workers):
+        for p in range(w, n_pairs, n_workers):
+            moving = mov_all[mov_off[p] : mov_off[p + 1]]
+            fixed = fix_all[fix_off[p] : fix_off[p + 1]]
+            fixed_normals = nrm_all[fix_off[p] : fix_off[p + 1]] if plane else nrm_all
+            transforms[p] = inits[p]
+            if moving.shape[0] > 0 and fixed.shape[0] > 0:
+                transforms[p], errors[p], ious[p], iters[p] = _register_one(
+                    moving,
+                    fixed,
+                    fixed_normals,
+                    inits[p].copy(),
+                    max_corr,
+                    max_iter,
+                    rel_rmse,
+                    yaw_only,
+                    plane,
+                    inlier_d2,
+                    eval_cell,
+                )
+    return transforms, errors, ious, iters
+
+
+def register_batch_cpu(movings, fixeds, starts, params: ICPParams, fixed_normals=None) -> tuple[np.ndarray, ...]:
+    """:func:`_register_batch` on lists of clouds (point-to-plane when the fixed clouds' normals are given):
+    (transforms, errors, ious, iterations) in the input order."""
+    order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
+    mov_all, mov_off = pack([movings[k] for k in order])
+    fix_all, fix_off = pack([fixeds[k] for k in order])
+    plane = fixed_normals is not None
+    nrm_all = pack([fixed_normals[k] for k in order])[0] if plane else np.zeros((0, 3))
+    out = _register_batch(
+        mov_all,
+        mov_off,
+        fix_all,
+        fix_off,
+        nrm_all,
+        starts[order],
+        params.max_corr,
+        params.max_iter,
+        params.rel_rmse,
+        params.yaw_only,
+        plane,
+        params.inlier_dist,
+        _EVAL_CELL,
+        numba.get_num_threads(),
+    )
+    result = tuple(np.empty_like(a) for a in out)
+    for a, b in zip(result, out):
+        a[order] = b
+    return result
