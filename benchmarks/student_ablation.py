@@ -6,8 +6,8 @@ val, reported numbers on test).
         [--variant NAME=OVERRIDE[,OVERRIDE...] ...] [--experiment synthetic_quick] [--score-split val]
         [--score-sequences 16] [--out outputs/ablation]
 
-Default variants: ``base`` (the experiment as it is), ``confidence`` (loss.confidence_weight=true), ``uniform``
-(loss.weighting=uniform), ``groupnorm`` (model.norm=group). Prints, per variant, the dynamic-foreground, static
+Default variants: ``base`` (the experiment as it is), ``uniform`` (loss.weighting=uniform), ``speed``
+(loss.weighting=speed), ``groupnorm`` (model.norm=group). Prints, per variant, the dynamic-foreground, static
 foreground and static background EPE (mean and standard deviation over seeds) and each seed's dynamic EPE; runs
 whose scores exist are not repeated.
 """
@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_VARIANTS = ["base=", "confidence=loss.confidence_weight=true", "uniform=loss.weighting=uniform",
+DEFAULT_VARIANTS = ["base=", "uniform=loss.weighting=uniform", "speed=loss.weighting=speed",
                     "groupnorm=model.norm=group"]
 CATEGORIES = ("dynamic_fg", "static_fg", "static_bg")
 

@@ -2,7 +2,7 @@
 metrics.
 
 Config keys read (``conf/train.yaml``): ``model`` (FastFlow3D, see ``fastflow3d.checkpoint``), ``loss`` (``name``:
-``distillation`` on the teacher's pseudo-labels, optionally weighted by their ``confidence_weight``, or
+``distillation`` on the teacher's pseudo-labels, or
 ``supervised`` on ground truth with ``background_weight``; ``weighting`` and ``bucket_edges``, see
 ``fastflow3d.loss``), ``optim`` and ``scheduler`` (Hydra ``_partial_``
 targets, ``conf/optim``, ``conf/scheduler``; the schedule is counted in optimiser steps), ``metrics`` (``crop``, ``bev_every``), ``data.remove_ground`` and ``out_dir``.
@@ -80,8 +80,7 @@ class StudentModule(L.LightningModule):
             weight = torch.where(batch["gt_classes"] > 0, torch.ones_like(background), background)
             return flow_loss(pred, batch["gt"], batch["batch0"], valid & batch["gt_valid"], size, **weighting,
                              point_weight=weight)
-        confidence = batch["confidence"] if options["confidence_weight"] else None
-        return flow_loss(pred, batch["pseudo"], batch["batch0"], valid, size, **weighting, point_weight=confidence)
+        return flow_loss(pred, batch["pseudo"], batch["batch0"], valid, size, **weighting)
 
     def training_step(self, batch: dict, batch_index: int) -> torch.Tensor:
         pred, valid = self(batch)

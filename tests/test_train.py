@@ -200,7 +200,7 @@ def test_collate_flat_batch(shards, pairs):
     assert "gt" not in mixed and mixed["pseudo"].shape == (n0[0] * 2, 3)
 
 
-def test_loss_choice_per_sample_dt_and_confidence():
+def test_loss_choice_and_per_sample_dt():
     cfg = OmegaConf.to_container(_compose(*TINY), resolve=True)
     pred = torch.zeros(4, 3)
     batch = {"pseudo": torch.tensor([[0.05, 0, 0], [0.0, 0, 0], [0.05, 0, 0], [0, 0.0, 0]]),
@@ -220,7 +220,6 @@ def test_loss_choice_per_sample_dt_and_confidence():
     assert loss(weighting="speed") == pytest.approx((0.1 * 0.05 / 2 + 1.0 * 0.05 / 2) / 2)
     # buckets (0.4, 1.0 m/s): each sample has one static point (error 0) and one moving point (error 0.05)
     assert loss(weighting="buckets") == pytest.approx((0.05 + 0.05) / 2)
-    assert loss(weighting="uniform", confidence_weight=True) == pytest.approx((0.05 / 2 + 0.5 * 0.05 / 2) / 2)
     # supervised: background weighs background_weight; all errors are 1
     assert loss(name="supervised", weighting="uniform", background_weight=0.1) == pytest.approx(
         ((1 + 0.1) / 2 + (0.1 + 0.1) / 2) / 2)
@@ -301,7 +300,7 @@ def test_fast_dev_run_against_gt_and_pseudo(shards, tmp_path):
     assert metrics["val/against_gt"] == 1.0 and np.isfinite(metrics["val/dynamic_fg/EPE"].item())
     assert {"val/static_fg/EPE", "val/static_bg/EPE", "val/dynamic_fg/AccS", "val/dynamic_fg/AccR"} <= set(metrics)
     trainer = fit(_cfg(tmp_path, shards["gt"], shards["pseudo"], "trainer.fast_dev_run=true",
-                       "loss.weighting=speed", "loss.confidence_weight=true", "data.remove_ground=false"))
+                       "loss.weighting=speed", "data.remove_ground=false"))
     assert trainer.callback_metrics["val/against_gt"] == 0.0
     with pytest.raises(TrainError, match="supervised needs ground truth"):
         fit(_cfg(tmp_path, shards["pseudo"], shards["pseudo"], "trainer.fast_dev_run=true", "loss.name=supervised"))
