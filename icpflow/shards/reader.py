@@ -63,3 +63,10 @@ class ShardDataset:
         for handle in self._files.values():
             handle.close()
         self._files = {}
+
+
+def read_shard_samples(path) -> list[dict]:
+    """Every sample of one shard file as ``write_shard`` takes them (arrays by name plus an ``attrs`` dict)."""
+    with h5py.File(path, "r") as f:
+        groups = [f[group_name(position)] for position in range(int(f.attrs["num_samples"]))]
+        return [{**{key: group[key][()] for key in group}, "attrs": dict(group.attrs)} for group in groups]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import uuid
@@ -27,53 +28,58 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+class WriteError(OSError):
+    """A file could not be written (disk full, no permission, I/O error). The message is one line naming it."""
+
+
 def write_shard(path: Path, samples: list[dict], config_yaml: str, config_hash: str, compression: str | None = None):
     """Write ``samples`` (dicts of arrays plus an ``attrs`` dict, see ``schema``) to ``path`` atomically.
 
-    The file is written under ``<path>.tmp-<random>``, flushed, fsynced, then renamed over ``path``. Every array
-    carries Fletcher-32 checksums; ``compression`` is an HDF5 filter (``gzip``, ``lzf``), ``none`` or None.
+    The HDF5 file is built in memory, then written with :func:`write_bytes_atomic`, so a full disk or another
+    write error is one :class:`WriteError` (HDF5 never meets it half-way through a file). Every array carries
+    Fletcher-32 checksums; ``compression`` is an HDF5 filter (``gzip``, ``lzf``), ``none`` or None.
     """
     if compression is not None and compression not in COMPRESSIONS:
         raise ValueError(f"write_shard: compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
-    path = Path(path)
-    tmp = _temporary(path)
     opts = {"fletcher32": True}  # per-chunk checksums: a corrupted byte fails verification
     if compression not in (None, "none"):
         opts["compression"] = compression
+    buffer = io.BytesIO()
+    with h5py.File(buffer, "w") as f:
+        f.attrs.update(config=config_yaml, config_hash=config_hash, package_version=icpflow.__version__,
+                       schema_version=SCHEMA_VERSION, num_samples=len(samples))
+        for position, sample in enumerate(samples):
+            group = f.create_group(group_name(position))
+            for key, value in sample.items():
+                if key == "attrs":
+                    group.attrs.update(value)
+                elif value is not None:
+                    value = np.asarray(value)
+                    group.create_dataset(key, data=value, **(opts if value.size else {}))
+    write_bytes_atomic(path, buffer.getbuffer())
+
+
+def write_bytes_atomic(path: Path, data) -> None:
+    """Write ``data`` (bytes-like) to ``path`` via a fsynced temporary file and a rename; any failure raises
+    :class:`WriteError` naming ``path`` and the cause, and leaves neither a temporary file nor a partial ``path``."""
+    path = Path(path)
+    tmp = _temporary(path)
     try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs.update(config=config_yaml, config_hash=config_hash, package_version=icpflow.__version__,
-                           schema_version=SCHEMA_VERSION, num_samples=len(samples))
-            for position, sample in enumerate(samples):
-                group = f.create_group(group_name(position))
-                for key, value in sample.items():
-                    if key == "attrs":
-                        group.attrs.update(value)
-                    elif value is not None:
-                        value = np.asarray(value)
-                        group.create_dataset(key, data=value, **(opts if value.size else {}))
-            f.flush()
-        with open(tmp, "rb+") as handle:
+        with open(tmp, "wb") as handle:
+            handle.write(data)
+            handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)
         _fsync_dir(path.parent)
+    except OSError as error:
+        raise WriteError(f"{path}: cannot write ({error.strerror or error})") from None
     finally:
         tmp.unlink(missing_ok=True)
 
 
 def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a fsynced temporary file and a rename."""
-    path = Path(path)
-    tmp = _temporary(path)
-    try:
-        with open(tmp, "w") as handle:
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
-    finally:
-        tmp.unlink(missing_ok=True)
+    """Write ``text`` to ``path`` atomically (:func:`write_bytes_atomic`)."""
+    write_bytes_atomic(path, text.encode())
 
 
 def write_index(path: Path, index: dict) -> None:
