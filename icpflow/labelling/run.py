@@ -182,7 +182,7 @@ def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None, threa
                 sample_id = (pair.sample_id if pair is not None and pair.sample_id
                              else sample_id_or_index(job.dataset, index))
                 source = getattr(error, "filename", None) or sample_id
-                if isinstance(error, FramePairError):  # its message starts with the file it came from
+                if isinstance(error, FramePairError) and pair is None:  # a reader's: its message starts with the file
                     source = str(error).split(": ", 1)[0]
                 reason = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
                 failures.append({"index": index, "sample_id": sample_id, "file": str(source), "reason": reason})
