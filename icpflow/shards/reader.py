@@ -32,7 +32,7 @@ class ShardDataset:
             shards = index["shards"]
             #: (file name, number of samples) of each shard, and the config hash they were labelled with
             self.shard_sizes = [(shard["file"], len(shard["samples"])) for shard in shards]
-            self.config_hash = index["config_hash"]
+            self.config_hash = index.get("config_hash")
             self.entries = [(shard["file"], position) for shard in shards for position in range(len(shard["samples"]))]
             #: sample id of each entry, in order (from the index, without opening a shard)
             self.sample_ids = [sample["sample_id"] for shard in shards for sample in shard["samples"]]
