@@ -3,6 +3,7 @@ or the out_dir, keeps every finished piece of work, leaves no process behind, an
 
 import errno
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -11,15 +12,34 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from students import tiny_checkpoint
 from test_label import SUMMARY, TESTS_ENV, _all_valid, _assert_same, _cfg, _running_in_group, _script
-from test_label import reference  # noqa: F401  (the module-scoped fixture: an uninterrupted run)
+from test_train import _cfg as _train_cfg
+from test_train import _write_shards
 
+from fastflow3d.infer import main as infer_main
+from fastflow3d.infer import read_raw_scan
+from fastflow3d.predictor import Predictor, PredictorError
+from fastflow3d.training import TrainError, fit
+from icpflow.datasets.io import load_npz
+from icpflow.datasets.sequence import ScanSequenceDataset
 from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.frames import FramePairError
 from icpflow.labelling.cli import label
-from icpflow.shards import ShardDataset, verify_shard
-from icpflow.shards import writer
+from icpflow.shards import ShardDataset, verify_shard, writer
+from icpflow.teacher import ICPFlow
 
 SLOW = ["dataset.reader._target_=test_label.SlowSynthetic", "workers=2"]
+READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 2.0}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """An uninterrupted single-worker run of the small world of test_label: 5 samples in shards of 2, 2, 1."""
+    out = tmp_path_factory.mktemp("reference") / "labels"
+    assert label(_cfg(out), progress=False) == 0
+    return out
 
 
 def _start(out_dir, *overrides) -> subprocess.Popen:
@@ -184,3 +204,124 @@ def test_a_full_disk_in_a_worker_is_one_line_and_leaves_no_process(tmp_path):
         for p in sorted(out.glob("shard_*.h5"))]
     assert len(ShardDataset(out)) in (0, 2)  # shard 1 (samples 3, 4) may have finished first
     assert np.all([verify_shard(p) for p in out.glob("shard_*.h5")])
+
+
+# ------------------------------------------------------------------------------------------- malformed point input
+
+@pytest.fixture(scope="module")
+def scan():
+    return SyntheticDataset(**READER).pair(0).pc0
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    """An untrained tiny student checkpoint (a +-6.4 m grid)."""
+    cfg = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-6.4, 6.4], "y_range": [-6.4, 6.4],
+           "z_range": [-3.0, 3.0], "cell": 0.4, "pillar_channels": 8, "stage_channels": [8, 16, 32],
+           "stage_blocks": [1, 1, 1]}
+    return tiny_checkpoint(tmp_path_factory.mktemp("model") / "tiny.ckpt", cfg, SyntheticDataset(**READER).pair(0), 0)
+
+
+def _infer(args, capsys) -> tuple[int, list[str]]:
+    status = infer_main([*map(str, args), "--no-bev"])
+    return status, capsys.readouterr().err.splitlines()
+
+
+def test_every_malformed_point_file_is_one_line_naming_it(scan, model, tmp_path, capsys):
+    good = tmp_path / "good.npy"
+    np.save(good, scan)
+    cases = {
+        "transposed.npy": (lambda path: np.save(path, scan.T), "scan has shape (3, "),
+        "transposed.npz": (lambda path: np.savez(path, points=scan.T), "points has shape (3, "),
+        "text.npz": (lambda path: path.write_text("x y z\n1 2 3\n"), "not an .npz file"),
+        "nan.npy": (lambda path: np.save(path, np.vstack([scan, [[np.nan, 0, 0]]])), "scan has 1 rows with NaN"),
+        "xyz.bin": (lambda path: scan.tofile(path), "give its column count (bin_columns=N, --bin-columns N)"),
+        "flat.npy": (lambda path: np.save(path, scan[:, :2]), "scan must be a numeric (N, 3) array"),
+    }
+    for name, (make, message) in cases.items():
+        path = tmp_path / name
+        make(path)
+        status, err = _infer([model, path, good, "--out", tmp_path / "flow.npz"], capsys)
+        assert status == 2 and len(err) == 1, err
+        assert err[0].startswith(f"infer: {path}: ") and message in err[0], err
+    assert not (tmp_path / "flow.npz").exists()
+    np.testing.assert_array_equal(read_raw_scan(tmp_path / "xyz.bin", bin_columns=3), scan)  # explicit layout
+
+
+def test_the_same_rule_in_the_readers_the_predictor_and_the_teacher(scan, model, tmp_path):
+    folder = tmp_path / "drive"
+    folder.mkdir()
+    np.save(folder / "0.npy", scan)
+    np.save(folder / "1.npy", scan.T)
+    with pytest.raises(FramePairError, match=r"1.npy: scan has shape \(3, \d+\): a transposed scan\?"):
+        ScanSequenceDataset(folder).pair(0)
+    whole = scan[: len(scan) // 4 * 4]  # x, y, z rows whose size is also a whole number of x, y, z, r rows
+    for name in ("0", "1"):
+        whole.tofile(folder / f"{name}.bin")
+        (folder / f"{name}.npy").unlink()
+    with pytest.raises(FramePairError, match=r"0.bin: values are implausible for float32 rows of x, y, z, r"):
+        ScanSequenceDataset(folder).pair(0)
+    np.testing.assert_array_equal(ScanSequenceDataset(folder, bin_columns=3).pair(0).pc0, whole)
+    (tmp_path / "notes.npz").write_text("not a zip")
+    with pytest.raises(FramePairError, match="notes.npz: not an .npz file"):
+        load_npz(tmp_path / "notes.npz", ("pc0",))
+    with pytest.raises(PredictorError, match=r"Predictor: pc0 has shape \(3, \d+\): a transposed scan\?"):
+        Predictor.load(model)(scan.T, scan, np.eye(4))
+    with pytest.raises(ValueError, match=r"ICPFlow: pc1 has shape \(3, \d+\): a transposed scan\?"):
+        ICPFlow()(scan, scan.T, np.eye(4))
+
+
+def test_integer_coordinates_are_read_with_a_warning(scan, tmp_path, caplog):
+    path = tmp_path / "ints.npy"
+    np.save(path, np.round(scan).astype(np.int32))
+    with caplog.at_level(logging.WARNING, logger="icpflow.frames"):
+        points = read_raw_scan(path)
+    assert points.dtype == np.float32 and np.array_equal(points, np.round(scan))
+    assert [r.getMessage() for r in caplog.records] == [f"{path}: scan has int32 coordinates, read as metres: whole "
+                                                        "metres only"]
+
+
+def test_a_scan_outside_the_grid_gets_a_warning(scan, model, tmp_path, capsys):
+    far = scan + np.float32(1000.0)  # metres away from the sensor: millimetres read as metres, say
+    np.save(tmp_path / "far0.npy", far)
+    np.save(tmp_path / "far1.npy", far)
+    np.savetxt(tmp_path / "ego.txt", np.eye(4).reshape(1, 16))
+    status, err = _infer([model, tmp_path / "far0.npy", tmp_path / "far1.npy", "--ego", tmp_path / "ego.txt",
+                          "--out", tmp_path / "flow.npz"], capsys)
+    assert status == 0 and len(err) == 1 and err[0].startswith(f"infer: warning: no point of {tmp_path / 'far0.npy'} "
+                                                               "lies inside the model's grid")
+
+
+# ------------------------------------------------------------------------------------------------ training data
+
+@pytest.fixture(scope="module")
+def pairs():
+    return [SyntheticDataset(**READER).pair(0)]
+
+
+def test_a_corrupt_shard_stops_training_in_one_line_naming_it(pairs, tmp_path):
+    good, bad = _write_shards(tmp_path / "good", pairs), _write_shards(tmp_path / "bad", pairs)
+    shard = bad / "shard_000000.h5"
+    shard.write_bytes(shard.read_bytes()[: shard.stat().st_size // 2])
+    with pytest.raises(TrainError) as error:
+        fit(_train_cfg(tmp_path, good, bad, "trainer.fast_dev_run=true"))
+    message = str(error.value)
+    assert "\n" not in message and message.startswith(f"data.val: {shard}: unreadable")
+    assert message.endswith(f"rerun the label.py command that wrote it (same out_dir={bad}): it redoes damaged shards")
+
+
+def test_a_truncated_checkpoint_is_one_line_naming_it(pairs, model, tmp_path):
+    good = _write_shards(tmp_path / "good", pairs)
+    truncated = tmp_path / "last.ckpt"
+    truncated.write_bytes(model.read_bytes()[:2000])
+    with pytest.raises(TrainError) as error:
+        fit(_train_cfg(tmp_path, good, good, f"ckpt_path={truncated}"))
+    message = str(error.value)
+    assert "\n" not in message and message.startswith(f"ckpt_path={truncated}: {truncated}: not a readable torch "
+                                                      "checkpoint, truncated or damaged?")
+    foreign = tmp_path / "foreign.ckpt"
+    torch.save({"state_dict": {}, "when": np.datetime64("2026-01-01")}, foreign)  # not loadable with weights_only
+    with pytest.raises(TrainError) as error:
+        fit(_train_cfg(tmp_path, good, good, f"ckpt_path={foreign}"))
+    assert "weights_only" not in str(error.value) and "\n" not in str(error.value)
+    assert "it holds objects other than tensors and plain data" in str(error.value)
