@@ -401,20 +401,18 @@ def _pool_results(job, todo, workers, threads, tick):
                     counted = sum(i in finished for i in indices)
                     started.difference_update(indices)
                     finished.difference_update(indices)
-                    try:
-                        result = future.result()
-                    except BrokenProcessPool:
-                        executor.shutdown(wait=True)
-                        _remove_temporaries(job.out_dir, shard)
-                        if not crashed:
-                            raise LabelError(f"a worker process died outside any sample of {shard_name(shard)} "
-                                             f"(killed, or a crash loading the teacher); complete shards are kept")
-                        tick(-counted)  # the retry counts them again
-                        lost = {**lost, crashed[0]: _died(job.dataset, crashed[0], previous)}
-                        queue.appendleft((shard, indices, lost, previous))
+                    if not isinstance(future.exception(), BrokenProcessPool):
+                        idle.append(executor)  # its process lives on (also after an error such as a full disk)
+                        yield future.result()
                         continue
-                    idle.append(executor)
-                    yield result
+                    executor.shutdown(wait=True)
+                    _remove_temporaries(job.out_dir, shard)
+                    if not crashed:
+                        raise LabelError(f"a worker process died outside any sample of {shard_name(shard)} "
+                                         f"(killed, or a crash loading the teacher); complete shards are kept")
+                    tick(-counted)  # the retry counts them again
+                    lost = {**lost, crashed[0]: _died(job.dataset, crashed[0], previous)}
+                    queue.appendleft((shard, indices, lost, previous))
         finally:
             for executor, shard, *_ in running.values():
                 _end_now(executor)
