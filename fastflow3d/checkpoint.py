@@ -31,20 +31,36 @@ def build_student(model_cfg: dict) -> FastFlow3D:
 
 
 def _first_line(error: Exception) -> str:
-    text = str(error).strip()
-    return text.splitlines()[0] if text else type(error).__name__
+    """The cause in one line; torch's advice to load unsafe files (``weights_only=False``) is never repeated."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    if lines and lines[0].startswith("Weights only load failed"):
+        detail = next((line for line in lines if line.startswith("WeightsUnpickler error")), "")
+        detail = detail.split(". Please", 1)[0].split(" was not an allowed global", 1)[0]
+        return "it holds objects other than tensors and plain data" + (f": {detail}" if detail else "")
+    return lines[0] if lines else type(error).__name__
 
 
-def load_student(path, map_location="cpu") -> tuple[FastFlow3D, dict]:
-    """``(FastFlow3D in eval mode, training config dict)`` from a student checkpoint written by ``train.py``."""
+def read_checkpoint(path, map_location="cpu") -> dict:
+    """The contents of a torch checkpoint file (tensors and plain data only); a missing, truncated or foreign file
+    raises :class:`CheckpointError`."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint does not exist")
     try:
         checkpoint = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # torch raises many types for a file that is not a (safe) checkpoint
-        raise CheckpointError(f"{path}: not a readable torch checkpoint ({_first_line(error)})") from None
-    hparams = checkpoint.get("hyper_parameters") if isinstance(checkpoint, dict) else None
+        raise CheckpointError(f"{path}: not a readable torch checkpoint, truncated or damaged? "
+                              f"({_first_line(error)})") from None
+    if not isinstance(checkpoint, dict):
+        raise CheckpointError(f"{path}: not a checkpoint (holds a {type(checkpoint).__name__}, not a dict)")
+    return checkpoint
+
+
+def load_student(path, map_location="cpu") -> tuple[FastFlow3D, dict]:
+    """``(FastFlow3D in eval mode, training config dict)`` from a student checkpoint written by ``train.py``."""
+    path = Path(path)
+    checkpoint = read_checkpoint(path, map_location)
+    hparams = checkpoint.get("hyper_parameters")
     cfg = hparams.get("cfg") if isinstance(hparams, dict) else None
     if not isinstance(cfg, dict) or not isinstance(cfg.get("model"), dict) or "state_dict" not in checkpoint:
         raise CheckpointError(f"{path}: not a FastFlow3D student checkpoint (no hyper_parameters.cfg.model "

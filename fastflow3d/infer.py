@@ -1,11 +1,12 @@
 """Scene flow of two raw scan files with a trained FastFlow3D; writes the flow and a bird's-eye-view PNG.
 
     python -m fastflow3d.infer MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
-        [--bev FILE.png | --no-bev] [--backend onnx|pt2|torchscript] [--device cpu]
+        [--bev FILE.png | --no-bev] [--bin-columns N] [--backend onnx|pt2|torchscript] [--device cpu]
 
-MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz`` (array
-``points`` or ``pc``), ``.npy`` (N, >= 3), KITTI ``.bin`` (float32 x, y, z, reflectance), ``.ply`` or ``.pcd``;
-the first three columns are x, y, z in metres in the sensor's own frame. Ego motion: ``--poses`` (two
+MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz``
+(array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
+``--bin-columns N`` values, x, y, z first), ``.ply`` or ``.pcd``; the first three columns are x, y, z in metres
+in the sensor's own frame (``icpflow.frames.check_points``: a transposed (3, N) array is an error). Ego motion: ``--poses`` (two
 world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a (2, 4, 4) ``.npy``),
 ``--ego`` (one (4, 4) ``ego1_from_ego0``: 12 or 16 values, or a ``.npy``), or neither (estimated by KISS-ICP).
 A model trained with ground removal gets the non-ground points of each scan, found with the teacher's ground
@@ -13,7 +14,7 @@ segmentation and the settings saved with the model (``fastflow3d.predictor``); g
 ego motion. Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow``
 is in scan1's frame), ``residual`` (ego-compensated), ``in_grid`` (the network predicted the point), ``ground0``
 (left out as ground), ``ego1_from_ego0``, ``ego_estimated``; a ``.npy`` output holds the flow alone. Errors are one
-line on stderr, exit status 2.
+line on stderr, exit status 2; a scan none of whose points the network sees (outside its grid) gets a warning.
 """
 
 from __future__ import annotations
@@ -26,25 +27,26 @@ import numpy as np
 
 from fastflow3d.artifact import FORMATS, LEGACY_FORMATS
 from icpflow.atomic import atomic_path
-from icpflow.datasets.io import SCAN_SUFFIXES, check_points, fail, load_npz, read_poses, read_scan
-from icpflow.frames import FramePair
+from icpflow.datasets.io import SCAN_SUFFIXES, fail, load_npz, read_poses, read_scan
+from icpflow.frames import FramePair, check_points
 from icpflow.geometry import relative_transform, rigid_problem
 
 NPZ_KEYS = ("points", "pc")
 
 
-def read_raw_scan(path: Path) -> np.ndarray:
-    """(N, 3) float32 points of one scan file (see the module docstring for the formats)."""
+def read_raw_scan(path: Path, bin_columns: int | None = None) -> np.ndarray:
+    """(N, 3) float32 points of one scan file (see the module docstring for the formats; ``bin_columns``: float32
+    values per row of a ``.bin``, see ``icpflow.datasets.io.read_bin``)."""
     suffix = path.suffix.lower()
     if suffix != ".npz":
         if suffix not in SCAN_SUFFIXES:
             raise fail(path, f"unsupported scan format {suffix!r}; use one of .npz, {', '.join(SCAN_SUFFIXES)}")
-        return read_scan(path)
+        return read_scan(path, bin_columns)
     arrays = load_npz(path, required=(), optional=NPZ_KEYS)
     key = next((name for name in NPZ_KEYS if name in arrays), None)
     if key is None:
         raise fail(path, f"no array named {' or '.join(NPZ_KEYS)}")
-    return check_points(path, key, arrays[key])
+    return check_points(arrays[key], path, key, allow_empty=False)
 
 
 def read_transforms(path: Path, count: int) -> np.ndarray:
@@ -83,6 +85,8 @@ def parse_args(argv):
     pictures.add_argument("--bev", type=Path, help="BEV PNG (default: the output's name with .png)")
     pictures.add_argument("--no-bev", action="store_true", help="write no picture")
     parser.add_argument("--extent", type=float, default=40.0, help="half-width of the picture in metres")
+    parser.add_argument("--bin-columns", type=int, choices=range(3, 17), metavar="N",
+                        help="float32 values per row of a .bin scan, x, y, z first (default: x, y, z, r, checked)")
     parser.add_argument("--backend", choices=(*FORMATS, *LEGACY_FORMATS), help="format of an export directory")
     parser.add_argument("--device", default="cpu", help="torch device for .pt2, .pt and checkpoints")
     return parser.parse_args(argv)
@@ -96,7 +100,7 @@ def infer(args) -> tuple[Path, Path | None]:
     out = args.out or Path("outputs/infer") / f"{args.scan0.stem}_flow.npz"
     if out.suffix not in (".npz", ".npy"):
         raise ValueError(f"{out}: output must end in .npz or .npy")
-    pc0, pc1 = read_raw_scan(args.scan0), read_raw_scan(args.scan1)
+    pc0, pc1 = read_raw_scan(args.scan0, args.bin_columns), read_raw_scan(args.scan1, args.bin_columns)
     ego = None
     if args.poses is not None:
         pose0, pose1 = read_transforms(args.poses, 2)
@@ -105,6 +109,9 @@ def infer(args) -> tuple[Path, Path | None]:
         ego = read_transforms(args.ego, 1)[0]
     predictor = Predictor.load(args.model, backend=args.backend, device=args.device)
     prediction = predictor.predict(pc0, pc1, ego)
+    if not prediction.in_grid.any():
+        print(f"infer: warning: no point of {args.scan0} lies inside the model's grid (nor is it kept as non-ground): "
+              "its flow is the ego motion only; are the scans in metres, in the sensor's frame?", file=sys.stderr)
     write_flow(out, prediction)
     bev = None
     if not args.no_bev:

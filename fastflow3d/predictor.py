@@ -42,6 +42,7 @@ from fastflow3d.artifact import (
     sibling_metadata,
 )
 from fastflow3d.model import compensate
+from icpflow.frames import FramePairError, check_points
 from icpflow.geometry import residual_to_full, rigid_problem
 
 
@@ -65,14 +66,12 @@ class Prediction:
 
 
 def as_points(name: str, values) -> np.ndarray:
-    """(N, 3) float32, without a copy when possible; one-line error for other shapes or non-finite values."""
-    array = np.asarray(values)
-    if array.ndim != 2 or array.shape[1] != 3 or not np.issubdtype(array.dtype, np.number):
-        raise PredictorError(f"{name} must be a numeric (N, 3) array, got {array.dtype} {array.shape}")
-    array = np.require(array, np.float32, ["C", "W"])  # torch.from_numpy wants a writeable array
-    if not np.isfinite(array).all():
-        raise PredictorError(f"{name} has {int((~np.isfinite(array)).any(axis=1).sum())} rows with NaN or Inf")
-    return array
+    """(N, 3) float32 C-contiguous and writeable (torch.from_numpy wants that) by ``icpflow.frames.check_points``;
+    its one-line error as a PredictorError."""
+    try:
+        return check_points(values, "Predictor", name)
+    except FramePairError as error:
+        raise PredictorError(str(error)) from None
 
 
 class Predictor:

@@ -18,9 +18,11 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from fastflow3d.artifact import FORMATS
+from fastflow3d.checkpoint import CheckpointError, read_checkpoint
 from fastflow3d.data import TEACHER_FIELDS, DataError, ShardDataModule, StudentDataset, labeller_teacher
 from fastflow3d.export import export_checkpoint
 from fastflow3d.module import StudentModule
+from icpflow.shards.verify import ShardError
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +32,9 @@ class TrainError(RuntimeError):
 
 
 def check_data(cfg: DictConfig) -> None:
-    """Both shard directories hold samples (else one line saying how to create them); supervised needs gt."""
+    """Both shard directories hold samples (else one line saying how to create them), every shard they list is
+    complete and valid (else one line naming it: the checks ``label.py`` makes before it skips a shard);
+    supervised needs gt."""
     for key, split in (("train", "train"), ("val", "val")):
         path = cfg.data[key]
         try:
@@ -38,6 +42,11 @@ def check_data(cfg: DictConfig) -> None:
         except DataError as error:
             raise TrainError(f"data.{key}: {error}; label a dataset into it first, e.g. "
                              f"`python label.py split={split} out_dir={path}`") from None
+        try:
+            dataset.shards.verify()
+        except ShardError as error:
+            raise TrainError(f"data.{key}: {error}; rerun the label.py command that wrote it (same out_dir={path}): "
+                             "it redoes damaged shards") from None
         if key == "train" and cfg.loss.name == "supervised" and "gt" not in dataset[0]:
             raise TrainError(f"loss.name=supervised needs ground truth, but data.train={path} has none")
 
@@ -79,6 +88,11 @@ def resolve_ckpt_path(cfg: DictConfig) -> str | None:
     if not path.is_file():
         raise TrainError(f"ckpt_path={value}: {path} does not exist (nothing to resume; leave ckpt_path unset to "
                          "start afresh)")
+    try:
+        read_checkpoint(path)
+    except CheckpointError as error:
+        raise TrainError(f"ckpt_path={value}: {error}; give another checkpoint, or leave ckpt_path unset to start "
+                         "afresh") from None
     return str(path)
 
 

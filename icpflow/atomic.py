@@ -3,7 +3,8 @@
 Every file this project writes as a result (shards, ``index.json``, metrics, checkpoints, exports, pictures, flows)
 goes through :func:`atomic_path`: the writer fills a temporary file in the target's folder, which is then fsynced,
 renamed over the target and the folder fsynced. On any exception the temporary file is removed and the target is
-left as it was.
+left as it was; an ``OSError`` (a full disk, no permission, an I/O error) becomes one :class:`WriteError` naming the
+target and the cause.
 """
 
 from __future__ import annotations
@@ -13,6 +14,10 @@ import os
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+
+
+class WriteError(OSError):
+    """A file could not be written (disk full, no permission, I/O error). The message is one line naming it."""
 
 
 def temporary_name(path: Path) -> Path:
@@ -47,6 +52,10 @@ def atomic_path(path: str | os.PathLike, *, make_parents: bool = False) -> Itera
         fsync_path(tmp)
         os.replace(tmp, path)
         fsync_path(path.parent)
+    except WriteError:
+        raise
+    except OSError as error:
+        raise WriteError(f"{path}: cannot write ({error.strerror or error})") from None
     finally:
         tmp.unlink(missing_ok=True)
 

@@ -26,28 +26,63 @@ produces the pair (t, t + k) with exact ground truth for any gap k (the long-hor
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
 from icpflow.geometry import ego_flow, full_to_residual, invert, relative_transform, rigid_problem, transform_points
 
+log = logging.getLogger(__name__)
+
 
 class FramePairError(ValueError):
     """A frame pair (or the file it came from) breaks the schema. The message is one line."""
 
 
-def _check_points(name: str, value, source: str) -> np.ndarray:
-    if not isinstance(value, np.ndarray):
-        raise FramePairError(f"{source}: {name} must be a numpy array, got {type(value).__name__}")
-    if value.ndim != 2 or value.shape[1] != 3:
-        raise FramePairError(f"{source}: {name} must have shape (N, 3), got {value.shape}")
-    if value.dtype != np.float32:
-        raise FramePairError(f"{source}: {name} must be float32, got {value.dtype}")
-    if not np.all(np.isfinite(value)):
-        bad = int((~np.isfinite(value)).any(axis=1).sum())
-        raise FramePairError(f"{source}: {name} has {bad} rows with NaN or Inf")
-    return value
+#: an array with more columns than this, and more columns than rows, is a transposed scan ((3, N) or (4, N))
+MAX_POINT_COLUMNS = 8
+
+
+def check_points(values, source, name: str = "points", *, schema: bool = False, finite: bool = True,
+                 allow_empty: bool = True) -> np.ndarray:
+    """The one check of point clouds wherever they enter: the scan readers, the frame-pair schema, the inference
+    CLI, the Predictor and the teacher's API. Raises :class:`FramePairError` (one line naming ``source`` and
+    ``name``) unless ``values`` is a numeric (N, >= 3) array whose rows are points.
+
+    A transposed array ((3, N), (4, N): more than ``MAX_POINT_COLUMNS`` columns and more columns than rows) is an
+    error, not N = 3 points. ``finite``: rows with NaN or Inf are an error giving their count (the teacher, which
+    drops and counts them itself, passes False). ``allow_empty``: whether N = 0 is fine. Returns the first three
+    columns as a C-contiguous, writeable (N, 3) float32 array (integer or float16 coordinates are converted with
+    a logged warning: integers are whole metres). ``schema``: the frame-pair schema's rule, nothing converted: a
+    float32 (N, 3) numpy array, returned as it is.
+    """
+    if schema and not isinstance(values, np.ndarray):
+        raise FramePairError(f"{source}: {name} must be a numpy array, got {type(values).__name__}")
+    array = np.asarray(values)
+    numeric = np.issubdtype(array.dtype, np.number) and not np.issubdtype(array.dtype, np.complexfloating)
+    if array.ndim == 2 and array.shape[1] > MAX_POINT_COLUMNS and array.shape[1] > array.shape[0]:
+        raise FramePairError(f"{source}: {name} has shape {array.shape}: a transposed scan? points must be the rows "
+                             f"of an (N, 3) array (x, y, z first); transpose it")
+    if schema and (array.ndim != 2 or array.shape[1] != 3):
+        raise FramePairError(f"{source}: {name} must have shape (N, 3), got {array.shape}")
+    if array.ndim != 2 or array.shape[1] < 3 or not numeric:
+        raise FramePairError(f"{source}: {name} must be a numeric (N, 3) array, got {array.dtype} {array.shape}")
+    rows = len(array)
+    if schema and array.dtype != np.float32:
+        raise FramePairError(f"{source}: {name} must be float32, got {array.dtype}")
+    if not allow_empty and rows == 0:
+        raise FramePairError(f"{source}: {name} is an empty scan")
+    points = array if schema else np.require(array[:, :3], np.float32, ["C", "W"])
+    if finite:
+        bad = int((~np.isfinite(points)).any(axis=1).sum())
+        if bad:
+            raise FramePairError(f"{source}: {name} has {bad} rows with NaN or Inf (of {rows})")
+    if not schema and array.dtype.kind in "iu":
+        log.warning("%s: %s has %s coordinates, read as metres: whole metres only", source, name, array.dtype)
+    elif not schema and array.dtype == np.float16:
+        log.warning("%s: %s has float16 coordinates (3 significant digits), read as float32", source, name)
+    return points
 
 
 def _check_per_point(name: str, value, count: int, kind: str, source: str, width: int | None = None) -> np.ndarray:
@@ -109,8 +144,8 @@ class FramePair:
 
     def __post_init__(self) -> None:
         src = self.source
-        _check_points("pc0", self.pc0, src)
-        _check_points("pc1", self.pc1, src)
+        check_points(self.pc0, src, "pc0", schema=True)
+        check_points(self.pc1, src, "pc1", schema=True)
         n0, n1 = len(self.pc0), len(self.pc1)
         self.pose0 = _check_transform("pose0", self.pose0, src)
         self.pose1 = _check_transform("pose1", self.pose1, src)
@@ -197,7 +232,7 @@ class FrameSequence:
                 f"{np.shape(self.poses)} and {len(self.timestamps_ns)}"
             )
         for t, pts in enumerate(self.points):
-            _check_points(f"points[{t}]", pts, self.source)
+            check_points(pts, self.source, f"points[{t}]", schema=True)
         for name, kind in (("ground", "bool"), ("classes", "int32"), ("instance", "int32")):
             values = getattr(self, name)
             if values is not None:

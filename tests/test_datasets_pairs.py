@@ -94,8 +94,15 @@ def test_unknown_key(tmp_path):
 
 
 def test_wrong_shape(tmp_path):
-    write(tmp_path, pc0=np.zeros((120, 4)))
-    assert "pc0 must have shape (N, 3), got (120, 4)" in _error(tmp_path)
+    write(tmp_path, pc0=np.zeros((120, 2)))
+    assert "pc0 must be a numeric (N, 3) array, got float64 (120, 2)" in _error(tmp_path)
+    write(tmp_path, pc0=PC0.T.copy())
+    assert "pc0 has shape (3, 120): a transposed scan?" in _error(tmp_path)
+
+
+def test_extra_columns_are_dropped_like_every_reader(tmp_path):
+    write(tmp_path, pc0=np.hstack([PC0, np.ones((120, 1))]))
+    np.testing.assert_array_equal(NpzPairsDataset(tmp_path).pair(0).pc0, PC0.astype(np.float32))
 
 
 def test_empty_scan(tmp_path):

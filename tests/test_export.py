@@ -232,8 +232,12 @@ def test_ground_removal_model_sees_non_ground_points_only(ground_checkpoint, eag
 def test_predictor_rejects_bad_inputs(export_dir, tmp_path):
     predictor = Predictor.load(export_dir)
     points = np.zeros((10, 3), np.float32)
-    with pytest.raises(PredictorError, match=r"pc1 must be a numeric \(N, 3\) array"):
-        predictor(points, np.zeros((10, 4), np.float32), np.eye(4))
+    with pytest.raises(PredictorError, match=r"Predictor: pc1 must be a numeric \(N, 3\) array"):
+        predictor(points, np.zeros((10, 2), np.float32), np.eye(4))
+    with pytest.raises(PredictorError, match=r"Predictor: pc0 has shape \(3, 10\): a transposed scan\?"):
+        predictor(np.zeros((3, 10), np.float32), points, np.eye(4))
+    with pytest.raises(PredictorError, match=r"Predictor: pc0 has 1 rows with NaN or Inf \(of 10\)"):
+        predictor(np.vstack([points[:9], [[np.nan, 0, 0]]]), points, np.eye(4))
     with pytest.raises(PredictorError, match="not rigid"):
         predictor(points, points, np.diag([2.0, 1.0, 1.0, 1.0]))
     with pytest.raises(ArtifactError, match="not an export directory"):

@@ -258,8 +258,13 @@ def test_failures_are_recorded_and_the_run_goes_on(tmp_path, capsys):
     assert SUMMARY.fullmatch(out.out.strip()).groups() == ("3", "0", "2", str(tmp_path))
     assert "failed synthetic-train-0-32b/000001+1" in out.err
     assert _all_valid(tmp_path) == 3
-    assert label(cfg, progress=False) == 1  # a rerun keeps the record and skips everything
+    before = {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("shard_*.h5")}
+    assert label(cfg, progress=False) == 1  # a rerun tries the failed samples again, they fail again
     assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups() == ("0", "3", "2", str(tmp_path))
+    assert [json.loads(line) for line in (tmp_path / "failures.jsonl").read_text().splitlines()] == failures
+    after = {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("shard_*.h5")}
+    assert after["shard_000002.h5"] == before["shard_000002.h5"]  # no failure there: not rewritten
+    assert after["shard_000000.h5"] != before["shard_000000.h5"] and _all_valid(tmp_path) == 3
 
 
 def test_shard_split_jobs_add_up_to_the_whole(reference, tmp_path):
@@ -501,7 +506,7 @@ def test_a_worker_that_dies_fails_its_sample_only(reference, tmp_path, capsys):
     assert "Traceback" not in err and "failed synthetic-train-0-32b/000003+1" in err
     failures = [json.loads(line) for line in (tmp_path / "failures.jsonl").read_text().splitlines()]
     assert failures == [{"index": 3, "sample_id": "synthetic-train-0-32b/000003+1",
-                         "file": "synthetic-train-0-32b/000003+1", "reason": DIED}]
+                         "file": "synthetic-train-0-32b/000003+1", "reason": DIED, "deaths": 1}]
     got, expected = _samples(tmp_path), _samples(reference)
     assert [s["sample_id"] for s in got] == [expected[i]["sample_id"] for i in (0, 1, 2, 4)]
     threads = f"threads {max(1, available_cores() // 2)}"
@@ -509,8 +514,14 @@ def test_a_worker_that_dies_fails_its_sample_only(reference, tmp_path, capsys):
         assert sample.pop("log_id") == threads and want.pop("log_id") == "synthetic-train-0-32b"
         for key in want:
             np.testing.assert_array_equal(sample[key], want[key], err_msg=key)
-    assert label(cfg, progress=False) == 1  # the record stands: nothing is run again
+    assert label(cfg, progress=False) == 1  # the rerun tries sample 3 again: it kills its worker a second time
     assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups() == ("0", "4", "1", str(tmp_path))
+    failures = [json.loads(line) for line in (tmp_path / "failures.jsonl").read_text().splitlines()]
+    assert failures[0]["deaths"] == 2 and "2 times in a row, not tried again" in failures[0]["reason"]
+    records = {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("shard_*.json")}
+    assert label(cfg, progress=False) == 1  # then it is recorded and skipped, not retried forever
+    assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups() == ("0", "4", "1", str(tmp_path))
+    assert {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("shard_*.json")} == records
 
 
 def test_multirun_jobs_label_the_union(reference, tmp_path):

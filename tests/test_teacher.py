@@ -299,8 +299,10 @@ def test_bad_arguments_are_one_line_errors(teacher, moving_scene, kwargs, words)
 
 
 def test_wrong_point_shape(teacher, moving_scene):
-    with pytest.raises(ValueError, match=r"pc1 must have shape \(N, 3\)"):
-        teacher(moving_scene["pc0"], np.zeros((4, 4), np.float32), EGO)
+    with pytest.raises(ValueError, match=r"ICPFlow: pc1 must be a numeric \(N, 3\) array, got float32 \(4, 2\)"):
+        teacher(moving_scene["pc0"], np.zeros((4, 2), np.float32), EGO)
+    with pytest.raises(ValueError, match=r"ICPFlow: pc0 has shape \(3, \d+\): a transposed scan\?"):
+        teacher(moving_scene["pc0"].T, moving_scene["pc1"], EGO)
 
 
 @pytest.mark.parametrize("mode, passed, estimated", [

@@ -35,8 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from icpflow.datasets.base import PairDataset
-from icpflow.datasets.io import check_points, fail, read_feather
-from icpflow.frames import FramePair
+from icpflow.datasets.io import fail, read_feather
+from icpflow.frames import FramePair, check_points
 from icpflow.geometry import ego_flow, invert, transform_points
 from icpflow.metrics import AV2_META
 
@@ -140,7 +140,7 @@ class AV2Dataset(PairDataset):
         """(N, 3) float32 x, y, z of one sweep (ego frame) and (N,) float32 capture times (s) or None."""
         path = self._lidar_path(log_dir, stamp)
         frame = read_feather(path, LIDAR_COLUMNS)
-        points = check_points(path, "x, y, z", frame[["x", "y", "z"]].to_numpy())
+        points = check_points(frame[["x", "y", "z"]].to_numpy(), path, "x, y, z", allow_empty=False)
         if "offset_ns" not in frame.columns:
             return points, None
         offsets = frame["offset_ns"].to_numpy()

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from icpflow.frames import FramePairError
+from icpflow.frames import FramePairError, check_points
 
 SCAN_SUFFIXES = (".bin", ".npy", ".ply", ".pcd")
 
@@ -35,6 +35,13 @@ def load_npz(
     Other keys are not read (they may hold pickled objects, which are never loaded). Missing ``required`` keys
     or a damaged file raise.
     """
+    try:
+        with open(path, "rb") as handle:
+            start = handle.read(4)
+    except FileNotFoundError:
+        raise fail(path, "file not found") from None
+    if start not in (b"PK\x03\x04", b"PK\x05\x06"):  # a zip archive's first record, or an empty archive
+        raise fail(path, "not an .npz file (an .npz is a zip archive of .npy arrays)")
     try:
         with np.load(path, allow_pickle=False) as data:
             wanted = data.files if optional is None else [k for k in data.files if k in (*required, *optional)]
@@ -63,36 +70,43 @@ def read_feather(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
     return frame
 
 
-def check_points(path, name: str, values: np.ndarray) -> np.ndarray:
-    """(N, >= 3) numeric array -> (N, 3) float32 of its first three columns; empty scans or NaN rows raise."""
-    values = np.asarray(values)
-    if values.ndim != 2 or values.shape[1] < 3 or not np.issubdtype(values.dtype, np.number):
-        raise fail(path, f"{name} must be a numeric (N, 3) array, got {values.dtype} {values.shape}")
-    if len(values) == 0:
-        raise fail(path, f"{name} is an empty scan")
-    points = values[:, :3].astype(np.float32)
-    bad = ~np.isfinite(points).all(axis=1)
-    if bad.any():
-        raise fail(path, f"{name} has {int(bad.sum())} rows with NaN or Inf (of {len(points)})")
-    return points
+#: KITTI's ``.bin`` layout: float32 rows of x, y, z, reflectance
+BIN_COLUMNS = 4
+#: coordinates beyond this many metres in a ``.bin`` read with the default layout mean another layout
+BIN_MAX_RANGE = 10_000.0
 
 
-def read_bin(path: Path, columns: int = 4) -> np.ndarray:
-    """KITTI-style ``.bin``: float32 rows of ``columns`` values (x, y, z, reflectance) -> (N, 3) float32."""
+def read_bin(path: Path, columns: int | None = None) -> np.ndarray:
+    """Raw ``.bin``: float32 rows of ``columns`` values, x, y, z first -> (N, 3) float32.
+
+    ``columns`` None: the KITTI layout (x, y, z, reflectance), checked for plausibility (a file of another layout
+    read as 4 columns gives non-finite or huge coordinates or negative reflectance); an implausible file is an
+    error asking for the column count (``bin_columns`` / ``--bin-columns``), which is then taken as given.
+    """
     try:
         size = path.stat().st_size
     except FileNotFoundError:
         raise fail(path, "file not found") from None
-    if size % (4 * columns):
-        raise fail(path, f"size {size} bytes is not a whole number of {columns}-float32 rows (truncated?)")
-    return check_points(path, "scan", np.fromfile(path, dtype=np.float32).reshape(-1, columns))
+    ask = "" if columns else "; if its layout is not x, y, z, r give its column count (bin_columns=N, --bin-columns N)"
+    width = columns or BIN_COLUMNS
+    if size % (4 * width):
+        raise fail(path, f"size {size} bytes is not a whole number of {width}-float32 rows (truncated?){ask}")
+    values = np.fromfile(path, dtype=np.float32).reshape(-1, width)
+    if columns is None and len(values):
+        with np.errstate(invalid="ignore"):
+            implausible = (not np.isfinite(values).all() or np.abs(values[:, :3]).max() > BIN_MAX_RANGE
+                           or values[:, 3].min() < 0)
+        if implausible:
+            raise fail(path, f"values are implausible for float32 rows of x, y, z, r (NaN or Inf, beyond "
+                             f"{BIN_MAX_RANGE:.0f} m, or negative reflectance){ask}")
+    return check_points(values, path, "scan", allow_empty=False)
 
 
-def read_scan(path: Path) -> np.ndarray:
-    """One scan from ``.bin`` (x, y, z, reflectance float32), ``.npy`` (N, >= 3), ``.ply`` or ``.pcd`` (open3d)."""
+def read_scan(path: Path, bin_columns: int | None = None) -> np.ndarray:
+    """One scan from ``.bin`` (float32 rows, :func:`read_bin`), ``.npy`` (N, >= 3), ``.ply`` or ``.pcd`` (open3d)."""
     suffix = path.suffix.lower()
     if suffix == ".bin":
-        return read_bin(path)
+        return read_bin(path, bin_columns)
     if suffix == ".npy":
         try:
             values = np.load(path, allow_pickle=False)
@@ -100,7 +114,7 @@ def read_scan(path: Path) -> np.ndarray:
             raise fail(path, "file not found") from None
         except (OSError, ValueError, EOFError) as error:
             raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
-        return check_points(path, "scan", values)
+        return check_points(values, path, "scan", allow_empty=False)
     if suffix in (".ply", ".pcd"):
         if not path.is_file():
             raise fail(path, "file not found")
@@ -112,7 +126,7 @@ def read_scan(path: Path) -> np.ndarray:
         points = np.asarray(cloud.points)
         if len(points) == 0:
             raise fail(path, "no points read (empty, truncated or not a point cloud)")
-        return check_points(path, "scan", points)
+        return check_points(points, path, "scan", allow_empty=False)
     raise fail(path, f"unsupported scan format {suffix!r}; use one of {', '.join(SCAN_SUFFIXES)}")
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from icpflow.datasets.base import PairDataset
-from icpflow.datasets.io import fail, natural_key, read_bin, read_pose_lines
+from icpflow.datasets.io import BIN_COLUMNS, fail, natural_key, read_bin, read_pose_lines
 from icpflow.frames import FramePair
 from icpflow.geometry import invert
 
@@ -142,8 +142,8 @@ class KittiOdometryDataset(PairDataset):
             times_path = self.root / "sequences" / name / "times.txt"
             raise fail(times_path, f"times of scans {t} and {t + horizon} not increasing")
         return FramePair(
-            pc0=read_bin(scans[t]),
-            pc1=read_bin(scans[t + horizon]),
+            pc0=read_bin(scans[t], BIN_COLUMNS),
+            pc1=read_bin(scans[t + horizon], BIN_COLUMNS),
             pose0=None if poses is None else poses[t],
             pose1=None if poses is None else poses[t + horizon],
             dt=dt,

@@ -2,7 +2,8 @@
 
 Files: ``<root>/<split>/*.npz`` if that folder exists, else ``<root>/*.npz`` (sorted by name). Keys:
 
-* required ``pc0`` (N0, 3), ``pc1`` (N1, 3): metres, each scan in its own ego frame;
+* required ``pc0`` (N0, 3), ``pc1`` (N1, 3): metres, each scan in its own ego frame (more columns are allowed: the
+  first three are x, y, z; see ``icpflow.frames.check_points``);
 * optional ``ego1_from_ego0`` (4, 4), or ``pose0`` and ``pose1`` (4, 4, world_from_ego) -- without either the
   teacher estimates ego motion;
 * optional ``ground0`` (N0,), ``ground1`` (N1,) bool;
@@ -21,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from icpflow.datasets.base import PairDataset
-from icpflow.datasets.io import check_points, fail, load_npz
-from icpflow.frames import FramePair
+from icpflow.datasets.io import fail, load_npz
+from icpflow.frames import FramePair, check_points
 
 TRANSFORMS = ("ego1_from_ego0", "pose0", "pose1")
 MASKS = ("ground0", "ground1", "flow_valid", "dynamic")
@@ -62,9 +63,7 @@ class NpzPairsDataset(PairDataset):
             raise fail(path, f"unknown key(s) {', '.join(unknown)}; known: {', '.join(KNOWN)}")
         fields = {}
         for name in ("pc0", "pc1"):
-            if data[name].ndim != 2 or data[name].shape[1] != 3:
-                raise fail(path, f"{name} must have shape (N, 3), got {data[name].shape}")
-            fields[name] = check_points(path, name, data[name])
+            fields[name] = check_points(data[name], path, name, allow_empty=False)
         if "flow" in data:
             fields["flow"] = np.asarray(data["flow"], np.float32)
         for name in TRANSFORMS:

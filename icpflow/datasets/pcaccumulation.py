@@ -42,8 +42,8 @@ from pathlib import Path
 import numpy as np
 
 from icpflow.datasets.base import PairDataset
-from icpflow.datasets.io import check_points, fail, load_npz
-from icpflow.frames import FramePair, FrameSequence
+from icpflow.datasets.io import fail, load_npz
+from icpflow.frames import FramePair, FrameSequence, check_points
 from icpflow.geometry import invert, rigid_problem
 
 KEYS = (
@@ -110,7 +110,7 @@ class PCAccumulationDataset(PairDataset):
         """The sample as a :class:`FrameSequence` (scans oldest first, anchor last) and per-scan dynamic masks."""
         path = self.files[index]
         data = load_npz(path, KEYS, optional=())
-        points = check_points(path, "raw_points", data["raw_points"])
+        points = check_points(data["raw_points"], path, "raw_points", allow_empty=False)
         count = len(points)
         for key in PER_POINT:
             if data[key].shape != (count,):

@@ -1,6 +1,7 @@
 """Your own LiDAR recording: an ordered directory of scans, consecutive scans becoming pairs.
 
-Files: ``<root>/*.bin`` (float32 rows x, y, z, reflectance, the KITTI layout), ``*.npy`` ((N, >= 3) array), or
+Files: ``<root>/*.bin`` (float32 rows x, y, z, reflectance, the KITTI layout; another layout needs
+``bin_columns``, the number of float32 values per row, x, y, z first), ``*.npy`` ((N, >= 3) array), or
 ``*.ply`` / ``*.pcd`` (read by open3d), in natural name order (``2.bin`` before ``10.bin``); one format per
 folder. Optional poses: ``poses_file`` (relative to ``root`` or absolute), default ``<root>/poses.txt`` when it
 exists: one pose per scan, world_from_sensor, as 12 values a line (row-major 3 x 4, KITTI) or 16 (4 x 4), or a
@@ -33,8 +34,10 @@ class ScanSequenceDataset(PairDataset):
         poses_file: str | Path | None = None,
         frequency_hz: float = 10.0,
         max_horizon: int = 1,
+        bin_columns: int | None = None,
     ) -> None:
         self.root = Path(root)
+        self.bin_columns = bin_columns
         self.frequency_hz = float(frequency_hz)
         self.max_horizon = int(max_horizon)
         scans = [p for p in self.root.iterdir() if p.suffix.lower() in SCAN_SUFFIXES] if self.root.is_dir() else []
@@ -79,8 +82,8 @@ class ScanSequenceDataset(PairDataset):
         poses = self.poses()
         period_ns = 1e9 / self.frequency_hz
         return FramePair(
-            pc0=read_scan(self.scans[index]),
-            pc1=read_scan(self.scans[index + horizon]),
+            pc0=read_scan(self.scans[index], self.bin_columns),
+            pc1=read_scan(self.scans[index + horizon], self.bin_columns),
             pose0=None if poses is None else poses[index],
             pose1=None if poses is None else poses[index + horizon],
             dt=horizon / self.frequency_hz,

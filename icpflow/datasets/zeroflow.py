@@ -25,7 +25,7 @@ import numpy as np
 
 from icpflow.datasets.base import PairDataset
 from icpflow.datasets.io import fail, load_npz
-from icpflow.frames import FramePair
+from icpflow.frames import FramePair, check_points
 from icpflow.metrics import AV2_META
 
 KEYS = ("pc1", "pc2", "gt_flow_0_1", "pc1_flows_valid_idx", "pc2_flows_valid_idx", "pc1_classes")
@@ -36,7 +36,8 @@ NUM_CATEGORIES = 30
 
 def _kept_rows(path, name: str, points: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Row indices selected by ``valid`` (indices or mask); every selected point must be finite."""
-    if points.ndim != 2 or points.shape[1] != 3:
+    check_points(points, path, name, finite=False)  # numeric, not transposed; padding rows may be NaN (below)
+    if points.shape[1] != 3:  # gt_flow_0_1 has pc1's shape
         raise fail(path, f"{name} must have shape (M, 3), got {points.shape}")
     if valid.dtype == np.bool_:
         if valid.shape != (len(points),):

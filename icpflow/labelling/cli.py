@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import signal
 import sys
 from pathlib import Path
 
@@ -11,9 +12,20 @@ from omegaconf import DictConfig, OmegaConf
 
 from icpflow.datasets.from_config import dataset_root, open_dataset
 from icpflow.labelling.plan import plan_shards
-from icpflow.labelling.run import LabelError, LabelJob, available_cores, run_labelling
+from icpflow.labelling.run import (
+    LabelError,
+    LabelJob,
+    Terminated,
+    available_cores,
+    raise_terminated,
+    run_labelling,
+)
 from icpflow.shards.schema import COMPRESSIONS
+from icpflow.atomic import WriteError
 from icpflow.teacher.config import teacher_config
+
+#: failed samples listed at the end of a run (the rest: failures.jsonl)
+SHOWN_FAILURES = 10
 
 
 def labeller_yaml(cfg: DictConfig, teacher) -> str:
@@ -47,9 +59,11 @@ def check_options(cfg: DictConfig) -> str | None:
 def label(cfg: DictConfig, progress: bool = True) -> int:
     """Run the labelling stage of ``cfg`` (conf/label.yaml); print the summary; return the exit status.
 
-    0: all samples labelled; 1: some samples failed (see failures.jsonl); 2: the run could not start or go on;
-    130: interrupted (only complete shards are kept).
+    0: all samples labelled; 1: some samples failed (see failures.jsonl); 2: the run could not start or go on
+    (e.g. a full disk); 130: interrupted (Ctrl-C), 143: terminated (SIGTERM), both keeping the complete shards
+    and a consistent index.json. Every error is one line on stderr.
     """
+    previous = signal.signal(signal.SIGTERM, raise_terminated)
     try:
         compression = check_options(cfg)
         teacher = teacher_config(cfg)
@@ -63,15 +77,27 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
                        compression)
         plan = plan_shards(len(dataset), int(cfg.shard_size), cfg.limit, int(cfg.shard_index), int(cfg.num_shards))
         summary = run_labelling(job, plan, workers, cfg.runner, cfg.ray.address, bool(cfg.overwrite), progress)
-    except (LabelError, ValueError, OSError) as error:  # OSError: out_dir not writable, disk full
-        print(f"label: {error}", file=sys.stderr)
+    except WriteError as error:  # disk full, no permission: the file and the cause
+        print(f"label: {error}; complete shards are kept in {cfg.out_dir}, fix this and rerun the same command to "
+              "resume", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("label: interrupted; complete shards are kept, rerun the same command to resume", file=sys.stderr)
-        return 130
+    except (LabelError, ValueError, OSError) as error:  # OSError: out_dir not creatable, unreadable input
+        print(f"label: {' '.join(str(error).split())}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated)
+        what = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
+        print(f"label: {what}; complete shards are kept in {cfg.out_dir}, rerun the same command to resume",
+              file=sys.stderr)
+        return 143 if isinstance(stop, Terminated) else 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     print(summary_line(summary, job.out_dir))
-    for failure in summary["failures"][:10]:
+    failures = summary["failures"]
+    for failure in failures[:SHOWN_FAILURES]:
         print(f"  failed {failure['sample_id']} ({failure['file']}): {failure['reason']}", file=sys.stderr)
+    if len(failures) > SHOWN_FAILURES:
+        print(f"  ... and {len(failures) - SHOWN_FAILURES} more (all in {job.out_dir / 'failures.jsonl'})",
+              file=sys.stderr)
     return 1 if summary["failed"] else 0
 
 

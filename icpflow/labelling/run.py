@@ -6,6 +6,8 @@ import hashlib
 import json
 import os
 import signal
+import sys
+import threading
 import time
 from collections import deque
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -21,6 +23,7 @@ import yaml
 from icpflow.atomic import write_text_atomic
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.frames import FramePairError
+from icpflow.shards.reader import read_shard_samples
 from icpflow.shards.schema import shard_name
 from icpflow.shards.verify import ShardError, verify_shard
 from icpflow.shards.writer import write_failures, write_index, write_shard
@@ -28,6 +31,8 @@ from icpflow.shards.writer import write_failures, write_index, write_shard
 #: failure reason of a sample during which a worker process died
 DIED = ("WorkerDied: the worker process died labelling this sample (killed, e.g. out of memory, or crashed in "
         "native code)")
+#: a sample that killed its worker this many times in a row is not tried again (``overwrite=true`` does)
+MAX_DEATHS = 2
 
 
 def config_hash(config_yaml: str) -> str:
@@ -46,6 +51,16 @@ def available_cores() -> int:
 class LabelError(RuntimeError):
     """A labelling run cannot start or go on (config mismatch, bad option, a worker died outside a sample).
     The message is one line."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM reached the main process: the run stops as on Ctrl-C (a KeyboardInterrupt, so no sample's
+    ``except Exception`` swallows it)."""
+
+
+def raise_terminated(signum, frame) -> None:
+    """SIGTERM handler of the main process (see :class:`Terminated`)."""
+    raise Terminated()
 
 
 @dataclass
@@ -122,16 +137,20 @@ def _sample(dataset, teacher, pair, index: int, horizon: int, tracker: bool) -> 
 
 
 def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None, threads: int | None = None,
-                lost: dict | None = None) -> dict:
-    """Label ``indices`` and write shard ``shard``; a sample that raises is recorded, not fatal.
+                lost: dict | None = None, previous: dict | None = None) -> dict:
+    """Label ``indices``, write shard ``shard`` and its record; a sample that raises is recorded, not fatal.
 
     ``ticks``: optional queue (or callable) told ``(index, False)`` when a sample starts and ``(index, True)`` when
     it is finished. ``threads``: run the teacher on at most this many threads (numba, BLAS, hdbscan's n_jobs;
-    the labels do not change). ``lost``: ``{index: failure record}`` of samples that killed a worker before; they
-    are recorded as failures without being run again.
+    the labels do not change). ``lost``: ``{index: failure record}`` of samples not to run (they killed a worker);
+    they are recorded as failures. ``previous``: the record of a valid earlier shard of these indices whose
+    labelled samples are copied from its file (only its failed samples are labelled again).
 
-    Returns ``{"shard", "file", "samples": [{"sample_id", "index", "n0", "n1"}], "failures": [...], "seconds"}``;
-    a failure's ``sample_id`` is the pair's id, or the reader's ``sample_id(index)`` when the pair could not be read.
+    The record (``shard_XXXXXX.h5.json``, with the reader's sample ids of ``indices``) is written here, so a
+    finished shard is kept even if the main process dies. Returns ``{"shard", "file", "samples": [{"sample_id",
+    "index", "n0", "n1"}], "failures": [...], "reused", "seconds"}`` (``reused``: samples copied from
+    ``previous``); a failure's ``sample_id`` is the pair's id, or the reader's ``sample_id(index)`` when the pair
+    could not be read.
     """
     from icpflow.teacher import ICPFlow
 
@@ -141,9 +160,16 @@ def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None, threa
     teacher = ICPFlow(cfg.replace(hdbscan_n_jobs=min(cfg.hdbscan_n_jobs, threads)))
     tell = (ticks if callable(ticks) else ticks.put) if ticks is not None else (lambda message: None)
     lost = lost or {}
-    samples, records, failures = [], [], []
+    name = shard_name(shard)
+    kept = {}
+    if previous is not None:
+        kept = {int(sample["attrs"]["index"]): sample for sample in read_shard_samples(job.out_dir / name)}
+    samples, failures = [], []
     with thread_limit(threads, torch_too=cfg.icp_backend == "torch"):
         for index in indices:
+            if index in kept:
+                samples.append(kept[index])
+                continue
             if index in lost:
                 failures.append(lost[index])
                 tell((index, True))
@@ -157,19 +183,22 @@ def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None, threa
                 sample_id = (pair.sample_id if pair is not None and pair.sample_id
                              else sample_id_or_index(job.dataset, index))
                 source = getattr(error, "filename", None) or sample_id
-                if isinstance(error, FramePairError):  # its message starts with the file it came from
+                if isinstance(error, FramePairError) and pair is None:  # a reader's: its message starts with the file
                     source = str(error).split(": ", 1)[0]
                 reason = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
                 failures.append({"index": index, "sample_id": sample_id, "file": str(source), "reason": reason})
             else:
                 samples.append(sample)
-                records.append({"sample_id": sample["attrs"]["sample_id"], "index": index,
-                                "n0": int(sample["pc0"].shape[0]), "n1": int(sample["pc1"].shape[0])})
             tell((index, True))
-    name = shard_name(shard)
     write_shard(job.out_dir / name, samples, job.config_yaml, job.hash, job.compression)
-    return {"shard": shard, "file": name, "samples": records, "failures": failures,
-            "seconds": time.perf_counter() - start}
+    records = [{"sample_id": str(sample["attrs"]["sample_id"]), "index": int(sample["attrs"]["index"]),
+                "n0": int(sample["pc0"].shape[0]), "n1": int(sample["pc1"].shape[0])} for sample in samples]
+    result = {"shard": shard, "file": name, "samples": records, "failures": failures, "reused": len(kept),
+              "seconds": time.perf_counter() - start}
+    write_text_atomic(_state_path(job.out_dir, shard), json.dumps(
+        {**result, "config_hash": job.hash, "ids": [sample_id_or_index(job.dataset, i) for i in indices]},
+        sort_keys=True))
+    return result
 
 
 def _state_path(out_dir: Path, shard: int) -> Path:
@@ -186,7 +215,7 @@ def _record(job: LabelJob, shard: int) -> dict | None:
 
 def _done(job: LabelJob, shard: int, indices: list[int], ids: list[str]) -> dict | None:
     """The stored result of a complete, valid shard of this config covering ``indices`` whose reader sample ids
-    were ``ids`` when it was labelled, or None."""
+    were ``ids`` when it was labelled, or None (its failed samples may still be worth retrying: :func:`_retried`)."""
     record = _record(job, shard)
     if record is None or record.get("ids") != ids:
         return None
@@ -198,6 +227,22 @@ def _done(job: LabelJob, shard: int, indices: list[int], ids: list[str]) -> dict
     except ShardError:
         return None
     return record
+
+
+def _retried(record: dict) -> tuple[list[int], dict]:
+    """The failed samples of a shard record to label again, and ``{index: failure}`` of those that are not: the
+    samples that killed their worker ``MAX_DEATHS`` times in a row."""
+    lost = {f["index"]: f for f in record["failures"] if f.get("deaths", 0) >= MAX_DEATHS}
+    return [f["index"] for f in record["failures"] if f["index"] not in lost], lost
+
+
+def _died(dataset, index: int, previous: dict | None) -> dict:
+    """The failure record of sample ``index`` that killed its worker (counting deaths in a row across runs)."""
+    before = next((f for f in (previous or {}).get("failures", ()) if f["index"] == index), {})
+    deaths = before.get("deaths", 0) + 1
+    reason = DIED if deaths < MAX_DEATHS else f"{DIED}; {deaths} times in a row, not tried again (overwrite=true does)"
+    sample_id = sample_id_or_index(dataset, index)
+    return {"index": index, "sample_id": sample_id, "file": sample_id, "reason": reason, "deaths": deaths}
 
 
 def _flat(node, prefix: str = "") -> dict:
@@ -277,11 +322,36 @@ def _end_helpers() -> None:
         child.terminate()
 
 
+def exit_with_parent() -> None:
+    """End this process (SIGKILL) as soon as the process that started it ends, whatever ended that one (SIGKILL,
+    SIGTERM, the out-of-memory killer): ``prctl(PR_SET_PDEATHSIG)`` on Linux, elsewhere a daemon thread that
+    checks the parent's pid every 0.5 s. For the processes of a run (workers, their queue manager)."""
+    import multiprocessing
+
+    parent = multiprocessing.parent_process()
+    parent_pid = parent.pid if parent is not None else os.getppid()
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+    else:
+        def watch():
+            while os.getppid() == parent_pid:
+                time.sleep(0.5)
+            os.kill(os.getpid(), signal.SIGKILL)
+
+        threading.Thread(target=watch, daemon=True).start()
+    if os.getppid() != parent_pid:  # the parent ended before the watch began
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
 def _worker_init() -> None:
-    """A worker leaves Ctrl-C to the main process, which ends it (a terminal sends SIGINT to the whole group)."""
+    """A worker leaves Ctrl-C to the main process, which ends it (a terminal sends SIGINT to the whole group),
+    and never outlives the main process."""
     from multiprocessing.util import Finalize
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    exit_with_parent()
     Finalize(None, _end_helpers, exitpriority=100)
 
 
@@ -295,16 +365,22 @@ def _end_now(executor: ProcessPoolExecutor) -> None:
 def _pool_results(job, todo, workers, threads, tick):
     """Shard results from ``workers`` spawned processes, as they finish; ``tick(n)`` per finished sample.
 
-    Each process is its own one-worker executor, so a process that dies (killed, out of memory, a crash in native
-    code) is known to have died in its own shard, at the sample it had started: that sample is recorded as a
-    failure, the shard is labelled again without it in a fresh process, and the other shards go on. A process
-    that dies outside a sample stops the run (LabelError). On exit (done, Ctrl-C, error) every process is ended.
+    ``todo``: ``[(shard, indices, lost, previous)]`` (see :func:`label_shard`). Each process is its own one-worker
+    executor, so a process that dies (killed, out of memory, a crash in native code) is known to have died in its
+    own shard, at the sample it had started: that sample is recorded as a failure, the shard is labelled again
+    without it in a fresh process, and the other shards go on. A process that dies outside a sample stops the run
+    (LabelError). On exit (done, Ctrl-C, error) every process is ended; if the main process itself is killed, they
+    end with it (:func:`exit_with_parent`).
     """
+    from multiprocessing.managers import SyncManager
+
     context = get_context("spawn")
-    queue = deque((shard, indices, {}) for shard, indices in todo)
+    queue = deque(todo)
     running, idle = {}, []
     started, finished = set(), set()
-    with context.Manager() as manager:
+    manager = SyncManager(ctx=context)
+    manager.start(exit_with_parent)
+    with manager:
         ticks = manager.Queue()
         try:
             while queue or running:
@@ -312,38 +388,34 @@ def _pool_results(job, todo, workers, threads, tick):
                     if not idle:
                         idle.append(ProcessPoolExecutor(1, mp_context=context, initializer=_worker_init))
                     executor = idle.pop()
-                    shard, indices, lost = queue.popleft()
-                    future = executor.submit(label_shard, job, shard, indices, ticks, threads, lost)
-                    running[future] = (executor, shard, indices, lost)
+                    shard, indices, lost, previous = queue.popleft()
+                    future = executor.submit(label_shard, job, shard, indices, ticks, threads, lost, previous)
+                    running[future] = (executor, shard, indices, lost, previous)
                 done, _ = wait(running, timeout=0.5, return_when=FIRST_COMPLETED)
                 while not ticks.empty():  # a worker's messages are queued before it moves on, so before it dies
                     index, ended = ticks.get()
                     (finished if ended else started).add(index)
                     tick(int(ended))
                 for future in done:
-                    executor, shard, indices, lost = running.pop(future)
+                    executor, shard, indices, lost, previous = running.pop(future)
                     crashed = [i for i in indices if i in started and i not in finished]
                     counted = sum(i in finished for i in indices)
                     started.difference_update(indices)
                     finished.difference_update(indices)
-                    try:
-                        result = future.result()
-                    except BrokenProcessPool:
-                        executor.shutdown(wait=True)
-                        _remove_temporaries(job.out_dir, shard)
-                        if not crashed:
-                            raise LabelError(f"a worker process died outside any sample of {shard_name(shard)} "
-                                             f"(killed, or a crash loading the teacher); complete shards are kept"
-                                             ) from None
-                        tick(-counted)  # the retry counts them again
-                        sample_id = sample_id_or_index(job.dataset, crashed[0])
-                        failure = {"index": crashed[0], "sample_id": sample_id, "file": sample_id, "reason": DIED}
-                        queue.appendleft((shard, indices, {**lost, crashed[0]: failure}))
+                    if not isinstance(future.exception(), BrokenProcessPool):
+                        idle.append(executor)  # its process lives on (also after an error such as a full disk)
+                        yield future.result()
                         continue
-                    idle.append(executor)
-                    yield result
+                    executor.shutdown(wait=True)
+                    _remove_temporaries(job.out_dir, shard)
+                    if not crashed:
+                        raise LabelError(f"a worker process died outside any sample of {shard_name(shard)} "
+                                         f"(killed, or a crash loading the teacher); complete shards are kept")
+                    tick(-counted)  # the retry counts them again
+                    lost = {**lost, crashed[0]: _died(job.dataset, crashed[0], previous)}
+                    queue.appendleft((shard, indices, lost, previous))
         finally:
-            for executor, shard, _, _ in running.values():
+            for executor, shard, *_ in running.values():
                 _end_now(executor)
                 _remove_temporaries(job.out_dir, shard)
             for executor in idle:
@@ -360,12 +432,12 @@ def _ray_results(job, todo, address, workers, tick):
         else:
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
     remote = ray.remote(num_cpus=1)(label_shard)
-    pending = [remote.remote(job, shard, indices, None, 1) for shard, indices in todo]
+    pending = [remote.remote(job, shard, indices, None, 1, lost, previous) for shard, indices, lost, previous in todo]
     try:
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
             result = ray.get(ready[0])
-            tick(len(result["samples"]) + len(result["failures"]))
+            tick(len(result["samples"]) + len(result["failures"]) - result["reused"])
             yield result
     finally:
         for ref in pending:
@@ -374,19 +446,22 @@ def _ray_results(job, todo, address, workers, tick):
 
 def _in_process_results(job, todo, threads, tick):
     """Shard results labelled one after the other in this process."""
-    for shard, indices in todo:
-        yield label_shard(job, shard, indices, lambda message: tick(int(message[1])), threads)
+    for shard, indices, lost, previous in todo:
+        yield label_shard(job, shard, indices, lambda message: tick(int(message[1])), threads, lost, previous)
 
 
 def run_labelling(job: LabelJob, plan: list[tuple[int, list[int]]], workers: int = 1, runner: str = "local",
                   ray_address: str | None = None, overwrite: bool = False, progress: bool = True) -> dict:
-    """Label every shard of ``plan`` not already complete; then write ``index.json`` and ``failures.jsonl``.
+    """Label every sample of ``plan`` not already labelled; then write ``index.json`` and ``failures.jsonl``.
 
     Each finished shard is recorded at once (``shard_XXXXXX.h5.json``, with the reader's sample ids of its
-    indices), so a killed run loses only shards in flight. ``workers`` local processes share the available cores
-    (each runs the teacher on ``cores // workers`` threads). Returns ``{"done", "skipped", "failed",
-    "seconds_per_sample", "seconds", "failures"}``: samples labelled now, samples of shards found complete, failed
-    samples of this plan, mean reader + teacher seconds per labelled sample in a worker, wall-clock seconds.
+    indices), so a killed run loses only shards in flight. A rerun labels the samples that failed before (a
+    fixed input file, a transient death) and keeps the others of their shard, except samples that killed their
+    worker ``MAX_DEATHS`` times in a row. ``workers`` local processes share the available cores (each runs the
+    teacher on ``cores // workers`` threads). Returns ``{"done", "skipped", "failed", "seconds_per_sample",
+    "seconds", "failures"}``: samples labelled now, samples labelled by an earlier run, failed samples of this
+    plan, mean reader + teacher seconds per labelled sample in a worker, wall-clock seconds. ``index.json`` is
+    written on every exit (also on Ctrl-C or an error), from the shards then on disk.
     """
     from tqdm import tqdm
 
@@ -394,39 +469,46 @@ def run_labelling(job: LabelJob, plan: list[tuple[int, list[int]]], workers: int
         raise LabelError(f"runner must be local or ray, got {runner!r}")
     start = time.perf_counter()
     prepare(job, plan, overwrite)
-    ids = {shard: [sample_id_or_index(job.dataset, i) for i in indices] for shard, indices in plan}
-    results, todo = {}, []
+    results, todo, skipped, total = {}, [], 0, 0
     for shard, indices in plan:
-        record = _done(job, shard, indices, ids[shard])
+        record = _done(job, shard, indices, [sample_id_or_index(job.dataset, i) for i in indices])
         if record is None:
-            todo.append((shard, indices))
+            todo.append((shard, indices, {}, None))
+            total += len(indices)
+            continue
+        retry, lost = _retried(record)
+        skipped += len(record["samples"])
+        if retry:
+            todo.append((shard, indices, lost, record))
+            total += len(retry) + len(lost)
         else:
             results[shard] = record
-    skipped = sum(len(r["samples"]) for r in results.values())
     seconds, done = 0.0, 0
-    bar = tqdm(total=sum(len(indices) for _, indices in todo), unit=" samples", disable=not progress,
-               dynamic_ncols=True, desc="labelling",
+    bar = tqdm(total=total, unit=" samples", disable=not progress, dynamic_ncols=True, desc="labelling",
                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, "
                           "{rate_noinv_fmt}]")
-    parallel = min(workers, len(todo))
+    parallel = max(1, min(workers, len(todo)))
     if runner == "ray":
         stream = _ray_results(job, todo, ray_address, workers, bar.update)
-    elif parallel > 1:
+    elif workers > 1 and todo:  # worker processes even for one shard: a sample that kills its process must not end the run
         stream = _pool_results(job, todo, parallel, max(1, available_cores() // parallel), bar.update)
     else:
         stream = _in_process_results(job, todo, available_cores(), bar.update)
+    stopped = True
     try:
         for result in stream:
-            write_text_atomic(_state_path(job.out_dir, result["shard"]),
-                              json.dumps({**result, "config_hash": job.hash, "ids": ids[result["shard"]]},
-                                         sort_keys=True))
             results[result["shard"]] = result
             seconds += result["seconds"]
-            done += len(result["samples"])
+            done += len(result["samples"]) - result["reused"]
+        stopped = False
     finally:
         stream.close()
         bar.close()
-        write_manifests(job)
+        try:
+            write_manifests(job)
+        except OSError:
+            if not stopped:
+                raise  # else (e.g. the disk is full) the error that stopped the run is the one to report
     failures = [f for shard in sorted(results) for f in results[shard]["failures"]]
     return {"done": done, "skipped": skipped, "failed": len(failures),
             "seconds_per_sample": seconds / done if done else 0.0, "seconds": time.perf_counter() - start,

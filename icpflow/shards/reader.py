@@ -10,6 +10,7 @@ import h5py
 import numpy as np
 
 from icpflow.shards.schema import OPTIONAL, REQUIRED, group_name
+from icpflow.shards.verify import verify_shard
 
 
 class ShardDataset:
@@ -27,7 +28,11 @@ class ShardDataset:
         if not index_path.is_file():
             raise FileNotFoundError(f"{index_path}: no index (run label.py first)")
         try:
-            shards = json.loads(index_path.read_text())["shards"]
+            index = json.loads(index_path.read_text())
+            shards = index["shards"]
+            #: (file name, number of samples) of each shard, and the config hash they were labelled with
+            self.shard_sizes = [(shard["file"], len(shard["samples"])) for shard in shards]
+            self.config_hash = index.get("config_hash")
             self.entries = [(shard["file"], position) for shard in shards for position in range(len(shard["samples"]))]
             #: sample id of each entry, in order (from the index, without opening a shard)
             self.sample_ids = [sample["sample_id"] for shard in shards for sample in shard["samples"]]
@@ -59,7 +64,20 @@ class ShardDataset:
                       dt=float(group.attrs["dt"]))
         return sample
 
+    def verify(self) -> None:
+        """Raise :class:`~icpflow.shards.verify.ShardError` (one line naming the shard) unless every shard of the
+        index is complete, of the index's config and of its size (:func:`verify_shard`: reads every chunk)."""
+        for name, count in self.shard_sizes:
+            verify_shard(self.root / name, self.config_hash, count)
+
     def close(self) -> None:
         for handle in self._files.values():
             handle.close()
         self._files = {}
+
+
+def read_shard_samples(path) -> list[dict]:
+    """Every sample of one shard file as ``write_shard`` takes them (arrays by name plus an ``attrs`` dict)."""
+    with h5py.File(path, "r") as f:
+        groups = [f[group_name(position)] for position in range(int(f.attrs["num_samples"]))]
+        return [{**{key: group[key][()] for key in group}, "attrs": dict(group.attrs)} for group in groups]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -16,15 +17,17 @@ from icpflow.shards.schema import COMPRESSIONS, SCHEMA_VERSION, group_name
 def write_shard(path: Path, samples: list[dict], config_yaml: str, config_hash: str, compression: str | None = None):
     """Write ``samples`` (dicts of arrays plus an ``attrs`` dict, see ``schema``) to ``path`` atomically.
 
-    The file is written under ``<path>.tmp-<random>.h5``, fsynced, then renamed over ``path`` (``icpflow.atomic``).
-    Every array carries Fletcher-32 checksums; ``compression`` is an HDF5 filter (``gzip``, ``lzf``), ``none`` or None.
+    The HDF5 file is built in memory, then written through ``icpflow.atomic``, so a full disk or another write
+    error is one :class:`~icpflow.atomic.WriteError` (HDF5 never meets it half-way through a file). Every array carries
+    Fletcher-32 checksums; ``compression`` is an HDF5 filter (``gzip``, ``lzf``), ``none`` or None.
     """
     if compression is not None and compression not in COMPRESSIONS:
         raise ValueError(f"write_shard: compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
     opts = {"fletcher32": True}  # per-chunk checksums: a corrupted byte fails verification
     if compression not in (None, "none"):
         opts["compression"] = compression
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    buffer = io.BytesIO()
+    with h5py.File(buffer, "w") as f:
         f.attrs.update(config=config_yaml, config_hash=config_hash, package_version=icpflow.__version__,
                        schema_version=SCHEMA_VERSION, num_samples=len(samples))
         for position, sample in enumerate(samples):
@@ -35,6 +38,8 @@ def write_shard(path: Path, samples: list[dict], config_yaml: str, config_hash: 
                 elif value is not None:
                     value = np.asarray(value)
                     group.create_dataset(key, data=value, **(opts if value.size else {}))
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buffer.getbuffer())
 
 
 def write_index(path: Path, index: dict) -> None:

@@ -9,7 +9,8 @@ t + dt; clustering and registration happen in pc1's frame after ego compensation
 
 Bad input: rows of pc0/pc1 with NaN or Inf are dropped before processing and counted (``dropped0``/``dropped1``);
 their flow is reported as 0 with confidence 0 and ``valid0`` False. A non-rigid ``ego1_from_ego0``, wrong shapes
-or wrong mask lengths raise ``ValueError`` with a one-line message.
+or wrong mask lengths raise ``ValueError`` with a one-line message; points are checked by
+``icpflow.frames.check_points`` ((N, >= 3), the first three columns used; a transposed array is an error).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from icpflow.frames import check_points
 from icpflow.geometry import rigid_problem, transform_points
 from icpflow.teacher import association, checks, deskew, histogram, registration
 from icpflow.teacher.clustering import cluster_points
@@ -65,16 +67,6 @@ class ICPFlowResult:
     n_candidates: int
     n_deskewed: int = 0
     timings: dict = field(default_factory=dict)
-
-
-def _as_points(name: str, value) -> np.ndarray:
-    try:
-        array = np.asarray(value, dtype=np.float32)
-    except (TypeError, ValueError) as error:
-        raise ValueError(f"ICPFlow: {name} must be an (N, 3) float array ({error})") from None
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise ValueError(f"ICPFlow: {name} must have shape (N, 3), got {array.shape}")
-    return array
 
 
 def _as_times(name: str, value, count: int) -> np.ndarray | None:
@@ -133,7 +125,8 @@ class ICPFlow:
         """
         cfg = self.cfg
         timings = dict.fromkeys(STAGES, 0.0)
-        pc0_in, pc1_in = _as_points("pc0", pc0), _as_points("pc1", pc1)
+        pc0_in = check_points(pc0, "ICPFlow", "pc0", finite=False)  # non-finite rows are dropped below
+        pc1_in = check_points(pc1, "ICPFlow", "pc1", finite=False)
         ground0 = _as_mask("ground0", ground0, len(pc0_in))
         ground1 = _as_mask("ground1", ground1, len(pc1_in))
         time0 = _as_times("time0", time0, len(pc0_in))

@@ -1,0 +1,348 @@
+"""Real faults, each reproduced on a small synthetic input: the run says what happened in one line naming the file
+or the out_dir, keeps every finished piece of work, leaves no process behind, and a rerun completes the job."""
+
+import errno
+import json
+import logging
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from students import tiny_checkpoint
+from test_label import SUMMARY, TESTS_ENV, _all_valid, _assert_same, _cfg, _running_in_group, _script
+from test_train import _cfg as _train_cfg
+from test_train import _write_shards
+
+from fastflow3d.infer import main as infer_main
+from fastflow3d.infer import read_raw_scan
+from fastflow3d.predictor import Predictor, PredictorError
+from fastflow3d.training import TrainError, fit
+from icpflow.datasets.io import load_npz
+from icpflow.datasets.sequence import ScanSequenceDataset
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.frames import FramePairError
+from icpflow.labelling.cli import label
+from icpflow.shards import ShardDataset, verify_shard
+from icpflow.teacher import ICPFlow
+
+SLOW = ["dataset.reader._target_=test_label.SlowSynthetic", "workers=2"]
+READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 2.0}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """An uninterrupted single-worker run of the small world of test_label: 5 samples in shards of 2, 2, 1."""
+    out = tmp_path_factory.mktemp("reference") / "labels"
+    assert label(_cfg(out), progress=False) == 0
+    return out
+
+
+def _start(out_dir, *overrides) -> subprocess.Popen:
+    """label.py in its own session (process group = its pid), once its first shard is recorded."""
+    process = subprocess.Popen(_script(out_dir, *overrides), cwd=out_dir.parent, env=TESTS_ENV,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 600
+    while not (out_dir / "shard_000000.h5.json").exists():
+        assert process.poll() is None and time.monotonic() < deadline, process.stderr.read() if process.poll() else ""
+        time.sleep(0.05)
+    return process
+
+
+def _none_left_within(group: int, seconds: float) -> bool:
+    deadline = time.monotonic() + seconds
+    while _running_in_group(group):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.1)
+    return True
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
+def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
+    out = tmp_path / "labels"
+    out.mkdir()
+    process = _start(out, *SLOW)
+    time.sleep(0.5)  # both workers busy in their slow shards
+    process.send_signal(sig)  # the main process only, as a supervisor or a job scheduler does
+    _, err = process.communicate(timeout=60)
+    assert _none_left_within(process.pid, 5), "a process of the run outlived it"
+    if sig == signal.SIGTERM:
+        assert process.returncode == 143, err
+        assert err.strip().splitlines()[-1] == (f"label: terminated (SIGTERM); complete shards are kept in {out}, "
+                                                "rerun the same command to resume")
+        assert "Traceback" not in err
+        assert _all_valid(out) >= 2  # index.json lists exactly the complete shards on disk
+        indexed = {s["file"] for s in json.loads((out / "index.json").read_text())["shards"]}
+        assert indexed == {p.name for p in out.glob("shard_*.h5")}
+    else:
+        assert process.returncode == -signal.SIGKILL
+    for shard in out.glob("shard_*.h5"):  # whatever has a final name is complete
+        verify_shard(shard)
+    if sig == signal.SIGKILL:
+        return  # the rerun after a SIGKILL: test_label.py::test_resume_after_sigkill_matches_uninterrupted_run
+    assert not list(out.glob("*.tmp-*"))
+    run = subprocess.run(_script(out, *SLOW), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    done, skipped = map(int, SUMMARY.search(run.stdout).groups()[:2])
+    assert skipped >= 2 and done + skipped == 5
+    _assert_same(reference, out)
+
+
+class KillOnceSynthetic(SyntheticDataset):
+    """Sample 3 kills its worker once (a transient death: the out-of-memory killer), marked by file ``marker``."""
+
+    def __init__(self, marker, **kwargs):
+        super().__init__(**kwargs)
+        self.marker = Path(marker)
+
+    def pair(self, index, horizon=1):
+        if index == 3 and not self.marker.exists():
+            self.marker.touch()
+            os.kill(os.getpid(), signal.SIGKILL)
+        return super().pair(index, horizon)
+
+
+def test_a_sample_whose_worker_died_is_filled_in_by_the_rerun(reference, tmp_path, capsys):
+    cfg = _cfg(tmp_path / "labels", f"dataset.reader._target_={__name__}.KillOnceSynthetic",
+               f"+dataset.reader.marker={tmp_path / 'killed'}", "workers=2")
+    assert label(cfg, progress=False) == 1
+    assert (tmp_path / "killed").exists()
+    failures = (tmp_path / "labels" / "failures.jsonl").read_text().splitlines()
+    assert [json.loads(line)["index"] for line in failures] == [3]
+    capsys.readouterr()
+    assert label(cfg, progress=False) == 0
+    assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups()[:3] == ("1", "4", "0")
+    assert (tmp_path / "labels" / "failures.jsonl").read_text() == ""  # only what failed in the latest run
+    _assert_same(reference, tmp_path / "labels")
+
+
+class FixedLaterSynthetic(SyntheticDataset):
+    """Sample 1 cannot be read while file ``broken`` exists (a bad input file, fixed by the user later)."""
+
+    def __init__(self, broken, **kwargs):
+        super().__init__(**kwargs)
+        self.broken = Path(broken)
+
+    def pair(self, index, horizon=1):
+        if index == 1 and self.broken.exists():
+            from icpflow.datasets.io import fail
+
+            raise fail(self.broken, "truncated")
+        return super().pair(index, horizon)
+
+
+def test_a_fixed_input_is_labelled_by_the_rerun(reference, tmp_path, capsys):
+    broken = tmp_path / "000001.bin"
+    broken.touch()
+    cfg = _cfg(tmp_path / "labels", f"dataset.reader._target_={__name__}.FixedLaterSynthetic",
+               f"+dataset.reader.broken={broken}")
+    assert label(cfg, progress=False) == 1
+    assert f"failed synthetic-train-0-32b/000001+1 ({broken})" in capsys.readouterr().err
+    broken.unlink()  # the user fixes the input
+    assert label(cfg, progress=False) == 0
+    assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups()[:3] == ("1", "4", "0")
+    _assert_same(reference, tmp_path / "labels")
+
+
+def _disk_full_after(monkeypatch, writes: int) -> None:
+    """Make every fsync after the first ``writes`` fail with ENOSPC, as on a full disk."""
+    real, count = os.fsync, [0]
+
+    def fsync(fd):
+        count[0] += 1
+        if count[0] > writes:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+
+
+def test_a_full_disk_is_one_line_and_keeps_the_finished_shards(reference, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "labels"
+    # config.yaml, then shard 0 and its record (each file: its own fsync and its folder's), then shard 1 fails
+    _disk_full_after(monkeypatch, 6)
+    assert label(_cfg(out), progress=False) == 2
+    err = capsys.readouterr().err
+    assert err == (f"label: {out / 'shard_000001.h5'}: cannot write (No space left on device); complete shards are "
+                   f"kept in {out}, fix this and rerun the same command to resume\n")
+    assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "shard_000000.h5", "shard_000000.h5.json"]
+    monkeypatch.undo()  # space is freed
+    assert label(_cfg(out), progress=False) == 0
+    assert "3 samples labelled, 2 skipped" in capsys.readouterr().out
+    _assert_same(reference, out)
+
+
+class DiskFullSynthetic(SyntheticDataset):
+    """The small world in a worker whose disk is full from its first write on (sample 2's shard)."""
+
+    def pair(self, index, horizon=1):
+        if index == 2:
+            def full(fd):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+            os.fsync = full  # in this worker process only
+        return super().pair(index, horizon)
+
+
+def test_a_full_disk_in_a_worker_is_one_line_and_leaves_no_process(tmp_path):
+    out = tmp_path / "labels"
+    args = ["dataset.reader._target_=test_faults.DiskFullSynthetic", "workers=2", "shard_size=3"]
+    process = subprocess.Popen(_script(out, *args), cwd=tmp_path, env=TESTS_ENV, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, start_new_session=True)
+    _, err = process.communicate(timeout=600)  # generous: a loaded CI machine
+    assert process.returncode == 2, err
+    assert [line for line in err.splitlines() if line and not line.startswith("labelling")] == [f"label: {out / 'shard_000000.h5'}: cannot write (No space left on device); "
+                                        f"complete shards are kept in {out}, fix this and rerun the same command "
+                                        "to resume"]
+    assert _none_left_within(process.pid, 5)
+    assert not list(out.glob("*.tmp-*"))
+    assert json.loads((out / "index.json").read_text())["shards"] == [
+        {"file": p.name, "samples": json.loads((out / f"{p.name}.json").read_text())["samples"]}
+        for p in sorted(out.glob("shard_*.h5"))]
+    assert len(ShardDataset(out)) in (0, 2)  # shard 1 (samples 3, 4) may have finished first
+    assert np.all([verify_shard(p) for p in out.glob("shard_*.h5")])
+
+
+# ------------------------------------------------------------------------------------------- malformed point input
+
+@pytest.fixture(scope="module")
+def scan():
+    return SyntheticDataset(**READER).pair(0).pc0
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    """An untrained tiny student checkpoint (a +-6.4 m grid)."""
+    cfg = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-6.4, 6.4], "y_range": [-6.4, 6.4],
+           "z_range": [-3.0, 3.0], "cell": 0.4, "pillar_channels": 8, "stage_channels": [8, 16, 32],
+           "stage_blocks": [1, 1, 1]}
+    return tiny_checkpoint(tmp_path_factory.mktemp("model") / "tiny.ckpt", cfg, SyntheticDataset(**READER).pair(0), 0)
+
+
+def _infer(args, capsys) -> tuple[int, list[str]]:
+    status = infer_main([*map(str, args), "--no-bev"])
+    return status, capsys.readouterr().err.splitlines()
+
+
+def test_every_malformed_point_file_is_one_line_naming_it(scan, model, tmp_path, capsys):
+    good = tmp_path / "good.npy"
+    np.save(good, scan)
+    cases = {
+        "transposed.npy": (lambda path: np.save(path, scan.T), "scan has shape (3, "),
+        "transposed.npz": (lambda path: np.savez(path, points=scan.T), "points has shape (3, "),
+        "text.npz": (lambda path: path.write_text("x y z\n1 2 3\n"), "not an .npz file"),
+        "nan.npy": (lambda path: np.save(path, np.vstack([scan, [[np.nan, 0, 0]]])), "scan has 1 rows with NaN"),
+        "xyz.bin": (lambda path: scan.tofile(path), "give its column count (bin_columns=N, --bin-columns N)"),
+        "flat.npy": (lambda path: np.save(path, scan[:, :2]), "scan must be a numeric (N, 3) array"),
+    }
+    for name, (make, message) in cases.items():
+        path = tmp_path / name
+        make(path)
+        status, err = _infer([model, path, good, "--out", tmp_path / "flow.npz"], capsys)
+        assert status == 2 and len(err) == 1, err
+        assert err[0].startswith(f"infer: {path}: ") and message in err[0], err
+    assert not (tmp_path / "flow.npz").exists()
+    np.testing.assert_array_equal(read_raw_scan(tmp_path / "xyz.bin", bin_columns=3), scan)  # explicit layout
+
+
+def test_the_same_rule_in_the_readers_the_predictor_and_the_teacher(scan, model, tmp_path):
+    folder = tmp_path / "drive"
+    folder.mkdir()
+    np.save(folder / "0.npy", scan)
+    np.save(folder / "1.npy", scan.T)
+    with pytest.raises(FramePairError, match=r"1.npy: scan has shape \(3, \d+\): a transposed scan\?"):
+        ScanSequenceDataset(folder).pair(0)
+    whole = scan[: len(scan) // 4 * 4]  # x, y, z rows whose size is also a whole number of x, y, z, r rows
+    for name in ("0", "1"):
+        whole.tofile(folder / f"{name}.bin")
+        (folder / f"{name}.npy").unlink()
+    with pytest.raises(FramePairError, match=r"0.bin: values are implausible for float32 rows of x, y, z, r"):
+        ScanSequenceDataset(folder).pair(0)
+    np.testing.assert_array_equal(ScanSequenceDataset(folder, bin_columns=3).pair(0).pc0, whole)
+    (tmp_path / "notes.npz").write_text("not a zip")
+    with pytest.raises(FramePairError, match="notes.npz: not an .npz file"):
+        load_npz(tmp_path / "notes.npz", ("pc0",))
+    with pytest.raises(PredictorError, match=r"Predictor: pc0 has shape \(3, \d+\): a transposed scan\?"):
+        Predictor.load(model)(scan.T, scan, np.eye(4))
+    with pytest.raises(ValueError, match=r"ICPFlow: pc1 has shape \(3, \d+\): a transposed scan\?"):
+        ICPFlow()(scan, scan.T, np.eye(4))
+
+
+def test_integer_coordinates_are_read_with_a_warning(scan, tmp_path, caplog):
+    path = tmp_path / "ints.npy"
+    np.save(path, np.round(scan).astype(np.int32))
+    with caplog.at_level(logging.WARNING, logger="icpflow.frames"):
+        points = read_raw_scan(path)
+    assert points.dtype == np.float32 and np.array_equal(points, np.round(scan))
+    assert [r.getMessage() for r in caplog.records] == [f"{path}: scan has int32 coordinates, read as metres: whole "
+                                                        "metres only"]
+
+
+def test_a_scan_outside_the_grid_gets_a_warning(scan, model, tmp_path, capsys):
+    far = scan + np.float32(1000.0)  # metres away from the sensor: millimetres read as metres, say
+    np.save(tmp_path / "far0.npy", far)
+    np.save(tmp_path / "far1.npy", far)
+    np.savetxt(tmp_path / "ego.txt", np.eye(4).reshape(1, 16))
+    status, err = _infer([model, tmp_path / "far0.npy", tmp_path / "far1.npy", "--ego", tmp_path / "ego.txt",
+                          "--out", tmp_path / "flow.npz"], capsys)
+    assert status == 0 and len(err) == 1 and err[0].startswith(f"infer: warning: no point of {tmp_path / 'far0.npy'} "
+                                                               "lies inside the model's grid")
+
+
+# ------------------------------------------------------------------------------------------------ training data
+
+@pytest.fixture(scope="module")
+def pairs():
+    return [SyntheticDataset(**READER).pair(0)]
+
+
+def test_a_corrupt_shard_stops_training_in_one_line_naming_it(pairs, tmp_path):
+    good, bad = _write_shards(tmp_path / "good", pairs), _write_shards(tmp_path / "bad", pairs)
+    shard = bad / "shard_000000.h5"
+    shard.write_bytes(shard.read_bytes()[: shard.stat().st_size // 2])
+    with pytest.raises(TrainError) as error:
+        fit(_train_cfg(tmp_path, good, bad, "trainer.fast_dev_run=true"))
+    message = str(error.value)
+    assert "\n" not in message and message.startswith(f"data.val: {shard}: unreadable")
+    assert message.endswith(f"rerun the label.py command that wrote it (same out_dir={bad}): it redoes damaged shards")
+
+
+def test_a_truncated_checkpoint_is_one_line_naming_it(pairs, model, tmp_path):
+    good = _write_shards(tmp_path / "good", pairs)
+    truncated = tmp_path / "last.ckpt"
+    truncated.write_bytes(model.read_bytes()[:2000])
+    with pytest.raises(TrainError) as error:
+        fit(_train_cfg(tmp_path, good, good, f"ckpt_path={truncated}"))
+    message = str(error.value)
+    assert "\n" not in message and message.startswith(f"ckpt_path={truncated}: {truncated}: not a readable torch "
+                                                      "checkpoint, truncated or damaged?")
+    foreign = tmp_path / "foreign.ckpt"
+    torch.save({"state_dict": {}, "when": np.datetime64("2026-01-01")}, foreign)  # not loadable with weights_only
+    with pytest.raises(TrainError) as error:
+        fit(_train_cfg(tmp_path, good, good, f"ckpt_path={foreign}"))
+    assert "weights_only" not in str(error.value) and "\n" not in str(error.value)
+    assert "it holds objects other than tensors and plain data" in str(error.value)
+
+
+class UnreadableSynthetic(SyntheticDataset):
+    """Every sample's file is damaged (the reader fails before the teacher runs)."""
+
+    def pair(self, index, horizon=1):
+        from icpflow.datasets.io import fail
+
+        raise fail(f"/data/{index:06d}.bin", "truncated")
+
+
+def test_the_summary_says_how_many_failures_it_does_not_list(tmp_path, capsys):
+    cfg = _cfg(tmp_path, f"dataset.reader._target_={__name__}.UnreadableSynthetic",
+               "dataset.reader.frames_per_sequence=15", "limit=14", "shard_size=7")
+    assert label(cfg, progress=False) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 11 and err[9].startswith("  failed synthetic-train-0-32b/000009+1 (/data/000009.bin)")
+    assert err[10] == f"  ... and 4 more (all in {tmp_path / 'failures.jsonl'})"
+    assert len((tmp_path / "failures.jsonl").read_text().splitlines()) == 14
