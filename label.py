@@ -1,8 +1,8 @@
 """Label a dataset with the ICP-Flow teacher into pseudo-flow shards (see conf/label.yaml and icpflow.labelling).
 
-    python label.py dataset=<name> [dataset.root=...] [split=train] [icpflow.<field>=...] [workers=N]
-        [out_dir=...] [shard_size=32] [limit=N] [horizon=k] [tracker=true] [runner=ray] [shard_index=i num_shards=n]
-    python label.py -m shard_index=0,1,2,3 num_shards=4 ... [hydra/launcher=submitit_slurm]   # one job per part
+python label.py dataset=<name> [dataset.root=...] [split=train] [icpflow.<field>=...] [workers=N]
+    [out_dir=...] [shard_size=32] [limit=N] [horizon=k] [tracker=true] [runner=ray] [shard_index=i num_shards=n]
+python label.py -m shard_index=0,1,2,3 num_shards=4 ... [hydra/launcher=submitit_slurm]   # one job per part
 """
 
 import sys

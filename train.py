@@ -1,8 +1,8 @@
 """Train the FastFlow3D student on pseudo-flow shards (see conf/train.yaml and fastflow3d.training).
 
-    python train.py [experiment=synthetic_quick|paper|zeroflow] [data.train=<shard dir>] [data.val=<shard dir>]
-        [trainer=cpu|gpu|ddp] [trainer.max_steps=N] [trainer.precision=bf16-mixed] [compile=true]
-        [out_dir=<dir>] [ckpt_path=last]
+python train.py [experiment=synthetic_quick|paper|zeroflow] [data.train=<shard dir>] [data.val=<shard dir>]
+    [trainer=cpu|gpu|ddp] [trainer.max_steps=N] [trainer.precision=bf16-mixed] [compile=true]
+    [out_dir=<dir>] [ckpt_path=last]
 """
 
 import sys

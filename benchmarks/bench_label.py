@@ -47,8 +47,13 @@ def labelling_rate(overrides: list[str], workers: int, repeats: int, cores: str 
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as tmp:
             command = (["taskset", "-c", cores] if cores else []) + [
-                sys.executable, str(REPO / "label.py"), *overrides, f"out_dir={tmp}/labels", f"workers={workers}",
-                f"hydra.run.dir={tmp}/hydra"]
+                sys.executable,
+                str(REPO / "label.py"),
+                *overrides,
+                f"out_dir={tmp}/labels",
+                f"workers={workers}",
+                f"hydra.run.dir={tmp}/hydra",
+            ]
             start = time.perf_counter()
             run = subprocess.run(command, capture_output=True, text=True)
             seconds = time.perf_counter() - start
@@ -64,8 +69,10 @@ def labelling_rate(overrides: list[str], workers: int, repeats: int, cores: str 
 def _shard_samples(path: Path) -> tuple[list[dict], str, str]:
     """The samples of a shard as ``write_shard`` takes them, its config text and config hash."""
     with h5py.File(path, "r") as f:
-        samples = [{**{key: np.asarray(value[()]) for key, value in group.items()}, "attrs": dict(group.attrs)}
-                   for _, group in sorted(f["samples"].items())]
+        samples = [
+            {**{key: np.asarray(value[()]) for key, value in group.items()}, "attrs": dict(group.attrs)}
+            for _, group in sorted(f["samples"].items())
+        ]
         return samples, str(f.attrs["config"]), str(f.attrs["config_hash"])
 
 
@@ -112,8 +119,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--samples", type=int, default=8)
     parser.add_argument("--shard-size", type=int, default=2)
-    parser.add_argument("--pinned", action="store_true",
-                        help="also time 1 worker pinned to one core (taskset -c 0): the per-core scaling of workers")
+    parser.add_argument(
+        "--pinned",
+        action="store_true",
+        help="also time 1 worker pinned to one core (taskset -c 0): the per-core scaling of workers",
+    )
     args, extra = parser.parse_known_args()
     overrides = [f"limit={args.samples}", f"shard_size={args.shard_size}", *extra]
     rows = {"1": labelling_rate(overrides, 1, args.repeats)}
@@ -126,8 +136,10 @@ def main() -> None:
         print(f"{workers:>13} {whole:>20.3f} {steady:>19.3f}")
     for base in rows:
         if base != "2":
-            print(f"ratio 2 / {base}: {rows['2'][0] / rows[base][0]:.2f} (command), "
-                  f"{rows['2'][1] / rows[base][1]:.2f} (steady) (target >= 1.8)")
+            print(
+                f"ratio 2 / {base}: {rows['2'][0] / rows[base][0]:.2f} (command), "
+                f"{rows['2'][1] / rows[base][1]:.2f} (steady) (target >= 1.8)"
+            )
     print(f"\n{'compression':<12} {'kB/sample':>10} {'read samples/s':>15} {'read MB/s':>10}")
     for name, size, rate, mbps in compression_rows(overrides, args.repeats):
         print(f"{name:<12} {size / 1e3:>10.1f} {rate:>15.1f} {mbps:>10.1f}")

@@ -101,8 +101,10 @@ def compiled_network(model: FastFlow3D, device: str, pc0: np.ndarray, pc1: np.nd
     error = float(np.abs(residual - expected).max(initial=0.0))
     if not error <= PARITY_TOLERANCE or not np.array_equal(valid, expected_valid):
         sys.exit(f"bench_latency: torch.compile differs from eager by {error:.3g} m or in its validity mask")
-    print(f"torch.compile: first call (compilation) {time.perf_counter() - start:.1f} s; max |compiled - eager| "
-          f"{error:.1e} m")
+    print(
+        f"torch.compile: first call (compilation) {time.perf_counter() - start:.1f} s; max |compiled - eager| "
+        f"{error:.1e} m"
+    )
     return network
 
 
@@ -114,8 +116,11 @@ def main():
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--cell", type=float, default=0.2)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    parser.add_argument("--backends", default=None, help="comma-separated subset of eager,compile,pt2,onnx "
-                        "(default: all on cuda, all but compile on cpu)")
+    parser.add_argument(
+        "--backends",
+        default=None,
+        help="comma-separated subset of eager,compile,pt2,onnx (default: all on cuda, all but compile on cpu)",
+    )
     args = parser.parse_args()
     device = args.device
     if device == "cuda" and not torch.cuda.is_available():
@@ -131,16 +136,20 @@ def main():
     pc0, pc1 = random_scan(args.points, 0), random_scan(args.points, 1)
     ego = make_transform(yaw=0.01, translation=(1.0, 0.05, 0.0))
     load = os.getloadavg()
-    print(f"FastFlow3D grid {model.grid.nx}x{model.grid.ny}, {args.points} points per scan, {device}: "
-          f"{device_name(device)}, {os.cpu_count()} logical CPUs, torch {args.threads} threads, torch "
-          f"{torch.__version__}, load average at start {load[0]:.2f}")
+    print(
+        f"FastFlow3D grid {model.grid.nx}x{model.grid.ny}, {args.points} points per scan, {device}: "
+        f"{device_name(device)}, {os.cpu_count()} logical CPUs, torch {args.threads} threads, torch "
+        f"{torch.__version__}, load average at start {load[0]:.2f}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         formats = [name for name in ("onnx", "pt2") if name in backends]
         start = time.perf_counter()
         metadata = export_model(model, tmp, formats) if formats else {"parity_max_abs_m": {}}
         if formats:
-            print(f"export + parity check: {time.perf_counter() - start:.1f} s; max |export - eager| "
-                  + ", ".join(f"{k} {v:.1e} m" for k, v in metadata["parity_max_abs_m"].items()))
+            print(
+                f"export + parity check: {time.perf_counter() - start:.1f} s; max |export - eager| "
+                + ", ".join(f"{k} {v:.1e} m" for k, v in metadata["parity_max_abs_m"].items())
+            )
         networks = {}
         if "eager" in backends:
             networks["eager"] = TorchNetwork(SingleSampleNet(copy.deepcopy(model).to(device)).eval(), device)
@@ -157,8 +166,10 @@ def main():
 
                 networks["onnx"] = OnnxRuntimeNetwork(Path(tmp) / "fastflow3d.onnx", providers)
                 print(f"onnxruntime {onnxruntime.__version__}, providers {networks['onnx'].session.get_providers()}")
-        calls = {f"{name} (network: voxelisation + UNet + head)": (lambda network=network: network(pc0, pc1))
-                 for name, network in networks.items()}
+        calls = {
+            f"{name} (network: voxelisation + UNet + head)": (lambda network=network: network(pc0, pc1))
+            for name, network in networks.items()
+        }
         if "onnx" in networks:
             predictor = Predictor(networks["onnx"], {}, "onnx")
             calls["onnx Predictor call (+ ego compensation, ego flow)"] = lambda: predictor(pc0, pc1, ego)

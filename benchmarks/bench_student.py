@@ -64,8 +64,10 @@ def main():
         distillation_loss(pred, target, b0, valid, args.batch).backward()
 
     params = sum(p.numel() for p in model.parameters())
-    print(f"FastFlow3D grid {model.grid.nx}x{model.grid.ny}, {params:,} parameters, batch {args.batch}, "
-          f"{args.points} points per scan, {args.threads} threads, torch {torch.__version__}")
+    print(
+        f"FastFlow3D grid {model.grid.nx}x{model.grid.ny}, {params:,} parameters, batch {args.batch}, "
+        f"{args.points} points per scan, {args.threads} threads, torch {torch.__version__}"
+    )
     print("| step | median s/sample | min s/sample | runs |")
     print("|---|---|---|---|")
     for name, fn in (("forward (eval, no grad)", forward), ("forward + backward (train)", forward_backward)):

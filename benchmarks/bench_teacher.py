@@ -140,8 +140,13 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="numba threads")
     parser.add_argument("--pairs", type=int, default=200, help="cluster pairs in the kernels-only row")
     parser.add_argument("--kernels-only", action="store_true")
-    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
-                        help="ICPFlowConfig overrides of the av2 preset (values parsed as Python literals)")
+    parser.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="ICPFlowConfig overrides of the av2 preset (values parsed as Python literals)",
+    )
     args = parser.parse_args()
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     cfg = ICPFlowConfig.preset("av2", **{k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in args.set)})

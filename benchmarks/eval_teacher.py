@@ -72,8 +72,9 @@ def print_table(title: str, rows: dict) -> None:
     print(f"| variant | s/pair | dynamic EPE (all) | {columns} |")
     print("|---|---|---|" + "---|" * 3)
     for name, (table, seconds, dynamic) in rows.items():
-        cells = [f"{table[c]['EPE']:.4f} / {table[c]['AccS']:.4f} / {table[c]['AccR']:.4f}"
-                 for c in metrics.CATEGORIES[:3]]
+        cells = [
+            f"{table[c]['EPE']:.4f} / {table[c]['AccS']:.4f} / {table[c]['AccR']:.4f}" for c in metrics.CATEGORIES[:3]
+        ]
         print(f"| {name} | {seconds:.2f} | {dynamic:.4f} | " + " | ".join(cells) + " |")
 
 
@@ -82,8 +83,11 @@ def eval_av2(variants, ground: str, use_times: bool, base: dict) -> None:
 
     pair = AV2Dataset(DATA / "av2", split="val", ground_threshold=0.4).pair(0)
     rows = {v: run_variant(VARIANTS[v], [pair], "av2", 51.2, ground == "map", use_times, base) for v in variants}
-    print_table(f"AV2 pair {pair.sample_id} (preset av2 {base or ''}, ground: {ground}, per-point times: "
-                f"{'yes' if use_times else 'no'}; {int(pair.dynamic.sum())} dynamic points)", rows)
+    print_table(
+        f"AV2 pair {pair.sample_id} (preset av2 {base or ''}, ground: {ground}, per-point times: "
+        f"{'yes' if use_times else 'no'}; {int(pair.dynamic.sum())} dynamic points)",
+        rows,
+    )
 
 
 def eval_kitti(base: dict) -> None:
@@ -103,8 +107,10 @@ def eval_kitti(base: dict) -> None:
         angle = np.degrees(np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1, 1)))
         static = data[f"labels{i}"].reshape(-1) != 1
         error = np.linalg.norm(result.flow - ego_flow(pc0, truth), axis=1)[static]
-        print(f"| {i}->{i + 1} | {np.linalg.norm(delta[:3, 3]):.4f} | {angle:.4f} | {error.mean():.4f} | "
-              f"{np.quantile(error, 0.95):.4f} | {seconds:.2f} |")
+        print(
+            f"| {i}->{i + 1} | {np.linalg.norm(delta[:3, 3]):.4f} | {angle:.4f} | {error.mean():.4f} | "
+            f"{np.quantile(error, 0.95):.4f} | {seconds:.2f} |"
+        )
 
 
 def eval_synthetic(variants, count: int, base: dict) -> None:
@@ -113,8 +119,10 @@ def eval_synthetic(variants, count: int, base: dict) -> None:
     dataset = SyntheticDataset(split="val", num_sequences=max(1, -(-count // 4)))
     pairs = [dataset.pair(i) for i in range(min(count, len(dataset)))]
     rows = {v: run_variant(VARIANTS[v], pairs, "synthetic", 32.0, True, False, base) for v in variants}
-    print_table(f"Synthetic val, {len(pairs)} pairs (conf/dataset/synthetic.yaml's teacher {base or ''}, ground masks "
-                "given)", rows)
+    print_table(
+        f"Synthetic val, {len(pairs)} pairs (conf/dataset/synthetic.yaml's teacher {base or ''}, ground masks given)",
+        rows,
+    )
 
 
 def main() -> None:
@@ -125,8 +133,13 @@ def main() -> None:
     parser.add_argument("--kitti", action="store_true")
     parser.add_argument("--synthetic", type=int, default=0, help="number of val pairs (0 = skip)")
     parser.add_argument("--variants", default=",".join(VARIANTS))
-    parser.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
-                        help="ICPFlowConfig overrides for every variant (values parsed as Python literals)")
+    parser.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="ICPFlowConfig overrides for every variant (values parsed as Python literals)",
+    )
     args = parser.parse_args()
     variants = [v.strip() for v in args.variants.split(",")]
     unknown = [v for v in variants if v not in VARIANTS]

@@ -67,34 +67,71 @@ def main() -> None:
     for size in sizes:
         labels = out / "labels" / f"train{size}"
         if not (labels / "index.json").is_file():
-            run(["label.py", "split=train", f"dataset.reader.num_sequences={size // 2}",
-                 "dataset.reader.frames_per_sequence=3", f"out_dir={labels}"])
+            run(
+                [
+                    "label.py",
+                    "split=train",
+                    f"dataset.reader.num_sequences={size // 2}",
+                    "dataset.reader.frames_per_sequence=3",
+                    f"out_dir={labels}",
+                ]
+            )
         for supervision in supervisions:
             name = f"{supervision}{size}"
             run_dir, scores = out / "runs" / name, out / "eval" / name / "metrics.json"
             timing = run_dir / "train_seconds.txt"
             if not timing.is_file():
-                seconds = run(["train.py", f"experiment={args.experiment}", f"data.train={labels}",
-                               f"data.val={val}", f"trainer.max_steps={args.steps}", f"out_dir={run_dir}",
-                               f"loss.name={SUPERVISION[supervision]}", "export.formats=[onnx]",
-                               "+trainer.enable_progress_bar=false"])
+                seconds = run(
+                    [
+                        "train.py",
+                        f"experiment={args.experiment}",
+                        f"data.train={labels}",
+                        f"data.val={val}",
+                        f"trainer.max_steps={args.steps}",
+                        f"out_dir={run_dir}",
+                        f"loss.name={SUPERVISION[supervision]}",
+                        "export.formats=[onnx]",
+                        "+trainer.enable_progress_bar=false",
+                    ]
+                )
                 timing.write_text(f"{seconds:.1f}\n")
             if not scores.is_file():
-                run(["eval.py", *test, "method=[student]", f"checkpoint={run_dir / 'export'}",
-                     f"out_dir={scores.parent}"])
+                run(
+                    [
+                        "eval.py",
+                        *test,
+                        "method=[student]",
+                        f"checkpoint={run_dir / 'export'}",
+                        f"out_dir={scores.parent}",
+                    ]
+                )
             epe, threeway = dynamic_epe(scores, "student")
-            rows.append({"pairs": size, "supervision": supervision, "dynamic_fg_epe": epe, "threeway": threeway,
-                         "train_seconds": float(timing.read_text())})
+            rows.append(
+                {
+                    "pairs": size,
+                    "supervision": supervision,
+                    "dynamic_fg_epe": epe,
+                    "threeway": threeway,
+                    "train_seconds": float(timing.read_text()),
+                }
+            )
 
-    print(f"\nStudent on the synthetic test split ({args.test_sequences * 4} pairs), {args.steps} steps of "
-          f"experiment={args.experiment}; teacher {teacher[0]:.4f} m, ego-only {ego[0]:.4f} m dynamic-fg EPE")
+    print(
+        f"\nStudent on the synthetic test split ({args.test_sequences * 4} pairs), {args.steps} steps of "
+        f"experiment={args.experiment}; teacher {teacher[0]:.4f} m, ego-only {ego[0]:.4f} m dynamic-fg EPE"
+    )
     print("| pairs | supervision | dynamic fg EPE (m) | x teacher | Threeway EPE (m) | training (s) |")
     print("|---|---|---|---|---|---|")
     for row in rows:
-        print(f"| {row['pairs']} | {row['supervision']} | {row['dynamic_fg_epe']:.4f} | "
-              f"{row['dynamic_fg_epe'] / teacher[0]:.2f} | {row['threeway']:.4f} | {row['train_seconds']:.0f} |")
-    (out / "scaling.json").write_text(json.dumps({"rows": rows, "teacher": teacher, "ego": ego,
-                                                  "steps": args.steps, "experiment": args.experiment}, indent=2))
+        print(
+            f"| {row['pairs']} | {row['supervision']} | {row['dynamic_fg_epe']:.4f} | "
+            f"{row['dynamic_fg_epe'] / teacher[0]:.2f} | {row['threeway']:.4f} | {row['train_seconds']:.0f} |"
+        )
+    (out / "scaling.json").write_text(
+        json.dumps(
+            {"rows": rows, "teacher": teacher, "ego": ego, "steps": args.steps, "experiment": args.experiment}, indent=2
+        )
+    )
     plot(rows, teacher[0], ego[0], out / "scaling.png", args.steps)
 
 
@@ -108,7 +145,9 @@ def plot(rows: list[dict], teacher: float, ego: float, path: Path, steps: int) -
     for supervision, style in (("pseudo", "o-"), ("gt", "s--")):
         points = [(r["pairs"], r["dynamic_fg_epe"]) for r in rows if r["supervision"] == supervision]
         if points:
-            axis.plot(*zip(*points), style, label=f"student, {'pseudo-labels' if supervision == 'pseudo' else 'ground truth'}")
+            axis.plot(
+                *zip(*points), style, label=f"student, {'pseudo-labels' if supervision == 'pseudo' else 'ground truth'}"
+            )
     axis.axhline(teacher, color="green", linestyle=":", label="teacher (ICP-Flow)")
     axis.axhline(ego, color="grey", linestyle=":", label="ego-only flow")
     axis.set_xscale("log", base=2)

@@ -22,8 +22,12 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_VARIANTS = ["base=", "uniform=loss.weighting=uniform", "speed=loss.weighting=speed",
-                    "groupnorm=model.norm=group"]
+DEFAULT_VARIANTS = [
+    "base=",
+    "uniform=loss.weighting=uniform",
+    "speed=loss.weighting=speed",
+    "groupnorm=model.norm=group",
+]
 CATEGORIES = ("dynamic_fg", "static_fg", "static_bg")
 
 
@@ -50,16 +54,37 @@ def main() -> None:
             run_dir = args.out.resolve() / f"{name}_seed{seed}"
             scores = run_dir / "score" / "metrics.json"
             if not scores.is_file():
-                call(["train.py", f"experiment={args.experiment}", f"data.train={args.train.resolve()}",
-                      f"data.val={args.val.resolve()}", f"trainer.max_steps={args.steps}", f"seed={seed}",
-                      f"out_dir={run_dir}", "export.formats=[onnx]", "+trainer.enable_progress_bar=false",
-                      *overrides])
-                call(["eval.py", f"split={args.score_split}", f"dataset.reader.num_sequences={args.score_sequences}",
-                      "method=[student]", f"checkpoint={run_dir / 'export'}", f"out_dir={scores.parent}", "bev=0"])
+                call(
+                    [
+                        "train.py",
+                        f"experiment={args.experiment}",
+                        f"data.train={args.train.resolve()}",
+                        f"data.val={args.val.resolve()}",
+                        f"trainer.max_steps={args.steps}",
+                        f"seed={seed}",
+                        f"out_dir={run_dir}",
+                        "export.formats=[onnx]",
+                        "+trainer.enable_progress_bar=false",
+                        *overrides,
+                    ]
+                )
+                call(
+                    [
+                        "eval.py",
+                        f"split={args.score_split}",
+                        f"dataset.reader.num_sequences={args.score_sequences}",
+                        "method=[student]",
+                        f"checkpoint={run_dir / 'export'}",
+                        f"out_dir={scores.parent}",
+                        "bev=0",
+                    ]
+                )
             table = json.loads(scores.read_text())["methods"]["student"]["paper"]["point_weighted"]
             results.setdefault(name, []).append({c: table[c]["EPE"] for c in CATEGORIES})
-    print(f"\n{args.experiment}, {args.steps} steps, seeds {seeds}; scored on {args.score_split} "
-          f"({args.score_sequences} sequences); EPE (m), mean +- std over seeds")
+    print(
+        f"\n{args.experiment}, {args.steps} steps, seeds {seeds}; scored on {args.score_split} "
+        f"({args.score_sequences} sequences); EPE (m), mean +- std over seeds"
+    )
     print("| variant | overrides | dynamic fg | static fg | static bg | dynamic fg per seed |")
     print("|---|---|---|---|---|---|")
     for name, rows in results.items():

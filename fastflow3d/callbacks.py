@@ -48,8 +48,9 @@ class ValidateAtEnd(L.Callback):
     gated (an epoch that is not a validation epoch is not validated).
     """
 
-    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs, batch,
-                           batch_idx: int) -> None:
+    def on_train_batch_end(
+        self, trainer: L.Trainer, pl_module: L.LightningModule, outputs, batch, batch_idx: int
+    ) -> None:
         if trainer.fast_dev_run:
             return
         loop = trainer.fit_loop

@@ -49,8 +49,9 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     try:
         checkpoint = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # torch raises many types for a file that is not a (safe) checkpoint
-        raise CheckpointError(f"{path}: not a readable torch checkpoint, truncated or damaged? "
-                              f"({_first_line(error)})") from None
+        raise CheckpointError(
+            f"{path}: not a readable torch checkpoint, truncated or damaged? ({_first_line(error)})"
+        ) from None
     if not isinstance(checkpoint, dict):
         raise CheckpointError(f"{path}: not a checkpoint (holds a {type(checkpoint).__name__}, not a dict)")
     return checkpoint
@@ -63,11 +64,12 @@ def load_student(path, map_location="cpu") -> tuple[FastFlow3D, dict]:
     hparams = checkpoint.get("hyper_parameters")
     cfg = hparams.get("cfg") if isinstance(hparams, dict) else None
     if not isinstance(cfg, dict) or not isinstance(cfg.get("model"), dict) or "state_dict" not in checkpoint:
-        raise CheckpointError(f"{path}: not a FastFlow3D student checkpoint (no hyper_parameters.cfg.model "
-                              "or no state_dict)")
+        raise CheckpointError(
+            f"{path}: not a FastFlow3D student checkpoint (no hyper_parameters.cfg.model or no state_dict)"
+        )
     try:
         model = build_student(cfg["model"])
-        state = {k[len("model."):]: v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
+        state = {k[len("model.") :]: v for k, v in checkpoint["state_dict"].items() if k.startswith("model.")}
         model.load_state_dict(state)
     except (ValueError, TypeError, RuntimeError) as error:
         raise CheckpointError(f"{path}: weights do not fit its model config ({_first_line(error)})") from None

@@ -38,8 +38,17 @@ GT_KEYS = ("gt", "gt_valid", "gt_classes")
 PER_POINT0 = ("pc0", "pc0_compensated", "ground0", "pseudo", "confidence", "cluster", *GT_KEYS)
 PER_POINT1 = ("pc1", "ground1")
 #: ICPFlowConfig fields the student needs at inference: ground masks (``icpflow.teacher.ground``) and ego motion
-TEACHER_FIELDS = ("ground", "sensor_height", "patchwork_max_range", "patchwork_z_offset", "range_z", "ground_slack",
-                  "kiss_voxel_size", "kiss_max_range", "ego_refine_voxel")
+TEACHER_FIELDS = (
+    "ground",
+    "sensor_height",
+    "patchwork_max_range",
+    "patchwork_z_offset",
+    "range_z",
+    "ground_slack",
+    "kiss_voxel_size",
+    "kiss_max_range",
+    "ego_refine_voxel",
+)
 
 
 class DataError(ValueError):
@@ -87,8 +96,11 @@ class StudentDataset(Dataset):
         if "gt_flow" in raw:
             valid = raw.get("gt_flow_valid", np.ones(len(pc0), bool))
             classes = raw.get("gt_classes", np.zeros(len(pc0), np.int32))
-            sample.update(gt=torch.from_numpy(full_to_residual(raw["gt_flow"], pc0, ego)),
-                          gt_valid=torch.from_numpy(valid), gt_classes=torch.from_numpy(classes))
+            sample.update(
+                gt=torch.from_numpy(full_to_residual(raw["gt_flow"], pc0, ego)),
+                gt_valid=torch.from_numpy(valid),
+                gt_classes=torch.from_numpy(classes),
+            )
         return sample
 
 
@@ -142,8 +154,14 @@ class ShardDataModule(L.LightningDataModule):
             self.val_set = StudentDataset(self.val_dir)
 
     def _loader(self, dataset, shuffle: bool) -> DataLoader:
-        return DataLoader(dataset, batch_size=self.batch_size, shuffle=shuffle, num_workers=self.workers,
-                          collate_fn=collate, persistent_workers=self.workers > 0)
+        return DataLoader(
+            dataset,
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            num_workers=self.workers,
+            collate_fn=collate,
+            persistent_workers=self.workers > 0,
+        )
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self.train_set, shuffle=True)

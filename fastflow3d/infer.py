@@ -6,8 +6,8 @@
 MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz``
 (array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
 ``--bin-columns N`` values, x, y, z first), ``.ply`` or ``.pcd``; the first three columns are x, y, z in metres
-in the sensor's own frame (``icpflow.frames.check_points``: a transposed (3, N) array is an error). Ego motion: ``--poses`` (two
-world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a (2, 4, 4) ``.npy``),
+in the sensor's own frame (``icpflow.frames.check_points``: a transposed (3, N) array is an error). Ego motion:
+``--poses`` (two world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a (2, 4, 4) ``.npy``),
 ``--ego`` (one (4, 4) ``ego1_from_ego0``: 12 or 16 values, or a ``.npy``), or neither (estimated by KISS-ICP).
 A model trained with ground removal gets the non-ground points of each scan, found with the teacher's ground
 segmentation and the settings saved with the model (``fastflow3d.predictor``); ground points of scan0 move with the
@@ -67,9 +67,15 @@ def write_flow(path: Path, prediction) -> None:
         if path.suffix == ".npy":
             np.save(handle, prediction.flow)
         else:
-            np.savez(handle, flow=prediction.flow, residual=prediction.residual, in_grid=prediction.in_grid,
-                     ground0=prediction.ground0, ego1_from_ego0=prediction.ego1_from_ego0,
-                     ego_estimated=np.bool_(prediction.ego_estimated))
+            np.savez(
+                handle,
+                flow=prediction.flow,
+                residual=prediction.residual,
+                in_grid=prediction.in_grid,
+                ground0=prediction.ground0,
+                ego1_from_ego0=prediction.ego1_from_ego0,
+                ego_estimated=np.bool_(prediction.ego_estimated),
+            )
 
 
 def parse_args(argv):
@@ -85,8 +91,13 @@ def parse_args(argv):
     pictures.add_argument("--bev", type=Path, help="BEV PNG (default: the output's name with .png)")
     pictures.add_argument("--no-bev", action="store_true", help="write no picture")
     parser.add_argument("--extent", type=float, default=40.0, help="half-width of the picture in metres")
-    parser.add_argument("--bin-columns", type=int, choices=range(3, 17), metavar="N",
-                        help="float32 values per row of a .bin scan, x, y, z first (default: x, y, z, r, checked)")
+    parser.add_argument(
+        "--bin-columns",
+        type=int,
+        choices=range(3, 17),
+        metavar="N",
+        help="float32 values per row of a .bin scan, x, y, z first (default: x, y, z, r, checked)",
+    )
     parser.add_argument("--backend", choices=(*FORMATS, *LEGACY_FORMATS), help="format of an export directory")
     parser.add_argument("--device", default="cpu", help="torch device for .pt2, .pt and checkpoints")
     return parser.parse_args(argv)
@@ -110,17 +121,30 @@ def infer(args) -> tuple[Path, Path | None]:
     predictor = Predictor.load(args.model, backend=args.backend, device=args.device)
     prediction = predictor.predict(pc0, pc1, ego)
     if not prediction.in_grid.any():
-        print(f"infer: warning: no point of {args.scan0} lies inside the model's grid (nor is it kept as non-ground): "
-              "its flow is the ego motion only; are the scans in metres, in the sensor's frame?", file=sys.stderr)
+        print(
+            f"infer: warning: no point of {args.scan0} lies inside the model's grid (nor is it kept as non-ground): "
+            "its flow is the ego motion only; are the scans in metres, in the sensor's frame?",
+            file=sys.stderr,
+        )
     write_flow(out, prediction)
     bev = None
     if not args.no_bev:
         bev = args.bev or out.with_suffix(".png")
-        pair = FramePair(pc0=pc0, pc1=pc1, ego1_from_ego0=prediction.ego1_from_ego0,
-                         ground0=prediction.ground0 if predictor.remove_ground else None, source=str(args.scan0))
+        pair = FramePair(
+            pc0=pc0,
+            pc1=pc1,
+            ego1_from_ego0=prediction.ego1_from_ego0,
+            ground0=prediction.ground0 if predictor.remove_ground else None,
+            source=str(args.scan0),
+        )
         source = "estimated" if prediction.ego_estimated else "given"
-        plot_bev(pair, bev, predicted=prediction.flow, extent=args.extent,
-                 title=f"{args.scan0.name} -> {args.scan1.name}: FastFlow3D ({predictor.backend}), ego motion {source}")
+        plot_bev(
+            pair,
+            bev,
+            predicted=prediction.flow,
+            extent=args.extent,
+            title=f"{args.scan0.name} -> {args.scan1.name}: FastFlow3D ({predictor.backend}), ego motion {source}",
+        )
     return out, bev
 
 

@@ -36,8 +36,14 @@ def speed_buckets(target: torch.Tensor, dt: float | torch.Tensor, edges) -> torc
     return torch.bucketize(speed, bounds, right=True)
 
 
-def grouped_mean_sum(error: torch.Tensor, group: torch.Tensor, groups_per_sample: int, batch: torch.Tensor,
-                     valid: torch.Tensor, batch_size: int) -> torch.Tensor:
+def grouped_mean_sum(
+    error: torch.Tensor,
+    group: torch.Tensor,
+    groups_per_sample: int,
+    batch: torch.Tensor,
+    valid: torch.Tensor,
+    batch_size: int,
+) -> torch.Tensor:
     """Mean over samples (with valid points) of the sum over each sample's non-empty groups of the mean ``error``
     (P,) of the group's valid points; ``group`` (P,) int64 in ``[0, groups_per_sample)``."""
     mask = valid.to(error.dtype)
@@ -49,9 +55,17 @@ def grouped_mean_sum(error: torch.Tensor, group: torch.Tensor, groups_per_sample
     return means.sum(dim=1).sum() / has_points.sum().clamp(min=1)
 
 
-def flow_loss(pred: torch.Tensor, target: torch.Tensor, batch: torch.Tensor, valid: torch.Tensor, batch_size: int,
-              weighting: str = "uniform", dt: float | torch.Tensor = 0.1, bucket_edges=(0.4, 1.0),
-              point_weight: torch.Tensor | None = None) -> torch.Tensor:
+def flow_loss(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    batch: torch.Tensor,
+    valid: torch.Tensor,
+    batch_size: int,
+    weighting: str = "uniform",
+    dt: float | torch.Tensor = 0.1,
+    bucket_edges=(0.4, 1.0),
+    point_weight: torch.Tensor | None = None,
+) -> torch.Tensor:
     """EPE of ``pred`` against ``target`` with the module docstring's ``weighting``; ``point_weight`` (P,) (e.g. the
     teacher's confidence, or a background weight) multiplies each point's error."""
     if weighting not in WEIGHTINGS:

@@ -41,7 +41,9 @@ class ConvNormAct(nn.Sequential):
 
 def encoder_stage(c_in: int, c_out: int, blocks: int, norm: str = "batch") -> nn.Sequential:
     """One stride-2 conv c_in -> c_out then ``blocks`` convs c_out -> c_out (resolution halves)."""
-    return nn.Sequential(ConvNormAct(c_in, c_out, 2, norm), *[ConvNormAct(c_out, c_out, 1, norm) for _ in range(blocks)])
+    return nn.Sequential(
+        ConvNormAct(c_in, c_out, 2, norm), *[ConvNormAct(c_out, c_out, 1, norm) for _ in range(blocks)]
+    )
 
 
 class UpsampleSkip(nn.Module):
@@ -66,10 +68,12 @@ class UNet(nn.Module):
         super().__init__()
         widths = [pillar_channels, *stage_channels]
         self.encoder = nn.ModuleList(
-            encoder_stage(c_in, c_out, n, norm) for c_in, c_out, n in zip(widths[:-1], widths[1:], stage_blocks))
+            encoder_stage(c_in, c_out, n, norm) for c_in, c_out, n in zip(widths[:-1], widths[1:], stage_blocks)
+        )
         skips = [2 * w for w in widths]  # concatenated widths, finest first
         self.decoder = nn.ModuleList(
-            UpsampleSkip(skips[i + 1], skips[i], skips[i]) for i in reversed(range(len(skips) - 1)))
+            UpsampleSkip(skips[i + 1], skips[i], skips[i]) for i in reversed(range(len(skips) - 1))
+        )
         self.final = nn.Conv2d(skips[0], skips[0], 3, 1, 1)
 
     def forward(self, image0: torch.Tensor, image1: torch.Tensor) -> torch.Tensor:
@@ -113,8 +117,7 @@ class FastFlow3D(nn.Module):
     them all (``norm`` defaults to ``batch`` for checkpoints written before it existed).
     """
 
-    def __init__(self, *, x_range, y_range, z_range, cell, pillar_channels, stage_channels, stage_blocks,
-                 norm="batch"):
+    def __init__(self, *, x_range, y_range, z_range, cell, pillar_channels, stage_channels, stage_blocks, norm="batch"):
         super().__init__()
         if norm not in NORMS:
             raise ValueError(f"FastFlow3D: norm must be one of {', '.join(NORMS)}, got {norm!r}")
@@ -134,12 +137,20 @@ class FastFlow3D(nn.Module):
         rows = self.embedder(features, ids, valid, batch_size * self.grid.nx * self.grid.ny + 1)
         return to_pseudo_image(rows, batch_size, self.grid.nx, self.grid.ny), features, ids, valid
 
-    def forward(self, pc0: torch.Tensor, batch0: torch.Tensor, pc1: torch.Tensor, batch1: torch.Tensor,
-                batch_size: int = 1):
+    def forward(
+        self, pc0: torch.Tensor, batch0: torch.Tensor, pc1: torch.Tensor, batch1: torch.Tensor, batch_size: int = 1
+    ):
         image0, features0, ids0, valid0 = self.embed(pc0, batch0, batch_size)
         image1, _, _, _ = self.embed(pc1, batch1, batch_size)
         decoded = self.unet(image0, image1)
-        per_point = torch.cat([from_pseudo_image(image0, ids0), from_pseudo_image(image1, ids0),
-                               from_pseudo_image(decoded, ids0), features0[:, 6:9]], dim=1)
+        per_point = torch.cat(
+            [
+                from_pseudo_image(image0, ids0),
+                from_pseudo_image(image1, ids0),
+                from_pseudo_image(decoded, ids0),
+                features0[:, 6:9],
+            ],
+            dim=1,
+        )
         residual = self.head(per_point)
         return torch.where(valid0[:, None], residual, torch.zeros_like(residual)), valid0

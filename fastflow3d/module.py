@@ -2,10 +2,10 @@
 metrics.
 
 Config keys read (``conf/train.yaml``): ``model`` (FastFlow3D, see ``fastflow3d.checkpoint``), ``loss`` (``name``:
-``distillation`` on the teacher's pseudo-labels, or
-``supervised`` on ground truth with ``background_weight``; ``weighting`` and ``bucket_edges``, see
-``fastflow3d.loss``), ``optim`` and ``scheduler`` (Hydra ``_partial_``
-targets, ``conf/optim``, ``conf/scheduler``; the schedule is counted in optimiser steps), ``metrics`` (``crop``, ``bev_every``), ``data.remove_ground`` and ``out_dir``.
+``distillation`` on the teacher's pseudo-labels, or ``supervised`` on ground truth with ``background_weight``;
+``weighting`` and ``bucket_edges``, see ``fastflow3d.loss``), ``optim`` and ``scheduler`` (Hydra ``_partial_``
+targets, ``conf/optim``, ``conf/scheduler``; the schedule is counted in optimiser steps), ``metrics`` (``crop``,
+``bev_every``), ``data.remove_ground`` and ``out_dir``.
 
 With ``data.remove_ground`` (ZeroFlow's setting) the network sees only the non-ground points of pc0 and pc1 (the
 shards' ``ground0`` / ``ground1``); ground pc0 points get residual 0 (full flow = ego flow) and are left out of the
@@ -57,11 +57,17 @@ class StudentModule(L.LightningModule):
         """(residual (P0, 3), valid (P0,)) of a collated batch; valid = the network predicted the point (inside the
         grid and, with ``data.remove_ground``, not ground); residual is 0 elsewhere."""
         if not self.cfg["data"]["remove_ground"]:
-            return self.model(batch["pc0_compensated"], batch["batch0"], batch["pc1"], batch["batch1"],
-                              batch["batch_size"])
+            return self.model(
+                batch["pc0_compensated"], batch["batch0"], batch["pc1"], batch["batch1"], batch["batch_size"]
+            )
         keep0, keep1 = ~batch["ground0"], ~batch["ground1"]
-        kept, kept_valid = self.model(batch["pc0_compensated"][keep0], batch["batch0"][keep0], batch["pc1"][keep1],
-                                      batch["batch1"][keep1], batch["batch_size"])
+        kept, kept_valid = self.model(
+            batch["pc0_compensated"][keep0],
+            batch["batch0"][keep0],
+            batch["pc1"][keep1],
+            batch["batch1"][keep1],
+            batch["batch_size"],
+        )
         residual = kept.new_zeros(len(keep0), 3).index_put((keep0,), kept)
         valid = torch.zeros_like(keep0).index_put((keep0,), kept_valid)
         return residual, valid
@@ -78,8 +84,9 @@ class StudentModule(L.LightningModule):
                 raise ValueError(f"loss.name=supervised needs ground truth, but samples {batch['sample_id']} have none")
             background = torch.full_like(pred[:, 0], float(options["background_weight"]))
             weight = torch.where(batch["gt_classes"] > 0, torch.ones_like(background), background)
-            return flow_loss(pred, batch["gt"], batch["batch0"], valid & batch["gt_valid"], size, **weighting,
-                             point_weight=weight)
+            return flow_loss(
+                pred, batch["gt"], batch["batch0"], valid & batch["gt_valid"], size, **weighting, point_weight=weight
+            )
         return flow_loss(pred, batch["pseudo"], batch["batch0"], valid, size, **weighting)
 
     def training_step(self, batch: dict, batch_index: int) -> torch.Tensor:
@@ -119,14 +126,23 @@ class StudentModule(L.LightningModule):
         else:
             reference, flow_valid = host["pseudo"][rows0], None
             classes = (host["cluster"][rows0] >= 0).astype(np.int32)
-        return FramePair(pc0, host["pc1"][rows1], ego1_from_ego0=ego, ground0=host["ground0"][rows0],
-                         flow=residual_to_full(reference, pc0, ego), flow_valid=flow_valid, classes=classes,
-                         dt=float(host["dt"][b]), sample_id=sample_id)
+        return FramePair(
+            pc0,
+            host["pc1"][rows1],
+            ego1_from_ego0=ego,
+            ground0=host["ground0"][rows0],
+            flow=residual_to_full(reference, pc0, ego),
+            flow_valid=flow_valid,
+            classes=classes,
+            dt=float(host["dt"][b]),
+            sample_id=sample_id,
+        )
 
     def _draw_now(self) -> bool:
         every = int(self.cfg["metrics"]["bev_every"])
-        return every > 0 and not self.trainer.sanity_checking and self.validations % every == 0 \
-            and self.global_rank == 0
+        return (
+            every > 0 and not self.trainer.sanity_checking and self.validations % every == 0 and self.global_rank == 0
+        )
 
     def _draw(self, pair: FramePair, predicted: np.ndarray) -> None:
         """BEV image of the first validation sample: PNG under out_dir/bev and, with TensorBoard, an image."""

@@ -90,14 +90,17 @@ class Predictor:
         try:
             self.teacher = ICPFlowConfig(**(preprocessing.get("teacher") or {}))
         except (TypeError, ValueError) as error:
-            raise PredictorError(f"model metadata: preprocessing.teacher is not a set of ICPFlowConfig fields "
-                                 f"({' '.join(str(error).split())})") from None
+            raise PredictorError(
+                f"model metadata: preprocessing.teacher is not a set of ICPFlowConfig fields "
+                f"({' '.join(str(error).split())})"
+            ) from None
         self.ego_config = self.teacher if ego_config is None else ego_config
         self._segmenter = None
 
     @classmethod
-    def load(cls, path: str | os.PathLike, backend: str | None = None, device: str = "cpu",
-             ego_config=None) -> Predictor:
+    def load(
+        cls, path: str | os.PathLike, backend: str | None = None, device: str = "cpu", ego_config=None
+    ) -> Predictor:
         """From an export directory, a ``.onnx``, a ``.pt2``, a legacy ``.pt`` (TorchScript) or a ``.ckpt``.
 
         ``backend`` picks the format of an export directory (``onnx``, ``pt2`` or, for older exports,
@@ -173,5 +176,6 @@ class Predictor:
         try:
             return estimate_ego_motion(pc0, pc1, self.ego_config)
         except (RuntimeError, ValueError, MemoryError) as error:
-            raise PredictorError(f"ego-motion estimation failed ({type(error).__name__}: "
-                                 f"{' '.join(str(error).split())})") from None
+            raise PredictorError(
+                f"ego-motion estimation failed ({type(error).__name__}: {' '.join(str(error).split())})"
+            ) from None

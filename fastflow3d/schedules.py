@@ -28,8 +28,9 @@ def _warmup_steps(total_steps: int, warmup_steps: int) -> int:
     return min(int(warmup_steps), total_steps // 2)
 
 
-def warmup_cosine(optimizer: Optimizer, total_steps: int, warmup_steps: int = 100,
-                  final_factor: float = 0.01) -> LambdaLR:
+def warmup_cosine(
+    optimizer: Optimizer, total_steps: int, warmup_steps: int = 100, final_factor: float = 0.01
+) -> LambdaLR:
     """Linear warm-up over ``warmup_steps``, then a cosine decay from the base lr to ``final_factor`` x base lr at
     ``total_steps``."""
     warmup_steps = _warmup_steps(total_steps, warmup_steps)
@@ -43,8 +44,13 @@ def warmup_cosine(optimizer: Optimizer, total_steps: int, warmup_steps: int = 10
     return LambdaLR(optimizer, factor)
 
 
-def warmup_multistep(optimizer: Optimizer, total_steps: int, warmup_steps: int = 0,
-                     milestones: tuple[float, ...] = (0.5,), gamma: float = 0.1) -> LambdaLR:
+def warmup_multistep(
+    optimizer: Optimizer,
+    total_steps: int,
+    warmup_steps: int = 0,
+    milestones: tuple[float, ...] = (0.5,),
+    gamma: float = 0.1,
+) -> LambdaLR:
     """Linear warm-up, then the lr times ``gamma`` at each milestone, given as a fraction of ``total_steps``
     (0.5 = half way: the paper's "x0.1 after 25 of 50 epochs")."""
     warmup_steps = _warmup_steps(total_steps, warmup_steps)

@@ -40,13 +40,17 @@ def check_data(cfg: DictConfig) -> None:
         try:
             dataset = StudentDataset(path)
         except DataError as error:
-            raise TrainError(f"data.{key}: {error}; label a dataset into it first, e.g. "
-                             f"`python label.py split={split} out_dir={path}`") from None
+            raise TrainError(
+                f"data.{key}: {error}; label a dataset into it first, e.g. "
+                f"`python label.py split={split} out_dir={path}`"
+            ) from None
         try:
             dataset.shards.verify()
         except ShardError as error:
-            raise TrainError(f"data.{key}: {error}; rerun the label.py command that wrote it (same out_dir={path}): "
-                             "it redoes damaged shards") from None
+            raise TrainError(
+                f"data.{key}: {error}; rerun the label.py command that wrote it (same out_dir={path}): "
+                "it redoes damaged shards"
+            ) from None
         if key == "train" and cfg.loss.name == "supervised" and "gt" not in dataset[0]:
             raise TrainError(f"loss.name=supervised needs ground truth, but data.train={path} has none")
 
@@ -60,8 +64,10 @@ def inference_teacher(cfg: DictConfig) -> dict:
     if given is None:
         source, values = f"data.train={cfg.data.train}", labeller_teacher(cfg.data.train)
         if values is None:
-            raise TrainError(f"data.teacher is null and the shards of data.train={cfg.data.train} carry no teacher "
-                             "config; set it, e.g. data.teacher={preset:waymo}")
+            raise TrainError(
+                f"data.teacher is null and the shards of data.train={cfg.data.train} carry no teacher "
+                "config; set it, e.g. data.teacher={preset:waymo}"
+            )
         values = {key: values[key] for key in TEACHER_FIELDS if key in values}
     elif not OmegaConf.is_dict(given):
         raise TrainError(f"data.teacher must be null or a dict of preset and ICPFlowConfig fields, got {given!r}")
@@ -69,8 +75,10 @@ def inference_teacher(cfg: DictConfig) -> dict:
         source, values = "data.teacher", OmegaConf.to_container(given, resolve=True)
         unknown = sorted(set(values) - {"preset", *TEACHER_FIELDS})
         if unknown:
-            raise TrainError(f"data.teacher: {', '.join(unknown)} not used at inference; give preset and/or "
-                             f"{', '.join(TEACHER_FIELDS)}")
+            raise TrainError(
+                f"data.teacher: {', '.join(unknown)} not used at inference; give preset and/or "
+                f"{', '.join(TEACHER_FIELDS)}"
+            )
     preset = values.pop("preset", None)
     try:
         teacher = ICPFlowConfig.preset(preset, **values) if preset else ICPFlowConfig(**values)
@@ -86,13 +94,15 @@ def resolve_ckpt_path(cfg: DictConfig) -> str | None:
         return None
     path = Path(cfg.checkpoint_dir) / "last.ckpt" if value == "last" else Path(value)
     if not path.is_file():
-        raise TrainError(f"ckpt_path={value}: {path} does not exist (nothing to resume; leave ckpt_path unset to "
-                         "start afresh)")
+        raise TrainError(
+            f"ckpt_path={value}: {path} does not exist (nothing to resume; leave ckpt_path unset to start afresh)"
+        )
     try:
         read_checkpoint(path)
     except CheckpointError as error:
-        raise TrainError(f"ckpt_path={value}: {error}; give another checkpoint, or leave ckpt_path unset to start "
-                         "afresh") from None
+        raise TrainError(
+            f"ckpt_path={value}: {error}; give another checkpoint, or leave ckpt_path unset to start afresh"
+        ) from None
     return str(path)
 
 
@@ -101,8 +111,10 @@ def export_formats(cfg: DictConfig) -> tuple[str, ...]:
     formats = tuple(cfg.export.formats or ())
     unknown = [name for name in formats if name not in FORMATS]
     if unknown:
-        raise TrainError(f"export.formats: unknown {', '.join(map(str, unknown))}; use a list of "
-                         f"{', '.join(FORMATS)}, or [] for no export")
+        raise TrainError(
+            f"export.formats: unknown {', '.join(map(str, unknown))}; use a list of "
+            f"{', '.join(FORMATS)}, or [] for no export"
+        )
     return formats
 
 
@@ -128,8 +140,10 @@ def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -
     try:
         out_dir = export_checkpoint(source, cfg.export.dir, formats)
     except (ValueError, RuntimeError, OSError) as error:
-        raise TrainError(f"training finished but exporting {source} failed: {' '.join(str(error).split())} "
-                         f"(retry with `python export.py checkpoint={source}`)") from None
+        raise TrainError(
+            f"training finished but exporting {source} failed: {' '.join(str(error).split())} "
+            f"(retry with `python export.py checkpoint={source}`)"
+        ) from None
     log.info("exported %s (%s) to %s", source.name, ", ".join(formats), out_dir)
     return out_dir
 

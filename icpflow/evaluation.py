@@ -53,6 +53,7 @@ class EvaluationError(ValueError):
 
 # ---------------------------------------------------------------------------------------------------- methods
 
+
 class TeacherMethod:
     """The ICP-Flow teacher (an ``ICPFlow``) on pairs (t, t + horizon), with the pair's own ego motion and ground
     masks when it has them; ``tracker``: chained through the intermediate frames."""
@@ -65,9 +66,17 @@ class TeacherMethod:
             from icpflow.teacher.tracker import sample_tracker_flow
 
             return sample_tracker_flow(self.teacher, self.dataset, index, self.horizon, pair).flow
-        return self.teacher(pair.pc0, pair.pc1, ego1_from_ego0=pair.ego1_from_ego0, ground0=pair.ground0,
-                            ground1=pair.ground1, time0=pair.time0, time1=pair.time1, gap=self.horizon,
-                            dt=pair.dt).flow
+        return self.teacher(
+            pair.pc0,
+            pair.pc1,
+            ego1_from_ego0=pair.ego1_from_ego0,
+            ground0=pair.ground0,
+            ground1=pair.ground1,
+            time0=pair.time0,
+            time1=pair.time1,
+            gap=self.horizon,
+            dt=pair.dt,
+        ).flow
 
 
 class ShardMethod:
@@ -94,8 +103,16 @@ class ShardMethod:
         return stored["flow"]
 
 
-def build_methods(names, horizons=(1,), trackers=(False,), *, dataset=None, teacher_config=None, shards=None,
-                  extra: dict[str, Callable[[], Method]] | None = None) -> dict[int, dict[str, Method]]:
+def build_methods(
+    names,
+    horizons=(1,),
+    trackers=(False,),
+    *,
+    dataset=None,
+    teacher_config=None,
+    shards=None,
+    extra: dict[str, Callable[[], Method]] | None = None,
+) -> dict[int, dict[str, Method]]:
     """Per horizon k, the methods scored on pairs (t, t + k) by row name, each ``method(pair, index) -> full flow``.
 
     ``icpflow`` gives one row per value of ``trackers``: ``icpflow``, and ``icpflow+tracker`` when both are asked
@@ -161,6 +178,7 @@ def parse_horizons(value) -> list[int]:
 
 # ---------------------------------------------------------------------------------------------------- scores
 
+
 @dataclass
 class MetricOptions:
     """How pairs are scored: ``crop`` half-width of the xy box (m, None = all), ground, relative error base,
@@ -184,20 +202,43 @@ class MethodScores:
     dts: list[float] = field(default_factory=list)
 
     def add(self, pair: FramePair, flow: np.ndarray, seconds: float, options: MetricOptions) -> None:
-        self.paper.add(metrics.frame_pair_stats(pair, flow, crop=options.crop, include_ground=options.include_ground,
-                                                relative_to=options.relative_to,
-                                                dynamic_speed=options.dynamic_speed))
+        self.paper.add(
+            metrics.frame_pair_stats(
+                pair,
+                flow,
+                crop=options.crop,
+                include_ground=options.include_ground,
+                relative_to=options.relative_to,
+                dynamic_speed=options.dynamic_speed,
+            )
+        )
         common = dict(ground=None if options.include_ground else pair.ground0, flow_valid=pair.flow_valid)
         threeway_meta = {0: "BACKGROUND"} | {int(c): "FOREGROUND" for c in np.unique(pair.classes) if c > 0}
         if options.class_to_meta is not None:
-            threeway_meta = {c: "BACKGROUND" if m == "BACKGROUND" else "FOREGROUND"
-                             for c, m in options.class_to_meta.items()}
-            buckets = metrics.av2_bucket_stats(pair.pc0, flow, pair.flow, pair.ego1_from_ego0, pair.classes,
-                                               class_to_meta=options.class_to_meta, **common)
+            threeway_meta = {
+                c: "BACKGROUND" if m == "BACKGROUND" else "FOREGROUND" for c, m in options.class_to_meta.items()
+            }
+            buckets = metrics.av2_bucket_stats(
+                pair.pc0,
+                flow,
+                pair.flow,
+                pair.ego1_from_ego0,
+                pair.classes,
+                class_to_meta=options.class_to_meta,
+                **common,
+            )
             self.buckets = buckets if self.buckets is None else self.buckets + buckets
-        threeway = metrics.av2_bucket_stats(pair.pc0, flow, pair.flow, pair.ego1_from_ego0, pair.classes,
-                                            class_to_meta=threeway_meta, edges=metrics.THREEWAY_EDGES,
-                                            metas=("BACKGROUND", "FOREGROUND"), **common)
+        threeway = metrics.av2_bucket_stats(
+            pair.pc0,
+            flow,
+            pair.flow,
+            pair.ego1_from_ego0,
+            pair.classes,
+            class_to_meta=threeway_meta,
+            edges=metrics.THREEWAY_EDGES,
+            metas=("BACKGROUND", "FOREGROUND"),
+            **common,
+        )
         self.threeway = threeway if self.threeway is None else self.threeway + threeway
         self.seconds.append(seconds)
         self.dts.append(float(pair.dt))
@@ -205,16 +246,21 @@ class MethodScores:
     def summary(self) -> dict:
         """{"paper": {"point_weighted"|"per_pair": {category: row}}, "threeway", "bucketed", "seconds_per_pair",
         "dt_s" (mean seconds between the scans of the pairs)}."""
-        out = {"paper": self.paper.table(), "pairs": len(self.seconds),
-               "seconds_per_pair": float(np.median(self.seconds)) if self.seconds else math.nan,
-               "dt_s": float(np.mean(self.dts)) if self.dts else math.nan}
+        out = {
+            "paper": self.paper.table(),
+            "pairs": len(self.seconds),
+            "seconds_per_pair": float(np.median(self.seconds)) if self.seconds else math.nan,
+            "dt_s": float(np.mean(self.dts)) if self.dts else math.nan,
+        }
         out["threeway"] = metrics.threeway_epe(self.threeway) if self.threeway is not None else None
         if self.buckets is not None:
             bucketed = metrics.bucketed_epe(self.buckets)
-            out["bucketed"] = {"per_class": {k: {"static_epe": s, "dynamic_normalized_epe": d}
-                                             for k, (s, d) in bucketed["per_class"].items()},
-                               "mean": {"static_epe": bucketed["mean"][0],
-                                        "dynamic_normalized_epe": bucketed["mean"][1]}}
+            out["bucketed"] = {
+                "per_class": {
+                    k: {"static_epe": s, "dynamic_normalized_epe": d} for k, (s, d) in bucketed["per_class"].items()
+                },
+                "mean": {"static_epe": bucketed["mean"][0], "dynamic_normalized_epe": bucketed["mean"][1]},
+            }
         else:
             out["bucketed"] = None
         return out
@@ -230,17 +276,28 @@ class EvaluationResult:
     settings: dict
 
 
-def evaluate(dataset, methods: dict[str, Method], options: MetricOptions, indices=None, horizon: int = 1,
-             on_pair: Callable[[int, int, FramePair, dict[str, np.ndarray]], None] | None = None,
-             progress: bool = False) -> EvaluationResult:
+def evaluate(
+    dataset,
+    methods: dict[str, Method],
+    options: MetricOptions,
+    indices=None,
+    horizon: int = 1,
+    on_pair: Callable[[int, int, FramePair, dict[str, np.ndarray]], None] | None = None,
+    progress: bool = False,
+) -> EvaluationResult:
     """Score every method on ``dataset.pair(i, horizon)`` for i in ``indices`` (default: all); see
     :func:`evaluate_horizons`."""
     return evaluate_horizons(dataset, {horizon: methods}, options, indices, on_pair, progress)[horizon]
 
 
-def evaluate_horizons(dataset, methods: dict[int, dict[str, Method]], options: MetricOptions, indices=None,
-                      on_pair: Callable[[int, int, FramePair, dict[str, np.ndarray]], None] | None = None,
-                      progress: bool = False) -> dict[int, EvaluationResult]:
+def evaluate_horizons(
+    dataset,
+    methods: dict[int, dict[str, Method]],
+    options: MetricOptions,
+    indices=None,
+    on_pair: Callable[[int, int, FramePair, dict[str, np.ndarray]], None] | None = None,
+    progress: bool = False,
+) -> dict[int, EvaluationResult]:
     """Score ``methods[k]`` on ``dataset.pair(i, horizon=k)`` for every k and i in ``indices`` (default: all).
 
     A sample whose pair cannot be read or predicted at any k is skipped at every k, so all rows score the same
@@ -261,9 +318,14 @@ def evaluate_horizons(dataset, methods: dict[int, dict[str, Method]], options: M
             try:
                 scored.append((horizon, *_predict(dataset, index, horizon, row)))
             except Exception as error:  # a bad sample is recorded and skipped for every method and horizon
-                failures.append({"index": index, "sample_id": sample_id_or_index(dataset, index), "horizon": horizon,
-                                 "reason": f"{type(error).__name__}: "
-                                           f"{str(error).splitlines()[0] if str(error) else ''}"})
+                failures.append(
+                    {
+                        "index": index,
+                        "sample_id": sample_id_or_index(dataset, index),
+                        "horizon": horizon,
+                        "reason": f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}",
+                    }
+                )
                 break
         else:
             for horizon, pair, flows, seconds in scored:
@@ -272,10 +334,19 @@ def evaluate_horizons(dataset, methods: dict[int, dict[str, Method]], options: M
                 done[horizon].append(pair.sample_id or sample_id_or_index(dataset, index))
                 if on_pair is not None:
                     on_pair(len(done[horizon]) - 1, horizon, pair, flows)
-    settings = {"crop": options.crop, "include_ground": options.include_ground, "relative_to": options.relative_to,
-                "dynamic_speed": options.dynamic_speed, "bucketed_classes": options.class_to_meta is not None}
-    return {k: EvaluationResult({name: s.summary() for name, s in scores[k].items()}, done[k], failures,
-                                settings | {"horizon": k}) for k in methods}
+    settings = {
+        "crop": options.crop,
+        "include_ground": options.include_ground,
+        "relative_to": options.relative_to,
+        "dynamic_speed": options.dynamic_speed,
+        "bucketed_classes": options.class_to_meta is not None,
+    }
+    return {
+        k: EvaluationResult(
+            {name: s.summary() for name, s in scores[k].items()}, done[k], failures, settings | {"horizon": k}
+        )
+        for k in methods
+    }
 
 
 def _predict(dataset, index: int, horizon: int, methods: dict[str, Method]):
@@ -299,8 +370,15 @@ def _predict(dataset, index: int, horizon: int, methods: dict[str, Method]):
 
 PAPER_COLUMNS = ("EPE", "AccS", "AccR")
 SPLITS = ("dynamic_fg", "static_fg", "static_bg")
-HORIZON_COLUMNS = ("method", "horizon", "dt_s", *(f"EPE_{c}" for c in metrics.CATEGORIES), "threeway_EPE",
-                   "seconds_per_pair", "pairs")
+HORIZON_COLUMNS = (
+    "method",
+    "horizon",
+    "dt_s",
+    *(f"EPE_{c}" for c in metrics.CATEGORIES),
+    "threeway_EPE",
+    "seconds_per_pair",
+    "pairs",
+)
 
 
 def paper_table(result: EvaluationResult, weighting: str = "point_weighted") -> str:
@@ -328,24 +406,35 @@ def horizon_rows(results: dict[int, EvaluationResult], weighting: str = "point_w
         for horizon in sorted(results):
             summary = results[horizon].summaries[name]
             table = summary["paper"][weighting]
-            rows.append({"method": name, "horizon": horizon, "dt_s": summary["dt_s"],
-                         **{f"EPE_{c}": table[c]["EPE"] for c in metrics.CATEGORIES},
-                         "threeway_EPE": summary["threeway"]["threeway"] if summary["threeway"] else math.nan,
-                         "seconds_per_pair": summary["seconds_per_pair"], "pairs": summary["pairs"]})
+            rows.append(
+                {
+                    "method": name,
+                    "horizon": horizon,
+                    "dt_s": summary["dt_s"],
+                    **{f"EPE_{c}": table[c]["EPE"] for c in metrics.CATEGORIES},
+                    "threeway_EPE": summary["threeway"]["threeway"] if summary["threeway"] else math.nan,
+                    "seconds_per_pair": summary["seconds_per_pair"],
+                    "pairs": summary["pairs"],
+                }
+            )
     return rows
 
 
 def horizon_table(rows: list[dict]) -> str:
     """:func:`horizon_rows` as text: EPE (m) against the time gap."""
     width = max(10, *(len(row["method"]) + 1 for row in rows))
-    lines = [f"{'method':<{width}}| k | dt (s) |" + "".join(f" {c:>10} |" for c in metrics.CATEGORIES)
-             + " 3-way EPE | s/pair",
-             f"{'':<{width}}|   |        |" + "".join(f" {'EPE (m)':>10} |" for _ in metrics.CATEGORIES)
-             + "           |"]
+    lines = [
+        f"{'method':<{width}}| k | dt (s) |"
+        + "".join(f" {c:>10} |" for c in metrics.CATEGORIES)
+        + " 3-way EPE | s/pair",
+        f"{'':<{width}}|   |        |" + "".join(f" {'EPE (m)':>10} |" for _ in metrics.CATEGORIES) + "           |",
+    ]
     for row in rows:
-        lines.append(f"{row['method']:<{width}}| {row['horizon']} | {row['dt_s']:6.3f} |"
-                     + "".join(f" {row[f'EPE_{c}']:>10.4f} |" for c in metrics.CATEGORIES)
-                     + f" {row['threeway_EPE']:>9.4f} | {row['seconds_per_pair']:6.3f}")
+        lines.append(
+            f"{row['method']:<{width}}| {row['horizon']} | {row['dt_s']:6.3f} |"
+            + "".join(f" {row[f'EPE_{c}']:>10.4f} |" for c in metrics.CATEGORIES)
+            + f" {row['threeway_EPE']:>9.4f} | {row['seconds_per_pair']:6.3f}"
+        )
     return "\n".join(lines)
 
 
@@ -361,32 +450,46 @@ def csv_rows(result: EvaluationResult) -> list[dict]:
                 rows.append({"method": name, "metric": f"threeway/{key}", "EPE": value})
         if summary["bucketed"]:
             for cls, values in summary["bucketed"]["per_class"].items():
-                rows.append({"method": name, "metric": f"bucketed/{cls}", "EPE": values["static_epe"],
-                             "dynamic_normalized_epe": values["dynamic_normalized_epe"]})
+                rows.append(
+                    {
+                        "method": name,
+                        "metric": f"bucketed/{cls}",
+                        "EPE": values["static_epe"],
+                        "dynamic_normalized_epe": values["dynamic_normalized_epe"],
+                    }
+                )
         rows.append({"method": name, "metric": "seconds_per_pair", "EPE": summary["seconds_per_pair"]})
     return rows
 
 
 def write_results(result: EvaluationResult, out_dir, extra: dict | None = None) -> tuple[Path, Path]:
     """``metrics.json`` (everything, NaN as null) and ``metrics.csv`` under ``out_dir``, each written atomically."""
-    document = {"methods": result.summaries, "pairs": result.pairs, "failures": result.failures,
-                "settings": result.settings} | (extra or {})
+    document = {
+        "methods": result.summaries,
+        "pairs": result.pairs,
+        "failures": result.failures,
+        "settings": result.settings,
+    } | (extra or {})
     columns = ["method", "metric", "EPE", "AccS", "AccR", "Outliers", "count", "dynamic_normalized_epe"]
     return _write_json_csv(out_dir, document, csv_rows(result), columns)
 
 
-def write_horizon_results(results: dict[int, EvaluationResult], out_dir, weighting: str = "point_weighted",
-                          extra: dict | None = None) -> tuple[Path, Path]:
+def write_horizon_results(
+    results: dict[int, EvaluationResult], out_dir, weighting: str = "point_weighted", extra: dict | None = None
+) -> tuple[Path, Path]:
     """Long horizon: ``metrics.json`` (the table, every summary as ``methods[name][k]``, the pairs per k, the
     failures) and ``metrics.csv`` (the table, one row per (method, k)) under ``out_dir``, written atomically."""
     first = results[min(results)]
     settings = {key: value for key, value in first.settings.items() if key != "horizon"}
     rows = horizon_rows(results, weighting)
-    document = {"horizons": sorted(results), "table": {"weighting": weighting, "rows": rows},
-                "methods": {name: {str(k): results[k].summaries[name] for k in sorted(results)}
-                            for name in first.summaries},
-                "pairs": {str(k): results[k].pairs for k in sorted(results)}, "failures": first.failures,
-                "settings": settings | {"horizons": sorted(results)}} | (extra or {})
+    document = {
+        "horizons": sorted(results),
+        "table": {"weighting": weighting, "rows": rows},
+        "methods": {name: {str(k): results[k].summaries[name] for k in sorted(results)} for name in first.summaries},
+        "pairs": {str(k): results[k].pairs for k in sorted(results)},
+        "failures": first.failures,
+        "settings": settings | {"horizons": sorted(results)},
+    } | (extra or {})
     return _write_json_csv(out_dir, document, rows, list(HORIZON_COLUMNS))
 
 
@@ -417,6 +520,7 @@ def _nan_to_none(value):
 
 # ---------------------------------------------------------------------------------------------------- eval.py
 
+
 def run_eval(cfg, progress: bool = True, extra_methods: dict[str, MethodFactory] | None = None) -> int:
     """``eval.py``: evaluate ``cfg.method`` (a name or a list) on ``cfg.dataset`` / ``cfg.split`` at ``cfg.horizon``
     (a gap or several); print the table, write ``metrics.json`` and ``metrics.csv`` under ``cfg.out_dir``, with
@@ -439,19 +543,26 @@ def run_eval(cfg, progress: bool = True, extra_methods: dict[str, MethodFactory]
         dataset = open_dataset(cfg, horizons[-1])
         teacher = teacher_config(cfg) if "icpflow" in names else None
         if teacher is not None and horizons[-1] > teacher.max_frame_gap:
-            raise EvaluationError(f"icpflow: horizon={horizons[-1]} exceeds the teacher's max_frame_gap "
-                                  f"{teacher.max_frame_gap} (icpflow.max_frame_gap=...)")
+            raise EvaluationError(
+                f"icpflow: horizon={horizons[-1]} exceeds the teacher's max_frame_gap "
+                f"{teacher.max_frame_gap} (icpflow.max_frame_gap=...)"
+            )
         problem = offscreen_problem() if int(cfg.render) > 0 else None
         if problem:
             raise EvaluationError(f"render={cfg.render}: {problem}")
         extra = {name: functools.partial(factory, cfg) for name, factory in (extra_methods or {}).items()}
-        methods = build_methods(names, horizons, trackers, dataset=dataset, teacher_config=teacher, shards=cfg.shards,
-                                extra=extra)
+        methods = build_methods(
+            names, horizons, trackers, dataset=dataset, teacher_config=teacher, shards=cfg.shards, extra=extra
+        )
     except (EvaluationError, ValueError, RuntimeError) as error:
         print(f"eval: {error}", file=sys.stderr)
         return 2
-    options = MetricOptions(crop=None if cfg.crop is None else float(cfg.crop), include_ground=bool(cfg.include_ground),
-                            relative_to=str(cfg.relative_to), class_to_meta=dataset.class_to_meta)
+    options = MetricOptions(
+        crop=None if cfg.crop is None else float(cfg.crop),
+        include_ground=bool(cfg.include_ground),
+        relative_to=str(cfg.relative_to),
+        class_to_meta=dataset.class_to_meta,
+    )
     out_dir = Path(cfg.out_dir)
     limit = len(dataset) if cfg.limit is None else min(int(cfg.limit), len(dataset))
     long_horizon = len(horizons) > 1
@@ -461,31 +572,47 @@ def run_eval(cfg, progress: bool = True, extra_methods: dict[str, MethodFactory]
         sub = f"k{horizon}" if long_horizon else ""
         for name, flow in flows.items():
             if position < int(cfg.bev):
-                plot_bev(pair, out_dir / "bev" / sub / f"{stem}_{name}.png", predicted=flow,
-                         extent=float(cfg.bev_extent), title=f"{cfg.dataset.name} {cfg.split} {pair.sample_id}: {name}")
+                plot_bev(
+                    pair,
+                    out_dir / "bev" / sub / f"{stem}_{name}.png",
+                    predicted=flow,
+                    extent=float(cfg.bev_extent),
+                    title=f"{cfg.dataset.name} {cfg.split} {pair.sample_id}: {name}",
+                )
             if position < int(cfg.render):
-                render_pair(pair, out_dir / "render" / sub / f"{stem}_{name}.png", predicted=flow,
-                            size=tuple(cfg.render_size), extent=float(cfg.bev_extent))
+                render_pair(
+                    pair,
+                    out_dir / "render" / sub / f"{stem}_{name}.png",
+                    predicted=flow,
+                    size=tuple(cfg.render_size),
+                    extent=float(cfg.bev_extent),
+                )
 
     results = evaluate_horizons(dataset, methods, options, range(limit), on_pair=pictures, progress=progress)
     first = results[horizons[0]]
     if not first.pairs:
-        print(f"eval: no pair could be scored ({len(first.failures)} failed; first: "
-              f"{first.failures[0]['reason'] if first.failures else 'none'})", file=sys.stderr)
+        print(
+            f"eval: no pair could be scored ({len(first.failures)} failed; first: "
+            f"{first.failures[0]['reason'] if first.failures else 'none'})",
+            file=sys.stderr,
+        )
         return 2
-    extra = {"dataset": cfg.dataset.name, "split": cfg.split,
-             "config": OmegaConf.to_container(cfg, resolve=True)}
+    extra = {"dataset": cfg.dataset.name, "split": cfg.split, "config": OmegaConf.to_container(cfg, resolve=True)}
     weighting = "per_pair" if cfg.weighting == "per_pair" else "point_weighted"
     if long_horizon:
         json_path, _ = write_horizon_results(results, out_dir, weighting, extra)
-        print(f"{cfg.dataset.name} {cfg.split}: {len(first.pairs)} start scans, horizons "
-              f"{', '.join(map(str, horizons))}, crop {options.crop} m, {weighting.replace('_', '-')} "
-              f"(see {json_path} for both weightings)")
+        print(
+            f"{cfg.dataset.name} {cfg.split}: {len(first.pairs)} start scans, horizons "
+            f"{', '.join(map(str, horizons))}, crop {options.crop} m, {weighting.replace('_', '-')} "
+            f"(see {json_path} for both weightings)"
+        )
         print(horizon_table(horizon_rows(results, weighting)))
     else:
         json_path, _ = write_results(first, out_dir, extra)
-        print(f"{cfg.dataset.name} {cfg.split}: {len(first.pairs)} pairs, horizon {horizons[0]}, crop {options.crop} "
-              f"m, {weighting.replace('_', '-')} (see {json_path} for both weightings)")
+        print(
+            f"{cfg.dataset.name} {cfg.split}: {len(first.pairs)} pairs, horizon {horizons[0]}, crop {options.crop} "
+            f"m, {weighting.replace('_', '-')} (see {json_path} for both weightings)"
+        )
         print(paper_table(first, weighting))
     for failure in first.failures[:10]:
         print(f"  skipped {failure['sample_id']}: {failure['reason']}", file=sys.stderr)

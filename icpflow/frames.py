@@ -44,8 +44,9 @@ class FramePairError(ValueError):
 MAX_POINT_COLUMNS = 8
 
 
-def check_points(values, source, name: str = "points", *, schema: bool = False, finite: bool = True,
-                 allow_empty: bool = True) -> np.ndarray:
+def check_points(
+    values, source, name: str = "points", *, schema: bool = False, finite: bool = True, allow_empty: bool = True
+) -> np.ndarray:
     """The one check of point clouds wherever they enter: the scan readers, the frame-pair schema, the inference
     CLI, the Predictor and the teacher's API. Raises :class:`FramePairError` (one line naming ``source`` and
     ``name``) unless ``values`` is a numeric (N, >= 3) array whose rows are points.
@@ -62,8 +63,10 @@ def check_points(values, source, name: str = "points", *, schema: bool = False, 
     array = np.asarray(values)
     numeric = np.issubdtype(array.dtype, np.number) and not np.issubdtype(array.dtype, np.complexfloating)
     if array.ndim == 2 and array.shape[1] > MAX_POINT_COLUMNS and array.shape[1] > array.shape[0]:
-        raise FramePairError(f"{source}: {name} has shape {array.shape}: a transposed scan? points must be the rows "
-                             f"of an (N, 3) array (x, y, z first); transpose it")
+        raise FramePairError(
+            f"{source}: {name} has shape {array.shape}: a transposed scan? points must be the rows "
+            f"of an (N, 3) array (x, y, z first); transpose it"
+        )
     if schema and (array.ndim != 2 or array.shape[1] != 3):
         raise FramePairError(f"{source}: {name} must have shape (N, 3), got {array.shape}")
     if array.ndim != 2 or array.shape[1] < 3 or not numeric:

@@ -24,17 +24,51 @@ RELATIVE_EPS = 1e-6
 # AV2 categories (flow_labels `classes` = av2 category index + 1, 0 = none) -> bucketed meta-classes, as in
 # bucketed-scene-flow-eval 2.0.25 (ANIMAL, DOG and road-sign categories belong to no meta-class).
 AV2_CATEGORIES = (
-    "ANIMAL", "ARTICULATED_BUS", "BICYCLE", "BICYCLIST", "BOLLARD", "BOX_TRUCK", "BUS", "CONSTRUCTION_BARREL",
-    "CONSTRUCTION_CONE", "DOG", "LARGE_VEHICLE", "MESSAGE_BOARD_TRAILER", "MOBILE_PEDESTRIAN_CROSSING_SIGN",
-    "MOTORCYCLE", "MOTORCYCLIST", "OFFICIAL_SIGNALER", "PEDESTRIAN", "RAILED_VEHICLE", "REGULAR_VEHICLE",
-    "SCHOOL_BUS", "SIGN", "STOP_SIGN", "STROLLER", "TRAFFIC_LIGHT_TRAILER", "TRUCK", "TRUCK_CAB",
-    "VEHICULAR_TRAILER", "WHEELCHAIR", "WHEELED_DEVICE", "WHEELED_RIDER",
+    "ANIMAL",
+    "ARTICULATED_BUS",
+    "BICYCLE",
+    "BICYCLIST",
+    "BOLLARD",
+    "BOX_TRUCK",
+    "BUS",
+    "CONSTRUCTION_BARREL",
+    "CONSTRUCTION_CONE",
+    "DOG",
+    "LARGE_VEHICLE",
+    "MESSAGE_BOARD_TRAILER",
+    "MOBILE_PEDESTRIAN_CROSSING_SIGN",
+    "MOTORCYCLE",
+    "MOTORCYCLIST",
+    "OFFICIAL_SIGNALER",
+    "PEDESTRIAN",
+    "RAILED_VEHICLE",
+    "REGULAR_VEHICLE",
+    "SCHOOL_BUS",
+    "SIGN",
+    "STOP_SIGN",
+    "STROLLER",
+    "TRAFFIC_LIGHT_TRAILER",
+    "TRUCK",
+    "TRUCK_CAB",
+    "VEHICULAR_TRAILER",
+    "WHEELCHAIR",
+    "WHEELED_DEVICE",
+    "WHEELED_RIDER",
 )
 META_CLASSES = ("BACKGROUND", "CAR", "OTHER_VEHICLES", "PEDESTRIAN", "WHEELED_VRU")
 _META_MEMBERS = {
     "CAR": ("REGULAR_VEHICLE",),
-    "OTHER_VEHICLES": ("BOX_TRUCK", "LARGE_VEHICLE", "RAILED_VEHICLE", "TRUCK", "TRUCK_CAB", "VEHICULAR_TRAILER",
-                       "ARTICULATED_BUS", "BUS", "SCHOOL_BUS"),
+    "OTHER_VEHICLES": (
+        "BOX_TRUCK",
+        "LARGE_VEHICLE",
+        "RAILED_VEHICLE",
+        "TRUCK",
+        "TRUCK_CAB",
+        "VEHICULAR_TRAILER",
+        "ARTICULATED_BUS",
+        "BUS",
+        "SCHOOL_BUS",
+    ),
     "PEDESTRIAN": ("PEDESTRIAN", "STROLLER", "WHEELCHAIR", "OFFICIAL_SIGNALER"),
     "WHEELED_VRU": ("BICYCLE", "BICYCLIST", "MOTORCYCLE", "MOTORCYCLIST", "WHEELED_DEVICE", "WHEELED_RIDER"),
 }
@@ -73,9 +107,20 @@ def _selection(pc0, ground, flow_valid, crop, include_ground, strict=False) -> n
     return keep
 
 
-def pair_stats(pc0, pred_flow, gt_flow, ego1_from_ego0, classes, ground=None, flow_valid=None, dt: float = 0.1,
-               crop: float | None = 32.0, include_ground: bool = False, dynamic_speed: float = 0.5,
-               relative_to: str = "residual") -> dict[str, np.ndarray]:
+def pair_stats(
+    pc0,
+    pred_flow,
+    gt_flow,
+    ego1_from_ego0,
+    classes,
+    ground=None,
+    flow_valid=None,
+    dt: float = 0.1,
+    crop: float | None = 32.0,
+    include_ground: bool = False,
+    dynamic_speed: float = 0.5,
+    relative_to: str = "residual",
+) -> dict[str, np.ndarray]:
     """Sums for one pair: {category: [epe_sum, accs_count, accr_count, outlier_count, n]} (float64 (5,)).
 
     Points kept: |x|, |y| <= crop in pc0's ego frame (None = no crop), not ground unless ``include_ground``, and
@@ -91,8 +136,10 @@ def pair_stats(pc0, pred_flow, gt_flow, ego1_from_ego0, classes, ground=None, fl
     epe = np.linalg.norm(pred - gt, axis=1)
     norm = np.linalg.norm(residual if relative_to == "residual" else gt, axis=1)
     rel = epe / np.maximum(norm, RELATIVE_EPS)
-    hits = np.stack([epe, (epe < 0.05) | (rel < 0.05), (epe < 0.1) | (rel < 0.1), (epe > 0.3) | (rel > 0.1),
-                     np.ones_like(epe)], axis=1)
+    hits = np.stack(
+        [epe, (epe < 0.05) | (rel < 0.05), (epe < 0.1) | (rel < 0.1), (epe > 0.3) | (rel > 0.1), np.ones_like(epe)],
+        axis=1,
+    )
     keep = _selection(pc0, ground, flow_valid, crop, include_ground)
     dynamic = np.linalg.norm(residual, axis=1) / dt > dynamic_speed
     fg = np.asarray(classes) > 0
@@ -104,8 +151,17 @@ def frame_pair_stats(pair, pred_flow, **options) -> dict[str, np.ndarray]:
     """:func:`pair_stats` for a FramePair holding ground truth (flow, classes, ego1_from_ego0)."""
     if not pair.has_ground_truth or pair.classes is None:
         raise ValueError(f"{pair.source}: metrics need ground-truth flow and classes")
-    return pair_stats(pair.pc0, pred_flow, pair.flow, pair.ego1_from_ego0, pair.classes, ground=pair.ground0,
-                      flow_valid=pair.flow_valid, dt=pair.dt, **options)
+    return pair_stats(
+        pair.pc0,
+        pred_flow,
+        pair.flow,
+        pair.ego1_from_ego0,
+        pair.classes,
+        ground=pair.ground0,
+        flow_valid=pair.flow_valid,
+        dt=pair.dt,
+        **options,
+    )
 
 
 def _means(sums: np.ndarray) -> dict[str, float]:
@@ -146,11 +202,14 @@ class MetricAccumulator:
 def format_table(rows: dict[str, dict[str, dict[str, float]]]) -> str:
     """Plain-text table: one row per name (method or region), EPE/AccS/AccR/Outliers per category."""
     width = 9 * len(COLUMNS)
-    lines = [f"{'':<16}" + "".join(f"|{c:^{width}}" for c in CATEGORIES),
-             f"{'':<16}" + "".join("|" + "".join(f"{k:>9}" for k in COLUMNS) for _ in CATEGORIES)]
+    lines = [
+        f"{'':<16}" + "".join(f"|{c:^{width}}" for c in CATEGORIES),
+        f"{'':<16}" + "".join("|" + "".join(f"{k:>9}" for k in COLUMNS) for _ in CATEGORIES),
+    ]
     for name, table in rows.items():
-        lines.append(f"{name:<16}" + "".join("|" + "".join(f"{table[c][k]:>9.4f}" for k in COLUMNS)
-                                             for c in CATEGORIES))
+        lines.append(
+            f"{name:<16}" + "".join("|" + "".join(f"{table[c][k]:>9.4f}" for k in COLUMNS) for c in CATEGORIES)
+        )
     return "\n".join(lines)
 
 
@@ -160,9 +219,19 @@ BUCKET_EDGES = np.concatenate([np.linspace(0.0, 2.0, 51), [np.inf]])  # metres p
 THREEWAY_EDGES = np.array([0.0, 0.05, np.inf])
 
 
-def av2_bucket_stats(pc0, pred_flow, gt_flow, ego1_from_ego0, classes, ground=None, flow_valid=None,
-                     class_to_meta: dict[int, str] = AV2_META, edges: np.ndarray = BUCKET_EDGES,
-                     metas: tuple[str, ...] = META_CLASSES, distance: float = 35.0) -> np.ndarray:
+def av2_bucket_stats(
+    pc0,
+    pred_flow,
+    gt_flow,
+    ego1_from_ego0,
+    classes,
+    ground=None,
+    flow_valid=None,
+    class_to_meta: dict[int, str] = AV2_META,
+    edges: np.ndarray = BUCKET_EDGES,
+    metas: tuple[str, ...] = META_CLASSES,
+    distance: float = 35.0,
+) -> np.ndarray:
     """(len(metas), len(edges) - 1, 3) float64 [epe_sum, speed_sum, count] for one pair.
 
     Points: non-ground, flow_valid, max(|x|, |y|) < distance in pc0's ego frame, class mapped to a meta-class.
@@ -211,8 +280,11 @@ def bucketed_epe(sums: np.ndarray, metas: tuple[str, ...] = META_CLASSES) -> dic
 def threeway_epe(sums: np.ndarray) -> dict[str, float]:
     """From summed :func:`av2_bucket_stats` with edges THREEWAY_EDGES and metas ("BACKGROUND", "FOREGROUND")."""
     epe, _ = _bucket_means(sums)
-    out = {"foreground_dynamic": float(epe[1, 1]), "foreground_static": float(epe[1, 0]),
-           "background_static": float(epe[0, 0])}
+    out = {
+        "foreground_dynamic": float(epe[1, 1]),
+        "foreground_static": float(epe[1, 0]),
+        "background_static": float(epe[0, 0]),
+    }
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         return out | {"threeway": float(np.nanmean(list(out.values())))}

@@ -133,8 +133,10 @@ def offscreen_problem() -> str | None:
     if done.returncode == 0:
         return None
     lines = [line.strip() for line in (done.stdout + done.stderr).splitlines() if line.strip()]
-    return (f"open3d offscreen rendering is unavailable here ({lines[-1] if lines else f'exit {done.returncode}'}); "
-            "it needs libusb-1.0-0, libvulkan1 and mesa-vulkan-drivers")
+    return (
+        f"open3d offscreen rendering is unavailable here ({lines[-1] if lines else f'exit {done.returncode}'}); "
+        "it needs libusb-1.0-0, libvulkan1 and mesa-vulkan-drivers"
+    )
 
 
 def render_pair(

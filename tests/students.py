@@ -29,7 +29,13 @@ def tiny_checkpoint(path, model_cfg: dict, pair, steps: int, keep0=None, keep1=N
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
-    torch.save({"state_dict": {f"model.{key}": value for key, value in model.state_dict().items()},
-                "hyper_parameters": {"cfg": {"model": dict(model_cfg), **(cfg or {})}}, "epoch": 0,
-                "global_step": steps}, path)
+    torch.save(
+        {
+            "state_dict": {f"model.{key}": value for key, value in model.state_dict().items()},
+            "hyper_parameters": {"cfg": {"model": dict(model_cfg), **(cfg or {})}},
+            "epoch": 0,
+            "global_step": steps,
+        },
+        path,
+    )
     return path

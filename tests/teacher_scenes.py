@@ -34,9 +34,13 @@ def scene(ego1_from_ego0=None, seed: int = 0, moving=MOVING_BOX_MOTIONS):
     """
     rng = np.random.default_rng(seed)
     ego = np.eye(4) if ego1_from_ego0 is None else np.asarray(ego1_from_ego0, np.float64)
-    boxes = [((4.5, 1.9, 1.6), (8.0, 3.0, 0.25)), ((4.0, 1.8, 1.5), (-6.0, -4.0, 0.25)),
-             ((2.0, 2.0, 3.0), (3.0, -8.0, 0.25)), ((6.0, 1.0, 2.0), (-10.0, 6.0, 0.25)),
-             ((1.0, 1.0, 2.5), (12.0, -5.0, 0.25))]
+    boxes = [
+        ((4.5, 1.9, 1.6), (8.0, 3.0, 0.25)),
+        ((4.0, 1.8, 1.5), (-6.0, -4.0, 0.25)),
+        ((2.0, 2.0, 3.0), (3.0, -8.0, 0.25)),
+        ((6.0, 1.0, 2.0), (-10.0, 6.0, 0.25)),
+        ((1.0, 1.0, 2.5), (12.0, -5.0, 0.25)),
+    ]
     pc0, pc1, flow, moving0 = [], [], [], []
     for index, (size, (x, y, z)) in enumerate(boxes):
         place = make_transform(yaw=0.3 * index, translation=(x, y, z))
@@ -58,7 +62,10 @@ def scene(ego1_from_ego0=None, seed: int = 0, moving=MOVING_BOX_MOTIONS):
     flow = np.concatenate(flow + [transform_points(ego, ground0) - ground0]).astype(np.float32)
     n_ground0, n_ground1 = len(ground0), len(ground1)
     return {
-        "pc0": pc0, "pc1": pc1, "flow": flow, "ego": ego,
+        "pc0": pc0,
+        "pc1": pc1,
+        "flow": flow,
+        "ego": ego,
         "moving0": np.concatenate(moving0 + [np.zeros(n_ground0, bool)]),
         "ground0": np.r_[np.zeros(len(pc0) - n_ground0, bool), np.ones(n_ground0, bool)],
         "ground1": np.r_[np.zeros(len(pc1) - n_ground1, bool), np.ones(n_ground1, bool)],

@@ -56,14 +56,19 @@ def test_teacher_block_names_teacher_fields(name):
     teacher = teacher_config(cfg)
     block = OmegaConf.to_container(cfg.dataset.teacher)
     assert teacher == ICPFlowConfig.preset(cfg.dataset.preset, **block)
-    assert teacher_config(_composed(f"dataset={name}", "dataset.root=/nowhere", "icpflow.min_cluster_size=7")
-                          ).min_cluster_size == 7
+    assert (
+        teacher_config(
+            _composed(f"dataset={name}", "dataset.root=/nowhere", "icpflow.min_cluster_size=7")
+        ).min_cluster_size
+        == 7
+    )
 
 
 def test_unknown_teacher_key_is_an_error():
     cfg = _composed("dataset=kitti", "dataset.root=/nowhere", "+dataset.teacher.num_frames=5")
-    with pytest.raises(ValueError, match="dataset kitti: dataset.teacher has keys that are not ICPFlowConfig fields: "
-                                         "num_frames"):
+    with pytest.raises(
+        ValueError, match="dataset kitti: dataset.teacher has keys that are not ICPFlowConfig fields: num_frames"
+    ):
         teacher_config(cfg)
 
 

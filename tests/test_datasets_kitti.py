@@ -172,11 +172,14 @@ def test_scans_without_poses_need_no_calib(small_root):
     assert KittiOdometryDataset(small_root, "train").pair(0).ego1_from_ego0 is None
 
 
-@pytest.mark.parametrize("content, message", [
-    ("0.0\n0.1\n", "times.txt: 2 times for 3 scans"),
-    ("0.0\n0.1\nsoon\n", "times.txt: not a column of seconds"),
-    ("0.0\n0.0\n0.2\n", "times.txt: times of scans 0 and 1 not increasing"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("0.0\n0.1\n", "times.txt: 2 times for 3 scans"),
+        ("0.0\n0.1\nsoon\n", "times.txt: not a column of seconds"),
+        ("0.0\n0.0\n0.2\n", "times.txt: times of scans 0 and 1 not increasing"),
+    ],
+)
 def test_bad_times(small_root, content, message):
     (small_root / "sequences" / "00" / "times.txt").write_text(content)
     assert message in _error(small_root)

@@ -32,8 +32,9 @@ SPEED_THRESHOLD = 0.5  # m/s, a box is dynamic when its fastest motion exceeds i
 def world(dataset: str) -> FrameSequence:
     """A small synthetic sequence (32 beams, 2 degree columns) with the dataset's frame count and rate."""
     frames, frequency = FORMATS[dataset]
-    return SyntheticDataset("val", num_sequences=1, frames_per_sequence=frames, beams=32, azimuth_resolution_deg=2.0,
-                            frequency_hz=frequency).sequence(0)
+    return SyntheticDataset(
+        "val", num_sequences=1, frames_per_sequence=frames, beams=32, azimuth_resolution_deg=2.0, frequency_hz=frequency
+    ).sequence(0)
 
 
 def pcaccumulation_arrays(sequence: FrameSequence, dataset: str) -> dict[str, np.ndarray]:
@@ -93,8 +94,9 @@ def write_dataset(root, dataset="waymo", **changes):
 
 def reader(root, dataset="waymo", **options) -> PCAccumulationDataset:
     frames, frequency = FORMATS[dataset]
-    return PCAccumulationDataset(root, "val", frames=frames, frequency_hz=frequency, name=dataset,
-                                 sem_labels=dataset, **options)
+    return PCAccumulationDataset(
+        root, "val", frames=frames, frequency_hz=frequency, name=dataset, sem_labels=dataset, **options
+    )
 
 
 @pytest.mark.parametrize("dataset", ["waymo", "nuscenes"])
@@ -255,7 +257,8 @@ def test_foreground_point_with_a_background_class(tmp_path):
     sem[np.flatnonzero(arrays["fb_labels"])[:4]] = 2
     write_dataset(tmp_path, sem_labels=sem)
     assert "4 foreground points (fb_labels 1) have sem_labels outside 0 (vehicle), 1 (pedestrian), 3 (cyclist)" in (
-        _error(tmp_path))
+        _error(tmp_path)
+    )
 
 
 def test_instance_without_motion(tmp_path):

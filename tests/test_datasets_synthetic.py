@@ -43,12 +43,15 @@ def test_default_max_horizon_is_one():
         data.pair(0, horizon=2)
 
 
-@pytest.mark.parametrize("options, message", [
-    ({"max_horizon": 4}, "max_horizon must lie in 1..3 for 4 frames per sequence, got 4"),
-    ({"max_horizon": 0}, "max_horizon must lie in 1..3"),
-    ({"elevation_deg": (5.0, -5.0)}, r"elevation_deg must be \[low, high\] degrees"),
-    ({"elevation_deg": (-10.0,)}, r"elevation_deg must be \[low, high\] degrees"),
-])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"max_horizon": 4}, "max_horizon must lie in 1..3 for 4 frames per sequence, got 4"),
+        ({"max_horizon": 0}, "max_horizon must lie in 1..3"),
+        ({"elevation_deg": (5.0, -5.0)}, r"elevation_deg must be \[low, high\] degrees"),
+        ({"elevation_deg": (-10.0,)}, r"elevation_deg must be \[low, high\] degrees"),
+    ],
+)
 def test_bad_options(options, message):
     with pytest.raises(ValueError, match=message):
         SyntheticDataset("test", **{**SMALL, **options})

@@ -47,13 +47,22 @@ def expected_summary(dataset, pairs_and_flows) -> dict:
     for pair, flow in pairs_and_flows:
         paper.add(metrics.frame_pair_stats(pair, flow, crop=32.0))
         args = (pair.pc0, flow, pair.flow, pair.ego1_from_ego0, pair.classes)
-        three = three + metrics.av2_bucket_stats(*args, ground=pair.ground0, flow_valid=pair.flow_valid,
-                                                 edges=metrics.THREEWAY_EDGES, class_to_meta=threeway_meta,
-                                                 metas=("BACKGROUND", "FOREGROUND"))
-        buckets = buckets + metrics.av2_bucket_stats(*args, ground=pair.ground0, flow_valid=pair.flow_valid,
-                                                     class_to_meta=dataset.class_to_meta)
-    return {"paper": paper.table(), "threeway": metrics.threeway_epe(three),
-            "dynamic_normalized_epe": metrics.bucketed_epe(buckets)["mean"][1]}
+        three = three + metrics.av2_bucket_stats(
+            *args,
+            ground=pair.ground0,
+            flow_valid=pair.flow_valid,
+            edges=metrics.THREEWAY_EDGES,
+            class_to_meta=threeway_meta,
+            metas=("BACKGROUND", "FOREGROUND"),
+        )
+        buckets = buckets + metrics.av2_bucket_stats(
+            *args, ground=pair.ground0, flow_valid=pair.flow_valid, class_to_meta=dataset.class_to_meta
+        )
+    return {
+        "paper": paper.table(),
+        "threeway": metrics.threeway_epe(three),
+        "dynamic_normalized_epe": metrics.bucketed_epe(buckets)["mean"][1],
+    }
 
 
 def assert_same_numbers(ours: dict, expected: dict) -> None:
@@ -64,8 +73,9 @@ def assert_same_numbers(ours: dict, expected: dict) -> None:
                 want, got = row[column], ours["paper"][weighting][category][column]
                 assert (got is None and np.isnan(want)) or got == pytest.approx(want, abs=1e-12)
     assert ours["threeway"] == pytest.approx(expected["threeway"], abs=1e-12)
-    assert ours["bucketed"]["mean"]["dynamic_normalized_epe"] == pytest.approx(expected["dynamic_normalized_epe"],
-                                                                               abs=1e-12)
+    assert ours["bucketed"]["mean"]["dynamic_normalized_epe"] == pytest.approx(
+        expected["dynamic_normalized_epe"], abs=1e-12
+    )
 
 
 def test_eval_reproduces_the_metrics_module(tmp_path, dataset, capsys):
@@ -111,8 +121,9 @@ def test_a_bad_pair_is_recorded_and_skipped_for_every_method(dataset):
     methods = {"zero": lambda pair, index: zero_flow(pair), "ego": lambda pair, index: ego_only_flow(pair)}
     result = evaluate(_BrokenAt(dataset, 0), methods, MetricOptions(class_to_meta=dataset.class_to_meta))
     assert result.pairs == [dataset.sample_id(1)]
-    assert result.failures == [{"index": 0, "sample_id": dataset.sample_id(0), "horizon": 1,
-                                "reason": "OSError: corrupt.bin: truncated file"}]
+    assert result.failures == [
+        {"index": 0, "sample_id": dataset.sample_id(0), "horizon": 1, "reason": "OSError: corrupt.bin: truncated file"}
+    ]
     assert {s["pairs"] for s in result.summaries.values()} == {1}
 
 
@@ -126,24 +137,49 @@ def _write_labels(out_dir: Path, dataset, flows, shift: float = 0.0) -> None:
     samples = []
     for i, flow in enumerate(flows):
         pair = dataset[i]
-        samples.append({"pc0": pair.pc0 + np.float32(shift), "pc1": pair.pc1, "ground0": pair.ground0,
-                        "ground1": pair.ground1, "ego1_from_ego0": pair.ego1_from_ego0, "flow": flow,
-                        "confidence": np.ones(len(pair.pc0), np.float32),
-                        "cluster": np.zeros(len(pair.pc0), np.int32),
-                        "attrs": {"sample_id": pair.sample_id, "log_id": pair.log_id, "index": i,
-                                  "timestamp0_ns": -1, "timestamp1_ns": -1, "dt": pair.dt}})
+        samples.append(
+            {
+                "pc0": pair.pc0 + np.float32(shift),
+                "pc1": pair.pc1,
+                "ground0": pair.ground0,
+                "ground1": pair.ground1,
+                "ego1_from_ego0": pair.ego1_from_ego0,
+                "flow": flow,
+                "confidence": np.ones(len(pair.pc0), np.float32),
+                "cluster": np.zeros(len(pair.pc0), np.int32),
+                "attrs": {
+                    "sample_id": pair.sample_id,
+                    "log_id": pair.log_id,
+                    "index": i,
+                    "timestamp0_ns": -1,
+                    "timestamp1_ns": -1,
+                    "dt": pair.dt,
+                },
+            }
+        )
     out_dir.mkdir()
     write_shard(out_dir / "shard_00000.h5", samples, "test: true\n", "0" * 16)
-    write_index(out_dir / "index.json", {"config_hash": "0" * 16, "shards": [
-        {"file": "shard_00000.h5", "samples": [{"sample_id": s["attrs"]["sample_id"], "index": i}
-                                               for i, s in enumerate(samples)]}]})
+    write_index(
+        out_dir / "index.json",
+        {
+            "config_hash": "0" * 16,
+            "shards": [
+                {
+                    "file": "shard_00000.h5",
+                    "samples": [{"sample_id": s["attrs"]["sample_id"], "index": i} for i, s in enumerate(samples)],
+                }
+            ],
+        },
+    )
 
 
 def test_stored_pseudo_labels_are_scored_by_sample_id(tmp_path, dataset):
     perfect = [dataset[i].flow for i in range(len(dataset))]
     _write_labels(tmp_path / "labels", dataset, perfect)
-    assert run_eval(_cfg(tmp_path / "eval", "method=shards", f"shards={tmp_path / 'labels'}", "bev=0"),
-                    progress=False) == 0
+    assert (
+        run_eval(_cfg(tmp_path / "eval", "method=shards", f"shards={tmp_path / 'labels'}", "bev=0"), progress=False)
+        == 0
+    )
     rows = json.loads((tmp_path / "eval" / "metrics.json").read_text())["methods"]["shards"]["paper"]
     assert rows["point_weighted"]["overall"]["EPE"] == 0.0
     assert rows["point_weighted"]["overall"]["AccS"] == 1.0
@@ -151,24 +187,30 @@ def test_stored_pseudo_labels_are_scored_by_sample_id(tmp_path, dataset):
 
 def test_stored_labels_of_other_points_are_refused(tmp_path, dataset, capsys):
     _write_labels(tmp_path / "labels", dataset, [dataset[i].flow for i in range(len(dataset))], shift=0.01)
-    status = run_eval(_cfg(tmp_path / "eval", "method=shards", f"shards={tmp_path / 'labels'}", "bev=0"),
-                      progress=False)
+    status = run_eval(
+        _cfg(tmp_path / "eval", "method=shards", f"shards={tmp_path / 'labels'}", "bev=0"), progress=False
+    )
     assert status == 2  # no pair could be scored
     assert "was labelled on other points" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("overrides, message", [
-    (["method=magic"], "unknown method 'magic'"),
-    (["method=student"], "method student needs checkpoint="),
-    (["method=shards", "shards=/nonexistent/labels"], "/nonexistent/labels/index.json: no index"),
-    (["method=shards", "shards=/nonexistent/labels", "horizon=[1,2]"], "method shards scores the one horizon"),
-    (["horizon=5"], "horizon=5"),  # outside 1..2, or no sample has t + 5 in a 3-scan sequence
-    (["horizon=[0,1]"], "horizon must list distinct frame gaps >= 1"),
-    (["horizon=one"], "horizon must be an integer, a list or first..last"),
-    (["tracker=[true,true]"], "tracker must be true, false or [false,true]"),
-    (["method=icpflow", "horizon=3", "dataset.reader.frames_per_sequence=5", "icpflow.max_frame_gap=2"],
-     "icpflow: horizon=3 exceeds the teacher's max_frame_gap 2"),
-])
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["method=magic"], "unknown method 'magic'"),
+        (["method=student"], "method student needs checkpoint="),
+        (["method=shards", "shards=/nonexistent/labels"], "/nonexistent/labels/index.json: no index"),
+        (["method=shards", "shards=/nonexistent/labels", "horizon=[1,2]"], "method shards scores the one horizon"),
+        (["horizon=5"], "horizon=5"),  # outside 1..2, or no sample has t + 5 in a 3-scan sequence
+        (["horizon=[0,1]"], "horizon must list distinct frame gaps >= 1"),
+        (["horizon=one"], "horizon must be an integer, a list or first..last"),
+        (["tracker=[true,true]"], "tracker must be true, false or [false,true]"),
+        (
+            ["method=icpflow", "horizon=3", "dataset.reader.frames_per_sequence=5", "icpflow.max_frame_gap=2"],
+            "icpflow: horizon=3 exceeds the teacher's max_frame_gap 2",
+        ),
+    ],
+)
 def test_bad_requests_get_one_line(tmp_path, capsys, overrides, message):
     assert run_eval(_cfg(tmp_path, *overrides), progress=False, extra_methods=STUDENT) == 2
     err = capsys.readouterr().err.strip()
@@ -199,10 +241,17 @@ def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
     assert document["pairs"] == {str(k): [pairs[k].sample_id] for k in (1, 2)}
     assert pairs[1].timestamp0_ns == pairs[2].timestamp0_ns  # the same start scan at both horizons
     teacher = ICPFlow(teacher_config(cfg))
-    direct = {k: teacher(p.pc0, p.pc1, ego1_from_ego0=p.ego1_from_ego0, ground0=p.ground0, ground1=p.ground1,
-                         gap=k, dt=p.dt).flow for k, p in pairs.items()}
-    flows = {"zero": {k: zero_flow(p) for k, p in pairs.items()}, "icpflow": direct,
-             "icpflow+tracker": {1: direct[1], 2: sample_tracker_flow(teacher, dataset, 0, 2, pairs[2]).flow}}
+    direct = {
+        k: teacher(
+            p.pc0, p.pc1, ego1_from_ego0=p.ego1_from_ego0, ground0=p.ground0, ground1=p.ground1, gap=k, dt=p.dt
+        ).flow
+        for k, p in pairs.items()
+    }
+    flows = {
+        "zero": {k: zero_flow(p) for k, p in pairs.items()},
+        "icpflow": direct,
+        "icpflow+tracker": {1: direct[1], 2: sample_tracker_flow(teacher, dataset, 0, 2, pairs[2]).flow},
+    }
     rows = document["table"]["rows"]
     assert [(row["method"], row["horizon"]) for row in rows] == [(m, k) for m in flows for k in (1, 2)]
     for row in rows:
@@ -211,23 +260,33 @@ def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
         assert_same_numbers(document["methods"][name][str(k)], expected)
         assert row["dt_s"] == pytest.approx(pairs[k].dt) and pairs[k].dt == pytest.approx(0.1 * k, abs=1e-3)
         for category in metrics.CATEGORIES:
-            assert row[f"EPE_{category}"] == pytest.approx(expected["paper"]["point_weighted"][category]["EPE"],
-                                                           abs=1e-12)
+            assert row[f"EPE_{category}"] == pytest.approx(
+                expected["paper"]["point_weighted"][category]["EPE"], abs=1e-12
+            )
     by_key = {(row["method"], row["horizon"]): row for row in rows}
     assert by_key["icpflow", 2]["EPE_overall"] != by_key["icpflow+tracker", 2]["EPE_overall"]  # the tracker ran
     with open(tmp_path / "metrics.csv", newline="") as handle:
         table = list(csv.DictReader(handle))
     assert [(r["method"], int(r["horizon"]), float(r["EPE_dynamic_fg"])) for r in table] == [
-        (row["method"], row["horizon"], pytest.approx(row["EPE_dynamic_fg"], rel=1e-12)) for row in rows]
+        (row["method"], row["horizon"], pytest.approx(row["EPE_dynamic_fg"], rel=1e-12)) for row in rows
+    ]
     printed = capsys.readouterr().out
     assert "horizons 1, 2" in printed and printed.count("icpflow+tracker") == 2
     assert sorted(p.relative_to(tmp_path / "bev").as_posix() for p in (tmp_path / "bev").rglob("*.png")) == sorted(
-        f"k{k}/{pairs[k].sample_id.replace('/', '_')}_{name}.png" for k in (1, 2) for name in flows)
+        f"k{k}/{pairs[k].sample_id.replace('/', '_')}_{name}.png" for k in (1, 2) for name in flows
+    )
 
 
-TINY_STUDENT = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-16.0, 16.0], "y_range": [-16.0, 16.0],
-                "z_range": [-3.0, 3.0], "cell": 0.5, "pillar_channels": 8, "stage_channels": [8, 16, 32],
-                "stage_blocks": [1, 1, 1]}
+TINY_STUDENT = {
+    "_target_": "fastflow3d.model.FastFlow3D",
+    "x_range": [-16.0, 16.0],
+    "y_range": [-16.0, 16.0],
+    "z_range": [-3.0, 3.0],
+    "cell": 0.5,
+    "pillar_channels": 8,
+    "stage_channels": [8, 16, 32],
+    "stage_blocks": [1, 1, 1],
+}
 
 
 def tiny_student_checkpoint(path: Path, pair) -> Path:
@@ -240,16 +299,23 @@ def test_student_row_reproduces_the_metrics_module(tmp_path, dataset):
     from fastflow3d.predictor import Predictor
 
     checkpoint = tiny_student_checkpoint(tmp_path / "student.ckpt", dataset[0])
-    assert run_eval(_cfg(tmp_path / "eval", "method=[ego,student]", f"checkpoint={checkpoint}", "bev=0"),
-                    progress=False, extra_methods=STUDENT) == 0
+    assert (
+        run_eval(
+            _cfg(tmp_path / "eval", "method=[ego,student]", f"checkpoint={checkpoint}", "bev=0"),
+            progress=False,
+            extra_methods=STUDENT,
+        )
+        == 0
+    )
     document = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     predictor = Predictor.load(checkpoint)
     pairs = [dataset[i] for i in range(len(dataset))]
     flows = [predictor(p.pc0, p.pc1, p.ego1_from_ego0) for p in pairs]
     assert_same_numbers(document["methods"]["student"], expected_summary(dataset, list(zip(pairs, flows))))
     # the network moves points off the ego flow: its row is not the ego baseline's
-    overall = {name: document["methods"][name]["paper"]["point_weighted"]["overall"]["EPE"]
-               for name in ("ego", "student")}
+    overall = {
+        name: document["methods"][name]["paper"]["point_weighted"]["overall"]["EPE"] for name in ("ego", "student")
+    }
     assert overall["student"] != pytest.approx(overall["ego"], abs=1e-6)
 
 
@@ -259,8 +325,12 @@ def test_render_writes_one_picture_per_method(tmp_path, dataset):
     problem = offscreen_problem()
     if problem:
         pytest.skip(problem)
-    assert run_eval(_cfg(tmp_path, "method=[zero,ego]", "limit=1", "bev=0", "render=1", "render_size=[160,120]"),
-                    progress=False) == 0
+    assert (
+        run_eval(
+            _cfg(tmp_path, "method=[zero,ego]", "limit=1", "bev=0", "render=1", "render_size=[160,120]"), progress=False
+        )
+        == 0
+    )
     stem = dataset.sample_id(0).replace("/", "_")
     pictures = sorted((tmp_path / "render").glob("*.png"))
     assert [p.name for p in pictures] == [f"{stem}_ego.png", f"{stem}_zero.png"]
@@ -269,8 +339,20 @@ def test_render_writes_one_picture_per_method(tmp_path, dataset):
 
 
 def test_eval_script_runs(tmp_path):
-    done = subprocess.run([sys.executable, str(REPO / "eval.py"), *SMALL, "limit=1", "bev=0", f"out_dir={tmp_path}",
-                           "hydra.run.dir=" + str(tmp_path / "hydra")], capture_output=True, text=True, cwd=tmp_path)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "eval.py"),
+            *SMALL,
+            "limit=1",
+            "bev=0",
+            f"out_dir={tmp_path}",
+            "hydra.run.dir=" + str(tmp_path / "hydra"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
     assert done.returncode == 0, done.stderr
     assert "synthetic val: 1 pairs" in done.stdout
     assert (tmp_path / "metrics.json").is_file()

@@ -34,9 +34,16 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-6.4, 6.4], "y_range": [-6.4, 6.4],
-        "z_range": [-3.0, 3.0], "cell": 0.2, "pillar_channels": 8, "stage_channels": [8, 16, 32],
-        "stage_blocks": [1, 1, 1]}
+TINY = {
+    "_target_": "fastflow3d.model.FastFlow3D",
+    "x_range": [-6.4, 6.4],
+    "y_range": [-6.4, 6.4],
+    "z_range": [-3.0, 3.0],
+    "cell": 0.2,
+    "pillar_channels": 8,
+    "stage_channels": [8, 16, 32],
+    "stage_blocks": [1, 1, 1],
+}
 TOLERANCE = 1e-4  # metres
 
 
@@ -49,9 +56,19 @@ def pairs():
     subsets = []
     for n0, n1 in [(9000, 31000), (20000, 700)]:
         keep0, keep1 = rng.choice(len(other.pc0), n0, replace=False), rng.choice(len(other.pc1), n1, replace=False)
-        subsets.append(other.replace(pc0=other.pc0[keep0], pc1=other.pc1[keep1], flow=other.flow[keep0],
-                                     ground0=None, ground1=None, flow_valid=None, classes=None, instance=None,
-                                     dynamic=None))
+        subsets.append(
+            other.replace(
+                pc0=other.pc0[keep0],
+                pc1=other.pc1[keep1],
+                flow=other.flow[keep0],
+                ground0=None,
+                ground1=None,
+                flow_valid=None,
+                classes=None,
+                instance=None,
+                dynamic=None,
+            )
+        )
     return [whole, *subsets]
 
 
@@ -99,8 +116,14 @@ def teacher_ego(pairs):
 def test_metadata_describes_the_export(export_dir, checkpoint):
     assert export_dir == checkpoint.parent / "export"
     metadata = json.loads((export_dir / METADATA_NAME).read_text())
-    assert metadata["grid"] == {"x_range": [-6.4, 6.4], "y_range": [-6.4, 6.4], "z_range": [-3.0, 3.0], "cell": 0.2,
-                                "nx": 64, "ny": 64}
+    assert metadata["grid"] == {
+        "x_range": [-6.4, 6.4],
+        "y_range": [-6.4, 6.4],
+        "z_range": [-3.0, 3.0],
+        "cell": 0.2,
+        "nx": 64,
+        "ny": 64,
+    }
     assert metadata["model"] == TINY
     assert metadata["package_version"] == __version__
     assert metadata["source_checkpoint"]["sha256"] == sha256_file(checkpoint)
@@ -181,8 +204,10 @@ def ground_checkpoint(checkpoint):
     teacher settings of the synthetic dataset (a 1.9 m high sensor over a z = 0 ground)."""
     teacher = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
     saved = torch.load(checkpoint, weights_only=True)
-    saved["hyper_parameters"]["cfg"]["data"] = {"remove_ground": True,
-                                                "teacher": {key: getattr(teacher, key) for key in TEACHER_FIELDS}}
+    saved["hyper_parameters"]["cfg"]["data"] = {
+        "remove_ground": True,
+        "teacher": {key: getattr(teacher, key) for key in TEACHER_FIELDS},
+    }
     path = checkpoint.parent / "ground" / "best.ckpt"
     path.parent.mkdir()
     torch.save(saved, path)
@@ -200,8 +225,9 @@ def test_ground_removal_model_sees_non_ground_points_only(ground_checkpoint, eag
 
     def expected_flow(g0, g1):
         with torch.no_grad():
-            kept, valid = eager(torch.from_numpy(compensate(pair.pc0[~g0], pair.ego1_from_ego0)),
-                                torch.from_numpy(pair.pc1[~g1]))
+            kept, valid = eager(
+                torch.from_numpy(compensate(pair.pc0[~g0], pair.ego1_from_ego0)), torch.from_numpy(pair.pc1[~g1])
+            )
         residual = np.zeros_like(pair.pc0)
         residual[~g0] = kept.numpy()
         return residual_to_full(residual, pair.pc0, pair.ego1_from_ego0), valid.numpy()
@@ -331,8 +357,7 @@ def test_export_cli(checkpoint, tmp_path, capsys):
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         base = compose(config_name="export")
         out = tmp_path / "ts"
-        chosen = compose(config_name="export", overrides=[f"checkpoint={checkpoint}", "format=pt2",
-                                                          f"out_dir={out}"])
+        chosen = compose(config_name="export", overrides=[f"checkpoint={checkpoint}", "format=pt2", f"out_dir={out}"])
     assert run_export(base) == 2 and "pass checkpoint=" in capsys.readouterr().err
     base.checkpoint = str(tmp_path / "none.ckpt")
     assert run_export(base) == 2 and "none.ckpt: checkpoint not found" in capsys.readouterr().err

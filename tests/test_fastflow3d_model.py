@@ -15,9 +15,13 @@ from fastflow3d.voxelize import Grid, voxelize
 from icpflow.geometry import make_transform, residual_to_full, transform_points
 
 #: FastFlow3D's arguments as conf/model/fastflow3d.yaml (the one place of the model's settings) gives them
-PAPER = {key: value for key, value in yaml.safe_load(
-    (Path(__file__).resolve().parents[1] / "conf" / "model" / "fastflow3d.yaml").read_text()).items()
-    if key != "_target_"}
+PAPER = {
+    key: value
+    for key, value in yaml.safe_load(
+        (Path(__file__).resolve().parents[1] / "conf" / "model" / "fastflow3d.yaml").read_text()
+    ).items()
+    if key != "_target_"
+}
 SMALL = {"x_range": (-8.0, 8.0), "y_range": (-8.0, 8.0), "z_range": (-3.0, 3.0), "cell": 0.5}  # 32 x 32
 SMALL_MODEL = {**PAPER, **SMALL}
 
@@ -36,13 +40,15 @@ def test_voxelize_hand_case():
     features, ids, valid = voxelize(points, batch, grid, batch_size=2)
     assert ids.tolist() == [0, 0, 2, 8, 4]  # (b * nx + ix) * ny + iy; out of range -> dump id 2 * 2 * 2
     assert valid.tolist() == [True, True, True, False, True]
-    expected = torch.tensor([
-        [0.2, 0.4, 0.0, -0.2, -0.2, -0.25, -0.3, -0.1, 0.0],
-        [0.6, 0.8, 0.5, 0.2, 0.2, 0.25, 0.1, 0.3, 0.5],
-        [1.5, 0.5, -0.5, 0.0, 0.0, 0.0, 0.0, 0.0, -0.5],
-        [0.0] * 9,
-        [0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-    ])
+    expected = torch.tensor(
+        [
+            [0.2, 0.4, 0.0, -0.2, -0.2, -0.25, -0.3, -0.1, 0.0],
+            [0.6, 0.8, 0.5, 0.2, 0.2, 0.25, 0.1, 0.3, 0.5],
+            [1.5, 0.5, -0.5, 0.0, 0.0, 0.0, 0.0, 0.0, -0.5],
+            [0.0] * 9,
+            [0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        ]
+    )
     torch.testing.assert_close(features, expected, atol=1e-6, rtol=0)
 
 
@@ -132,8 +138,13 @@ def test_onnx_dynamo_parity_voxelize_scatter(tmp_path):
     module = VoxelizeScatter(Grid(**SMALL)).eval()
     points = torch.export.Dim("points", min=2)
     path = tmp_path / "vox.onnx"
-    torch.onnx.export(module, random_flat(300, 200, 3), str(path), dynamo=True,
-                      dynamic_shapes={"points": {0: points}, "batch": {0: points}})
+    torch.onnx.export(
+        module,
+        random_flat(300, 200, 3),
+        str(path),
+        dynamo=True,
+        dynamic_shapes={"points": {0: points}, "batch": {0: points}},
+    )
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     for n0, n1, seed in [(1000, 10, 4), (37, 512, 5), (5000, 4000, 6)]:
         pts, batch = random_flat(n0, n1, seed)
@@ -246,8 +257,12 @@ def synthetic_pair(seed):
 def test_overfit_one_synthetic_pair():
     torch.manual_seed(0)
     pc0, pc1, ego1_from_ego0, residual = synthetic_pair(0)
-    inputs = (torch.from_numpy(compensate(pc0, ego1_from_ego0)), torch.zeros(len(pc0), dtype=torch.int64),
-              torch.from_numpy(pc1), torch.zeros(len(pc1), dtype=torch.int64))
+    inputs = (
+        torch.from_numpy(compensate(pc0, ego1_from_ego0)),
+        torch.zeros(len(pc0), dtype=torch.int64),
+        torch.from_numpy(pc1),
+        torch.zeros(len(pc1), dtype=torch.int64),
+    )
     target = torch.from_numpy(residual)
     model = FastFlow3D(**{**PAPER, "x_range": (-16.0, 16.0), "y_range": (-16.0, 16.0), "cell": 1.0})
     optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)  # 2e-3 diverges on this pair
@@ -273,15 +288,20 @@ def test_onnx_dynamo_parity_full_model(tmp_path):
     model = FastFlow3D(**SMALL_MODEL).eval()
     path = tmp_path / "fastflow3d.onnx"
     p0, p1 = torch.export.Dim("p0", min=2), torch.export.Dim("p1", min=2)
-    torch.onnx.export(SingleSample(model), (*random_flat(300, 0, 11), *random_flat(200, 0, 12)), str(path),
-                      dynamo=True,
-                      dynamic_shapes={"pc0": {0: p0}, "batch0": {0: p0}, "pc1": {0: p1}, "batch1": {0: p1}})
+    torch.onnx.export(
+        SingleSample(model),
+        (*random_flat(300, 0, 11), *random_flat(200, 0, 12)),
+        str(path),
+        dynamo=True,
+        dynamic_shapes={"pc0": {0: p0}, "batch0": {0: p0}, "pc1": {0: p1}, "batch1": {0: p1}},
+    )
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     for n0, n1, seed in [(1000, 700, 13), (40, 3000, 14)]:
         pc0, b0 = random_flat(n0, 0, seed)
         pc1, b1 = random_flat(n1, 0, seed + 100)
         expected, valid = model(pc0, b0, pc1, b1, 1)
-        got, got_valid = session.run(None, {"pc0": pc0.numpy(), "batch0": b0.numpy(), "pc1": pc1.numpy(),
-                                            "batch1": b1.numpy()})
+        got, got_valid = session.run(
+            None, {"pc0": pc0.numpy(), "batch0": b0.numpy(), "pc1": pc1.numpy(), "batch1": b1.numpy()}
+        )
         np.testing.assert_allclose(got, expected.detach().numpy(), atol=1e-4, rtol=0)
         assert np.array_equal(got_valid, valid.numpy())

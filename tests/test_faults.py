@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from students import tiny_checkpoint
 from test_label import SUMMARY, TESTS_ENV, _all_valid, _assert_same, _cfg, _running_in_group, _script
 from test_train import _cfg as _train_cfg
 from test_train import _write_shards
@@ -30,6 +29,8 @@ from icpflow.labelling.cli import label
 from icpflow.shards import ShardDataset, verify_shard
 from icpflow.teacher import ICPFlow
 
+from students import tiny_checkpoint
+
 SLOW = ["dataset.reader._target_=test_label.SlowSynthetic", "workers=2"]
 READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 2.0}
 
@@ -44,8 +45,15 @@ def reference(tmp_path_factory):
 
 def _start(out_dir, *overrides) -> subprocess.Popen:
     """label.py in its own session (process group = its pid), once its first shard is recorded."""
-    process = subprocess.Popen(_script(out_dir, *overrides), cwd=out_dir.parent, env=TESTS_ENV,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    process = subprocess.Popen(
+        _script(out_dir, *overrides),
+        cwd=out_dir.parent,
+        env=TESTS_ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     deadline = time.monotonic() + 600
     while not (out_dir / "shard_000000.h5.json").exists():
         assert process.poll() is None and time.monotonic() < deadline, process.stderr.read() if process.poll() else ""
@@ -73,8 +81,9 @@ def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
     assert _none_left_within(process.pid, 5), "a process of the run outlived it"
     if sig == signal.SIGTERM:
         assert process.returncode == 143, err
-        assert err.strip().splitlines()[-1] == (f"label: terminated (SIGTERM); complete shards are kept in {out}, "
-                                                "rerun the same command to resume")
+        assert err.strip().splitlines()[-1] == (
+            f"label: terminated (SIGTERM); complete shards are kept in {out}, rerun the same command to resume"
+        )
         assert "Traceback" not in err
         assert _all_valid(out) >= 2  # index.json lists exactly the complete shards on disk
         indexed = {s["file"] for s in json.loads((out / "index.json").read_text())["shards"]}
@@ -108,8 +117,12 @@ class KillOnceSynthetic(SyntheticDataset):
 
 
 def test_a_sample_whose_worker_died_is_filled_in_by_the_rerun(reference, tmp_path, capsys):
-    cfg = _cfg(tmp_path / "labels", f"dataset.reader._target_={__name__}.KillOnceSynthetic",
-               f"+dataset.reader.marker={tmp_path / 'killed'}", "workers=2")
+    cfg = _cfg(
+        tmp_path / "labels",
+        f"dataset.reader._target_={__name__}.KillOnceSynthetic",
+        f"+dataset.reader.marker={tmp_path / 'killed'}",
+        "workers=2",
+    )
     assert label(cfg, progress=False) == 1
     assert (tmp_path / "killed").exists()
     failures = (tmp_path / "labels" / "failures.jsonl").read_text().splitlines()
@@ -139,8 +152,11 @@ class FixedLaterSynthetic(SyntheticDataset):
 def test_a_fixed_input_is_labelled_by_the_rerun(reference, tmp_path, capsys):
     broken = tmp_path / "000001.bin"
     broken.touch()
-    cfg = _cfg(tmp_path / "labels", f"dataset.reader._target_={__name__}.FixedLaterSynthetic",
-               f"+dataset.reader.broken={broken}")
+    cfg = _cfg(
+        tmp_path / "labels",
+        f"dataset.reader._target_={__name__}.FixedLaterSynthetic",
+        f"+dataset.reader.broken={broken}",
+    )
     assert label(cfg, progress=False) == 1
     assert f"failed synthetic-train-0-32b/000001+1 ({broken})" in capsys.readouterr().err
     broken.unlink()  # the user fixes the input
@@ -168,8 +184,10 @@ def test_a_full_disk_is_one_line_and_keeps_the_finished_shards(reference, tmp_pa
     _disk_full_after(monkeypatch, 6)
     assert label(_cfg(out), progress=False) == 2
     err = capsys.readouterr().err
-    assert err == (f"label: {out / 'shard_000001.h5'}: cannot write (No space left on device); complete shards are "
-                   f"kept in {out}, fix this and rerun the same command to resume\n")
+    assert err == (
+        f"label: {out / 'shard_000001.h5'}: cannot write (No space left on device); complete shards are "
+        f"kept in {out}, fix this and rerun the same command to resume\n"
+    )
     assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "shard_000000.h5", "shard_000000.h5.json"]
     monkeypatch.undo()  # space is freed
     assert label(_cfg(out), progress=False) == 0
@@ -182,6 +200,7 @@ class DiskFullSynthetic(SyntheticDataset):
 
     def pair(self, index, horizon=1):
         if index == 2:
+
             def full(fd):
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
@@ -192,23 +211,34 @@ class DiskFullSynthetic(SyntheticDataset):
 def test_a_full_disk_in_a_worker_is_one_line_and_leaves_no_process(tmp_path):
     out = tmp_path / "labels"
     args = ["dataset.reader._target_=test_faults.DiskFullSynthetic", "workers=2", "shard_size=3"]
-    process = subprocess.Popen(_script(out, *args), cwd=tmp_path, env=TESTS_ENV, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, start_new_session=True)
+    process = subprocess.Popen(
+        _script(out, *args),
+        cwd=tmp_path,
+        env=TESTS_ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     _, err = process.communicate(timeout=600)  # generous: a loaded CI machine
     assert process.returncode == 2, err
-    assert [line for line in err.splitlines() if line and not line.startswith("labelling")] == [f"label: {out / 'shard_000000.h5'}: cannot write (No space left on device); "
-                                        f"complete shards are kept in {out}, fix this and rerun the same command "
-                                        "to resume"]
+    assert [line for line in err.splitlines() if line and not line.startswith("labelling")] == [
+        f"label: {out / 'shard_000000.h5'}: cannot write (No space left on device); "
+        f"complete shards are kept in {out}, fix this and rerun the same command "
+        "to resume"
+    ]
     assert _none_left_within(process.pid, 5)
     assert not list(out.glob("*.tmp-*"))
     assert json.loads((out / "index.json").read_text())["shards"] == [
         {"file": p.name, "samples": json.loads((out / f"{p.name}.json").read_text())["samples"]}
-        for p in sorted(out.glob("shard_*.h5"))]
+        for p in sorted(out.glob("shard_*.h5"))
+    ]
     assert len(ShardDataset(out)) in (0, 2)  # shard 1 (samples 3, 4) may have finished first
     assert np.all([verify_shard(p) for p in out.glob("shard_*.h5")])
 
 
 # ------------------------------------------------------------------------------------------- malformed point input
+
 
 @pytest.fixture(scope="module")
 def scan():
@@ -218,9 +248,16 @@ def scan():
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
     """An untrained tiny student checkpoint (a +-6.4 m grid)."""
-    cfg = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-6.4, 6.4], "y_range": [-6.4, 6.4],
-           "z_range": [-3.0, 3.0], "cell": 0.4, "pillar_channels": 8, "stage_channels": [8, 16, 32],
-           "stage_blocks": [1, 1, 1]}
+    cfg = {
+        "_target_": "fastflow3d.model.FastFlow3D",
+        "x_range": [-6.4, 6.4],
+        "y_range": [-6.4, 6.4],
+        "z_range": [-3.0, 3.0],
+        "cell": 0.4,
+        "pillar_channels": 8,
+        "stage_channels": [8, 16, 32],
+        "stage_blocks": [1, 1, 1],
+    }
     return tiny_checkpoint(tmp_path_factory.mktemp("model") / "tiny.ckpt", cfg, SyntheticDataset(**READER).pair(0), 0)
 
 
@@ -279,8 +316,9 @@ def test_integer_coordinates_are_read_with_a_warning(scan, tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="icpflow.frames"):
         points = read_raw_scan(path)
     assert points.dtype == np.float32 and np.array_equal(points, np.round(scan))
-    assert [r.getMessage() for r in caplog.records] == [f"{path}: scan has int32 coordinates, read as metres: whole "
-                                                        "metres only"]
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: scan has int32 coordinates, read as metres: whole metres only"
+    ]
 
 
 def test_a_scan_outside_the_grid_gets_a_warning(scan, model, tmp_path, capsys):
@@ -288,13 +326,27 @@ def test_a_scan_outside_the_grid_gets_a_warning(scan, model, tmp_path, capsys):
     np.save(tmp_path / "far0.npy", far)
     np.save(tmp_path / "far1.npy", far)
     np.savetxt(tmp_path / "ego.txt", np.eye(4).reshape(1, 16))
-    status, err = _infer([model, tmp_path / "far0.npy", tmp_path / "far1.npy", "--ego", tmp_path / "ego.txt",
-                          "--out", tmp_path / "flow.npz"], capsys)
-    assert status == 0 and len(err) == 1 and err[0].startswith(f"infer: warning: no point of {tmp_path / 'far0.npy'} "
-                                                               "lies inside the model's grid")
+    status, err = _infer(
+        [
+            model,
+            tmp_path / "far0.npy",
+            tmp_path / "far1.npy",
+            "--ego",
+            tmp_path / "ego.txt",
+            "--out",
+            tmp_path / "flow.npz",
+        ],
+        capsys,
+    )
+    assert (
+        status == 0
+        and len(err) == 1
+        and err[0].startswith(f"infer: warning: no point of {tmp_path / 'far0.npy'} lies inside the model's grid")
+    )
 
 
 # ------------------------------------------------------------------------------------------------ training data
+
 
 @pytest.fixture(scope="module")
 def pairs():
@@ -319,8 +371,9 @@ def test_a_truncated_checkpoint_is_one_line_naming_it(pairs, model, tmp_path):
     with pytest.raises(TrainError) as error:
         fit(_train_cfg(tmp_path, good, good, f"ckpt_path={truncated}"))
     message = str(error.value)
-    assert "\n" not in message and message.startswith(f"ckpt_path={truncated}: {truncated}: not a readable torch "
-                                                      "checkpoint, truncated or damaged?")
+    assert "\n" not in message and message.startswith(
+        f"ckpt_path={truncated}: {truncated}: not a readable torch checkpoint, truncated or damaged?"
+    )
     foreign = tmp_path / "foreign.ckpt"
     torch.save({"state_dict": {}, "when": np.datetime64("2026-01-01")}, foreign)  # not loadable with weights_only
     with pytest.raises(TrainError) as error:
@@ -339,8 +392,13 @@ class UnreadableSynthetic(SyntheticDataset):
 
 
 def test_the_summary_says_how_many_failures_it_does_not_list(tmp_path, capsys):
-    cfg = _cfg(tmp_path, f"dataset.reader._target_={__name__}.UnreadableSynthetic",
-               "dataset.reader.frames_per_sequence=15", "limit=14", "shard_size=7")
+    cfg = _cfg(
+        tmp_path,
+        f"dataset.reader._target_={__name__}.UnreadableSynthetic",
+        "dataset.reader.frames_per_sequence=15",
+        "limit=14",
+        "shard_size=7",
+    )
     assert label(cfg, progress=False) == 1
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 11 and err[9].startswith("  failed synthetic-train-0-32b/000009+1 (/data/000009.bin)")

@@ -27,8 +27,14 @@ from icpflow.teacher.config import teacher_config
 from icpflow.teacher.tracker import long_horizon_flow
 
 REPO = Path(__file__).resolve().parents[1]
-SMALL = ["dataset.reader.beams=32", "dataset.reader.azimuth_resolution_deg=2.0", "dataset.reader.num_sequences=1",
-         "dataset.reader.frames_per_sequence=6", "shard_size=2", "limit=5"]
+SMALL = [
+    "dataset.reader.beams=32",
+    "dataset.reader.azimuth_resolution_deg=2.0",
+    "dataset.reader.num_sequences=1",
+    "dataset.reader.frames_per_sequence=6",
+    "shard_size=2",
+    "limit=5",
+]
 READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 6, "beams": 32, "azimuth_resolution_deg": 2.0}
 
 
@@ -66,10 +72,14 @@ def _script(out_dir, *overrides):
 
 
 #: environment of a label.py subprocess that can import the datasets defined in this file (module test_label)
-TESTS_ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO / "tests"),
-                                                                       os.environ.get("PYTHONPATH")]))}
-SUMMARY = re.compile(r"label: (\d+) samples labelled, (\d+) skipped \(already done\), (\d+) failed; "
-                     r"mean \d+\.\d\d s/sample per worker, \d+\.\d\d samples/s in \d+\.\d s -> (.+)")
+TESTS_ENV = {
+    **os.environ,
+    "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH")])),
+}
+SUMMARY = re.compile(
+    r"label: (\d+) samples labelled, (\d+) skipped \(already done\), (\d+) failed; "
+    r"mean \d+\.\d\d s/sample per worker, \d+\.\d\d samples/s in \d+\.\d s -> (.+)"
+)
 
 
 @pytest.fixture(scope="module")
@@ -147,8 +157,9 @@ def test_a_worker_runs_hdbscan_on_its_share_of_threads_without_changing_the_hash
 
 
 def test_resume_after_sigkill_matches_uninterrupted_run(reference, tmp_path):
-    process = subprocess.Popen(_script(tmp_path, "workers=1"), cwd=tmp_path, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE)
+    process = subprocess.Popen(
+        _script(tmp_path, "workers=1"), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
     deadline = time.monotonic() + 120
     while not (tmp_path / "shard_000000.h5.json").exists() and process.poll() is None:
         assert time.monotonic() < deadline
@@ -173,8 +184,14 @@ def _default_sigint() -> None:
 
 
 def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
-    process = subprocess.Popen(_script(tmp_path, "workers=1"), cwd=tmp_path, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
+    process = subprocess.Popen(
+        _script(tmp_path, "workers=1"),
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_default_sigint,
+    )
     deadline = time.monotonic() + 120
     while not (tmp_path / "shard_000000.h5.json").exists() and process.poll() is None:
         assert time.monotonic() < deadline
@@ -245,11 +262,18 @@ def test_failures_are_recorded_and_the_run_goes_on(tmp_path, capsys):
     assert status == 1
     n0 = len(SyntheticDataset(**READER).pair(3).pc0)
     failures = [json.loads(line) for line in (tmp_path / "failures.jsonl").read_text().splitlines()]
-    assert failures[0] == {"index": 1, "sample_id": "synthetic-train-0-32b/000001+1", "file": "/data/log/000001.bin",
-                           "reason": "FramePairError: /data/log/000001.bin: pc0 must have shape (N, 3), got (7,)"}
-    assert failures[1] == {"index": 3, "sample_id": "synthetic-train-0-32b/000003+1",
-                           "file": "synthetic-train-0-32b/000003+1",
-                           "reason": f"ValueError: ICPFlow: ground0 must have shape (0,), got ({n0},)"}
+    assert failures[0] == {
+        "index": 1,
+        "sample_id": "synthetic-train-0-32b/000001+1",
+        "file": "/data/log/000001.bin",
+        "reason": "FramePairError: /data/log/000001.bin: pc0 must have shape (N, 3), got (7,)",
+    }
+    assert failures[1] == {
+        "index": 3,
+        "sample_id": "synthetic-train-0-32b/000003+1",
+        "file": "synthetic-train-0-32b/000003+1",
+        "reason": f"ValueError: ICPFlow: ground0 must have shape (0,), got ({n0},)",
+    }
     assert len(failures) == 2
     index = json.loads((tmp_path / "index.json").read_text())
     labelled = [s["index"] for shard in index["shards"] for s in shard["samples"]]
@@ -292,8 +316,12 @@ def test_missing_or_empty_root_is_one_line(tmp_path, root):
     elif root == "empty":
         (tmp_path / "empty").mkdir()
         args.append(f"dataset.root={tmp_path / 'empty'}")
-    run = subprocess.run([sys.executable, str(REPO / "label.py"), *args, f"out_dir={tmp_path / 'out'}"],
-                         cwd=tmp_path, capture_output=True, text=True)
+    run = subprocess.run(
+        [sys.executable, str(REPO / "label.py"), *args, f"out_dir={tmp_path / 'out'}"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+    )
     assert run.returncode == 2
     assert len(run.stderr.strip().splitlines()) == 1 and "Traceback" not in run.stderr
     expected = {"missing": "does not exist", "empty": "is empty", None: "dataset.root is not set"}[root]
@@ -316,8 +344,13 @@ class TimedSynthetic(SyntheticDataset):
 
 def test_long_horizon_direct_and_tracker_pass_point_times(tmp_path):
     dataset = TimedSynthetic(**READER, max_horizon=2)
-    common = [f"dataset.reader._target_={__name__}.TimedSynthetic", "dataset.reader.max_horizon=2", "horizon=2",
-              "limit=2", "icpflow.deskew=true"]
+    common = [
+        f"dataset.reader._target_={__name__}.TimedSynthetic",
+        "dataset.reader.max_horizon=2",
+        "horizon=2",
+        "limit=2",
+        "icpflow.deskew=true",
+    ]
     cfg = teacher_config(_cfg(tmp_path, *common))
     assert cfg.deskew
     direct_out, tracked_out = tmp_path / "direct", tmp_path / "tracker"
@@ -326,8 +359,9 @@ def test_long_horizon_direct_and_tracker_pass_point_times(tmp_path):
     pair = dataset.pair(1, horizon=2)
     direct, tracked = _samples(direct_out)[1], _samples(tracked_out)[1]
     assert direct["sample_id"] == tracked["sample_id"] == pair.sample_id == "synthetic-train-0-32b/000001+2"
-    expected = ICPFlow(cfg)(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1, pair.time0,
-                            pair.time1, gap=2, dt=pair.dt)
+    expected = ICPFlow(cfg)(
+        pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1, pair.time0, pair.time1, gap=2, dt=pair.dt
+    )
     assert expected.n_deskewed > 0
     np.testing.assert_array_equal(direct["pc1"], pair.pc1)
     np.testing.assert_array_equal(direct["flow"], expected.flow)
@@ -339,8 +373,15 @@ def test_long_horizon_direct_and_tracker_pass_point_times(tmp_path):
     scans = [pair.pc0, step.pc1, pair.pc1]
     egos = [step.ego1_from_ego0, pair.ego1_from_ego0 @ np.linalg.inv(step.ego1_from_ego0)]
     grounds = [pair.ground0, step.ground1, pair.ground1]
-    chained = long_horizon_flow(ICPFlow(cfg), scans, egos, grounds, mode="tracker",
-                                times=[pair.time0, step.time1, pair.time1], dts=[step.dt, pair.dt - step.dt])
+    chained = long_horizon_flow(
+        ICPFlow(cfg),
+        scans,
+        egos,
+        grounds,
+        mode="tracker",
+        times=[pair.time0, step.time1, pair.time1],
+        dts=[step.dt, pair.dt - step.dt],
+    )
     np.testing.assert_array_equal(tracked["flow"], chained.flow)
     np.testing.assert_array_equal(tracked["confidence"], chained.confidence)
     assert chained.chained.any() and not np.array_equal(tracked["flow"], direct["flow"])
@@ -348,11 +389,22 @@ def test_long_horizon_direct_and_tracker_pass_point_times(tmp_path):
     assert not np.array_equal(timeless.flow, chained.flow)  # the times reach the teacher and matter
 
 
-@pytest.mark.parametrize("horizon, override, message", [
-    (5, "dataset.reader.max_horizon=5", "horizon=5 exceeds the teacher's max_frame_gap 4 (icpflow.max_frame_gap=...)"),
-    (2, "dataset.reader.frames_per_sequence=2", "dataset synthetic: synthetic: max_horizon must lie in 1..1 for 2 "
-     "frames per sequence, got 2 (with dataset.reader.max_horizon=2)"),
-])
+@pytest.mark.parametrize(
+    "horizon, override, message",
+    [
+        (
+            5,
+            "dataset.reader.max_horizon=5",
+            "horizon=5 exceeds the teacher's max_frame_gap 4 (icpflow.max_frame_gap=...)",
+        ),
+        (
+            2,
+            "dataset.reader.frames_per_sequence=2",
+            "dataset synthetic: synthetic: max_horizon must lie in 1..1 for 2 "
+            "frames per sequence, got 2 (with dataset.reader.max_horizon=2)",
+        ),
+    ],
+)
 def test_horizon_beyond_teacher_or_dataset_is_refused(tmp_path, capsys, horizon, override, message):
     cfg = _cfg(tmp_path / "out", f"horizon={horizon}", override)
     assert label(cfg, progress=False) == 2
@@ -361,16 +413,21 @@ def test_horizon_beyond_teacher_or_dataset_is_refused(tmp_path, capsys, horizon,
 
 
 def test_failure_ids_name_the_pair_of_the_horizon(tmp_path):
-    cfg = _cfg(tmp_path, f"dataset.reader._target_={__name__}.FlakySynthetic", "dataset.reader.max_horizon=2",
-               "horizon=2")
+    cfg = _cfg(
+        tmp_path, f"dataset.reader._target_={__name__}.FlakySynthetic", "dataset.reader.max_horizon=2", "horizon=2"
+    )
     assert label(cfg, progress=False) == 1
     failures = [json.loads(line) for line in (tmp_path / "failures.jsonl").read_text().splitlines()]
     # sample 1 fails in the reader (no pair: the reader's id of the sample), sample 3 in the teacher (the pair's id)
-    assert [(f["index"], f["sample_id"]) for f in failures] == [(1, "synthetic-train-0-32b/000001+1"),
-                                                                (3, "synthetic-train-0-32b/000003+2")]
+    assert [(f["index"], f["sample_id"]) for f in failures] == [
+        (1, "synthetic-train-0-32b/000001+1"),
+        (3, "synthetic-train-0-32b/000003+2"),
+    ]
     index = json.loads((tmp_path / "index.json").read_text())
     assert [s["sample_id"] for shard in index["shards"] for s in shard["samples"]] == [
-        "synthetic-train-0-32b/000000+2", "synthetic-train-0-32b/000002+2"]
+        "synthetic-train-0-32b/000000+2",
+        "synthetic-train-0-32b/000002+2",
+    ]
 
 
 def _write_pairs(root: Path, names: list[str], seeds: list[int]) -> None:
@@ -379,14 +436,21 @@ def _write_pairs(root: Path, names: list[str], seeds: list[int]) -> None:
     root.mkdir(parents=True, exist_ok=True)
     for name, seed in zip(names, seeds, strict=True):
         pair = dataset.pair(seed)
-        np.savez(root / f"{name}.npz", pc0=pair.pc0, pc1=pair.pc1, ego1_from_ego0=pair.ego1_from_ego0,
-                 ground0=pair.ground0, ground1=pair.ground1)
+        np.savez(
+            root / f"{name}.npz",
+            pc0=pair.pc0,
+            pc1=pair.pc1,
+            ego1_from_ego0=pair.ego1_from_ego0,
+            ground0=pair.ground0,
+            ground1=pair.ground1,
+        )
 
 
 def _pairs_cfg(out_dir, root, *overrides):
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        return compose("label", ["dataset=pairs", f"dataset.root={root}", f"out_dir={out_dir}", "workers=1",
-                                 *overrides])
+        return compose(
+            "label", ["dataset=pairs", f"dataset.root={root}", f"out_dir={out_dir}", "workers=1", *overrides]
+        )
 
 
 def test_another_root_into_the_same_out_dir_is_refused(tmp_path, capsys):
@@ -417,12 +481,15 @@ def test_resume_redoes_shards_whose_samples_changed(tmp_path, capsys):
         np.testing.assert_array_equal(got["pc0"], pair.pc0)
 
 
-@pytest.mark.parametrize("option, message", [
-    ("runner=ray", "runner=ray needs the ray package, which is not installed (pip install 'ray>=2.9')"),
-    ("compression=zstd", "compression must be one of none, gzip, lzf, got 'zstd'"),
-    ("runner=spark", "runner must be local or ray, got 'spark'"),
-    ("workers=0", "workers must be an integer >= 1, got 0"),
-])
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        ("runner=ray", "runner=ray needs the ray package, which is not installed (pip install 'ray>=2.9')"),
+        ("compression=zstd", "compression must be one of none, gzip, lzf, got 'zstd'"),
+        ("runner=spark", "runner must be local or ray, got 'spark'"),
+        ("workers=0", "workers must be an integer >= 1, got 0"),
+    ],
+)
 def test_bad_options_are_one_line(tmp_path, capsys, monkeypatch, option, message):
     monkeypatch.setitem(sys.modules, "ray", None)  # as if ray were not installed
     assert label(_cfg(tmp_path / "out", option), progress=False) == 2
@@ -431,8 +498,9 @@ def test_bad_options_are_one_line(tmp_path, capsys, monkeypatch, option, message
 
 
 def test_gzip_compression_through_label_py(reference, tmp_path):
-    run = subprocess.run(_script(tmp_path, "compression=gzip", "workers=1"), cwd=tmp_path, capture_output=True,
-                         text=True)
+    run = subprocess.run(
+        _script(tmp_path, "compression=gzip", "workers=1"), cwd=tmp_path, capture_output=True, text=True
+    )
     assert run.returncode == 0, run.stderr
     _assert_same(reference, tmp_path)
     with h5py.File(tmp_path / "shard_000000.h5") as f, h5py.File(reference / "shard_000000.h5") as g:
@@ -464,8 +532,16 @@ class SlowSynthetic(SyntheticDataset):
 
 def test_ctrl_c_to_the_process_group_with_two_workers(reference, tmp_path):
     args = ["dataset.reader._target_=test_label.SlowSynthetic", "workers=2"]
-    process = subprocess.Popen(_script(tmp_path, *args), cwd=tmp_path, env=TESTS_ENV, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_default_sigint)
+    process = subprocess.Popen(
+        _script(tmp_path, *args),
+        cwd=tmp_path,
+        env=TESTS_ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=_default_sigint,
+    )
     deadline = time.monotonic() + 120
     while not (tmp_path / "shard_000000.h5.json").exists() and process.poll() is None:
         assert time.monotonic() < deadline
@@ -479,7 +555,9 @@ def test_ctrl_c_to_the_process_group_with_two_workers(reference, tmp_path):
         time.sleep(0.2)
     assert _running_in_group(process.pid) == []  # no worker outlives the run
     assert _all_valid(tmp_path) == 2 and sorted(p.name for p in tmp_path.glob("shard_*")) == [
-        "shard_000000.h5", "shard_000000.h5.json"]
+        "shard_000000.h5",
+        "shard_000000.h5.json",
+    ]
     run = subprocess.run(_script(tmp_path, *args), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert SUMMARY.search(run.stdout).groups()[:3] == ("3", "2", "0")
@@ -505,8 +583,15 @@ def test_a_worker_that_dies_fails_its_sample_only(reference, tmp_path, capsys):
     assert SUMMARY.fullmatch(out.strip()).groups() == ("4", "0", "1", str(tmp_path))
     assert "Traceback" not in err and "failed synthetic-train-0-32b/000003+1" in err
     failures = [json.loads(line) for line in (tmp_path / "failures.jsonl").read_text().splitlines()]
-    assert failures == [{"index": 3, "sample_id": "synthetic-train-0-32b/000003+1",
-                         "file": "synthetic-train-0-32b/000003+1", "reason": DIED, "deaths": 1}]
+    assert failures == [
+        {
+            "index": 3,
+            "sample_id": "synthetic-train-0-32b/000003+1",
+            "file": "synthetic-train-0-32b/000003+1",
+            "reason": DIED,
+            "deaths": 1,
+        }
+    ]
     got, expected = _samples(tmp_path), _samples(reference)
     assert [s["sample_id"] for s in got] == [expected[i]["sample_id"] for i in (0, 1, 2, 4)]
     threads = f"threads {max(1, available_cores() // 2)}"
@@ -527,8 +612,9 @@ def test_a_worker_that_dies_fails_its_sample_only(reference, tmp_path, capsys):
 def test_multirun_jobs_label_the_union(reference, tmp_path):
     flaky = "dataset.reader._target_=test_label.FlakySynthetic"  # samples 1 and 3 fail: each job ends with status 1
     command = _script(tmp_path / "labels", flaky, "workers=1", "shard_index=0,1", "num_shards=2")
-    run = subprocess.run([*command[:2], "-m", *command[2:]], cwd=tmp_path, env=TESTS_ENV, capture_output=True,
-                         text=True)
+    run = subprocess.run(
+        [*command[:2], "-m", *command[2:]], cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True
+    )
     assert run.returncode == 0, run.stderr
     assert [m.group(1, 2, 3) for m in SUMMARY.finditer(run.stdout)] == [("2", "0", "1"), ("1", "0", "1")]
     index = json.loads((tmp_path / "labels" / "index.json").read_text())

@@ -29,8 +29,19 @@ ONE = ["limit=1", "workers=1", "icpflow.hdbscan_n_jobs=1"]
 def label_script(tmp_path, *overrides) -> dict:
     """Run ``label.py`` in a subprocess; the one labelled sample of its shards."""
     out = tmp_path / "labels"
-    done = subprocess.run([sys.executable, str(REPO / "label.py"), *overrides, *ONE, f"out_dir={out}",
-                           f"hydra.run.dir={tmp_path / 'hydra'}"], cwd=tmp_path, capture_output=True, text=True)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "label.py"),
+            *overrides,
+            *ONE,
+            f"out_dir={out}",
+            f"hydra.run.dir={tmp_path / 'hydra'}",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert "1 samples labelled" in done.stdout and "0 failed" in done.stdout
     shards = ShardDataset(out)
@@ -87,8 +98,9 @@ def _label_in_process(out, *overrides) -> dict:
 @pytest.mark.parametrize("dataset", ["waymo", "nuscenes"])
 def test_pcaccumulation_configs_label_files_in_the_real_layout(tmp_path, dataset):
     write_dataset(tmp_path / "data", dataset)
-    sample = _label_in_process(tmp_path / "labels", f"dataset={dataset}", f"dataset.root={tmp_path / 'data'}",
-                               "split=val")
+    sample = _label_in_process(
+        tmp_path / "labels", f"dataset={dataset}", f"dataset.root={tmp_path / 'data'}", "split=val"
+    )
     truth = world(dataset).pair(FORMATS[dataset][0] - 2, 1)  # frame c = 1 into the anchor
     assert sample["sample_id"] == "val/seg/000/1"
     np.testing.assert_array_equal(sample["pc0"], truth.pc0)
@@ -102,8 +114,9 @@ def test_pcaccumulation_configs_label_files_in_the_real_layout(tmp_path, dataset
 
 def test_zeroflow_config_labels_a_dump(tmp_path):
     write_dump(tmp_path / "data")
-    sample = _label_in_process(tmp_path / "labels", "dataset=zeroflow_av2", f"dataset.root={tmp_path / 'data'}",
-                               "split=val")
+    sample = _label_in_process(
+        tmp_path / "labels", "dataset=zeroflow_av2", f"dataset.root={tmp_path / 'data'}", "split=val"
+    )
     arrays = dump_arrays()
     assert sample["sample_id"] == f"{LOG}/000007" and sample["pc0"].shape == sample["pc1"].shape == (250, 3)
     np.testing.assert_array_equal(sample["pc0"], arrays["pc1"][:250])

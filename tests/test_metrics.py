@@ -27,10 +27,10 @@ def _case():
     pc0 = np.array([[1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0], [40, 0, 0]], np.float32)
     gt = np.array([[1.0, 0, 0], [0, 0, 0], [0, 0, 0], [2.0, 0, 0], [0, 0, 0]], np.float32)
     pred = gt.copy()
-    pred[0, 0] += 0.06    # dynamic fg: EPE 0.06, rel 6 %: not AccS, AccR, no outlier
-    pred[1, 1] += 0.049   # static fg: EPE 0.049: AccS, AccR, outlier (rel huge)
-    pred[2, 2] += 0.5     # static bg: EPE 0.5: outlier
-    pred[3, 0] += 0.25    # dynamic bg (class 0): only in overall; EPE 0.25 rel 12.5 % -> outlier
+    pred[0, 0] += 0.06  # dynamic fg: EPE 0.06, rel 6 %: not AccS, AccR, no outlier
+    pred[1, 1] += 0.049  # static fg: EPE 0.049: AccS, AccR, outlier (rel huge)
+    pred[2, 2] += 0.5  # static bg: EPE 0.5: outlier
+    pred[3, 0] += 0.25  # dynamic bg (class 0): only in overall; EPE 0.25 rel 12.5 % -> outlier
     classes = np.array([1, 2, 0, 0, 0], np.int32)
     return pc0, pred, gt, classes
 
@@ -109,12 +109,18 @@ def _random_av2(n=6000, seed=0):
 
 def _package_results(evaluator, frames):
     from bucketed_scene_flow_eval.datastructures import PointCloud
+
     for pc0, pred, gt, ego, classes, ground in frames:
         keep = ~ground
         e = ego_flow(pc0, ego)
-        evaluator.eval_frame_results.append(evaluator._build_eval_frame_results(
-            PointCloud(pc0[keep].astype(np.float64)), (classes[keep] - 1).astype(np.int8),
-            (gt - e)[keep].astype(np.float64), (pred - e)[keep].astype(np.float64)))
+        evaluator.eval_frame_results.append(
+            evaluator._build_eval_frame_results(
+                PointCloud(pc0[keep].astype(np.float64)),
+                (classes[keep] - 1).astype(np.int8),
+                (gt - e)[keep].astype(np.float64),
+                (pred - e)[keep].astype(np.float64),
+            )
+        )
     return evaluator.compute_results(save_results=False)
 
 
@@ -135,21 +141,29 @@ def test_parity_with_bucketed_scene_flow_eval(tmp_path):
 
     frames = [_random_av2(seed=s) for s in range(3)]
     ours = sum(av2_bucket_stats(*f[:5], ground=f[5]) for f in frames)
-    evaluator = BucketedEPEEvaluator(CATEGORY_MAP, output_path=tmp_path / "b",
-                                     meta_class_lookup=BUCKETED_METACATAGORIES)
+    evaluator = BucketedEPEEvaluator(
+        CATEGORY_MAP, output_path=tmp_path / "b", meta_class_lookup=BUCKETED_METACATAGORIES
+    )
     ref = _package_results(evaluator, frames)
     mine = bucketed_epe(ours)
     for meta in META_CLASSES:
         np.testing.assert_allclose(mine["per_class"][meta], ref[meta], atol=1e-6, rtol=0)
     np.testing.assert_allclose(mine["mean"], _package_mean(evaluator), atol=1e-6, rtol=0)
-    ours3 = sum(av2_bucket_stats(*f[:5], ground=f[5], class_to_meta=THREEWAY_META, edges=THREEWAY_EDGES,
-                                 metas=("BACKGROUND", "FOREGROUND")) for f in frames)
-    ref3 = _package_results(ThreeWayEPEEvaluator(CATEGORY_MAP, THREEWAY_EPE_METACATAGORIES,
-                                                 output_path=tmp_path / "t"), frames)
+    ours3 = sum(
+        av2_bucket_stats(
+            *f[:5], ground=f[5], class_to_meta=THREEWAY_META, edges=THREEWAY_EDGES, metas=("BACKGROUND", "FOREGROUND")
+        )
+        for f in frames
+    )
+    ref3 = _package_results(
+        ThreeWayEPEEvaluator(CATEGORY_MAP, THREEWAY_EPE_METACATAGORIES, output_path=tmp_path / "t"), frames
+    )
     three = threeway_epe(ours3)
-    np.testing.assert_allclose([three["background_static"], three["foreground_static"],
-                                three["foreground_dynamic"]],
-                               [ref3["BACKGROUND"][0], ref3["FOREGROUND"][0], ref3["FOREGROUND"][1]], atol=1e-6)
+    np.testing.assert_allclose(
+        [three["background_static"], three["foreground_static"], three["foreground_dynamic"]],
+        [ref3["BACKGROUND"][0], ref3["FOREGROUND"][0], ref3["FOREGROUND"][1]],
+        atol=1e-6,
+    )
 
 
 def test_bucketed_hand_case():
@@ -165,23 +179,46 @@ def test_bucketed_hand_case():
     assert result["per_class"]["BACKGROUND"][0] == pytest.approx(0.2)
     assert np.isnan(result["per_class"]["BACKGROUND"][1]) and np.isnan(result["per_class"]["PEDESTRIAN"][0])
     assert result["mean"] == pytest.approx((0.15, 0.5))
-    three = threeway_epe(av2_bucket_stats(pc0, pred, gt, I4, classes, class_to_meta=THREEWAY_META,
-                                          edges=THREEWAY_EDGES, metas=("BACKGROUND", "FOREGROUND")))
-    assert three == pytest.approx({"foreground_dynamic": 0.5, "foreground_static": 0.1,
-                                   "background_static": 0.2, "threeway": 0.8 / 3})
+    three = threeway_epe(
+        av2_bucket_stats(
+            pc0,
+            pred,
+            gt,
+            I4,
+            classes,
+            class_to_meta=THREEWAY_META,
+            edges=THREEWAY_EDGES,
+            metas=("BACKGROUND", "FOREGROUND"),
+        )
+    )
+    assert three == pytest.approx(
+        {"foreground_dynamic": 0.5, "foreground_static": 0.1, "background_static": 0.2, "threeway": 0.8 / 3}
+    )
 
 
 def test_meta_mapping_matches_package():
     pytest.importorskip("bucketed_scene_flow_eval", reason="bucketed-scene-flow-eval not installed")
     from bucketed_scene_flow_eval.datasets.argoverse2.argoverse_scene_flow import CATEGORY_MAP
     from bucketed_scene_flow_eval.datasets.argoverse2.av2_metacategories import BUCKETED_METACATAGORIES
-    theirs = {cid + 1: meta for meta, names in BUCKETED_METACATAGORIES.items()
-              for cid, name in CATEGORY_MAP.items() if name in names}
+
+    theirs = {
+        cid + 1: meta
+        for meta, names in BUCKETED_METACATAGORIES.items()
+        for cid, name in CATEGORY_MAP.items()
+        if name in names
+    }
     assert theirs == AV2_META
 
 
-AV2_LOG = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "av2" / "sensor" / "val" / \
-    "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+AV2_LOG = (
+    Path(__file__).resolve().parents[1].parent
+    / "shared"
+    / "data"
+    / "av2"
+    / "sensor"
+    / "val"
+    / "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+)
 
 
 def test_parity_on_real_av2_pair(tmp_path):
@@ -204,18 +241,29 @@ def test_parity_on_real_av2_pair(tmp_path):
     classes = labels["classes"].to_numpy(np.int32)
     ground = labels["is_ground_0"].to_numpy(bool)
     frame = (pc0, ego_flow(pc0, ego), gt, ego, classes, ground)  # ego flow as the prediction
-    evaluator = BucketedEPEEvaluator(CATEGORY_MAP, output_path=tmp_path / "b",
-                                     meta_class_lookup=BUCKETED_METACATAGORIES)
+    evaluator = BucketedEPEEvaluator(
+        CATEGORY_MAP, output_path=tmp_path / "b", meta_class_lookup=BUCKETED_METACATAGORIES
+    )
     ref = _package_results(evaluator, [frame])
     mine = bucketed_epe(av2_bucket_stats(*frame[:5], ground=ground))
     assert mine["per_class"]["CAR"][1] > 0.5  # moving cars: ego flow misses their motion
     for meta in META_CLASSES:
         np.testing.assert_allclose(mine["per_class"][meta], ref[meta], atol=1e-6, rtol=0)
     np.testing.assert_allclose(mine["mean"], _package_mean(evaluator), atol=1e-6, rtol=0)
-    ref3 = _package_results(ThreeWayEPEEvaluator(CATEGORY_MAP, THREEWAY_EPE_METACATAGORIES,
-                                                 output_path=tmp_path / "t"), [frame])
-    three = threeway_epe(av2_bucket_stats(*frame[:5], ground=ground, class_to_meta=THREEWAY_META,
-                                          edges=THREEWAY_EDGES, metas=("BACKGROUND", "FOREGROUND")))
-    np.testing.assert_allclose([three["background_static"], three["foreground_static"],
-                                three["foreground_dynamic"]],
-                               [ref3["BACKGROUND"][0], ref3["FOREGROUND"][0], ref3["FOREGROUND"][1]], atol=1e-6)
+    ref3 = _package_results(
+        ThreeWayEPEEvaluator(CATEGORY_MAP, THREEWAY_EPE_METACATAGORIES, output_path=tmp_path / "t"), [frame]
+    )
+    three = threeway_epe(
+        av2_bucket_stats(
+            *frame[:5],
+            ground=ground,
+            class_to_meta=THREEWAY_META,
+            edges=THREEWAY_EDGES,
+            metas=("BACKGROUND", "FOREGROUND"),
+        )
+    )
+    np.testing.assert_allclose(
+        [three["background_static"], three["foreground_static"], three["foreground_dynamic"]],
+        [ref3["BACKGROUND"][0], ref3["FOREGROUND"][0], ref3["FOREGROUND"][1]],
+        atol=1e-6,
+    )

@@ -10,8 +10,15 @@ from fastflow3d.schedules import warmup_cosine, warmup_multistep
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import full_to_residual, transform_points
 
-SMALL = {"x_range": (-16.0, 16.0), "y_range": (-16.0, 16.0), "z_range": (-3.0, 3.0), "cell": 1.0,
-         "pillar_channels": 16, "stage_channels": (16, 32, 64), "stage_blocks": (1, 1, 1)}
+SMALL = {
+    "x_range": (-16.0, 16.0),
+    "y_range": (-16.0, 16.0),
+    "z_range": (-3.0, 3.0),
+    "cell": 1.0,
+    "pillar_channels": 16,
+    "stage_channels": (16, 32, 64),
+    "stage_blocks": (1, 1, 1),
+}
 
 
 def _lrs(make, total: int) -> list[float]:
@@ -47,14 +54,26 @@ def test_warmup_multistep_milestones_are_fractions_of_the_run():
 @pytest.fixture(scope="module")
 def sample():
     """A shard-like numpy sample (pseudo flow = ground truth) from the synthetic world, with moving objects."""
-    pair = SyntheticDataset(split="train", num_sequences=1, frames_per_sequence=2, beams=32,
-                            azimuth_resolution_deg=1.0).pair(0)
+    pair = SyntheticDataset(
+        split="train", num_sequences=1, frames_per_sequence=2, beams=32, azimuth_resolution_deg=1.0
+    ).pair(0)
     assert pair.dynamic.any()
     n0 = len(pair.pc0)
-    return {"pc0": pair.pc0, "pc1": pair.pc1, "ego1_from_ego0": pair.ego1_from_ego0, "flow": pair.flow,
-            "gt_flow": pair.flow, "gt_flow_valid": pair.flow_valid, "gt_classes": pair.classes,
-            "ground0": pair.ground0, "ground1": pair.ground1, "confidence": np.linspace(0, 1, n0, dtype=np.float32),
-            "cluster": np.arange(n0, dtype=np.int32), "dt": pair.dt, "sample_id": pair.sample_id}
+    return {
+        "pc0": pair.pc0,
+        "pc1": pair.pc1,
+        "ego1_from_ego0": pair.ego1_from_ego0,
+        "flow": pair.flow,
+        "gt_flow": pair.flow,
+        "gt_flow_valid": pair.flow_valid,
+        "gt_classes": pair.classes,
+        "ground0": pair.ground0,
+        "ground1": pair.ground1,
+        "confidence": np.linspace(0, 1, n0, dtype=np.float32),
+        "cluster": np.arange(n0, dtype=np.int32),
+        "dt": pair.dt,
+        "sample_id": pair.sample_id,
+    }
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -62,11 +81,11 @@ def test_augmentation_moves_scans_flows_and_ego_motion_together(sample, seed):
     """After a random yaw / mirror / height shift, pc0 + flow is still each point's position at t + dt in the
     (transformed) ego frame of t + dt, the ego motion is a proper rigid transform, static points (residual 0) stay
     static and the residual flow is the rotated residual."""
-    transform = Augmentation(yaw_deg=180.0, flip=True, height_shift=0.3, keep_min=1.0).draw(
-        np.random.default_rng(seed))
+    transform = Augmentation(yaw_deg=180.0, flip=True, height_shift=0.3, keep_min=1.0).draw(np.random.default_rng(seed))
     moved = transform_sample(sample, transform)
-    np.testing.assert_allclose(moved["pc0"] + moved["flow"],
-                               transform_points(transform, sample["pc0"] + sample["flow"]), atol=2e-4)
+    np.testing.assert_allclose(
+        moved["pc0"] + moved["flow"], transform_points(transform, sample["pc0"] + sample["flow"]), atol=2e-4
+    )
     np.testing.assert_allclose(moved["pc1"], transform_points(transform, sample["pc1"]), atol=1e-4)
     ego = moved["ego1_from_ego0"]
     assert np.linalg.det(ego[:3, :3]) == pytest.approx(1.0) and np.allclose(ego[:3, :3] @ ego[:3, :3].T, np.eye(3))
@@ -103,13 +122,23 @@ def test_training_dataset_augments_and_validation_does_not(tmp_path, sample):
     from fastflow3d.data import StudentDataset
     from icpflow.shards.writer import write_index, write_shard
 
-    stored = {key: sample[key] for key in ("pc0", "pc1", "ego1_from_ego0", "flow", "ground0", "ground1",
-                                           "confidence", "cluster")}
-    stored["attrs"] = {"sample_id": "s", "log_id": "l", "index": 0, "timestamp0_ns": -1, "timestamp1_ns": -1,
-                       "dt": sample["dt"]}
+    stored = {
+        key: sample[key]
+        for key in ("pc0", "pc1", "ego1_from_ego0", "flow", "ground0", "ground1", "confidence", "cluster")
+    }
+    stored["attrs"] = {
+        "sample_id": "s",
+        "log_id": "l",
+        "index": 0,
+        "timestamp0_ns": -1,
+        "timestamp1_ns": -1,
+        "dt": sample["dt"],
+    }
     write_shard(tmp_path / "shard_000000.h5", [stored], "{}", "test")
-    write_index(tmp_path / "index.json", {"config_hash": "test", "shards": [
-        {"file": "shard_000000.h5", "samples": [{"sample_id": "s", "index": 0}]}]})
+    write_index(
+        tmp_path / "index.json",
+        {"config_hash": "test", "shards": [{"file": "shard_000000.h5", "samples": [{"sample_id": "s", "index": 0}]}]},
+    )
     plain = StudentDataset(tmp_path)
     assert torch.equal(plain[0]["pc0"], plain[0]["pc0"])
     augmented = StudentDataset(tmp_path, Augmentation())

@@ -25,26 +25,55 @@ def _sample(seed: int, n0: int, n1: int, gt: bool) -> dict:
         "flow": rng.normal(size=(n0, 3)).astype(np.float32),
         "confidence": rng.random(n0).astype(np.float32),
         "cluster": rng.integers(-1, 5, n0).astype(np.int32),
-        "attrs": {"sample_id": f"log/{seed:06d}", "log_id": "log", "index": seed, "timestamp0_ns": 1000 * seed,
-                  "timestamp1_ns": 1000 * seed + 100, "dt": 0.1},
+        "attrs": {
+            "sample_id": f"log/{seed:06d}",
+            "log_id": "log",
+            "index": seed,
+            "timestamp0_ns": 1000 * seed,
+            "timestamp1_ns": 1000 * seed + 100,
+            "dt": 0.1,
+        },
     }
     if gt:
-        sample.update(gt_flow=rng.normal(size=(n0, 3)).astype(np.float32), gt_flow_valid=np.ones(n0, bool),
-                      gt_classes=rng.integers(0, 3, n0).astype(np.int32), gt_dynamic=rng.random(n0) < 0.2)
+        sample.update(
+            gt_flow=rng.normal(size=(n0, 3)).astype(np.float32),
+            gt_flow_valid=np.ones(n0, bool),
+            gt_classes=rng.integers(0, 3, n0).astype(np.int32),
+            gt_dynamic=rng.random(n0) < 0.2,
+        )
     return sample
 
 
 @pytest.fixture
 def written(tmp_path):
     """Two shards (3 + 1 samples, the second without ground truth) and their index."""
-    shards = {"shard_000000.h5": [_sample(i, 50 + i, 40 + i, True) for i in range(3)],
-              "shard_000001.h5": [_sample(3, 7, 9, False)]}
+    shards = {
+        "shard_000000.h5": [_sample(i, 50 + i, 40 + i, True) for i in range(3)],
+        "shard_000001.h5": [_sample(3, 7, 9, False)],
+    }
     for name, samples in shards.items():
         write_shard(tmp_path / name, samples, "teacher: {speed: 1.0}\n", "abc123", "gzip")
-    write_index(tmp_path / "index.json", {"config_hash": "abc123", "shards": [
-        {"file": name, "samples": [{"sample_id": s["attrs"]["sample_id"], "index": s["attrs"]["index"],
-                                    "n0": len(s["pc0"]), "n1": len(s["pc1"])} for s in samples]}
-        for name, samples in shards.items()]})
+    write_index(
+        tmp_path / "index.json",
+        {
+            "config_hash": "abc123",
+            "shards": [
+                {
+                    "file": name,
+                    "samples": [
+                        {
+                            "sample_id": s["attrs"]["sample_id"],
+                            "index": s["attrs"]["index"],
+                            "n0": len(s["pc0"]),
+                            "n1": len(s["pc1"]),
+                        }
+                        for s in samples
+                    ],
+                }
+                for name, samples in shards.items()
+            ],
+        },
+    )
     return tmp_path, [s for samples in shards.values() for s in samples]
 
 

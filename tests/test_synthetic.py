@@ -36,8 +36,10 @@ def test_same_seed_same_arrays_other_seed_differs():
 
 
 def test_splits_are_disjoint_and_reproducible():
-    seeds = {split: {SyntheticDataset(split, num_sequences=50).sequence_seed(i) for i in range(50)}
-             for split in ("train", "val", "test")}
+    seeds = {
+        split: {SyntheticDataset(split, num_sequences=50).sequence_seed(i) for i in range(50)}
+        for split in ("train", "val", "test")
+    }
     assert not (seeds["train"] & seeds["val"]) and not (seeds["val"] & seeds["test"])
     assert not (seeds["train"] & seeds["test"])
     with pytest.raises(ValueError, match="split"):
@@ -159,6 +161,7 @@ def test_range_noise_moves_points_along_their_rays():
     common, i, j = np.intersect1d(ray_clean, ray_noisy, return_indices=True)
     assert len(common) == len(noisy.range) and 0.95 < len(noisy.range) / len(clean.range) < 0.99  # 3 % dropout
     assert 0.017 < np.std(noisy.range[j] - clean.range[i]) < 0.023
+
     def unit(points):
         rays = points - [0.0, 0.0, SMALL.height]
         return rays / np.linalg.norm(rays, axis=1, keepdims=True)
@@ -199,8 +202,11 @@ def test_scenes_have_the_asked_for_variety():
         assert (s.kind[static] == 2).any() and (s.kind[static] == 1).any()  # canopies and bushes; poles and trunks
     classes = np.concatenate([s.owner_class for s in scenes])
     assert set(classes) == {0, 1, 2, 3, 4}
-    lengths = [2 * (np.abs(s.local[s.owner == o, 0, 3]) + s.size[s.owner == o, 0]).max()  # footprint length
-               for s in scenes for o in np.flatnonzero(s.owner_class == 2)]
+    lengths = [
+        2 * (np.abs(s.local[s.owner == o, 0, 3]) + s.size[s.owner == o, 0]).max()  # footprint length
+        for s in scenes
+        for o in np.flatnonzero(s.owner_class == 2)
+    ]
     assert 10.0 <= max(lengths) <= 12.0  # buses up to 12 m
 
 
@@ -210,8 +216,9 @@ def test_dataset_indexing_lazy_and_picklable():
     assert data.sample_id(3) == "synthetic-test-2000001-16b/000001+1" and data._cached is None
     pair = data.pair(3)
     assert pair.sample_id == data.sample_id(3) and pair.dt == pytest.approx(0.1)
-    longer = SyntheticDataset("test", num_sequences=2, frames_per_sequence=3, beams=16, azimuth_resolution_deg=1.0,
-                              max_horizon=2)
+    longer = SyntheticDataset(
+        "test", num_sequences=2, frames_per_sequence=3, beams=16, azimuth_resolution_deg=1.0, max_horizon=2
+    )
     assert len(longer) == 2 and longer.pair(1, horizon=2).sample_id == "synthetic-test-2000001-16b/000000+2"
     copy = pickle.loads(pickle.dumps(data))
     assert copy._cached is None and np.array_equal(copy.pair(3).pc0, pair.pc0)

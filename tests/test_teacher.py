@@ -46,7 +46,12 @@ def test_presets_follow_the_reference():
     av2, waymo, nus = (ICPFlowConfig.preset(n) for n in ("av2", "waymo", "nuscenes"))
     assert (av2.speed, av2.crop_xy, av2.min_cluster_size, av2.max_error, av2.range_z) == (1.0, 51.2, 20, 0.2, -10000.0)
     assert (waymo.speed, waymo.crop_xy, waymo.min_cluster_size, waymo.max_error, waymo.range_z) == (
-        1.67, 32.0, 30, 0.3, 0.04)
+        1.67,
+        32.0,
+        30,
+        0.3,
+        0.04,
+    )
     assert (nus.range_z, nus.max_points, nus.max_error, nus.min_cluster_size) == (-1.84, 5000, 0.2, 20)
     assert waymo.window(0.5, k=1) == pytest.approx(3.34) and waymo.window(5.0, k=2) == pytest.approx(10.0)
     assert ICPFlowConfig.preset("av2", init="centroid").init == "centroid"
@@ -55,8 +60,13 @@ def test_presets_follow_the_reference():
 
 @pytest.mark.parametrize(
     "overrides, words",
-    [({"ground": "x"}, "ground="), ({"min_cluster_size": 0}, "min_cluster_size"), ({"nms_kernel": 10}, "odd"),
-     ({"max_error": -1.0}, "max_error"), ({"bogus": 1}, "unknown field")],
+    [
+        ({"ground": "x"}, "ground="),
+        ({"min_cluster_size": 0}, "min_cluster_size"),
+        ({"nms_kernel": 10}, "odd"),
+        ({"max_error": -1.0}, "max_error"),
+        ({"bogus": 1}, "unknown field"),
+    ],
 )
 def test_config_validation_is_one_line(overrides, words):
     with pytest.raises(ValueError, match=words) as info:
@@ -87,8 +97,10 @@ def test_hydra_group_null_means_preset():
 
 
 def test_lazy_export_keeps_import_light():
-    code = ("import sys, icpflow; assert 'icpflow.teacher' not in sys.modules; "
-            "from icpflow import ICPFlow, ICPFlowConfig; print(ICPFlow.__name__)")
+    code = (
+        "import sys, icpflow; assert 'icpflow.teacher' not in sys.modules; "
+        "from icpflow import ICPFlow, ICPFlowConfig; print(ICPFlow.__name__)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(__file__).parents[1])
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ICPFlow"
@@ -103,10 +115,13 @@ def test_ground_zthreshold_and_none():
     assert not GroundSegmenter(CFG.replace(ground="none"))(points).any()
 
 
-@pytest.mark.parametrize("cfg, ground_z", [
-    (ICPFlowConfig(ground="patchwork"), -1.723),  # sensor frame: the ground 1.723 m below the lidar
-    (CFG.replace(ground="patchwork"), 0.0),  # Waymo vehicle frame: the ground at z = 0 (patchwork_z_offset)
-])
+@pytest.mark.parametrize(
+    "cfg, ground_z",
+    [
+        (ICPFlowConfig(ground="patchwork"), -1.723),  # sensor frame: the ground 1.723 m below the lidar
+        (CFG.replace(ground="patchwork"), 0.0),  # Waymo vehicle frame: the ground at z = 0 (patchwork_z_offset)
+    ],
+)
 def test_patchwork_finds_a_flat_ground(cfg, ground_z):
     rng = np.random.default_rng(0)
     radius, angle = rng.uniform(3, 30, 20000), rng.uniform(-np.pi, np.pi, 20000)
@@ -213,8 +228,9 @@ def test_stage2_pairs_far_moving_box():
 
 def test_torch_backend_agrees_with_cpu(moving_scene):
     s = moving_scene
-    cpu, batched = (ICPFlow(CFG.replace(max_points=1000, icp_backend=b))(s["pc0"], s["pc1"], s["ego"])
-                    for b in ("cpu", "torch"))
+    cpu, batched = (
+        ICPFlow(CFG.replace(max_points=1000, icp_backend=b))(s["pc0"], s["pc1"], s["ego"]) for b in ("cpu", "torch")
+    )
     np.testing.assert_array_equal(cpu.pairs, batched.pairs)
     assert np.abs(cpu.flow - batched.flow).max() < 0.01
 
@@ -287,8 +303,12 @@ def test_nan_rows_are_dropped_and_counted(teacher, moving_scene, result):
 
 @pytest.mark.parametrize(
     "kwargs, words",
-    [({"ego1_from_ego0": np.diag([2.0, 1, 1, 1])}, "not rigid"), ({"ego1_from_ego0": np.eye(3)}, "shape"),
-     ({"ground0": np.zeros(5, bool)}, "ground0"), ({"gap": 9}, "gap")],
+    [
+        ({"ego1_from_ego0": np.diag([2.0, 1, 1, 1])}, "not rigid"),
+        ({"ego1_from_ego0": np.eye(3)}, "shape"),
+        ({"ground0": np.zeros(5, bool)}, "ground0"),
+        ({"gap": 9}, "gap"),
+    ],
 )
 def test_bad_arguments_are_one_line_errors(teacher, moving_scene, kwargs, words):
     s = moving_scene
@@ -305,10 +325,15 @@ def test_wrong_point_shape(teacher, moving_scene):
         teacher(moving_scene["pc0"].T, moving_scene["pc1"], EGO)
 
 
-@pytest.mark.parametrize("mode, passed, estimated", [
-    ("given", True, False), ("given", False, True),  # a transform passed in is used; none: KISS-ICP
-    ("kiss_icp", True, True), ("kiss_icp", False, True),  # the ablation: always estimated
-])
+@pytest.mark.parametrize(
+    "mode, passed, estimated",
+    [
+        ("given", True, False),
+        ("given", False, True),  # a transform passed in is used; none: KISS-ICP
+        ("kiss_icp", True, True),
+        ("kiss_icp", False, True),  # the ablation: always estimated
+    ],
+)
 def test_ego_motion_switch(monkeypatch, moving_scene, mode, passed, estimated):
     s = moving_scene
     guess = make_transform(yaw=0.002, translation=(0.55, 0.01, 0.0))

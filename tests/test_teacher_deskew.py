@@ -92,16 +92,22 @@ def test_without_times_or_deskew_nothing_changes(shutter, results):
 
 @pytest.mark.parametrize(
     "kwargs, words",
-    [(dict(time0="pc0", time1="pc1"), "needs time0, time1 and dt"),
-     (dict(time0="pc0", dt=DT), "needs time0, time1 and dt"),
-     (dict(time0="pc0", time1="pc1", dt=0.0), "dt must be a positive"),
-     (dict(time0="short", time1="pc1", dt=DT), r"time0 must have shape"),
-     (dict(time0="nan", time1="pc1", dt=DT), "time0 must hold finite float seconds")],
+    [
+        (dict(time0="pc0", time1="pc1"), "needs time0, time1 and dt"),
+        (dict(time0="pc0", dt=DT), "needs time0, time1 and dt"),
+        (dict(time0="pc0", time1="pc1", dt=0.0), "dt must be a positive"),
+        (dict(time0="short", time1="pc1", dt=DT), r"time0 must have shape"),
+        (dict(time0="nan", time1="pc1", dt=DT), "time0 must hold finite float seconds"),
+    ],
 )
 def test_bad_times_raise_one_line(shutter, kwargs, words):
     s = shutter
-    values = {"pc0": s["time0"], "pc1": s["time1"], "short": s["time0"][:-1],
-              "nan": np.full(len(s["time0"]), np.nan, np.float32)}
+    values = {
+        "pc0": s["time0"],
+        "pc1": s["time1"],
+        "short": s["time0"][:-1],
+        "nan": np.full(len(s["time0"]), np.nan, np.float32),
+    }
     kwargs = {k: values[v] if isinstance(v, str) else v for k, v in kwargs.items()}
     with pytest.raises(ValueError, match=words) as info:
         ICPFlow(CFG.replace(deskew=True))(s["pc0"], s["pc1"], EGO, **kwargs)

@@ -88,8 +88,10 @@ def test_histogram_zero_candidate_for_static_cluster():
 
 
 def test_histogram_batch_matches_single_calls_and_is_deterministic():
-    pairs = [(_box_surface(500 + 50 * k, seed=k), _box_surface(450, seed=k + 10) + np.float32([k * 0.4, 0, 0]))
-             for k in range(4)]
+    pairs = [
+        (_box_surface(500 + 50 * k, seed=k), _box_surface(450, seed=k + 10) + np.float32([k * 0.4, 0, 0]))
+        for k in range(4)
+    ]
     batch, batch_scores = initial_translations(pairs, np.full(4, 3.0), HIST)
     for k, pair in enumerate(pairs):
         single, score = initial_translations([pair], [3.0], HIST)
@@ -287,8 +289,12 @@ def test_static_pairs_keep_the_identity_when_a_slide_fits_barely_better():
     # A 6 m x 3 m wall sampled at random by two scans: a 0.1 m slide along it fits about as well as no motion.
     # A car that moved 0.3 m fits far worse at the identity than at its motion.
     rng = np.random.default_rng(0)
-    wall0, wall1 = (np.column_stack([rng.uniform(0, 6, 2000), rng.normal(0, 0.01, 2000), rng.uniform(0, 3, 2000)])
-                    .astype(np.float32) for _ in range(2))
+    wall0, wall1 = (
+        np.column_stack([rng.uniform(0, 6, 2000), rng.normal(0, 0.01, 2000), rng.uniform(0, 3, 2000)]).astype(
+            np.float32
+        )
+        for _ in range(2)
+    )
     car = _box_surface(600, seed=3)
     motion = make_transform(translation=(0.3, 0.1, 0.0))
     moved = _noisy(transform_points(motion, car), 0.01, 4)

@@ -56,8 +56,9 @@ def av2_pair():
 @pytest.fixture(scope="module")
 def av2_result(av2_pair):
     p = av2_pair  # with the sweeps' per-point times, so the preset's de-skew step runs
-    return ICPFlow(ICPFlowConfig.preset("av2"))(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1, p.time0,
-                                                p.time1, dt=p.dt)
+    return ICPFlow(ICPFlowConfig.preset("av2"))(
+        p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1, p.time0, p.time1, dt=p.dt
+    )
 
 
 @pytest.mark.slow
@@ -67,8 +68,9 @@ def test_av2_flow_beats_zero_flow_and_is_repeatable(av2_pair, av2_result):
     zero = np.linalg.norm(ego_flow(p.pc0, p.ego1_from_ego0) - p.flow, axis=1)
     assert zero[p.dynamic].mean() == pytest.approx(0.664, abs=0.002)  # the zero-flow baseline
     assert error[~p.dynamic].mean() < 0.03
-    again = ICPFlow(ICPFlowConfig.preset("av2"))(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1, p.time0,
-                                                 p.time1, dt=p.dt)
+    again = ICPFlow(ICPFlowConfig.preset("av2"))(
+        p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1, p.time0, p.time1, dt=p.dt
+    )
     np.testing.assert_array_equal(again.flow, av2_result.flow)  # same input, same output
     np.testing.assert_array_equal(again.confidence, av2_result.confidence)
 

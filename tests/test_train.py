@@ -32,9 +32,18 @@ REPO = Path(__file__).resolve().parents[1]
 CONF = REPO / "conf"
 GROUPS = ("data", "model", "trainer", "logger", "callbacks", "optim", "scheduler", "experiment")
 # 32 x 32 pillars of 1 m and narrow encoders: a training step takes milliseconds
-TINY = ["model.x_range=[-16.0,16.0]", "model.y_range=[-16.0,16.0]", "model.cell=1.0", "model.pillar_channels=16",
-        "model.stage_channels=[16,32,64]", "data.workers=0", "trainer.log_every_n_steps=1",
-        "+trainer.enable_progress_bar=false", "+trainer.enable_model_summary=false", "export.formats=[]"]
+TINY = [
+    "model.x_range=[-16.0,16.0]",
+    "model.y_range=[-16.0,16.0]",
+    "model.cell=1.0",
+    "model.pillar_channels=16",
+    "model.stage_channels=[16,32,64]",
+    "data.workers=0",
+    "trainer.log_every_n_steps=1",
+    "+trainer.enable_progress_bar=false",
+    "+trainer.enable_model_summary=false",
+    "export.formats=[]",
+]
 XL_PARAMETERS = 110_618_147  # FastFlow3D XL (conf/model/fastflow3d_xl.yaml), any grid
 # the teacher that "labelled" the test shards (the synthetic dataset's: conf/dataset/synthetic.yaml)
 TEACHER = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
@@ -51,6 +60,7 @@ def _options(group: str) -> list[str]:
 
 # ---------------------------------------------------------------------------------------------------- configs
 
+
 @pytest.mark.parametrize("group,option", [(g, o) for g in GROUPS for o in _options(g)])
 def test_every_config_composes(group, option, tmp_path):
     cfg = _compose(f"{group}={option}", f"out_dir={tmp_path}")
@@ -64,8 +74,9 @@ def test_every_config_composes(group, option, tmp_path):
     assert plain["model"]["_target_"] == "fastflow3d.model.FastFlow3D"
     assert set(plain["model"]) - {"_target_"} <= model_args
     callbacks = [instantiate(c) for c in cfg.callbacks.values()]
-    assert any(isinstance(c, L.pytorch.callbacks.ModelCheckpoint) and c.monitor == "val/dynamic_fg/EPE"
-               for c in callbacks)
+    assert any(
+        isinstance(c, L.pytorch.callbacks.ModelCheckpoint) and c.monitor == "val/dynamic_fg/EPE" for c in callbacks
+    )
     assert str(Path(cfg.checkpoint_dir).parent) == str(tmp_path)
     assert isinstance(instantiate(cfg.logger), L.pytorch.loggers.TensorBoardLogger)
     # optimiser and schedule are partials: optim(params), scheduler(optimiser, total_steps=...)
@@ -100,14 +111,21 @@ def test_xl_config_is_zeroflows_and_runs_forward_and_backward():
     model = build_student({**xl, "x_range": [-3.2, 3.2], "y_range": [-3.2, 3.2]})
     assert model.embedder.linear.out_features == 64
     assert [[block[0].out_channels for block in stage] for stage in model.unet.encoder] == [
-        [128] * 4, [256] * 6, [512] * 6, [1024] * 6]
-    assert [(step.low.in_channels, step.low.out_channels, step.fuse[1].out_channels)
-            for step in model.unet.decoder] == [(2048, 1024, 1024), (1024, 512, 512), (512, 256, 256), (256, 128, 128)]
+        [128] * 4,
+        [256] * 6,
+        [512] * 6,
+        [1024] * 6,
+    ]
+    assert [
+        (step.low.in_channels, step.low.out_channels, step.fuse[1].out_channels) for step in model.unet.decoder
+    ] == [(2048, 1024, 1024), (1024, 512, 512), (512, 256, 256), (256, 128, 128)]
     assert model.unet.final.out_channels == 128 and model.head[0].in_features == 259
     assert sum(p.numel() for p in model.parameters()) == XL_PARAMETERS
     gen = torch.Generator().manual_seed(0)
-    pc0, pc1 = (torch.rand(3000, 3, generator=gen) * torch.tensor([8.0, 8.0, 4.0]) - torch.tensor([4.0, 4.0, 2.0])
-                for _ in range(2))
+    pc0, pc1 = (
+        torch.rand(3000, 3, generator=gen) * torch.tensor([8.0, 8.0, 4.0]) - torch.tensor([4.0, 4.0, 2.0])
+        for _ in range(2)
+    )
     batch = (torch.arange(3000) >= 1500).long()
     residual, valid = model(pc0, batch, pc1, batch, 2)
     assert residual.shape == (3000, 3) and 0 < valid.sum() < 3000 and torch.all(residual[~valid] == 0)
@@ -133,8 +151,14 @@ def test_experiment_recipes():
 
 # ---------------------------------------------------------------------------------------------------- tiny shards
 
-def _write_shards(out_dir: Path, pairs, with_gt: bool = True, noise: float = 0.0,
-                  config: str = OmegaConf.to_yaml({"split": "train", "teacher": TEACHER.to_dict()})) -> Path:
+
+def _write_shards(
+    out_dir: Path,
+    pairs,
+    with_gt: bool = True,
+    noise: float = 0.0,
+    config: str = OmegaConf.to_yaml({"split": "train", "teacher": TEACHER.to_dict()}),
+) -> Path:
     """Shards in the label.py layout whose pseudo-labels are the ground truth (plus Gaussian ``noise`` in m), with
     a labeller ``config`` attribute as label.py writes it."""
     rng = np.random.default_rng(0)
@@ -142,38 +166,53 @@ def _write_shards(out_dir: Path, pairs, with_gt: bool = True, noise: float = 0.0
     for index, pair in enumerate(pairs):
         foreground = pair.classes > 0
         sample = {
-            "pc0": pair.pc0, "pc1": pair.pc1, "ground0": pair.ground0, "ground1": pair.ground1,
+            "pc0": pair.pc0,
+            "pc1": pair.pc1,
+            "ground0": pair.ground0,
+            "ground1": pair.ground1,
             "ego1_from_ego0": pair.ego1_from_ego0,
             "flow": (pair.flow + rng.normal(0, noise, pair.flow.shape)).astype(np.float32),
             "confidence": np.where(pair.ground0, 0.0, 1.0).astype(np.float32),
             "cluster": np.where(foreground, 0, -1).astype(np.int32),
-            "attrs": {"sample_id": pair.sample_id, "log_id": pair.log_id, "index": index, "timestamp0_ns": -1,
-                      "timestamp1_ns": -1, "dt": pair.dt},
+            "attrs": {
+                "sample_id": pair.sample_id,
+                "log_id": pair.log_id,
+                "index": index,
+                "timestamp0_ns": -1,
+                "timestamp1_ns": -1,
+                "dt": pair.dt,
+            },
         }
         if with_gt:
-            sample.update(gt_flow=pair.flow, gt_flow_valid=pair.flow_valid, gt_classes=pair.classes,
-                          gt_dynamic=pair.dynamic)
+            sample.update(
+                gt_flow=pair.flow, gt_flow_valid=pair.flow_valid, gt_classes=pair.classes, gt_dynamic=pair.dynamic
+            )
         samples.append(sample)
         records.append({"sample_id": pair.sample_id, "index": index, "n0": len(pair.pc0), "n1": len(pair.pc1)})
     out_dir.mkdir(parents=True)
     write_shard(out_dir / "shard_000000.h5", samples, config, "test")
-    write_index(out_dir / "index.json", {"config_hash": "test", "shards": [{"file": "shard_000000.h5",
-                                                                          "samples": records}]})
+    write_index(
+        out_dir / "index.json", {"config_hash": "test", "shards": [{"file": "shard_000000.h5", "samples": records}]}
+    )
     return out_dir
 
 
 @pytest.fixture(scope="module")
 def pairs():
-    dataset = SyntheticDataset(split="train", num_sequences=1, frames_per_sequence=3, beams=32,
-                               azimuth_resolution_deg=1.0)
+    dataset = SyntheticDataset(
+        split="train", num_sequences=1, frames_per_sequence=3, beams=32, azimuth_resolution_deg=1.0
+    )
     return [dataset.pair(i) for i in range(len(dataset))]
 
 
 @pytest.fixture(scope="module")
 def shards(pairs, tmp_path_factory):
     root = tmp_path_factory.mktemp("shards")
-    return {"gt": _write_shards(root / "gt", pairs), "pseudo": _write_shards(root / "pseudo", pairs[:1], False),
-            "one": _write_shards(root / "one", pairs[:1])}
+    return {
+        "gt": _write_shards(root / "gt", pairs),
+        "pseudo": _write_shards(root / "pseudo", pairs[:1], False),
+        "one": _write_shards(root / "one", pairs[:1]),
+    }
 
 
 def _cfg(tmp_path, train, val, *overrides):
@@ -181,6 +220,7 @@ def _cfg(tmp_path, train, val, *overrides):
 
 
 # ---------------------------------------------------------------------------------------------------- data
+
 
 def test_collate_flat_batch(shards, pairs):
     dataset = StudentDataset(shards["gt"])
@@ -190,8 +230,9 @@ def test_collate_flat_batch(shards, pairs):
     assert batch["batch0"].tolist() == [0] * n0[0] + [1] * n0[1]
     assert batch["pc1"].shape == (sum(len(p.pc1) for p in pairs[:2]), 3) and batch["ego1_from_ego0"].shape == (2, 4, 4)
     first = slice(0, n0[0])
-    np.testing.assert_allclose(batch["pc0_compensated"][first].numpy(),
-                               transform_points(pairs[0].ego1_from_ego0, pairs[0].pc0), atol=1e-5)
+    np.testing.assert_allclose(
+        batch["pc0_compensated"][first].numpy(), transform_points(pairs[0].ego1_from_ego0, pairs[0].pc0), atol=1e-5
+    )
     residual = pairs[0].flow - ego_flow(pairs[0].pc0, pairs[0].ego1_from_ego0)
     np.testing.assert_allclose(batch["pseudo"][first].numpy(), residual, atol=1e-5)
     np.testing.assert_allclose(batch["gt"][first].numpy(), residual, atol=1e-5)
@@ -203,12 +244,17 @@ def test_collate_flat_batch(shards, pairs):
 def test_loss_choice_and_per_sample_dt():
     cfg = OmegaConf.to_container(_compose(*TINY), resolve=True)
     pred = torch.zeros(4, 3)
-    batch = {"pseudo": torch.tensor([[0.05, 0, 0], [0.0, 0, 0], [0.05, 0, 0], [0, 0.0, 0]]),
-             "batch0": torch.tensor([0, 0, 1, 1]), "batch_size": 2,
-             "dt": torch.tensor([0.1, 0.05], dtype=torch.float64),
-             "confidence": torch.tensor([1.0, 1.0, 0.5, 0.0]), "gt": torch.tensor([[1.0, 0, 0]] * 4),
-             "gt_classes": torch.tensor([1, 0, 0, 0], dtype=torch.int32), "gt_valid": torch.ones(4, dtype=torch.bool),
-             "sample_id": ["a", "b"]}
+    batch = {
+        "pseudo": torch.tensor([[0.05, 0, 0], [0.0, 0, 0], [0.05, 0, 0], [0, 0.0, 0]]),
+        "batch0": torch.tensor([0, 0, 1, 1]),
+        "batch_size": 2,
+        "dt": torch.tensor([0.1, 0.05], dtype=torch.float64),
+        "confidence": torch.tensor([1.0, 1.0, 0.5, 0.0]),
+        "gt": torch.tensor([[1.0, 0, 0]] * 4),
+        "gt_classes": torch.tensor([1, 0, 0, 0], dtype=torch.int32),
+        "gt_valid": torch.ones(4, dtype=torch.bool),
+        "sample_id": ["a", "b"],
+    }
     valid = torch.ones(4, dtype=torch.bool)
 
     def loss(**options):
@@ -222,7 +268,8 @@ def test_loss_choice_and_per_sample_dt():
     assert loss(weighting="buckets") == pytest.approx((0.05 + 0.05) / 2)
     # supervised: background weighs background_weight; all errors are 1
     assert loss(name="supervised", weighting="uniform", background_weight=0.1) == pytest.approx(
-        ((1 + 0.1) / 2 + (0.1 + 0.1) / 2) / 2)
+        ((1 + 0.1) / 2 + (0.1 + 0.1) / 2) / 2
+    )
     with pytest.raises(ValueError, match="loss.name must be one of"):
         loss(name="chamfer")
 
@@ -238,8 +285,13 @@ def test_ground_removal_network_sees_non_ground_points_only(shards):
     module = StudentModule(cfg).eval()
     with torch.no_grad():
         residual, valid = module(batch)
-        kept, kept_valid = module.model(batch["pc0_compensated"][~ground0], batch["batch0"][~ground0],
-                                        batch["pc1"][~ground1], batch["batch1"][~ground1], 2)
+        kept, kept_valid = module.model(
+            batch["pc0_compensated"][~ground0],
+            batch["batch0"][~ground0],
+            batch["pc1"][~ground1],
+            batch["batch1"][~ground1],
+            2,
+        )
     assert torch.equal(residual[~ground0], kept) and torch.equal(valid[~ground0], kept_valid) and kept_valid.any()
     assert not valid[ground0].any() and torch.all(residual[ground0] == 0)  # ground: full flow = ego flow
     # the loss ignores ground points: pseudo-labels on the ground do not change it
@@ -284,8 +336,12 @@ def test_missing_or_empty_shard_dir_is_one_line(tmp_path):
 
 
 def test_train_script_says_how_to_label(tmp_path):
-    result = subprocess.run([sys.executable, str(REPO / "train.py"), f"data.train={tmp_path / 'none'}",
-                             f"out_dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, str(REPO / "train.py"), f"data.train={tmp_path / 'none'}", f"out_dir={tmp_path / 'run'}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.startswith("train:")]
     assert len(lines) == 1 and "python label.py split=train" in lines[0], result.stderr
@@ -293,14 +349,23 @@ def test_train_script_says_how_to_label(tmp_path):
 
 # ---------------------------------------------------------------------------------------------------- training
 
+
 def test_fast_dev_run_against_gt_and_pseudo(shards, tmp_path):
     trainer = fit(_cfg(tmp_path, shards["gt"], shards["gt"], "trainer.fast_dev_run=true", "data.batch_size=2"))
     assert trainer.state.finished and trainer.global_step == 1
     metrics = trainer.callback_metrics
     assert metrics["val/against_gt"] == 1.0 and np.isfinite(metrics["val/dynamic_fg/EPE"].item())
     assert {"val/static_fg/EPE", "val/static_bg/EPE", "val/dynamic_fg/AccS", "val/dynamic_fg/AccR"} <= set(metrics)
-    trainer = fit(_cfg(tmp_path, shards["gt"], shards["pseudo"], "trainer.fast_dev_run=true",
-                       "loss.weighting=speed", "data.remove_ground=false"))
+    trainer = fit(
+        _cfg(
+            tmp_path,
+            shards["gt"],
+            shards["pseudo"],
+            "trainer.fast_dev_run=true",
+            "loss.weighting=speed",
+            "data.remove_ground=false",
+        )
+    )
     assert trainer.callback_metrics["val/against_gt"] == 0.0
     with pytest.raises(TrainError, match="supervised needs ground truth"):
         fit(_cfg(tmp_path, shards["pseudo"], shards["pseudo"], "trainer.fast_dev_run=true", "loss.name=supervised"))
@@ -326,13 +391,21 @@ def test_short_run_validates_at_its_last_step_and_exports_the_best_checkpoint(sh
 
 
 def test_export_falls_back_to_last_checkpoint_and_says_so(shards, tmp_path, caplog):
-    cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=2", "callbacks.best.save_top_k=0",
-               "export.formats=[pt2]")
+    cfg = _cfg(
+        tmp_path,
+        shards["gt"],
+        shards["gt"],
+        "trainer.max_steps=2",
+        "callbacks.best.save_top_k=0",
+        "export.formats=[pt2]",
+    )
     with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
         fit(cfg)
     last = tmp_path / "run" / "checkpoints" / "last.ckpt"
-    assert not list(last.parent.glob("best-*")) and f"no best checkpoint (no validation ran?): exporting {last}" in \
-        caplog.text
+    assert (
+        not list(last.parent.glob("best-*"))
+        and f"no best checkpoint (no validation ran?): exporting {last}" in caplog.text
+    )
     metadata = json.loads((tmp_path / "run" / "export" / METADATA_NAME).read_text())
     assert metadata["source_checkpoint"]["path"] == str(last.resolve()) and list(metadata["files"]) == ["pt2"]
     with pytest.raises(TrainError, match="export.formats: unknown tflite"):
@@ -344,8 +417,16 @@ def test_tensorboard_holds_loss_lr_val_metrics_and_bev(shards, tmp_path):
     validation metrics and the BEV image, each validation once (the last step is a scheduled one: no extra)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=4", "trainer.val_check_interval=2",
-               "data.batch_size=1", "metrics.bev_every=1", "scheduler=constant")
+    cfg = _cfg(
+        tmp_path,
+        shards["gt"],
+        shards["gt"],
+        "trainer.max_steps=4",
+        "trainer.val_check_interval=2",
+        "data.batch_size=1",
+        "metrics.bev_every=1",
+        "scheduler=constant",
+    )
     trainer = fit(cfg)
     assert trainer.lightning_module.validations == 2
     files = list((tmp_path / "run" / "tensorboard").rglob("events.out.tfevents.*"))
@@ -363,21 +444,43 @@ def test_tensorboard_holds_loss_lr_val_metrics_and_bev(shards, tmp_path):
     images = events.Images("val/bev")
     assert len(images) == 2 and min(images[0].width, images[0].height) > 200
     assert sorted(p.name for p in (tmp_path / "run" / "bev").iterdir()) == [
-        "val_step0000002.png", "val_step0000004.png"]
+        "val_step0000002.png",
+        "val_step0000004.png",
+    ]
 
 
 def test_epoch_based_run_validates_its_last_batch(shards, tmp_path):
     """2 epochs of 2 batches with validation every 3 batches: batch 3 is validated, and the last one (4) too."""
-    trainer = fit(_cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=-1", "trainer.max_epochs=2",
-                       "trainer.val_check_interval=3", "data.batch_size=1", "metrics.bev_every=0"))
+    trainer = fit(
+        _cfg(
+            tmp_path,
+            shards["gt"],
+            shards["gt"],
+            "trainer.max_steps=-1",
+            "trainer.max_epochs=2",
+            "trainer.val_check_interval=3",
+            "data.batch_size=1",
+            "metrics.bev_every=0",
+        )
+    )
     assert trainer.global_step == 4 and trainer.current_epoch == 2 and trainer.lightning_module.validations == 2
 
 
 def test_overfit_one_pair_drives_dynamic_epe_down(shards, tmp_path):
-    cfg = _cfg(tmp_path, shards["one"], shards["one"], "trainer.max_steps=150", "trainer.val_check_interval=150",
-               "optim.lr=1e-3", "loss.weighting=speed", "metrics.bev_every=0", "metrics.crop=16.0")
+    cfg = _cfg(
+        tmp_path,
+        shards["one"],
+        shards["one"],
+        "trainer.max_steps=150",
+        "trainer.val_check_interval=150",
+        "optim.lr=1e-3",
+        "loss.weighting=speed",
+        "metrics.bev_every=0",
+        "metrics.crop=16.0",
+    )
     before = L.Trainer(logger=False, enable_progress_bar=False, enable_model_summary=False).validate(
-        StudentModule(OmegaConf.to_container(cfg, resolve=True)), datamodule=_datamodule(cfg), verbose=False)[0]
+        StudentModule(OmegaConf.to_container(cfg, resolve=True)), datamodule=_datamodule(cfg), verbose=False
+    )[0]
     trainer = fit(cfg)
     after = trainer.callback_metrics["val/dynamic_fg/EPE"].item()
     assert after < before["val/dynamic_fg/EPE"] / 5, (before["val/dynamic_fg/EPE"], after)
@@ -404,7 +507,8 @@ def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
 
     model, cfg = load_student(last)
     expected = OmegaConf.to_container(
-        _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=5", "ckpt_path=last", *common), resolve=True)
+        _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=5", "ckpt_path=last", *common), resolve=True
+    )
     expected["data"]["teacher"] = {key: getattr(TEACHER, key) for key in TEACHER_FIELDS}  # from the shards
     assert not model.training and cfg == expected
     assert cfg["model"]["cell"] == 1.0 and cfg["model"]["stage_channels"] == [16, 32, 64]
@@ -431,10 +535,17 @@ def test_load_student_rejects_other_files(tmp_path):
     with pytest.raises(CheckpointError, match=r"plain.ckpt: not a FastFlow3D student checkpoint"):
         load_student(plain)
     wrong = tmp_path / "wrong.ckpt"
-    model_cfg = {"_target_": "fastflow3d.model.FastFlow3D", "x_range": [-4.0, 4.0], "y_range": [-4.0, 4.0],
-                 "cell": 1.0, "stage_channels": [8, 16, 32]}
-    torch.save({"state_dict": {"model.head.0.weight": torch.zeros(2, 2)}, "hyper_parameters": {"cfg": {
-        "model": model_cfg}}}, wrong)
+    model_cfg = {
+        "_target_": "fastflow3d.model.FastFlow3D",
+        "x_range": [-4.0, 4.0],
+        "y_range": [-4.0, 4.0],
+        "cell": 1.0,
+        "stage_channels": [8, 16, 32],
+    }
+    torch.save(
+        {"state_dict": {"model.head.0.weight": torch.zeros(2, 2)}, "hyper_parameters": {"cfg": {"model": model_cfg}}},
+        wrong,
+    )
     with pytest.raises(CheckpointError, match=r"wrong.ckpt: weights do not fit"):
         load_student(wrong)
     with pytest.raises(CheckpointError, match="does not exist"):

@@ -25,8 +25,9 @@ def pair():
     return FramePair(pc0=pc0, pc1=pc0 + flow, ego1_from_ego0=ego1_from_ego0, flow=flow, dt=0.1, sample_id="cube")
 
 
-def centre_of(pixels: np.ndarray, colour, tolerance: float = 0.06, least: int = 20, near=None,
-              radius: float = 0.0) -> np.ndarray:
+def centre_of(
+    pixels: np.ndarray, colour, tolerance: float = 0.06, least: int = 20, near=None, radius: float = 0.0
+) -> np.ndarray:
     """(row, column) mean of the pixels of (H, W, 3+) float image ``pixels`` within ``tolerance`` of ``colour``
     (only those within ``radius`` pixels of (row, column) ``near`` if given)."""
     match = np.all(np.abs(pixels[..., :3] - np.asarray(colour)) < tolerance, axis=-1)
@@ -45,8 +46,11 @@ def metres_of(panel: np.ndarray, colour, near=None, tolerance: float = 0.06) -> 
     spine_rows, spine_cols = np.flatnonzero(dark.mean(axis=1) > 0.5), np.flatnonzero(dark.mean(axis=0) > 0.5)
     top, left, right = spine_rows.min(), spine_cols.min(), spine_cols.max()
     pixels_per_metre = (right - left) / (2 * EXTENT)
-    near_pixel = None if near is None else (top + (EXTENT - near[1]) * pixels_per_metre,
-                                            left + (near[0] + EXTENT) * pixels_per_metre)
+    near_pixel = (
+        None
+        if near is None
+        else (top + (EXTENT - near[1]) * pixels_per_metre, left + (near[0] + EXTENT) * pixels_per_metre)
+    )
     row, col = centre_of(panel, colour, tolerance, near=near_pixel, radius=2 * pixels_per_metre)
     return np.array([-EXTENT + (col - left) / pixels_per_metre, EXTENT - (row - top) / pixels_per_metre])
 
@@ -58,7 +62,7 @@ def test_bev_panels_show_the_points_where_they_are(pair, tmp_path):
     height, width = image.shape[:2]  # 2 x 3 panels: pc0/pc1, predicted, its residual; ground truth, its residual
 
     def panel(row, col):
-        return image[row * height // 2:(row + 1) * height // 2, col * width // 3:(col + 1) * width // 3]
+        return image[row * height // 2 : (row + 1) * height // 2, col * width // 3 : (col + 1) * width // 3]
 
     pc0_at, pc1_at = (8.0, 10.0), (13.0, 10.0)  # cube centres (m) in the ego frame of t + dt
 

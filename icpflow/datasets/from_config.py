@@ -63,8 +63,9 @@ def open_dataset(cfg: DictConfig, horizon: int = 1):
     except Exception as error:  # hydra wraps the reader's own one-line error
         cause = error.__cause__ or error
         text = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
-        raise DatasetError(f"dataset {name}: {text}" + (f" (with dataset.reader.max_horizon={horizon})" if raised
-                                                         else "")) from None
+        raise DatasetError(
+            f"dataset {name}: {text}" + (f" (with dataset.reader.max_horizon={horizon})" if raised else "")
+        ) from None
     if len(dataset) == 0:
         raise DatasetError(f"dataset {name}: no samples under {root} (split {cfg.split})")
     if horizon > dataset.max_horizon:

@@ -27,9 +27,7 @@ def fail(path, message: str) -> FramePairError:
     return FramePairError(f"{path}: {' '.join(str(message).split())}")
 
 
-def load_npz(
-    path: Path, required: tuple[str, ...], optional: tuple[str, ...] | None = None
-) -> dict[str, np.ndarray]:
+def load_npz(path: Path, required: tuple[str, ...], optional: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
     """The ``required`` and present ``optional`` arrays of an ``.npz`` (all of them if ``optional`` is None).
 
     Other keys are not read (they may hold pickled objects, which are never loaded). Missing ``required`` keys
@@ -94,11 +92,15 @@ def read_bin(path: Path, columns: int | None = None) -> np.ndarray:
     values = np.fromfile(path, dtype=np.float32).reshape(-1, width)
     if columns is None and len(values):
         with np.errstate(invalid="ignore"):
-            implausible = (not np.isfinite(values).all() or np.abs(values[:, :3]).max() > BIN_MAX_RANGE
-                           or values[:, 3].min() < 0)
+            implausible = (
+                not np.isfinite(values).all() or np.abs(values[:, :3]).max() > BIN_MAX_RANGE or values[:, 3].min() < 0
+            )
         if implausible:
-            raise fail(path, f"values are implausible for float32 rows of x, y, z, r (NaN or Inf, beyond "
-                             f"{BIN_MAX_RANGE:.0f} m, or negative reflectance){ask}")
+            raise fail(
+                path,
+                f"values are implausible for float32 rows of x, y, z, r (NaN or Inf, beyond "
+                f"{BIN_MAX_RANGE:.0f} m, or negative reflectance){ask}",
+            )
     return check_points(values, path, "scan", allow_empty=False)
 
 

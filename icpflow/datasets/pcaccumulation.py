@@ -169,8 +169,11 @@ class PCAccumulationDataset(PairDataset):
             raise fail(path, f"sem_labels must have shape {foreground.shape} like raw_points, got {sem.shape}")
         bad = foreground & ~np.isin(sem, list(WAYMO_CLASSES))
         if bad.any():
-            raise fail(path, f"{int(bad.sum())} foreground points (fb_labels 1) have sem_labels outside 0 (vehicle), "
-                             "1 (pedestrian), 3 (cyclist)")
+            raise fail(
+                path,
+                f"{int(bad.sum())} foreground points (fb_labels 1) have sem_labels outside 0 (vehicle), "
+                "1 (pedestrian), 3 (cyclist)",
+            )
         table = np.zeros(max(WAYMO_CLASSES) + 1, np.int32)
         table[list(WAYMO_CLASSES)] = list(WAYMO_CLASSES.values())
         classes = np.zeros(len(sem), np.int32)

@@ -55,22 +55,32 @@ class SyntheticDataset(PairDataset):
         if frames_per_sequence < 2:
             raise ValueError(f"synthetic: frames_per_sequence must be >= 2, got {frames_per_sequence}")
         if not 1 <= max_horizon < frames_per_sequence:
-            raise ValueError(f"synthetic: max_horizon must lie in 1..{frames_per_sequence - 1} for "
-                             f"{frames_per_sequence} frames per sequence, got {max_horizon}")
+            raise ValueError(
+                f"synthetic: max_horizon must lie in 1..{frames_per_sequence - 1} for "
+                f"{frames_per_sequence} frames per sequence, got {max_horizon}"
+            )
         if elevation_deg is not None:
             elevation_deg = tuple(float(v) for v in elevation_deg)
             if len(elevation_deg) != 2 or not -90 < elevation_deg[0] < elevation_deg[1] < 90:
-                raise ValueError(f"synthetic: elevation_deg must be [low, high] degrees, -90 < low < high < 90, "
-                                 f"got {list(elevation_deg)}")
+                raise ValueError(
+                    f"synthetic: elevation_deg must be [low, high] degrees, -90 < low < high < 90, "
+                    f"got {list(elevation_deg)}"
+                )
         self.split = split
         self.num_sequences = int(num_sequences)
         self.frames = int(frames_per_sequence)
         self.frequency_hz = float(frequency_hz)
         self.seed = int(seed)
         self.density = float(density)
-        self.lidar = Lidar(beams=int(beams), azimuth_resolution_deg=float(azimuth_resolution_deg),
-                           max_range=float(max_range), range_noise=float(range_noise), dropout=float(dropout),
-                           height=float(sensor_height), elevation_deg=elevation_deg)
+        self.lidar = Lidar(
+            beams=int(beams),
+            azimuth_resolution_deg=float(azimuth_resolution_deg),
+            max_range=float(max_range),
+            range_noise=float(range_noise),
+            dropout=float(dropout),
+            height=float(sensor_height),
+            elevation_deg=elevation_deg,
+        )
         self.max_horizon = int(max_horizon)
         self._cached: tuple[int, FrameSequence] | None = None
 
@@ -97,12 +107,22 @@ class SyntheticDataset(PairDataset):
         return f"{self.log_id(s)}/{t:06d}+1"
 
     def metadata(self) -> dict:
-        return {**super().metadata(), "split": self.split, "num_sequences": self.num_sequences,
-                "frames": self.frames, "frequency_hz": self.frequency_hz, "seed": self.seed,
-                "beams": self.lidar.beams, "azimuth_resolution_deg": self.lidar.azimuth_resolution_deg,
-                "max_range": self.lidar.max_range, "range_noise": self.lidar.range_noise,
-                "dropout": self.lidar.dropout, "sensor_height": self.lidar.height, "density": self.density,
-                "elevation_deg": np.degrees(self.lidar.elevations()[[0, -1]]).round(6).tolist()}
+        return {
+            **super().metadata(),
+            "split": self.split,
+            "num_sequences": self.num_sequences,
+            "frames": self.frames,
+            "frequency_hz": self.frequency_hz,
+            "seed": self.seed,
+            "beams": self.lidar.beams,
+            "azimuth_resolution_deg": self.lidar.azimuth_resolution_deg,
+            "max_range": self.lidar.max_range,
+            "range_noise": self.lidar.range_noise,
+            "dropout": self.lidar.dropout,
+            "sensor_height": self.lidar.height,
+            "density": self.density,
+            "elevation_deg": np.degrees(self.lidar.elevations()[[0, -1]]).round(6).tolist(),
+        }
 
     def pair(self, index: int, horizon: int = 1) -> FramePair:
         self._check(index)

@@ -53,8 +53,11 @@ def _kept_rows(path, name: str, points: np.ndarray, valid: np.ndarray) -> np.nda
         raise fail(path, f"{name} has no valid points")
     bad = int((~np.isfinite(points[rows])).any(axis=1).sum())
     if bad:
-        raise fail(path, f"{name} has {bad} NaN or Inf rows among its {len(rows)} valid rows "
-                         f"({name}_flows_valid_idx must leave out the padding)")
+        raise fail(
+            path,
+            f"{name} has {bad} NaN or Inf rows among its {len(rows)} valid rows "
+            f"({name}_flows_valid_idx must leave out the padding)",
+        )
     return rows
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from icpflow.atomic import WriteError
 from icpflow.datasets.from_config import dataset_root, open_dataset
 from icpflow.labelling.plan import plan_shards
 from icpflow.labelling.run import (
@@ -21,7 +22,6 @@ from icpflow.labelling.run import (
     run_labelling,
 )
 from icpflow.shards.schema import COMPRESSIONS
-from icpflow.atomic import WriteError
 from icpflow.teacher.config import teacher_config
 
 #: failed samples listed at the end of a run (the rest: failures.jsonl)
@@ -34,9 +34,14 @@ def labeller_yaml(cfg: DictConfig, teacher) -> str:
     compression change neither the samples nor the labels and are left out."""
     reader = OmegaConf.to_container(cfg.dataset.reader, resolve=True)
     reader.pop("root", None)
-    content = {"dataset": {"name": cfg.dataset.name, "root": dataset_root(cfg), "reader": reader},
-               "split": cfg.split, "teacher": dataclasses.asdict(teacher), "horizon": int(cfg.horizon),
-               "tracker": bool(cfg.tracker), "shard_size": int(cfg.shard_size)}
+    content = {
+        "dataset": {"name": cfg.dataset.name, "root": dataset_root(cfg), "reader": reader},
+        "split": cfg.split,
+        "teacher": dataclasses.asdict(teacher),
+        "horizon": int(cfg.horizon),
+        "tracker": bool(cfg.tracker),
+        "shard_size": int(cfg.shard_size),
+    }
     return OmegaConf.to_yaml(OmegaConf.create(content), sort_keys=True)
 
 
@@ -69,25 +74,32 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
         teacher = teacher_config(cfg)
         horizon = int(cfg.horizon)
         if horizon > teacher.max_frame_gap:
-            raise LabelError(f"horizon={horizon} exceeds the teacher's max_frame_gap {teacher.max_frame_gap} "
-                             f"(icpflow.max_frame_gap=...)")
+            raise LabelError(
+                f"horizon={horizon} exceeds the teacher's max_frame_gap {teacher.max_frame_gap} "
+                f"(icpflow.max_frame_gap=...)"
+            )
         dataset = open_dataset(cfg, horizon)
         workers = int(cfg.workers) if cfg.workers else available_cores()
-        job = LabelJob(dataset, teacher, Path(cfg.out_dir), labeller_yaml(cfg, teacher), horizon, bool(cfg.tracker),
-                       compression)
+        job = LabelJob(
+            dataset, teacher, Path(cfg.out_dir), labeller_yaml(cfg, teacher), horizon, bool(cfg.tracker), compression
+        )
         plan = plan_shards(len(dataset), int(cfg.shard_size), cfg.limit, int(cfg.shard_index), int(cfg.num_shards))
         summary = run_labelling(job, plan, workers, cfg.runner, cfg.ray.address, bool(cfg.overwrite), progress)
     except WriteError as error:  # disk full, no permission: the file and the cause
-        print(f"label: {error}; complete shards are kept in {cfg.out_dir}, fix this and rerun the same command to "
-              "resume", file=sys.stderr)
+        print(
+            f"label: {error}; complete shards are kept in {cfg.out_dir}, fix this and rerun the same command to resume",
+            file=sys.stderr,
+        )
         return 2
     except (LabelError, ValueError, OSError) as error:  # OSError: out_dir not creatable, unreadable input
         print(f"label: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated)
         what = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
-        print(f"label: {what}; complete shards are kept in {cfg.out_dir}, rerun the same command to resume",
-              file=sys.stderr)
+        print(
+            f"label: {what}; complete shards are kept in {cfg.out_dir}, rerun the same command to resume",
+            file=sys.stderr,
+        )
         return 143 if isinstance(stop, Terminated) else 130
     finally:
         signal.signal(signal.SIGTERM, previous)
@@ -96,14 +108,18 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
     for failure in failures[:SHOWN_FAILURES]:
         print(f"  failed {failure['sample_id']} ({failure['file']}): {failure['reason']}", file=sys.stderr)
     if len(failures) > SHOWN_FAILURES:
-        print(f"  ... and {len(failures) - SHOWN_FAILURES} more (all in {job.out_dir / 'failures.jsonl'})",
-              file=sys.stderr)
+        print(
+            f"  ... and {len(failures) - SHOWN_FAILURES} more (all in {job.out_dir / 'failures.jsonl'})",
+            file=sys.stderr,
+        )
     return 1 if summary["failed"] else 0
 
 
 def summary_line(summary: dict, out_dir: Path) -> str:
     """The end-of-run line: samples done, skipped and failed, mean worker s/sample, samples/s over the wall time."""
     rate = summary["done"] / summary["seconds"] if summary["seconds"] > 0 else 0.0
-    return (f"label: {summary['done']} samples labelled, {summary['skipped']} skipped (already done), "
-            f"{summary['failed']} failed; mean {summary['seconds_per_sample']:.2f} s/sample per worker, "
-            f"{rate:.2f} samples/s in {summary['seconds']:.1f} s -> {out_dir}")
+    return (
+        f"label: {summary['done']} samples labelled, {summary['skipped']} skipped (already done), "
+        f"{summary['failed']} failed; mean {summary['seconds_per_sample']:.2f} s/sample per worker, "
+        f"{rate:.2f} samples/s in {summary['seconds']:.1f} s -> {out_dir}"
+    )

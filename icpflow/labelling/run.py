@@ -29,8 +29,9 @@ from icpflow.shards.verify import ShardError, verify_shard
 from icpflow.shards.writer import write_failures, write_index, write_shard
 
 #: failure reason of a sample during which a worker process died
-DIED = ("WorkerDied: the worker process died labelling this sample (killed, e.g. out of memory, or crashed in "
-        "native code)")
+DIED = (
+    "WorkerDied: the worker process died labelling this sample (killed, e.g. out of memory, or crashed in native code)"
+)
 #: a sample that killed its worker this many times in a row is not tried again (``overwrite=true`` does)
 MAX_DEATHS = 2
 
@@ -116,28 +117,52 @@ def _sample(dataset, teacher, pair, index: int, horizon: int, tracker: bool) -> 
         ground1 = pair.ground1 if pair.ground1 is not None else np.zeros(len(pair.pc1), bool)
         cluster = np.full(len(pair.pc0), -1, np.int32)  # chains span several clusterings: no single id
     else:
-        result = teacher(pair.pc0, pair.pc1, ego1_from_ego0=pair.ego1_from_ego0, ground0=pair.ground0,
-                         ground1=pair.ground1, time0=pair.time0, time1=pair.time1, gap=horizon, dt=pair.dt)
+        result = teacher(
+            pair.pc0,
+            pair.pc1,
+            ego1_from_ego0=pair.ego1_from_ego0,
+            ground0=pair.ground0,
+            ground1=pair.ground1,
+            time0=pair.time0,
+            time1=pair.time1,
+            gap=horizon,
+            dt=pair.dt,
+        )
         flow, confidence, cluster = result.flow, result.confidence, result.labels0
         ground0, ground1, ego = result.ground0, result.ground1, result.ego1_from_ego0
     return {
-        "pc0": pair.pc0, "pc1": pair.pc1,
-        "ground0": np.asarray(ground0, bool), "ground1": np.asarray(ground1, bool),
+        "pc0": pair.pc0,
+        "pc1": pair.pc1,
+        "ground0": np.asarray(ground0, bool),
+        "ground1": np.asarray(ground1, bool),
         "ego1_from_ego0": np.asarray(ego, np.float64),
-        "flow": np.asarray(flow, np.float32), "confidence": np.asarray(confidence, np.float32),
+        "flow": np.asarray(flow, np.float32),
+        "confidence": np.asarray(confidence, np.float32),
         "cluster": np.asarray(cluster, np.int32),
-        "gt_flow": pair.flow, "gt_flow_valid": pair.flow_valid, "gt_classes": pair.classes,
+        "gt_flow": pair.flow,
+        "gt_flow_valid": pair.flow_valid,
+        "gt_classes": pair.classes,
         "gt_dynamic": pair.dynamic,
-        "attrs": {"sample_id": pair.sample_id or sample_id_or_index(dataset, index), "log_id": pair.log_id,
-                  "index": index,
-                  "timestamp0_ns": -1 if pair.timestamp0_ns is None else int(pair.timestamp0_ns),
-                  "timestamp1_ns": -1 if pair.timestamp1_ns is None else int(pair.timestamp1_ns),
-                  "dt": float(pair.dt)},
+        "attrs": {
+            "sample_id": pair.sample_id or sample_id_or_index(dataset, index),
+            "log_id": pair.log_id,
+            "index": index,
+            "timestamp0_ns": -1 if pair.timestamp0_ns is None else int(pair.timestamp0_ns),
+            "timestamp1_ns": -1 if pair.timestamp1_ns is None else int(pair.timestamp1_ns),
+            "dt": float(pair.dt),
+        },
     }
 
 
-def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None, threads: int | None = None,
-                lost: dict | None = None, previous: dict | None = None) -> dict:
+def label_shard(
+    job: LabelJob,
+    shard: int,
+    indices: list[int],
+    ticks=None,
+    threads: int | None = None,
+    lost: dict | None = None,
+    previous: dict | None = None,
+) -> dict:
     """Label ``indices``, write shard ``shard`` and its record; a sample that raises is recorded, not fatal.
 
     ``ticks``: optional queue (or callable) told ``(index, False)`` when a sample starts and ``(index, True)`` when
@@ -180,8 +205,9 @@ def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None, threa
                 pair = job.dataset.pair(index, horizon=job.horizon)
                 sample = _sample(job.dataset, teacher, pair, index, job.horizon, job.tracker)
             except Exception as error:  # any reader or teacher failure skips this sample only
-                sample_id = (pair.sample_id if pair is not None and pair.sample_id
-                             else sample_id_or_index(job.dataset, index))
+                sample_id = (
+                    pair.sample_id if pair is not None and pair.sample_id else sample_id_or_index(job.dataset, index)
+                )
                 source = getattr(error, "filename", None) or sample_id
                 if isinstance(error, FramePairError) and pair is None:  # a reader's: its message starts with the file
                     source = str(error).split(": ", 1)[0]
@@ -191,13 +217,30 @@ def label_shard(job: LabelJob, shard: int, indices: list[int], ticks=None, threa
                 samples.append(sample)
             tell((index, True))
     write_shard(job.out_dir / name, samples, job.config_yaml, job.hash, job.compression)
-    records = [{"sample_id": str(sample["attrs"]["sample_id"]), "index": int(sample["attrs"]["index"]),
-                "n0": int(sample["pc0"].shape[0]), "n1": int(sample["pc1"].shape[0])} for sample in samples]
-    result = {"shard": shard, "file": name, "samples": records, "failures": failures, "reused": len(kept),
-              "seconds": time.perf_counter() - start}
-    write_text_atomic(_state_path(job.out_dir, shard), json.dumps(
-        {**result, "config_hash": job.hash, "ids": [sample_id_or_index(job.dataset, i) for i in indices]},
-        sort_keys=True))
+    records = [
+        {
+            "sample_id": str(sample["attrs"]["sample_id"]),
+            "index": int(sample["attrs"]["index"]),
+            "n0": int(sample["pc0"].shape[0]),
+            "n1": int(sample["pc1"].shape[0]),
+        }
+        for sample in samples
+    ]
+    result = {
+        "shard": shard,
+        "file": name,
+        "samples": records,
+        "failures": failures,
+        "reused": len(kept),
+        "seconds": time.perf_counter() - start,
+    }
+    write_text_atomic(
+        _state_path(job.out_dir, shard),
+        json.dumps(
+            {**result, "config_hash": job.hash, "ids": [sample_id_or_index(job.dataset, i) for i in indices]},
+            sort_keys=True,
+        ),
+    )
     return result
 
 
@@ -279,9 +322,11 @@ def prepare(job: LabelJob, plan: list[tuple[int, list[int]]], overwrite: bool) -
     marker = job.out_dir / "config.yaml"
     if marker.is_file() and config_hash(marker.read_text()) != job.hash:
         if not overwrite:
-            raise LabelError(f"{job.out_dir}: labelled with another config (hash {config_hash(marker.read_text())}, "
-                             f"now {job.hash}: {config_changes(marker.read_text(), job.config_yaml)}); pass "
-                             f"overwrite=true to relabel, or choose another out_dir")
+            raise LabelError(
+                f"{job.out_dir}: labelled with another config (hash {config_hash(marker.read_text())}, "
+                f"now {job.hash}: {config_changes(marker.read_text(), job.config_yaml)}); pass "
+                f"overwrite=true to relabel, or choose another out_dir"
+            )
         for state in job.out_dir.glob("shard_*.h5.json"):
             if json.loads(state.read_text()).get("config_hash") != job.hash:
                 state.unlink()
@@ -305,9 +350,13 @@ def write_manifests(job: LabelJob) -> list[dict]:
         record = json.loads(state.read_text())
         if record.get("config_hash") == job.hash:
             records.append(record)
-    write_index(job.out_dir / "index.json", {
-        "config_hash": job.hash,
-        "shards": [{"file": r["file"], "samples": r["samples"]} for r in records if r["samples"]]})
+    write_index(
+        job.out_dir / "index.json",
+        {
+            "config_hash": job.hash,
+            "shards": [{"file": r["file"], "samples": r["samples"]} for r in records if r["samples"]],
+        },
+    )
     failures = [f for r in records for f in r["failures"]]
     write_failures(job.out_dir / "failures.jsonl", failures)
     return failures
@@ -335,6 +384,7 @@ def exit_with_parent() -> None:
 
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
     else:
+
         def watch():
             while os.getppid() == parent_pid:
                 time.sleep(0.5)
@@ -409,8 +459,10 @@ def _pool_results(job, todo, workers, threads, tick):
                     executor.shutdown(wait=True)
                     _remove_temporaries(job.out_dir, shard)
                     if not crashed:
-                        raise LabelError(f"a worker process died outside any sample of {shard_name(shard)} "
-                                         f"(killed, or a crash loading the teacher); complete shards are kept")
+                        raise LabelError(
+                            f"a worker process died outside any sample of {shard_name(shard)} "
+                            f"(killed, or a crash loading the teacher); complete shards are kept"
+                        )
                     tick(-counted)  # the retry counts them again
                     lost = {**lost, crashed[0]: _died(job.dataset, crashed[0], previous)}
                     queue.appendleft((shard, indices, lost, previous))
@@ -450,8 +502,15 @@ def _in_process_results(job, todo, threads, tick):
         yield label_shard(job, shard, indices, lambda message: tick(int(message[1])), threads, lost, previous)
 
 
-def run_labelling(job: LabelJob, plan: list[tuple[int, list[int]]], workers: int = 1, runner: str = "local",
-                  ray_address: str | None = None, overwrite: bool = False, progress: bool = True) -> dict:
+def run_labelling(
+    job: LabelJob,
+    plan: list[tuple[int, list[int]]],
+    workers: int = 1,
+    runner: str = "local",
+    ray_address: str | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> dict:
     """Label every sample of ``plan`` not already labelled; then write ``index.json`` and ``failures.jsonl``.
 
     Each finished shard is recorded at once (``shard_XXXXXX.h5.json``, with the reader's sample ids of its
@@ -484,13 +543,20 @@ def run_labelling(job: LabelJob, plan: list[tuple[int, list[int]]], workers: int
         else:
             results[shard] = record
     seconds, done = 0.0, 0
-    bar = tqdm(total=total, unit=" samples", disable=not progress, dynamic_ncols=True, desc="labelling",
-               bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, "
-                          "{rate_noinv_fmt}]")
+    bar = tqdm(
+        total=total,
+        unit=" samples",
+        disable=not progress,
+        dynamic_ncols=True,
+        desc="labelling",
+        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}]",
+    )
     parallel = max(1, min(workers, len(todo)))
     if runner == "ray":
         stream = _ray_results(job, todo, ray_address, workers, bar.update)
-    elif workers > 1 and todo:  # worker processes even for one shard: a sample that kills its process must not end the run
+    elif (
+        workers > 1 and todo
+    ):  # worker processes even for one shard: a sample that kills its process must not end the run
         stream = _pool_results(job, todo, parallel, max(1, available_cores() // parallel), bar.update)
     else:
         stream = _in_process_results(job, todo, available_cores(), bar.update)
@@ -510,6 +576,11 @@ def run_labelling(job: LabelJob, plan: list[tuple[int, list[int]]], workers: int
             if not stopped:
                 raise  # else (e.g. the disk is full) the error that stopped the run is the one to report
     failures = [f for shard in sorted(results) for f in results[shard]["failures"]]
-    return {"done": done, "skipped": skipped, "failed": len(failures),
-            "seconds_per_sample": seconds / done if done else 0.0, "seconds": time.perf_counter() - start,
-            "failures": failures}
+    return {
+        "done": done,
+        "skipped": skipped,
+        "failed": len(failures),
+        "seconds_per_sample": seconds / done if done else 0.0,
+        "seconds": time.perf_counter() - start,
+        "failures": failures,
+    }

@@ -60,8 +60,9 @@ class ShardDataset:
         name, position = self.entries[index]
         group = self._file(name)[group_name(position)]
         sample = {key: np.asarray(group[key][()]) for key in (*REQUIRED, *OPTIONAL) if key in group}
-        sample.update(sample_id=str(group.attrs["sample_id"]), log_id=str(group.attrs["log_id"]),
-                      dt=float(group.attrs["dt"]))
+        sample.update(
+            sample_id=str(group.attrs["sample_id"]), log_id=str(group.attrs["log_id"]), dt=float(group.attrs["dt"])
+        )
         return sample
 
     def verify(self) -> None:

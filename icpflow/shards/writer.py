@@ -28,8 +28,13 @@ def write_shard(path: Path, samples: list[dict], config_yaml: str, config_hash: 
         opts["compression"] = compression
     buffer = io.BytesIO()
     with h5py.File(buffer, "w") as f:
-        f.attrs.update(config=config_yaml, config_hash=config_hash, package_version=icpflow.__version__,
-                       schema_version=SCHEMA_VERSION, num_samples=len(samples))
+        f.attrs.update(
+            config=config_yaml,
+            config_hash=config_hash,
+            package_version=icpflow.__version__,
+            schema_version=SCHEMA_VERSION,
+            num_samples=len(samples),
+        )
         for position, sample in enumerate(samples):
             group = f.create_group(group_name(position))
             for key, value in sample.items():

@@ -5,5 +5,14 @@ from icpflow.synthetic.scene import AV2_META_CLASSES, CLASSES, Scene, build_scen
 from icpflow.synthetic.sequence import scan, sequence
 
 __all__ = [
-    "AV2_META_CLASSES", "CLASSES", "ELEVATIONS", "Lidar", "Scan", "Scene", "build_scene", "cast", "scan", "sequence",
+    "AV2_META_CLASSES",
+    "CLASSES",
+    "ELEVATIONS",
+    "Lidar",
+    "Scan",
+    "Scene",
+    "build_scene",
+    "cast",
+    "scan",
+    "sequence",
 ]

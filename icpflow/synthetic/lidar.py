@@ -127,8 +127,9 @@ def surface_distance(kind: int, size: np.ndarray, points: np.ndarray) -> np.ndar
     raise ValueError(f"surface_distance: unknown primitive kind {kind}")
 
 
-def _ground(scene: Scene, sensor_in_world: np.ndarray, directions: np.ndarray, limit: np.ndarray,
-            lidar: Lidar) -> np.ndarray:
+def _ground(
+    scene: Scene, sensor_in_world: np.ndarray, directions: np.ndarray, limit: np.ndarray, lidar: Lidar
+) -> np.ndarray:
     """(M,) ray parameter of the first ground hit of world rays from ``sensor_in_world`` (3,) nearer than
     ``limit`` (M,), inf if none.
 
@@ -200,8 +201,9 @@ def cast(scene: Scene, frame: int, lidar: Lidar, rng: np.random.Generator | None
         if distance[p] > radius[p]:
             half_el = np.arcsin(radius[p] / distance[p])
             el = np.arctan2(centre[p, 2], horizontal[p])
-            rows = np.arange(np.searchsorted(elevation, el - half_el),
-                             np.searchsorted(elevation, el + half_el, "right"))
+            rows = np.arange(
+                np.searchsorted(elevation, el - half_el), np.searchsorted(elevation, el + half_el, "right")
+            )
         else:
             rows = np.arange(beams)
         if horizontal[p] > radius[p] and len(rows):
@@ -239,6 +241,11 @@ def cast(scene: Scene, frame: int, lidar: Lidar, rng: np.random.Generator | None
     ranges = measured[beam, column]
     points = directions[beam, column] * ranges[:, None]
     points[:, 2] += lidar.height
-    return Scan(points=points.astype(np.float32), primitive=best_id[beam, column], beam=beam.astype(np.int32),
-                column=column.astype(np.int32), range=ranges,
-                azimuth_offset=offset)
+    return Scan(
+        points=points.astype(np.float32),
+        primitive=best_id[beam, column],
+        beam=beam.astype(np.int32),
+        column=column.astype(np.int32),
+        range=ranges,
+        azimuth_offset=offset,
+    )

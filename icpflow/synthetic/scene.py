@@ -151,13 +151,17 @@ def agent_shapes(cls: int, rng: np.random.Generator) -> tuple[list, tuple[float,
         kind = rng.integers(3)
         if kind == 0:  # van
             length, width, height = rng.uniform(5.0, 6.0), 2.0, rng.uniform(2.2, 2.6)
-            shapes = [_box(length, width, 0.25, height * 0.5), _box(length * 0.8, width, height * 0.5, height,
-                                                                   x=-0.1 * length)]
+            shapes = [
+                _box(length, width, 0.25, height * 0.5),
+                _box(length * 0.8, width, height * 0.5, height, x=-0.1 * length),
+            ]
         elif kind == 1:  # truck: cab and cargo box
             cargo, width = rng.uniform(6.0, 8.5), 2.5
             length = cargo + 2.6
-            shapes = [_box(2.3, width, 0.4, 3.0, x=length / 2 - 1.15),
-                      _box(cargo, width, 0.6, rng.uniform(3.3, 3.8), x=-length / 2 + cargo / 2)]
+            shapes = [
+                _box(2.3, width, 0.4, 3.0, x=length / 2 - 1.15),
+                _box(cargo, width, 0.6, rng.uniform(3.3, 3.8), x=-length / 2 + cargo / 2),
+            ]
         else:  # bus
             length, width = rng.uniform(10.0, 12.0), 2.55
             shapes = [_box(length, width, 0.3, rng.uniform(3.0, 3.3))]
@@ -167,8 +171,11 @@ def agent_shapes(cls: int, rng: np.random.Generator) -> tuple[list, tuple[float,
         shapes = [_cylinder(radius, 0.0, height - 0.25), _ellipsoid(0.11, 0.11, 0.13, z=height - 0.13)]
     elif cls == CYCLIST:
         length, width = 1.8, 0.6
-        shapes = [_box(1.75, 0.12, 0.05, 0.95), _cylinder(0.22, 0.95, 1.55, x=-0.15),
-                  _ellipsoid(0.12, 0.12, 0.14, x=-0.05, z=1.7)]
+        shapes = [
+            _box(1.75, 0.12, 0.05, 0.95),
+            _cylinder(0.22, 0.95, 1.55, x=-0.15),
+            _ellipsoid(0.12, 0.12, 0.14, x=-0.05, z=1.7),
+        ]
     else:
         raise ValueError(f"agent_shapes: unknown class {cls}")
     return shapes, (length / 2, width / 2)
@@ -206,8 +213,10 @@ class _Placer:
             centres = self.corners.mean(-2)
             near = np.linalg.norm(centres - xy, axis=-1) < self.radius[:, None] + np.hypot(*half) + 2 * margin
             rows = np.flatnonzero(near.any(1))
-            if len(rows) and _overlap(self.corners[rows], np.broadcast_to(corners, (len(rows),) + corners.shape),
-                                      margin).any():
+            if (
+                len(rows)
+                and _overlap(self.corners[rows], np.broadcast_to(corners, (len(rows),) + corners.shape), margin).any()
+            ):
                 return False
         self.corners = np.concatenate([self.corners, corners[None]])
         self.radius = np.r_[self.radius, np.hypot(*half)]
@@ -253,9 +262,15 @@ class _Builder:
         wavelength = rng.uniform(8.0, 40.0, count)
         direction = rng.uniform(0, np.pi, count)
         waves = np.stack([np.cos(direction), np.sin(direction)], -1) * (2 * np.pi / wavelength)[:, None]
-        return Ground(slope=(float(rng.normal(0, 0.008)), float(rng.normal(0, 0.008))), offset=0.0,
-                      amplitudes=rng.uniform(0.005, 0.03, count), waves=waves, phases=rng.uniform(0, 2 * np.pi, count),
-                      kerb=float(rng.uniform(0.1, 0.2)), cross_x=float(rng.uniform(-25.0, 45.0)))
+        return Ground(
+            slope=(float(rng.normal(0, 0.008)), float(rng.normal(0, 0.008))),
+            offset=0.0,
+            amplitudes=rng.uniform(0.005, 0.03, count),
+            waves=waves,
+            phases=rng.uniform(0, 2 * np.pi, count),
+            kerb=float(rng.uniform(0.1, 0.2)),
+            cross_x=float(rng.uniform(-25.0, 45.0)),
+        )
 
     def pose(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
         """(T, 4, 4) world_from_owner standing on the ground at ``xy`` with ``heading``."""
@@ -301,8 +316,9 @@ def build_scene(seed: int, frames: int = 5, frequency_hz: float = 10.0, density:
     # ego: a lane of the main road heading +x, 0-20 m/s, turning in a third of the sequences
     ego_speed = 0.0 if rng.random() < 0.1 else float(rng.uniform(0.0, 20.0))
     ego_rate = float(rng.choice([-1, 1]) * rng.uniform(0.1, 0.4)) if rng.random() < 0.35 else float(rng.normal(0, 0.02))
-    ego_xy, ego_heading = unicycle(0.0, float(rng.choice([-1.75, -5.25])), float(rng.normal(0, 0.03)), ego_speed,
-                                   ego_rate, b.times)
+    ego_xy, ego_heading = unicycle(
+        0.0, float(rng.choice([-1.75, -5.25])), float(rng.normal(0, 0.03)), ego_speed, ego_rate, b.times
+    )
     ego_poses = b.pose(ego_xy, ego_heading)
     b.placer.fits(ego_xy, ego_heading, (2.45, 1.0), 0.0)
 
@@ -352,15 +368,20 @@ def _structures(b: _Builder, g: Ground) -> None:
                 length, depth, height = rng.uniform(8, 20), rng.uniform(8, 14), rng.uniform(4, 15)
                 x = g.cross_x + across * (CROSS_HALF + SIDEWALK + rng.uniform(0, 2) + depth / 2)
                 # corners overlapping the main-road rows are harmless: both are static
-                b.static([_box(depth, length, -0.5, height)], x, y + side * length / 2,
-                         footprint=(depth / 2, length / 2))
+                b.static(
+                    [_box(depth, length, -0.5, height)], x, y + side * length / 2, footprint=(depth / 2, length / 2)
+                )
                 y += side * (length + rng.uniform(1, 8))
         x = -80.0 + rng.uniform(0, 10)
         while x < 80.0:  # poles at the kerb
             if _outside_cross(x, x, g, 1.0):
                 radius = rng.uniform(0.08, 0.18)
-                b.static([_cylinder(radius, -0.2, rng.uniform(4, 9))], x, side * (ROAD_HALF + 0.6),
-                         footprint=(radius, radius))
+                b.static(
+                    [_cylinder(radius, -0.2, rng.uniform(4, 9))],
+                    x,
+                    side * (ROAD_HALF + 0.6),
+                    footprint=(radius, radius),
+                )
             x += rng.uniform(10, 30)
         x = -80.0 + rng.uniform(0, 10)
         while x < 80.0:  # trees: trunk and canopy
@@ -375,8 +396,10 @@ def _structures(b: _Builder, g: Ground) -> None:
             x = rng.uniform(-60, 60)
             if _outside_cross(x - 2, x + 2, g, 0.0):
                 y = side * (ROAD_HALF + SIDEWALK - 0.4)
-                shapes = [_ellipsoid(rng.uniform(0.4, 0.9), rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.7),
-                                     x=dx, z=0.3) for dx in np.linspace(-1.2, 1.2, rng.integers(2, 4))]
+                shapes = [
+                    _ellipsoid(rng.uniform(0.4, 0.9), rng.uniform(0.3, 0.6), rng.uniform(0.3, 0.7), x=dx, z=0.3)
+                    for dx in np.linspace(-1.2, 1.2, rng.integers(2, 4))
+                ]
                 b.static(shapes, x, y, footprint=(1.8, 0.6))
 
 
@@ -420,8 +443,14 @@ def _traffic(b: _Builder, g: Ground, density: float) -> None:
         b.agent(cls, g.cross_x + lane, rng.uniform(-40, 40), heading, speed, rate)
     for _ in range(int(round(rng.integers(1, 4) * density))):  # cyclists at the lane edges
         side = rng.choice([-1.0, 1.0])
-        b.agent(CYCLIST, rng.uniform(-35, 40), side * rng.uniform(6.6, 7.2), (0.0 if side < 0 else np.pi)
-                + rng.normal(0, 0.05), _speed(rng, 2.0, 9.0), rng.normal(0, 0.05))
+        b.agent(
+            CYCLIST,
+            rng.uniform(-35, 40),
+            side * rng.uniform(6.6, 7.2),
+            (0.0 if side < 0 else np.pi) + rng.normal(0, 0.05),
+            _speed(rng, 2.0, 9.0),
+            rng.normal(0, 0.05),
+        )
     for _ in range(int(round(rng.integers(4, 11) * density))):  # pedestrians: along sidewalks, some crossing
         crossing = rng.random() < 0.25
         speed = 0.0 if rng.random() < 0.2 else _speed(rng, 0.6, 2.0)
@@ -436,8 +465,15 @@ def _traffic(b: _Builder, g: Ground, density: float) -> None:
         rate = rng.normal(0, 0.2) if speed > 0 else 0.0
         if b.agent(PEDESTRIAN, x, y, heading, speed, rate, margin=0.1) and rng.random() < 0.5:
             offset = rng.uniform(0.55, 0.95)  # a companion walking side by side
-            b.agent(PEDESTRIAN, x - offset * np.sin(heading), y + offset * np.cos(heading), heading, speed, rate,
-                    margin=0.05)
+            b.agent(
+                PEDESTRIAN,
+                x - offset * np.sin(heading),
+                y + offset * np.cos(heading),
+                heading,
+                speed,
+                rate,
+                margin=0.05,
+            )
 
 
 def _range_edge(b: _Builder, ego_xy: np.ndarray) -> None:

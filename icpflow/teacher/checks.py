@@ -41,9 +41,7 @@ def passes(
     iou_ratio = np.asarray(iou_ratio, dtype=np.float64).reshape(-1)
     window = np.broadcast_to(np.asarray(window, dtype=np.float64), (n_pairs,))
     if len(mean_error) != n_pairs or len(iou_ratio) != n_pairs:
-        raise ValueError(
-            f"passes: {n_pairs} transforms but {len(mean_error)} errors and {len(iou_ratio)} IoU ratios"
-        )
+        raise ValueError(f"passes: {n_pairs} transforms but {len(mean_error)} errors and {len(iou_ratio)} IoU ratios")
     min_iou = cfg.min_iou if min_iou is None else min_iou
     max_roll_pitch_deg = cfg.max_roll_pitch_deg if max_roll_pitch_deg is None else max_roll_pitch_deg
     max_error = cfg.max_error if max_error is None else max_error

@@ -25,14 +25,44 @@ CHOICES = {
 }
 
 POSITIVE = (
-    "kiss_voxel_size", "kiss_max_range", "patchwork_max_range", "crop_xy", "speed", "hist_bin", "hist_z_range",
-    "icp_max_corr", "icp_rel_rmse", "max_error", "max_roll_pitch_deg", "conf_iou_full",
+    "kiss_voxel_size",
+    "kiss_max_range",
+    "patchwork_max_range",
+    "crop_xy",
+    "speed",
+    "hist_bin",
+    "hist_z_range",
+    "icp_max_corr",
+    "icp_rel_rmse",
+    "max_error",
+    "max_roll_pitch_deg",
+    "conf_iou_full",
 )
-NON_NEGATIVE = ("absorb_radius", "static_tolerance", "deskew_min_speed", "ego_refine_voxel", "ground_slack",
-                "cluster_voxel_size", "hdbscan_epsilon", "extent_ratio", "min_iou", "sensor_height")
+NON_NEGATIVE = (
+    "absorb_radius",
+    "static_tolerance",
+    "deskew_min_speed",
+    "ego_refine_voxel",
+    "ground_slack",
+    "cluster_voxel_size",
+    "hdbscan_epsilon",
+    "extent_ratio",
+    "min_iou",
+    "sensor_height",
+)
 POSITIVE_INT = (
-    "min_cluster_size", "max_clusters", "hdbscan_leaf_size", "hdbscan_n_jobs", "max_frame_gap", "hist_z_bins",
-    "nms_kernel", "top_k", "hist_max_points", "max_points", "icp_max_iter", "deskew_iters",
+    "min_cluster_size",
+    "max_clusters",
+    "hdbscan_leaf_size",
+    "hdbscan_n_jobs",
+    "max_frame_gap",
+    "hist_z_bins",
+    "nms_kernel",
+    "top_k",
+    "hist_max_points",
+    "max_points",
+    "icp_max_iter",
+    "deskew_iters",
 )
 
 
@@ -184,16 +214,37 @@ def _problem(cfg: ICPFlowConfig) -> str | None:
 PRESETS: dict[str, dict] = {
     # Waymo's vehicle frame has the ground near z = 0: shifted by -sensor_height it sits where Patchwork++ expects.
     "waymo": dict(
-        dataset="waymo", static_tolerance=0.25, patchwork_z_offset=-1.723, crop_xy=32.0, range_z=0.04,
-        ground_slack=0.3, min_cluster_size=30, max_clusters=200,
-        hdbscan_epsilon=0.25, speed=1.67, icp_max_corr=0.1, max_points=10000, extent_ratio=0.1, max_error=0.3,
+        dataset="waymo",
+        static_tolerance=0.25,
+        patchwork_z_offset=-1.723,
+        crop_xy=32.0,
+        range_z=0.04,
+        ground_slack=0.3,
+        min_cluster_size=30,
+        max_clusters=200,
+        hdbscan_epsilon=0.25,
+        speed=1.67,
+        icp_max_corr=0.1,
+        max_points=10000,
+        extent_ratio=0.1,
+        max_error=0.3,
         min_iou=0.2,
     ),
     # nuScenes at 20 Hz: 0.833 m per 0.05 s frame, i.e. the same 16.7 m/s as Waymo per frame of its own.
     "nuscenes": dict(
-        dataset="nuscenes", static_tolerance=0.25, crop_xy=32.0, range_z=-1.84, ground_slack=0.3, min_cluster_size=20,
+        dataset="nuscenes",
+        static_tolerance=0.25,
+        crop_xy=32.0,
+        range_z=-1.84,
+        ground_slack=0.3,
+        min_cluster_size=20,
         max_clusters=200,
-        hdbscan_epsilon=0.25, speed=0.833333, icp_max_corr=0.1, max_points=5000, extent_ratio=0.1, max_error=0.2,
+        hdbscan_epsilon=0.25,
+        speed=0.833333,
+        icp_max_corr=0.1,
+        max_points=5000,
+        extent_ratio=0.1,
+        max_error=0.2,
         min_iou=0.2,
     ),
     # AV2: the reference disables the z threshold (range_z -10000, slack 0); ground comes from the map or
@@ -208,10 +259,24 @@ PRESETS: dict[str, dict] = {
     # 1000: 0.107 / 0.192 (with / without times, map ground) against 0.125 / 0.279 with 1000, and 0.125 / 0.276
     # against 0.121 / 0.271 with Patchwork++ ground.
     "av2": dict(
-        dataset="av2", static_tolerance=0.25, hist_max_points=300, crop_xy=51.2, range_z=-10000.0, ground_slack=0.0,
-        patchwork_z_offset=-1.4, cluster_voxel_size=0.2, absorb_radius=0.5, deskew=True, min_cluster_size=20,
+        dataset="av2",
+        static_tolerance=0.25,
+        hist_max_points=300,
+        crop_xy=51.2,
+        range_z=-10000.0,
+        ground_slack=0.0,
+        patchwork_z_offset=-1.4,
+        cluster_voxel_size=0.2,
+        absorb_radius=0.5,
+        deskew=True,
+        min_cluster_size=20,
         max_clusters=200,
-        hdbscan_epsilon=0.25, speed=1.0, icp_max_corr=0.1, max_points=10000, extent_ratio=0.1, max_error=0.2,
+        hdbscan_epsilon=0.25,
+        speed=1.0,
+        icp_max_corr=0.1,
+        max_points=10000,
+        extent_ratio=0.1,
+        max_error=0.2,
         min_iou=0.2,
     ),
 }
@@ -245,8 +310,10 @@ def teacher_config(cfg) -> ICPFlowConfig:
     per_dataset = OmegaConf.to_container(block, resolve=True) if block is not None else {}
     unknown = sorted(set(per_dataset) - known)
     if unknown:
-        raise ValueError(f"dataset {cfg.dataset.name}: dataset.teacher has keys that are not ICPFlowConfig fields: "
-                         f"{', '.join(unknown)}")
+        raise ValueError(
+            f"dataset {cfg.dataset.name}: dataset.teacher has keys that are not ICPFlowConfig fields: "
+            f"{', '.join(unknown)}"
+        )
     values = dict(per_dataset)
     chosen = OmegaConf.to_container(cfg.icpflow, resolve=True)
     values.update({key: value for key, value in chosen.items() if value is not None})

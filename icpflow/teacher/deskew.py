@@ -40,8 +40,9 @@ from icpflow.teacher import checks, registration
 from icpflow.teacher.flow import match_confidence
 
 
-def refine(src, dst, src_stats, dst_stats, time_src, time_dst, matches: dict, dt: float, window: float, cfg,
-           icp_params) -> int:
+def refine(
+    src, dst, src_stats, dst_stats, time_src, time_dst, matches: dict, dt: float, window: float, cfg, icp_params
+) -> int:
     """De-skew and re-register the moving matches in ``matches`` (updated in place); returns how many changed.
 
     ``src`` (Ns, 3) source points in pc1's frame and ``dst`` (Nd, 3), with ``time_src`` (Ns,) / ``time_dst``
@@ -75,8 +76,9 @@ def refine(src, dst, src_stats, dst_stats, time_src, time_dst, matches: dict, dt
             centroids[m] = deskewed[-1][0].mean(axis=0)
         result = registration.register_plane(deskewed, current, icp_params)
         current = result.transforms
-    ok = checks.passes(current, result.mean_error, result.iou_ratio, np.full(len(moving), window), cfg,
-                       src_centroids=centroids[moving])
+    ok = checks.passes(
+        current, result.mean_error, result.iou_ratio, np.full(len(moving), window), cfg, src_centroids=centroids[moving]
+    )
     keep = moving[ok]
     matches["transforms"][keep] = current[ok]
     matches["errors"][keep] = result.mean_error[ok]

@@ -41,7 +41,10 @@ def refine_motion(pc0: np.ndarray, pc1: np.ndarray, ego1_from_ego0: np.ndarray, 
         clouds.append(cloud.voxel_down_sample(voxel))
     clouds[1].estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=20))
     result = o3d.pipelines.registration.registration_icp(
-        clouds[0], clouds[1], 2.0 * voxel, ego1_from_ego0,
+        clouds[0],
+        clouds[1],
+        2.0 * voxel,
+        ego1_from_ego0,
         o3d.pipelines.registration.TransformationEstimationPointToPlane(),
         o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=50),
     )

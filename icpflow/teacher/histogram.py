@@ -237,8 +237,17 @@ def initial_translations(
     src_all, src_off = pack([srcs[k] for k in order])
     dst_all, dst_off = pack([dsts[k] for k in order])
     best, score = _initial_translations(
-        src_all, src_off, dst_all, dst_off, windows[order], params.bin_size, params.z_bins, params.z_range,
-        params.nms_kernel, params.top_k, numba.get_num_threads(),
+        src_all,
+        src_off,
+        dst_all,
+        dst_off,
+        windows[order],
+        params.bin_size,
+        params.z_bins,
+        params.z_range,
+        params.nms_kernel,
+        params.top_k,
+        numba.get_num_threads(),
     )
     translations, scores = np.empty_like(best), np.empty_like(score)
     translations[order], scores[order] = best, score

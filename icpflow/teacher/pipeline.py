@@ -115,8 +115,19 @@ class ICPFlow:
         self.hist_params = histogram.params_from_config(self.cfg)
         self.icp_params = registration.params_from_config(self.cfg)
 
-    def __call__(self, pc0, pc1, ego1_from_ego0=None, ground0=None, ground1=None, time0=None, time1=None, *,
-                 gap: int = 1, dt: float | None = None) -> ICPFlowResult:
+    def __call__(
+        self,
+        pc0,
+        pc1,
+        ego1_from_ego0=None,
+        ground0=None,
+        ground1=None,
+        time0=None,
+        time1=None,
+        *,
+        gap: int = 1,
+        dt: float | None = None,
+    ) -> ICPFlowResult:
         """Flow of pc0 (N0, 3) towards pc1 (N1, 3); ``gap`` k: frames between the scans (window scales with k).
 
         ``time0`` (N0,) / ``time1`` (N1,): optional capture time of each point in seconds after its scan's
@@ -178,8 +189,17 @@ class ICPFlow:
         n_deskewed = 0
         if deskew_on:
             n_deskewed = deskew.refine(
-                src, dst, src_stats, dst_stats, time0[valid0][keep0], time1[valid1][keep1], matches, float(dt),
-                window, cfg, self.icp_params,
+                src,
+                dst,
+                src_stats,
+                dst_stats,
+                time0[valid0][keep0],
+                time1[valid1][keep1],
+                matches,
+                float(dt),
+                window,
+                cfg,
+                self.icp_params,
             )
         timings["deskew"] = time.perf_counter() - tic
 
@@ -188,10 +208,17 @@ class ICPFlow:
         labels_ok0[keep0] = src_labels
         flow_labels = labels_ok0
         if cfg.absorb_radius > 0:
-            flow_labels = absorb(pc0_ok, labels_ok0, ego, matches["pairs"][:, 0], cfg.absorb_radius,
-                                 (np.abs(pc0_ok[:, :2]) < cfg.crop_xy).all(axis=1))
-        flow_ok, conf_ok = point_flow(pc0_ok, flow_labels, ego, matches["pairs"][:, 0], matches["transforms"],
-                                      matches["match_confidence"])
+            flow_labels = absorb(
+                pc0_ok,
+                labels_ok0,
+                ego,
+                matches["pairs"][:, 0],
+                cfg.absorb_radius,
+                (np.abs(pc0_ok[:, :2]) < cfg.crop_xy).all(axis=1),
+            )
+        flow_ok, conf_ok = point_flow(
+            pc0_ok, flow_labels, ego, matches["pairs"][:, 0], matches["transforms"], matches["match_confidence"]
+        )
         flow = np.zeros((len(pc0_in), 3), dtype=np.float32)
         confidence = np.zeros(len(pc0_in), dtype=np.float32)
         flow[valid0], confidence[valid0] = flow_ok, conf_ok
@@ -205,9 +232,19 @@ class ICPFlow:
         full_g1[valid1] = g1
         timings["flow"] = time.perf_counter() - tic
         return ICPFlowResult(
-            flow=flow, confidence=confidence, labels0=labels0, labels1=labels1, ego1_from_ego0=ego,
-            ground0=full_g0, ground1=full_g1, valid0=valid0, valid1=valid1,
-            dropped0=int((~valid0).sum()), dropped1=int((~valid1).sum()), n_deskewed=n_deskewed, timings=timings,
+            flow=flow,
+            confidence=confidence,
+            labels0=labels0,
+            labels1=labels1,
+            ego1_from_ego0=ego,
+            ground0=full_g0,
+            ground1=full_g1,
+            valid0=valid0,
+            valid1=valid1,
+            dropped0=int((~valid0).sum()),
+            dropped1=int((~valid1).sum()),
+            n_deskewed=n_deskewed,
+            timings=timings,
             **matches,
         )
 
@@ -244,8 +281,12 @@ class ICPFlow:
         cfg = self.cfg
         n = len(src_ids)
         empty = {
-            "pairs": np.zeros((0, 2), np.int32), "transforms": np.zeros((0, 4, 4)), "errors": np.zeros(0),
-            "iou_ratios": np.zeros(0), "match_confidence": np.zeros(0, np.float32), "n_candidates": n,
+            "pairs": np.zeros((0, 2), np.int32),
+            "transforms": np.zeros((0, 4, 4)),
+            "errors": np.zeros(0),
+            "iou_ratios": np.zeros(0),
+            "match_confidence": np.zeros(0, np.float32),
+            "n_candidates": n,
         }
         if n == 0:
             return empty
@@ -263,8 +304,14 @@ class ICPFlow:
         result = registration.register_clusters(clouds, inits, backend=cfg.icp_backend, params=self.icp_params)
         if cfg.static_tolerance > 0:
             _prefer_static(result, clouds, cfg.static_tolerance, self.icp_params)
-        ok = checks.passes(result.transforms, result.mean_error, result.iou_ratio, np.full(n, window), cfg,
-                           src_centroids=src_stats.centroid[src_ids])
+        ok = checks.passes(
+            result.transforms,
+            result.mean_error,
+            result.iou_ratio,
+            np.full(n, window),
+            cfg,
+            src_centroids=src_stats.centroid[src_ids],
+        )
         chosen = association.associate(src_ids, dst_ids, result.mean_error, ok, method=cfg.association)
         timings["icp"] += time.perf_counter() - tic
         pick = np.flatnonzero(chosen)

@@ -30,8 +30,9 @@ class HorizonResult:
     ego_k_from_0: np.ndarray
 
 
-def long_horizon_flow(teacher, scans, ego_transforms=None, grounds=None, mode: str = "direct", times=None,
-                      dts=None) -> HorizonResult:
+def long_horizon_flow(
+    teacher, scans, ego_transforms=None, grounds=None, mode: str = "direct", times=None, dts=None
+) -> HorizonResult:
     """Flow from ``scans[0]`` to ``scans[-1]`` (see the module docstring), ``mode`` "direct" or "tracker"."""
     k = len(scans) - 1
     if mode not in ("direct", "tracker"):
@@ -43,14 +44,17 @@ def long_horizon_flow(teacher, scans, ego_transforms=None, grounds=None, mode: s
     times = list(times) if times is not None else [None] * (k + 1)
     dts = list(dts) if dts is not None else [None] * k
     if len(egos) != k or len(grounds) != k + 1 or len(times) != k + 1 or len(dts) != k:
-        raise ValueError(f"long_horizon_flow: {k + 1} scans need {k} ego transforms, {k + 1} ground masks, "
-                         f"{k + 1} time arrays and {k} dts")
+        raise ValueError(
+            f"long_horizon_flow: {k + 1} scans need {k} ego transforms, {k + 1} ground masks, "
+            f"{k + 1} time arrays and {k} dts"
+        )
 
     steps = []
     if mode == "tracker" or any(e is None for e in egos):
         for i in range(k):
-            steps.append(teacher(scans[i], scans[i + 1], egos[i], grounds[i], grounds[i + 1], times[i], times[i + 1],
-                                 dt=dts[i]))
+            steps.append(
+                teacher(scans[i], scans[i + 1], egos[i], grounds[i], grounds[i + 1], times[i], times[i + 1], dt=dts[i])
+            )
         egos = [step.ego1_from_ego0 for step in steps]
     ego_k = np.eye(4)
     for ego in egos:
