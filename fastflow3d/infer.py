@@ -7,8 +7,9 @@ MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflo
 (array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
 ``--bin-columns N`` values, x, y, z first), ``.ply`` or ``.pcd``; the first three columns are x, y, z in metres
 in the sensor's own frame (``icpflow.frames.check_points``: a transposed (3, N) array is an error). Ego motion:
-``--poses`` (two world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a (2, 4, 4) ``.npy``),
-``--ego`` (one (4, 4) ``ego1_from_ego0``: 12 or 16 values, or a ``.npy``), or neither (estimated by KISS-ICP).
+``--poses`` (two world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a
+(2, 4, 4) ``.npy``), ``--ego`` (one (4, 4) ``ego1_from_ego0``: 12 or 16 values, or a ``.npy``), or neither
+(estimated by KISS-ICP).
 A model trained with ground removal gets the non-ground points of each scan, found with the teacher's ground
 segmentation and the settings saved with the model (``fastflow3d.predictor``); ground points of scan0 move with the
 ego motion. Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow``
