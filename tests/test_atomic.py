@@ -1,10 +1,11 @@
 """The one atomic-write helper: a finished write replaces the target; a failed one leaves no trace."""
 
+import errno
 import os
 
 import pytest
 
-from icpflow.atomic import atomic_path, write_text_atomic
+from icpflow.atomic import WriteError, atomic_path, write_text_atomic
 
 
 def test_a_finished_write_replaces_the_target_and_leaves_no_temporary(tmp_path):
@@ -31,8 +32,18 @@ def test_a_failing_write_leaves_no_temporary_and_no_partial_target(tmp_path):
 
 def test_a_writer_that_writes_nothing_leaves_the_target_alone(tmp_path):
     target = tmp_path / "render.png"
-    with pytest.raises(FileNotFoundError), atomic_path(target):
+    with pytest.raises(WriteError, match="render.png: cannot write"), atomic_path(target):
         pass
+    assert os.listdir(tmp_path) == []
+
+
+def test_a_full_disk_is_one_write_error_naming_the_target(tmp_path):
+    """An OSError while writing (here ENOSPC) is one WriteError naming the target and the cause; nothing is left."""
+    target = tmp_path / "shard_000000.h5"
+    with pytest.raises(WriteError) as caught, atomic_path(target) as tmp:
+        tmp.write_bytes(b"partial")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    assert str(caught.value) == f"{target}: cannot write (No space left on device)"
     assert os.listdir(tmp_path) == []
 
 
