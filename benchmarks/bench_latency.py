@@ -2,7 +2,7 @@
 Runtime.
 
 Usage: python benchmarks/bench_latency.py [--device cpu|cuda] [--points 80000] [--runs 20] [--warmup 3]
-    [--cell 0.2] [--threads N] [--backends eager,compile,pt2,onnx]
+    [--model fastflow3d|fastflow3d_small|fastflow3d_xl] [--cell 0.2] [--threads N] [--backends eager,compile,pt2,onnx]
 
 Times the exported single-sample network (voxelisation + UNet + per-point head; numpy in, numpy out, so host <->
 device copies are included on a GPU) on two uniform random scans of ``--points`` points each over the default
@@ -41,7 +41,15 @@ from fastflow3d.predictor import Predictor
 from icpflow.geometry import make_transform
 
 #: the paper's FastFlow3D settings (the one place of the model's settings); --cell changes the pillar size
-PAPER_MODEL = Path(__file__).resolve().parents[1] / "conf" / "model" / "fastflow3d.yaml"
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+def model_config(name: str) -> dict:
+    """``conf/model/<name>.yaml`` as train.py composes it (the small and XL models extend the paper's)."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return OmegaConf.to_container(compose("train", [f"model={name}"]).model, resolve=True)
 
 
 def random_scan(points: int, seed: int) -> np.ndarray:
@@ -114,7 +122,8 @@ def main():
     parser.add_argument("--points", type=int, default=80_000)
     parser.add_argument("--runs", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=3)
-    parser.add_argument("--cell", type=float, default=0.2)
+    parser.add_argument("--model", default="fastflow3d", help="a conf/model option (fastflow3d_small: CPU recipes)")
+    parser.add_argument("--cell", type=float, default=None, help="pillar size in m (default: the model's)")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument(
         "--backends",
@@ -132,7 +141,8 @@ def main():
     unknown = sorted(set(backends) - {"eager", "compile", "pt2", "onnx"})
     if unknown:
         sys.exit(f"bench_latency: unknown backend(s) {', '.join(unknown)}; use eager, compile, pt2, onnx")
-    model = build_student({**OmegaConf.to_container(OmegaConf.load(PAPER_MODEL)), "cell": args.cell}).eval()
+    config = model_config(args.model)
+    model = build_student({**config, "cell": args.cell or config["cell"]}).eval()
     pc0, pc1 = random_scan(args.points, 0), random_scan(args.points, 1)
     ego = make_transform(yaw=0.01, translation=(1.0, 0.05, 0.0))
     load = os.getloadavg()
