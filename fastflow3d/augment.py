@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from icpflow.geometry import invert, make_transform, transform_points
 from icpflow.shards.schema import CLOUD, OPTIONAL, REQUIRED
 
 #: the shard schema's per-point arrays, by the cloud whose rows they follow
@@ -30,7 +31,7 @@ class Augmentation:
     ``height_shift``: dz uniform in [-height_shift, height_shift] m; ``keep_min``: each scan keeps a uniform
     fraction in [keep_min, 1] of its points (1 = no subsampling)."""
 
-    yaw_deg: float = 180.0
+    yaw_deg: float = 20.0
     flip: bool = True
     height_shift: float = 0.1
     keep_min: float = 0.8
@@ -46,11 +47,9 @@ class Augmentation:
     def draw(self, rng: np.random.Generator) -> np.ndarray:
         """A random (4, 4) float64 transform A (yaw, optional mirror, height shift)."""
         yaw = np.radians(rng.uniform(-self.yaw_deg, self.yaw_deg))
-        c, s = np.cos(yaw), np.sin(yaw)
         mirror = np.diag([1.0, -1.0 if self.flip and rng.random() < 0.5 else 1.0, 1.0])
-        transform = np.eye(4)
-        transform[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ mirror
-        transform[2, 3] = rng.uniform(-self.height_shift, self.height_shift)
+        transform = make_transform(yaw=yaw, translation=(0.0, 0.0, rng.uniform(-self.height_shift, self.height_shift)))
+        transform[:3, :3] = transform[:3, :3] @ mirror
         return transform
 
     def __call__(self, sample: dict, rng: np.random.Generator) -> dict:
@@ -60,14 +59,15 @@ class Augmentation:
 
 def transform_sample(sample: dict, transform: np.ndarray) -> dict:
     """``sample`` with both scans moved by the (4, 4) ``transform`` A, flows rotated, the ego motion conjugated."""
-    rotation, shift = transform[:3, :3], transform[:3, 3]
+    rotation = transform.copy()
+    rotation[:3, 3] = 0.0  # flows are vectors: they turn but do not shift
     out = dict(sample)
     for key in ("pc0", "pc1"):
-        out[key] = (sample[key].astype(np.float64) @ rotation.T + shift).astype(np.float32)
+        out[key] = transform_points(transform, sample[key])
     for key in FLOW_KEYS:
         if sample.get(key) is not None:
-            out[key] = (sample[key].astype(np.float64) @ rotation.T).astype(np.float32)
-    out["ego1_from_ego0"] = transform @ sample["ego1_from_ego0"] @ np.linalg.inv(transform)
+            out[key] = transform_points(rotation, sample[key])
+    out["ego1_from_ego0"] = transform @ sample["ego1_from_ego0"] @ invert(transform)
     return out
 
 
