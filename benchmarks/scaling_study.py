@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+from icpflow.atomic import atomic_path, write_text_atomic
+
 ROOT = Path(__file__).resolve().parents[1]
 SUPERVISION = {"pseudo": "distillation", "gt": "supervised"}
 
@@ -94,7 +96,7 @@ def main() -> None:
                         "+trainer.enable_progress_bar=false",
                     ]
                 )
-                timing.write_text(f"{seconds:.1f}\n")
+                write_text_atomic(timing, f"{seconds:.1f}\n")
             if not scores.is_file():
                 run(
                     [
@@ -127,10 +129,11 @@ def main() -> None:
             f"| {row['pairs']} | {row['supervision']} | {row['dynamic_fg_epe']:.4f} | "
             f"{row['dynamic_fg_epe'] / teacher[0]:.2f} | {row['threeway']:.4f} | {row['train_seconds']:.0f} |"
         )
-    (out / "scaling.json").write_text(
+    write_text_atomic(
+        out / "scaling.json",
         json.dumps(
             {"rows": rows, "teacher": teacher, "ego": ego, "steps": args.steps, "experiment": args.experiment}, indent=2
-        )
+        ),
     )
     plot(rows, teacher[0], ego[0], out / "scaling.png", args.steps)
 
@@ -156,7 +159,8 @@ def plot(rows: list[dict], teacher: float, ego: float, path: Path, steps: int) -
     axis.set_title(f"Student data scaling ({steps} steps each)")
     axis.legend()
     figure.tight_layout()
-    figure.savefig(path, dpi=120)
+    with atomic_path(path) as tmp:
+        figure.savefig(tmp, dpi=120, format="png")
     print(f"wrote {path}")
 
 

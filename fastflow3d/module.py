@@ -77,7 +77,7 @@ class StudentModule(L.LightningModule):
         against the pseudo-labels (``distillation``) or the ground truth (``supervised``, background points
         weighted by ``background_weight``), weighted as ``loss.weighting`` says (``fastflow3d.loss``)."""
         options, size = self.cfg["loss"], batch["batch_size"]
-        dt = batch["dt"].to(pred.dtype)[batch["batch0"]]
+        dt = batch["dt"].float()[batch["batch0"]]  # speeds in float32, also under bf16 autocast
         weighting = {"weighting": options["weighting"], "dt": dt, "bucket_edges": options["bucket_edges"]}
         if options["name"] == "supervised":
             if "gt" not in batch:
