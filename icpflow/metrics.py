@@ -89,7 +89,7 @@ def _meta_index(classes: np.ndarray, class_to_meta: dict[int, str], metas: tuple
 def _check(pc0, pred_flow, gt_flow, classes) -> None:
     n = len(pc0)
     for name, arr in (("pred_flow", pred_flow), ("gt_flow", gt_flow)):
-        if np.shape(arr) != (n, 3):
+        if arr is not None and np.shape(arr) != (n, 3):
             raise ValueError(f"metrics: {name} has shape {np.shape(arr)}, expected ({n}, 3) like pc0")
     if np.shape(classes) != (n,):
         raise ValueError(f"metrics: classes has shape {np.shape(classes)}, expected ({n},)")
@@ -97,14 +97,90 @@ def _check(pc0, pred_flow, gt_flow, classes) -> None:
         raise ValueError(f"metrics: classes has negative values ({np.min(classes)}); 0 means background")
 
 
-def _selection(pc0, ground, flow_valid, crop, include_ground, strict=False) -> np.ndarray:
-    xy = np.abs(np.asarray(pc0, np.float64)[:, :2])
-    keep = np.all(xy < crop if strict else xy <= crop, axis=1) if crop is not None else np.ones(len(pc0), bool)
-    if ground is not None and not include_ground:
-        keep &= ~np.asarray(ground, bool)
-    if flow_valid is not None:
-        keep &= np.asarray(flow_valid, bool)
-    return keep
+class PairTruth:
+    """The ground-truth side of one pair's metrics, computed once and shared by every method scored on the pair.
+
+    ``pc0`` (N, 3) metres and FULL ``gt_flow`` (N, 3) in pc0's ego frame, ``ego1_from_ego0`` (4, 4), ``classes``
+    (N,) (0 = background); ``scored`` (N,) bool: ``flow_valid`` and, unless ``include_ground``, not ``ground``.
+    :meth:`epe` gives a prediction's per-point EPE; :meth:`paper` and :meth:`buckets` select the points of the
+    paper's splits and of the AV2 buckets once, and turn any EPE into their sums.
+    """
+
+    def __init__(self, pc0, gt_flow, ego1_from_ego0, classes, ground=None, flow_valid=None, include_ground=False):
+        _check(pc0, None, gt_flow, classes)
+        self.pc0 = np.asarray(pc0, np.float64)
+        self.gt_flow = np.asarray(gt_flow, np.float64)
+        self.residual = self.gt_flow - ego_flow(np.asarray(pc0), ego1_from_ego0)
+        self.speed = np.linalg.norm(self.residual, axis=1)  # ||gt residual flow||, metres per pair
+        self.classes = np.asarray(classes, np.int64)
+        self.scored = np.ones(len(self.pc0), bool)
+        if ground is not None and not include_ground:
+            self.scored &= ~np.asarray(ground, bool)
+        if flow_valid is not None:
+            self.scored &= np.asarray(flow_valid, bool)
+
+    def epe(self, pred_flow) -> np.ndarray:
+        """(N,) float64 end-point error (m) of a FULL flow prediction (N, 3)."""
+        _check(self.pc0, pred_flow, None, self.classes)
+        return np.linalg.norm(np.asarray(pred_flow, np.float64) - self.gt_flow, axis=1)
+
+    def in_box(self, half_width: float | None, strict: bool = False) -> np.ndarray:
+        """(N,) bool: scored points with |x|, |y| <= half_width (< when ``strict``; None: every scored point)."""
+        if half_width is None:
+            return self.scored.copy()
+        xy = np.abs(self.pc0[:, :2])
+        return self.scored & np.all(xy < half_width if strict else xy <= half_width, axis=1)
+
+    def paper(self, dt=0.1, crop=32.0, dynamic_speed=0.5, relative_to="residual") -> PaperSplits:
+        """The ICP-Flow paper's splits of this pair (see :func:`pair_stats`)."""
+        if relative_to not in ("residual", "full"):
+            raise ValueError(f"metrics: relative_to must be 'residual' or 'full', got {relative_to!r}")
+        norm = self.speed if relative_to == "residual" else np.linalg.norm(self.gt_flow, axis=1)
+        keep = self.in_box(crop)
+        dynamic = self.speed / dt > dynamic_speed
+        fg = self.classes > 0
+        masks = {"dynamic_fg": dynamic & fg, "static_fg": ~dynamic & fg, "static_bg": ~dynamic & ~fg, "overall": True}
+        return PaperSplits({name: keep & mask for name, mask in masks.items()}, np.maximum(norm, RELATIVE_EPS))
+
+    def buckets(self, class_to_meta=None, edges=None, metas=META_CLASSES, distance=35.0) -> Buckets:
+        """The AV2 buckets of this pair (see :func:`av2_bucket_stats`)."""
+        class_to_meta = AV2_META if class_to_meta is None else class_to_meta
+        edges = BUCKET_EDGES if edges is None else edges
+        meta = _meta_index(self.classes, class_to_meta, metas)
+        keep = self.in_box(distance, strict=True) & (meta >= 0)
+        bucket = np.searchsorted(edges, self.speed[keep], side="right") - 1
+        return Buckets(keep, meta[keep] * (len(edges) - 1) + bucket, self.speed[keep], (len(metas), len(edges) - 1))
+
+
+class PaperSplits:
+    """One pair's points per split (``masks``: category -> (N,) bool) and the relative-error base (N,) (m)."""
+
+    def __init__(self, masks: dict[str, np.ndarray], relative_base: np.ndarray):
+        self.masks, self.relative_base = masks, relative_base
+
+    def sums(self, epe: np.ndarray) -> dict[str, np.ndarray]:
+        """{category: [epe_sum, accs_count, accr_count, outlier_count, n]} (float64 (5,)) of per-point EPE (N,)."""
+        rel = epe / self.relative_base
+        hits = np.stack(
+            [epe, (epe < 0.05) | (rel < 0.05), (epe < 0.1) | (rel < 0.1), (epe > 0.3) | (rel > 0.1), np.ones_like(epe)],
+            axis=1,
+        )
+        return {name: hits[mask].sum(axis=0) for name, mask in self.masks.items()}
+
+
+class Buckets:
+    """One pair's points in AV2 (meta-class, speed bucket) cells: ``keep`` (N,) bool, each kept point's flat cell
+    index and speed (m per frame), the cells' ``shape`` (metas, buckets)."""
+
+    def __init__(self, keep: np.ndarray, cell: np.ndarray, speed: np.ndarray, shape: tuple[int, int]):
+        self.keep, self.cell, self.speed, self.shape = keep, cell, speed, shape
+
+    def sums(self, epe: np.ndarray) -> np.ndarray:
+        """(metas, buckets, 3) float64 [epe_sum, speed_sum, count] of per-point EPE (N,)."""
+        size = self.shape[0] * self.shape[1]
+        columns = [np.bincount(self.cell, weights=w, minlength=size) for w in (epe[self.keep], self.speed)]
+        columns.append(np.bincount(self.cell, minlength=size).astype(np.float64))
+        return np.stack(columns, axis=-1).reshape(*self.shape, 3)
 
 
 def pair_stats(
@@ -125,26 +201,12 @@ def pair_stats(
 
     Points kept: |x|, |y| <= crop in pc0's ego frame (None = no crop), not ground unless ``include_ground``, and
     ``flow_valid``. Dynamic = ||gt residual|| / dt > dynamic_speed; foreground = classes > 0. ``overall`` holds all
-    kept points (including dynamic background points, which are in none of the three splits).
+    kept points (including dynamic background points, which are in none of the three splits). Scoring several
+    predictions of one pair: :class:`PairTruth` (the selection is then made once).
     """
-    _check(pc0, pred_flow, gt_flow, classes)
-    if relative_to not in ("residual", "full"):
-        raise ValueError(f"metrics: relative_to must be 'residual' or 'full', got {relative_to!r}")
-    pred = np.asarray(pred_flow, np.float64)
-    gt = np.asarray(gt_flow, np.float64)
-    residual = gt - ego_flow(np.asarray(pc0), ego1_from_ego0)
-    epe = np.linalg.norm(pred - gt, axis=1)
-    norm = np.linalg.norm(residual if relative_to == "residual" else gt, axis=1)
-    rel = epe / np.maximum(norm, RELATIVE_EPS)
-    hits = np.stack(
-        [epe, (epe < 0.05) | (rel < 0.05), (epe < 0.1) | (rel < 0.1), (epe > 0.3) | (rel > 0.1), np.ones_like(epe)],
-        axis=1,
-    )
-    keep = _selection(pc0, ground, flow_valid, crop, include_ground)
-    dynamic = np.linalg.norm(residual, axis=1) / dt > dynamic_speed
-    fg = np.asarray(classes) > 0
-    masks = {"dynamic_fg": dynamic & fg, "static_fg": ~dynamic & fg, "static_bg": ~dynamic & ~fg, "overall": True}
-    return {name: hits[keep & mask].sum(axis=0) for name, mask in masks.items()}
+    truth = PairTruth(pc0, gt_flow, ego1_from_ego0, classes, ground, flow_valid, include_ground)
+    splits = truth.paper(dt, crop, dynamic_speed, relative_to)
+    return splits.sums(truth.epe(pred_flow))
 
 
 def frame_pair_stats(pair, pred_flow, **options) -> dict[str, np.ndarray]:
@@ -242,17 +304,8 @@ def av2_bucket_stats(
     averages). The package applies its 35 m box to the points it is given (its "global" frame); here it is pc0's ego
     frame, which is what the package sees when its poses are identity.
     """
-    _check(pc0, pred_flow, gt_flow, classes)
-    residual = np.asarray(gt_flow, np.float64) - ego_flow(np.asarray(pc0), ego1_from_ego0)
-    epe = np.linalg.norm(np.asarray(pred_flow, np.float64) - np.asarray(gt_flow, np.float64), axis=1)
-    speed = np.linalg.norm(residual, axis=1)
-    meta = _meta_index(np.asarray(classes, np.int64), class_to_meta, metas)
-    keep = _selection(pc0, ground, flow_valid, distance, False, strict=True) & (meta >= 0)
-    bucket = np.searchsorted(edges, speed[keep], side="right") - 1
-    out = np.zeros((len(metas), len(edges) - 1, 3))
-    for j, values in enumerate((epe[keep], speed[keep], np.ones(keep.sum()))):
-        np.add.at(out[:, :, j], (meta[keep], bucket), values)
-    return out
+    truth = PairTruth(pc0, gt_flow, ego1_from_ego0, classes, ground, flow_valid)
+    return truth.buckets(class_to_meta, edges, metas, distance).sums(truth.epe(pred_flow))
 
 
 def _bucket_means(sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,5 +1,6 @@
 """eval.py / icpflow.evaluation: the tables equal the metrics module's numbers (baselines, teacher over several
-horizons with and without the tracker, a trained student); shards, failures, renders, bad input."""
+horizons with and without the tracker, a trained student); one metrics.json schema for one gap or several; each
+pair's selection made once; shards, failures, renders, bad input."""
 
 import csv
 import json
@@ -18,7 +19,7 @@ from icpflow import metrics
 from icpflow.baselines import ego_only_flow, zero_flow
 from icpflow.datasets.from_config import raise_max_horizon
 from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.evaluation import MetricOptions, evaluate, run_eval
+from icpflow.evaluation import MetricOptions, PairScorer, evaluate, method_summary, read_metrics, run_eval
 from icpflow.shards.writer import write_index, write_shard
 
 from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
@@ -81,19 +82,19 @@ def assert_same_numbers(ours: dict, expected: dict) -> None:
 def test_eval_reproduces_the_metrics_module(tmp_path, dataset, capsys):
     assert run_eval(_cfg(tmp_path, "bev=1"), progress=False) == 0
     document = json.loads((tmp_path / "metrics.json").read_text())
-    assert document["pairs"] == [dataset.sample_id(i) for i in range(len(dataset))]
+    assert document["pairs"] == {"1": [dataset.sample_id(i) for i in range(len(dataset))]}
     for name, predict in (("zero", zero_flow), ("ego", ego_only_flow)):
         pairs = [dataset[i] for i in range(len(dataset))]
-        assert_same_numbers(document["methods"][name], expected_summary(dataset, [(p, predict(p)) for p in pairs]))
+        assert_same_numbers(document["methods"][name]["1"], expected_summary(dataset, [(p, predict(p)) for p in pairs]))
     # ego flow is exact on the static background and scores EPE 1 normalised on movers
-    ego = document["methods"]["ego"]
+    ego = document["methods"]["ego"]["1"]
     assert ego["paper"]["point_weighted"]["static_bg"]["EPE"] < 1e-5
     assert ego["bucketed"]["mean"]["dynamic_normalized_epe"] == pytest.approx(1.0, abs=1e-6)
     printed = capsys.readouterr().out
     assert "zero" in printed and "ego" in printed and "dynamic_fg" in printed
     csv_lines = (tmp_path / "metrics.csv").read_text().splitlines()
-    assert csv_lines[0].startswith("method,metric,EPE")
-    assert any(line.startswith("ego,paper/point_weighted/static_bg,") for line in csv_lines)
+    assert csv_lines[0].startswith("method,horizon,metric,EPE")
+    assert any(line.startswith("ego,1,paper/point_weighted/static_bg,") for line in csv_lines)
     pictures = sorted((tmp_path / "bev").glob("*.png"))
     assert [p.name.rsplit("_", 1)[1] for p in pictures] == ["ego.png", "zero.png"]
     assert all(p.stat().st_size > 10_000 for p in pictures)
@@ -119,17 +120,17 @@ class _BrokenAt:
 
 def test_a_bad_pair_is_recorded_and_skipped_for_every_method(dataset):
     methods = {"zero": lambda pair, index: zero_flow(pair), "ego": lambda pair, index: ego_only_flow(pair)}
-    result = evaluate(_BrokenAt(dataset, 0), methods, MetricOptions(class_to_meta=dataset.class_to_meta))
-    assert result.pairs == [dataset.sample_id(1)]
+    result = evaluate(_BrokenAt(dataset, 0), {1: methods}, MetricOptions(class_to_meta=dataset.class_to_meta))
+    assert result.pairs == {1: [dataset.sample_id(1)]}
     assert result.failures == [
         {"index": 0, "sample_id": dataset.sample_id(0), "horizon": 1, "reason": "OSError: corrupt.bin: truncated file"}
     ]
-    assert {s["pairs"] for s in result.summaries.values()} == {1}
+    assert {s[1]["pairs"] for s in result.summaries.values()} == {1}
 
 
 def test_wrong_flow_shape_is_a_failure_not_a_crash(dataset):
-    result = evaluate(dataset, {"bad": lambda pair, index: np.zeros((3, 3), np.float32)}, MetricOptions())
-    assert not result.pairs and len(result.failures) == len(dataset)
+    result = evaluate(dataset, {1: {"bad": lambda pair, index: np.zeros((3, 3), np.float32)}}, MetricOptions())
+    assert result.pairs == {1: []} and len(result.failures) == len(dataset)
     assert "shape (3, 3)" in result.failures[0]["reason"]
 
 
@@ -180,7 +181,7 @@ def test_stored_pseudo_labels_are_scored_by_sample_id(tmp_path, dataset):
         run_eval(_cfg(tmp_path / "eval", "method=shards", f"shards={tmp_path / 'labels'}", "bev=0"), progress=False)
         == 0
     )
-    rows = json.loads((tmp_path / "eval" / "metrics.json").read_text())["methods"]["shards"]["paper"]
+    rows = method_summary(read_metrics(tmp_path / "eval"), "shards")["paper"]
     assert rows["point_weighted"]["overall"]["EPE"] == 0.0
     assert rows["point_weighted"]["overall"]["AccS"] == 1.0
 
@@ -205,6 +206,12 @@ def test_stored_labels_of_other_points_are_refused(tmp_path, dataset, capsys):
         (["horizon=[0,1]"], "horizon must list distinct frame gaps >= 1"),
         (["horizon=one"], "horizon must be an integer, a list or first..last"),
         (["tracker=[true,true]"], "tracker must be true, false or [false,true]"),
+        (["limit=abc"], "limit must be an integer >= 1, got 'abc'"),
+        (["bev=-1"], "bev must be an integer >= 0, got -1"),
+        (["render_size=[640]"], "render_size must be [width,height] in pixels"),
+        (["weighting=median"], "weighting must be one of point_weighted, per_pair, got 'median'"),
+        (["relative_to=gt"], "relative_to must be one of residual, full, got 'gt'"),
+        (["crop=wide"], "crop must be a number > 0, got 'wide'"),
         (
             ["method=icpflow", "horizon=3", "dataset.reader.frames_per_sequence=5", "icpflow.max_frame_gap=2"],
             "icpflow: horizon=3 exceeds the teacher's max_frame_gap 2",
@@ -215,6 +222,75 @@ def test_bad_requests_get_one_line(tmp_path, capsys, overrides, message):
     assert run_eval(_cfg(tmp_path, *overrides), progress=False, extra_methods=STUDENT) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
+
+
+def _structure(value):
+    """The shape of a JSON document: dict keys (gap keys as "<k>") and value types, recursively, without numbers."""
+    if isinstance(value, dict):
+        return {("<k>" if key.isdigit() else key): _structure(v) for key, v in value.items()}
+    if isinstance(value, list):
+        return [_structure(value[0])] if value else []
+    return "number" if isinstance(value, (int, float)) or value is None else type(value).__name__
+
+
+def test_one_gap_and_several_gaps_write_one_schema(tmp_path):
+    one, several = tmp_path / "one", tmp_path / "several"
+    assert run_eval(_cfg(one, "limit=1", "bev=0"), progress=False) == 0
+    assert run_eval(_cfg(several, "limit=1", "bev=0", "horizon=1..2"), progress=False) == 0
+    first, second = read_metrics(one), read_metrics(several)
+    config = ("config", "settings")  # the settings hold the gaps asked for, the config every option given
+    assert _structure({k: v for k, v in first.items() if k not in config}) == _structure(
+        {k: v for k, v in second.items() if k not in config}
+    )
+    assert first["horizons"] == [1] and second["horizons"] == [1, 2] and first["complete"] and second["complete"]
+    assert [(r["method"], r["horizon"]) for r in second["table"]["rows"]] == [
+        (m, k) for m in ("zero", "ego") for k in (1, 2)
+    ]
+    # the start scan of sample 0 is the same in both runs: the same numbers at gap 1
+    assert first["pairs"]["1"] == second["pairs"]["1"]
+    for name in ("zero", "ego"):
+        ours, theirs = method_summary(first, name, 1), method_summary(second, name, 1)
+        assert {k: v for k, v in ours.items() if k != "seconds_per_pair"} == {
+            k: v for k, v in theirs.items() if k != "seconds_per_pair"
+        }
+    header = (one / "metrics.csv").read_text().splitlines()[0]
+    assert header == (several / "metrics.csv").read_text().splitlines()[0]
+
+
+def test_each_pair_is_selected_once_for_every_method_and_gap(dataset, monkeypatch):
+    built = []
+    original = metrics.PairTruth.__init__
+
+    def counting(self, *args, **kwargs):
+        built.append(len(args[0]))
+        original(self, *args, **kwargs)
+
+    monkeypatch.setattr(metrics.PairTruth, "__init__", counting)
+    zero, ego = (lambda pair, index: zero_flow(pair)), (lambda pair, index: ego_only_flow(pair))
+    options = MetricOptions(class_to_meta=dataset.class_to_meta)
+    result = evaluate(dataset, {1: {"zero": zero, "ego": ego, "again": ego}}, options)
+    assert len(built) == len(dataset) == len(result.pairs[1])  # once per pair, not per method or statistic
+    # and the shared selection gives each method the metrics module's own numbers
+    pair = dataset[0]
+    scorer = PairScorer(pair, options)
+    for predict in (zero_flow, ego_only_flow):
+        scores = scorer.score(predict(pair), 0.0)
+        expected = metrics.frame_pair_stats(pair, predict(pair))
+        for category, sums in expected.items():
+            np.testing.assert_array_equal(scores.paper[category], sums)
+        args = (pair.pc0, predict(pair), pair.flow, pair.ego1_from_ego0, pair.classes)
+        buckets = metrics.av2_bucket_stats(
+            *args, ground=pair.ground0, flow_valid=pair.flow_valid, class_to_meta=dataset.class_to_meta
+        )
+        np.testing.assert_array_equal(scores.buckets, buckets)
+
+
+def test_every_hook_sees_every_method_on_every_scored_pair(dataset):
+    seen = []
+    zero, ego = (lambda pair, index: zero_flow(pair)), (lambda pair, index: ego_only_flow(pair))
+    evaluate(_BrokenAt(dataset, 0), {1: {"zero": zero, "ego": ego}}, MetricOptions(), hooks=[seen.append])
+    assert [(p.position, p.horizon, p.index, sorted(p.flows)) for p in seen] == [(0, 1, 1, ["ego", "zero"])]
+    np.testing.assert_array_equal(seen[0].flows["ego"], ego_only_flow(dataset[1]))
 
 
 def test_readers_taking_max_horizon_get_the_largest_horizon():
@@ -266,8 +342,8 @@ def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
     by_key = {(row["method"], row["horizon"]): row for row in rows}
     assert by_key["icpflow", 2]["EPE_overall"] != by_key["icpflow+tracker", 2]["EPE_overall"]  # the tracker ran
     with open(tmp_path / "metrics.csv", newline="") as handle:
-        table = list(csv.DictReader(handle))
-    assert [(r["method"], int(r["horizon"]), float(r["EPE_dynamic_fg"])) for r in table] == [
+        table = [r for r in csv.DictReader(handle) if r["metric"] == "paper/point_weighted/dynamic_fg"]
+    assert [(r["method"], int(r["horizon"]), float(r["EPE"])) for r in table] == [
         (row["method"], row["horizon"], pytest.approx(row["EPE_dynamic_fg"], rel=1e-12)) for row in rows
     ]
     printed = capsys.readouterr().out
@@ -311,10 +387,10 @@ def test_student_row_reproduces_the_metrics_module(tmp_path, dataset):
     predictor = Predictor.load(checkpoint)
     pairs = [dataset[i] for i in range(len(dataset))]
     flows = [predictor(p.pc0, p.pc1, p.ego1_from_ego0) for p in pairs]
-    assert_same_numbers(document["methods"]["student"], expected_summary(dataset, list(zip(pairs, flows))))
+    assert_same_numbers(method_summary(document, "student"), expected_summary(dataset, list(zip(pairs, flows))))
     # the network moves points off the ego flow: its row is not the ego baseline's
     overall = {
-        name: document["methods"][name]["paper"]["point_weighted"]["overall"]["EPE"] for name in ("ego", "student")
+        name: method_summary(document, name)["paper"]["point_weighted"]["overall"]["EPE"] for name in ("ego", "student")
     }
     assert overall["student"] != pytest.approx(overall["ego"], abs=1e-6)
 

@@ -15,6 +15,7 @@ seconds between scans i and i + 1 feed the teacher's de-skew step (``teacher.des
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -129,4 +130,39 @@ def sample_tracker_flow(teacher, dataset, index: int, horizon: int, pair=None) -
     return long_horizon_flow(teacher, scans, egos, grounds, mode="tracker", times=times, dts=dts)
 
 
-__all__ = ["HorizonResult", "long_horizon_flow", "sample_tracker_flow"]
+class TeacherSample(NamedTuple):
+    """The teacher on one sample: FULL ``flow`` (N0, 3) float32, ``confidence`` (N0,) float32 in [0, 1],
+    ``ego1_from_ego0`` (4, 4) float64 (scan t to scan t + horizon) and pc0's ``cluster`` ids (N0,) int32 (-1: none;
+    all -1 for a tracker chain, which spans several clusterings)."""
+
+    flow: np.ndarray
+    confidence: np.ndarray
+    ego1_from_ego0: np.ndarray
+    cluster: np.ndarray
+
+
+def teacher_on_sample(teacher, dataset, index: int, pair, horizon: int, tracker: bool) -> TeacherSample:
+    """The teacher (an ``ICPFlow``) on ``pair`` = ``dataset.pair(index, horizon)``, with the pair's ego motion,
+    ground masks and per-point times when it has them; ``tracker`` and ``horizon`` > 1: chained through the
+    intermediate scans (:func:`sample_tracker_flow`). The one teacher-on-a-sample call of labelling and evaluation."""
+    if tracker and horizon > 1:
+        chained = sample_tracker_flow(teacher, dataset, index, horizon, pair)
+        cluster = np.full(len(pair.pc0), -1, np.int32)
+        return TeacherSample(chained.flow, chained.confidence, chained.ego_k_from_0, cluster)
+    result = teacher(
+        pair.pc0,
+        pair.pc1,
+        ego1_from_ego0=pair.ego1_from_ego0,
+        ground0=pair.ground0,
+        ground1=pair.ground1,
+        time0=pair.time0,
+        time1=pair.time1,
+        gap=horizon,
+        dt=pair.dt,
+    )
+    return TeacherSample(
+        result.flow, result.confidence, np.asarray(result.ego1_from_ego0, np.float64), result.labels0.astype(np.int32)
+    )
+
+
+__all__ = ["HorizonResult", "TeacherSample", "long_horizon_flow", "sample_tracker_flow", "teacher_on_sample"]

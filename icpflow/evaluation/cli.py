@@ -1,0 +1,261 @@
+"""``eval.py``: from the Hydra config (``conf/eval.yaml``) to an evaluation, its report and an exit status.
+
+Exit status: 0 every pair scored; 1 some pairs skipped (listed in metrics.json); 2 the run could not start (a bad
+option or file, an ``out_dir`` that cannot be written, checked before the long work) or its results could not be
+written (they are then saved in the system's temporary folder, and the table is printed); 130 Ctrl-C, 143 SIGTERM:
+the pairs scored until then are written as a partial ``metrics.json`` (``"complete": false``) and no process of the
+run is left. Every error is one line on stderr, naming the option or file.
+"""
+
+from __future__ import annotations
+
+import functools
+import multiprocessing
+import os
+import signal
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+from icpflow.atomic import WriteError, write_text_atomic
+from icpflow.evaluation.methods import EvaluationError, MethodFactory, build_methods, parse_horizons
+from icpflow.evaluation.report import check_writable, format_table, metrics_json, table_rows, write_results
+from icpflow.evaluation.run import Evaluation, PairHook, PairPredictions, signals_held
+from icpflow.evaluation.scoring import MetricOptions
+
+WEIGHTINGS = ("point_weighted", "per_pair")
+RELATIVE_TO = ("residual", "full")
+#: skipped samples listed at the end of a run (the rest: metrics.json)
+SHOWN_FAILURES = 10
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM reached the process: the run stops as on Ctrl-C (a KeyboardInterrupt, so no sample's ``except
+    Exception`` swallows it)."""
+
+
+@contextmanager
+def sigterm_stops():
+    """Turn SIGTERM into :class:`Terminated` for the block (the previous handler comes back after it)."""
+
+    def stop(signum, frame):
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def end_child_processes() -> None:
+    """End the processes the libraries started for this run (hdbscan's joblib/loky workers, which would otherwise
+    outlive it with their resource trackers)."""
+    for child in multiprocessing.active_children():
+        child.terminate()
+    for child in multiprocessing.active_children():
+        child.join(timeout=5)
+
+
+def check_options(cfg) -> dict:
+    """The options that need no dataset, checked and converted (one-line :class:`EvaluationError` naming the
+    option): ``limit``, ``bev``, ``render``, ``render_size``, ``bev_extent``, ``crop``, ``include_ground``,
+    ``relative_to``, ``weighting``."""
+
+    def integer(name, low):
+        value = cfg[name]
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise EvaluationError(f"{name} must be an integer >= {low}, got {value!r}")
+        return value
+
+    def number(name, value):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+            raise EvaluationError(f"{name} must be a number > 0, got {value!r}")
+        return float(value)
+
+    size = list(cfg.render_size) if not isinstance(cfg.render_size, (str, int, float)) else None
+    pixels = size is not None and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)
+    if not pixels or len(size) != 2:
+        raise EvaluationError(f"render_size must be [width,height] in pixels, got {cfg.render_size!r}")
+    for name, allowed in (("relative_to", RELATIVE_TO), ("weighting", WEIGHTINGS)):
+        if cfg[name] not in allowed:
+            raise EvaluationError(f"{name} must be one of {', '.join(allowed)}, got {cfg[name]!r}")
+    if not isinstance(cfg.include_ground, bool):
+        raise EvaluationError(f"include_ground must be true or false, got {cfg.include_ground!r}")
+    return {
+        "limit": None if cfg.limit is None else integer("limit", 1),
+        "bev": integer("bev", 0),
+        "render": integer("render", 0),
+        "render_size": tuple(size),
+        "bev_extent": number("bev_extent", cfg.bev_extent),
+        "crop": None if cfg.crop is None else number("crop", cfg.crop),
+    }
+
+
+def picture_hooks(cfg, options: dict, out_dir: Path, horizons: list[int]) -> list[PairHook]:
+    """The per-pair hooks of ``cfg``: ``bev=N`` matplotlib BEV pictures and ``render=N`` open3d renders of the first
+    N pairs, ``<pair>_<method>.png`` under ``bev/`` and ``render/`` (under ``k<gap>/`` when several gaps are
+    scored). Other per-pair consumers (a viewer) are added to this list."""
+    from icpflow.viz import plot_bev, render_pair
+
+    def folder(kind: str, predictions: PairPredictions) -> Path:
+        return out_dir / kind / (f"k{predictions.horizon}" if len(horizons) > 1 else "")
+
+    def stem(predictions: PairPredictions) -> str:
+        return predictions.pair.sample_id.replace("/", "_") or f"pair{predictions.position:04d}"
+
+    def bev(predictions: PairPredictions) -> None:
+        if predictions.position >= options["bev"]:
+            return
+        for name, flow in predictions.flows.items():
+            plot_bev(
+                predictions.pair,
+                folder("bev", predictions) / f"{stem(predictions)}_{name}.png",
+                predicted=flow,
+                extent=options["bev_extent"],
+                title=f"{cfg.dataset.name} {cfg.split} {predictions.pair.sample_id}: {name}",
+            )
+
+    def render(predictions: PairPredictions) -> None:
+        if predictions.position >= options["render"]:
+            return
+        for name, flow in predictions.flows.items():
+            render_pair(
+                predictions.pair,
+                folder("render", predictions) / f"{stem(predictions)}_{name}.png",
+                predicted=flow,
+                size=options["render_size"],
+                extent=options["bev_extent"],
+            )
+
+    hooks = []
+    if options["bev"] > 0:
+        hooks.append(bev)
+    if options["render"] > 0:
+        hooks.append(render)
+    return hooks
+
+
+def run_eval(
+    cfg,
+    progress: bool = True,
+    extra_methods: dict[str, MethodFactory] | None = None,
+    hooks: list[PairHook] | None = None,
+) -> int:
+    """``eval.py``: evaluate ``cfg.method`` (a name or a list) on ``cfg.dataset`` / ``cfg.split`` at ``cfg.horizon``
+    (a gap or several); print the table, write ``metrics.json`` and ``metrics.csv`` under ``cfg.out_dir`` and the
+    pictures of :func:`picture_hooks`.
+
+    ``extra_methods``: methods of other packages by name, each ``factory(cfg) -> method`` (``eval.py`` gives
+    ``student``); ``hooks``: more per-pair hooks. Returns the exit status (see the module docstring).
+    """
+    with sigterm_stops():
+        try:
+            return _run_eval(cfg, progress, extra_methods, hooks)
+        except KeyboardInterrupt as stop:  # before the scoring began: nothing to keep
+            end_child_processes()
+            what, status = _stopped(stop)
+            print(f"eval: {what} before any pair was scored; nothing written", file=sys.stderr)
+            return status
+
+
+def _stopped(stop: KeyboardInterrupt) -> tuple[str, int]:
+    """What stopped the run, and its exit status."""
+    return ("terminated (SIGTERM)", 143) if isinstance(stop, Terminated) else ("interrupted (Ctrl-C)", 130)
+
+
+def _run_eval(cfg, progress, extra_methods, hooks) -> int:
+    from omegaconf import OmegaConf
+
+    from icpflow.datasets.from_config import open_dataset
+    from icpflow.teacher.config import teacher_config
+    from icpflow.viz import offscreen_problem
+
+    names = list(cfg.method) if OmegaConf.is_list(cfg.method) else [cfg.method]
+    trackers = list(cfg.tracker) if OmegaConf.is_list(cfg.tracker) else [cfg.tracker]
+    out_dir = Path(cfg.out_dir)
+    try:
+        options = check_options(cfg)
+        horizons = parse_horizons(cfg.horizon)
+        dataset = open_dataset(cfg, horizons[-1])
+        teacher = teacher_config(cfg) if "icpflow" in names else None
+        if teacher is not None and horizons[-1] > teacher.max_frame_gap:
+            raise EvaluationError(
+                f"icpflow: horizon={horizons[-1]} exceeds the teacher's max_frame_gap "
+                f"{teacher.max_frame_gap} (icpflow.max_frame_gap=...)"
+            )
+        problem = offscreen_problem() if options["render"] > 0 else None
+        if problem:
+            raise EvaluationError(f"render={options['render']}: {problem}")
+        extra = {name: functools.partial(factory, cfg) for name, factory in (extra_methods or {}).items()}
+        methods = build_methods(
+            names, horizons, trackers, dataset=dataset, teacher_config=teacher, shards=cfg.shards, extra=extra
+        )
+        check_writable(out_dir)
+    except WriteError as error:
+        print(f"eval: {error}; choose another out_dir=... or free space there", file=sys.stderr)
+        return 2
+    except (EvaluationError, ValueError, RuntimeError, OSError) as error:
+        print(f"eval: {' '.join(str(error).split())}", file=sys.stderr)
+        return 2
+    metric_options = MetricOptions(
+        crop=options["crop"],
+        include_ground=cfg.include_ground,
+        relative_to=str(cfg.relative_to),
+        class_to_meta=dataset.class_to_meta,
+    )
+    limit = len(dataset) if options["limit"] is None else min(options["limit"], len(dataset))
+    evaluation = Evaluation(dataset, methods, metric_options)
+    stopped, status = None, None
+    try:
+        evaluation.run(range(limit), [*picture_hooks(cfg, options, out_dir, horizons), *(hooks or [])], progress)
+    except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated): keep what was scored
+        stopped, status = _stopped(stop)
+        end_child_processes()
+    result = evaluation.result(stopped)
+    first = result.horizons[0]
+    if not result.pairs[first] and stopped is None:
+        reason = result.failures[0]["reason"] if result.failures else "none"
+        print(f"eval: no pair could be scored ({len(result.failures)} failed; first: {reason})", file=sys.stderr)
+        return 2
+    extra = {"dataset": cfg.dataset.name, "split": cfg.split, "config": OmegaConf.to_container(cfg, resolve=True)}
+    weighting = str(cfg.weighting)
+    if result.pairs[first]:
+        print(
+            f"{cfg.dataset.name} {cfg.split}: {len(result.pairs[first])} pairs"
+            f"{' (partial: ' + stopped + ')' if stopped else ''}, horizon{'s' if len(horizons) > 1 else ''} "
+            f"{', '.join(map(str, horizons))}, crop {metric_options.crop} m, {weighting.replace('_', '-')}"
+        )
+        print(format_table(table_rows(result, weighting)))
+    try:
+        with signals_held():  # a second signal waits for the files
+            json_path, _ = write_results(result, out_dir, weighting, extra)
+    except WriteError as error:
+        print(f"eval: {error}; {_save_elsewhere(result, weighting, extra)}", file=sys.stderr)
+        return 2
+    for failure in result.failures[:SHOWN_FAILURES]:
+        print(f"  skipped {failure['sample_id']}: {failure['reason']}", file=sys.stderr)
+    if len(result.failures) > SHOWN_FAILURES:
+        print(f"  ... and {len(result.failures) - SHOWN_FAILURES} more (all in {json_path})", file=sys.stderr)
+    if stopped:
+        print(
+            f"eval: {stopped}; the {len(result.pairs[first])} pairs scored are kept in {json_path} "
+            '("complete": false); rerun the same command for all pairs',
+            file=sys.stderr,
+        )
+        return status
+    print(f"eval: -> {json_path} (both weightings, every split, per-class bucketed EPE)")
+    return 1 if result.failures else 0
+
+
+def _save_elsewhere(result, weighting: str, extra: dict) -> str:
+    """Write the metrics.json that could not be written into the system's temporary folder; says where (or that
+    only the printed table is left)."""
+    path = Path(tempfile.gettempdir()) / f"eval-metrics-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.json"
+    try:
+        write_text_atomic(path, metrics_json(result, weighting, extra))
+    except WriteError as error:
+        return f"nor in {path.parent} ({' '.join(str(error).split())}); the table above holds the scores"
+    return f"the scores were saved to {path} instead; free space or choose another out_dir=... and rerun"
