@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from icpflow.atomic import atomic_path, write_text_atomic
+from icpflow.evaluation import is_complete, method_summary, read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 SUPERVISION = {"pseudo": "distillation", "gt": "supervised"}
@@ -37,7 +38,7 @@ def run(arguments: list[str]) -> float:
 
 def dynamic_epe(metrics_json: Path, method: str) -> tuple[float, float]:
     """(dynamic-foreground EPE, Threeway EPE) of ``method`` in an eval.py ``metrics.json``."""
-    summary = json.loads(metrics_json.read_text())["methods"][method]
+    summary = method_summary(read_metrics(metrics_json), method)
     return summary["paper"]["point_weighted"]["dynamic_fg"]["EPE"], summary["threeway"]["threeway"]
 
 
@@ -61,7 +62,7 @@ def main() -> None:
     if not (val / "index.json").is_file():
         run(["label.py", "split=val", f"out_dir={val}"])
     baselines = out / "eval" / "baselines" / "metrics.json"
-    if not baselines.is_file():
+    if not is_complete(baselines):
         run(["eval.py", *test, "method=[ego,icpflow]", f"out_dir={baselines.parent}"])
     teacher, ego = dynamic_epe(baselines, "icpflow"), dynamic_epe(baselines, "ego")
 
@@ -97,7 +98,7 @@ def main() -> None:
                     ]
                 )
                 write_text_atomic(timing, f"{seconds:.1f}\n")
-            if not scores.is_file():
+            if not is_complete(scores):
                 run(
                     [
                         "eval.py",

@@ -15,11 +15,12 @@ whose scores exist are not repeated.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import subprocess
 import sys
 from pathlib import Path
+
+from icpflow.evaluation import is_complete, method_summary, read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_VARIANTS = [
@@ -53,7 +54,7 @@ def main() -> None:
         for seed in seeds:
             run_dir = args.out.resolve() / f"{name}_seed{seed}"
             scores = run_dir / "score" / "metrics.json"
-            if not scores.is_file():
+            if not is_complete(scores):
                 call(
                     [
                         "train.py",
@@ -79,7 +80,7 @@ def main() -> None:
                         "bev=0",
                     ]
                 )
-            table = json.loads(scores.read_text())["methods"]["student"]["paper"]["point_weighted"]
+            table = method_summary(read_metrics(scores), "student")["paper"]["point_weighted"]
             results.setdefault(name, []).append({c: table[c]["EPE"] for c in CATEGORIES})
     print(
         f"\n{args.experiment}, {args.steps} steps, seeds {seeds}; scored on {args.score_split} "

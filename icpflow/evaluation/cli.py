@@ -195,7 +195,7 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
         )
         check_writable(out_dir)
     except WriteError as error:
-        print(f"eval: {error}; choose another out_dir=... or free space there", file=sys.stderr)
+        print(f"eval: {error}; nothing was scored: choose a writable out_dir=... with free space", file=sys.stderr)
         return 2
     except (EvaluationError, ValueError, RuntimeError, OSError) as error:
         print(f"eval: {' '.join(str(error).split())}", file=sys.stderr)
