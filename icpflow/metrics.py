@@ -119,6 +119,15 @@ class PairTruth:
         if flow_valid is not None:
             self.scored &= np.asarray(flow_valid, bool)
 
+    @classmethod
+    def of_pair(cls, pair, include_ground: bool = False) -> PairTruth:
+        """The truth of a FramePair holding ground truth (flow, classes, ego1_from_ego0); ValueError otherwise."""
+        if not pair.has_ground_truth or pair.classes is None:
+            raise ValueError(f"{pair.source}: metrics need ground-truth flow and classes")
+        return cls(
+            pair.pc0, pair.flow, pair.ego1_from_ego0, pair.classes, pair.ground0, pair.flow_valid, include_ground
+        )
+
     def epe(self, pred_flow) -> np.ndarray:
         """(N,) float64 end-point error (m) of a FULL flow prediction (N, 3)."""
         _check(self.pc0, pred_flow, None, self.classes)
@@ -209,21 +218,12 @@ def pair_stats(
     return splits.sums(truth.epe(pred_flow))
 
 
-def frame_pair_stats(pair, pred_flow, **options) -> dict[str, np.ndarray]:
+def frame_pair_stats(
+    pair, pred_flow, crop=32.0, include_ground=False, dynamic_speed=0.5, relative_to="residual"
+) -> dict[str, np.ndarray]:
     """:func:`pair_stats` for a FramePair holding ground truth (flow, classes, ego1_from_ego0)."""
-    if not pair.has_ground_truth or pair.classes is None:
-        raise ValueError(f"{pair.source}: metrics need ground-truth flow and classes")
-    return pair_stats(
-        pair.pc0,
-        pred_flow,
-        pair.flow,
-        pair.ego1_from_ego0,
-        pair.classes,
-        ground=pair.ground0,
-        flow_valid=pair.flow_valid,
-        dt=pair.dt,
-        **options,
-    )
+    truth = PairTruth.of_pair(pair, include_ground)
+    return truth.paper(pair.dt, crop, dynamic_speed, relative_to).sums(truth.epe(pred_flow))
 
 
 def _means(sums: np.ndarray) -> dict[str, float]:

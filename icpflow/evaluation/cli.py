@@ -100,42 +100,28 @@ def picture_hooks(cfg, options: dict, out_dir: Path, horizons: list[int]) -> lis
     scored). Other per-pair consumers (a viewer) are added to this list."""
     from icpflow.viz import plot_bev, render_pair
 
-    def folder(kind: str, predictions: PairPredictions) -> Path:
-        return out_dir / kind / (f"k{predictions.horizon}" if len(horizons) > 1 else "")
+    def pictures(kind: str, count: int, draw) -> PairHook:
+        """``draw(pair, path, flow)`` of every method's flow for the first ``count`` pairs, into ``kind/``."""
 
-    def stem(predictions: PairPredictions) -> str:
-        return predictions.pair.sample_id.replace("/", "_") or f"pair{predictions.position:04d}"
+        def hook(predictions: PairPredictions) -> None:
+            if predictions.position >= count:
+                return
+            folder = out_dir / kind / (f"k{predictions.horizon}" if len(horizons) > 1 else "")
+            stem = predictions.pair.sample_id.replace("/", "_") or f"pair{predictions.position:04d}"
+            for name, flow in predictions.flows.items():
+                draw(predictions.pair, folder / f"{stem}_{name}.png", flow, name)
 
-    def bev(predictions: PairPredictions) -> None:
-        if predictions.position >= options["bev"]:
-            return
-        for name, flow in predictions.flows.items():
-            plot_bev(
-                predictions.pair,
-                folder("bev", predictions) / f"{stem(predictions)}_{name}.png",
-                predicted=flow,
-                extent=options["bev_extent"],
-                title=f"{cfg.dataset.name} {cfg.split} {predictions.pair.sample_id}: {name}",
-            )
+        hook.name = kind
+        return hook
 
-    def render(predictions: PairPredictions) -> None:
-        if predictions.position >= options["render"]:
-            return
-        for name, flow in predictions.flows.items():
-            render_pair(
-                predictions.pair,
-                folder("render", predictions) / f"{stem(predictions)}_{name}.png",
-                predicted=flow,
-                size=options["render_size"],
-                extent=options["bev_extent"],
-            )
+    def bev(pair, path, flow, name):
+        title = f"{cfg.dataset.name} {cfg.split} {pair.sample_id}: {name}"
+        plot_bev(pair, path, predicted=flow, extent=options["bev_extent"], title=title)
 
-    hooks = []
-    if options["bev"] > 0:
-        hooks.append(bev)
-    if options["render"] > 0:
-        hooks.append(render)
-    return hooks
+    def render(pair, path, flow, name):
+        render_pair(pair, path, predicted=flow, size=options["render_size"], extent=options["bev_extent"])
+
+    return [pictures(kind, options[kind], draw) for kind, draw in (("bev", bev), ("render", render)) if options[kind]]
 
 
 def run_eval(

@@ -57,19 +57,8 @@ class PairScorer:
     :class:`PairScores`. Raises ValueError for a pair without ground-truth flow and classes."""
 
     def __init__(self, pair: FramePair, options: MetricOptions):
-        if not pair.has_ground_truth or pair.classes is None:
-            raise ValueError(f"{pair.source}: no ground-truth flow and classes to score against")
         self.pair = pair
-        truth = metrics.PairTruth(
-            pair.pc0,
-            pair.flow,
-            pair.ego1_from_ego0,
-            pair.classes,
-            ground=pair.ground0,
-            flow_valid=pair.flow_valid,
-            include_ground=options.include_ground,
-        )
-        self.truth = truth
+        self.truth = truth = metrics.PairTruth.of_pair(pair, options.include_ground)
         self.paper = truth.paper(pair.dt, options.crop, options.dynamic_speed, options.relative_to)
         if options.class_to_meta is None:
             threeway_meta = {0: "BACKGROUND"} | {int(c): "FOREGROUND" for c in np.unique(pair.classes) if c > 0}
