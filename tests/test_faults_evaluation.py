@@ -241,3 +241,24 @@ def test_a_disk_filling_up_during_the_run_is_one_line_and_the_scores_are_saved_e
     assert document["complete"] and method_summary(document, "counted")["pairs"] == 2
     assert json.loads(saved[0].read_text())["pairs"]["1"] == document["pairs"]["1"]
     assert not (out / "metrics.json").exists() and not list(out.glob("*.tmp-*"))
+
+
+def test_a_picture_that_cannot_be_written_is_one_line_and_the_scoring_goes_on(capsys):
+    from icpflow.atomic import WriteError
+    from icpflow.evaluation import MetricOptions, evaluate
+
+    dataset = SyntheticDataset(
+        split="val", num_sequences=1, frames_per_sequence=3, beams=32, azimuth_resolution_deg=1.0
+    )
+    calls = []
+
+    def bev(predictions):
+        calls.append(predictions.index)
+        raise WriteError(f"bev/{predictions.pair.sample_id}_ego.png: cannot write (No space left on device)")
+
+    method = Counted()
+    result = evaluate(dataset, {1: {"ego": method}}, MetricOptions(), hooks=[bev])
+    assert calls == [0] and method.calls == len(dataset) == len(result.pairs[1])  # dropped after its first failure
+    assert capsys.readouterr().err == (
+        f"eval: bev/{dataset.sample_id(0)}_ego.png: cannot write (No space left on device); no more files from bev\n"
+    )
