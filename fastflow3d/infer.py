@@ -28,6 +28,7 @@ import numpy as np
 
 from fastflow3d.artifact import FORMATS, LEGACY_FORMATS
 from icpflow.atomic import atomic_path
+from icpflow.console import quiet
 from icpflow.datasets.io import SCAN_SUFFIXES, fail, load_npz, read_poses, read_scan
 from icpflow.frames import FramePair, check_points
 from icpflow.geometry import relative_transform, rigid_problem
@@ -151,6 +152,7 @@ def infer(args) -> tuple[Path, Path | None]:
 
 def main(argv=None) -> int:
     """Command-line entry; returns the exit status (0 written, 2 error)."""
+    quiet()
     args = parse_args(argv)
     try:
         out, bev = infer(args)

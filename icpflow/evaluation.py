@@ -134,7 +134,9 @@ def build_methods(
             shared[name] = lambda pair, index: ego_only_flow(pair)
         elif name == "icpflow":
             from icpflow.teacher import ICPFlow
+            from icpflow.teacher.warmup import ensure_compiled
 
+            ensure_compiled("eval")
             shared[name] = ICPFlow(teacher_config)
         elif name == "shards":
             if not shards:
@@ -309,9 +311,9 @@ def evaluate_horizons(
     done, failures = {k: [] for k in methods}, []
     iterator = indices
     if progress:
-        from tqdm import tqdm
+        from icpflow.console import Progress
 
-        iterator = tqdm(indices, desc="eval", unit="sample", file=sys.stderr)
+        iterator = Progress(indices, desc="eval", unit="sample")
     for index in iterator:
         scored = []
         for horizon, row in methods.items():

@@ -522,7 +522,7 @@ def run_labelling(
     plan, mean reader + teacher seconds per labelled sample in a worker, wall-clock seconds. ``index.json`` is
     written on every exit (also on Ctrl-C or an error), from the shards then on disk.
     """
-    from tqdm import tqdm
+    from icpflow.console import Progress
 
     if runner not in ("local", "ray"):
         raise LabelError(f"runner must be local or ray, got {runner!r}")
@@ -543,7 +543,7 @@ def run_labelling(
         else:
             results[shard] = record
     seconds, done = 0.0, 0
-    bar = tqdm(
+    bar = Progress(
         total=total,
         unit=" samples",
         disable=not progress,
