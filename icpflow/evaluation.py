@@ -22,6 +22,7 @@ same start scans t for each k, one row per (method, k) with the mean real dt of 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import functools
 import io
@@ -537,6 +538,7 @@ def run_eval(cfg, progress: bool = True, extra_methods: dict[str, MethodFactory]
     from icpflow.datasets.from_config import open_dataset
     from icpflow.teacher.config import teacher_config
     from icpflow.viz import offscreen_problem, plot_bev, render_pair
+    from icpflow.viz_rerun import PairRecording, check_viewer
 
     names = list(cfg.method) if OmegaConf.is_list(cfg.method) else [cfg.method]
     trackers = list(cfg.tracker) if OmegaConf.is_list(cfg.tracker) else [cfg.tracker]
@@ -549,6 +551,7 @@ def run_eval(cfg, progress: bool = True, extra_methods: dict[str, MethodFactory]
                 f"icpflow: horizon={horizons[-1]} exceeds the teacher's max_frame_gap "
                 f"{teacher.max_frame_gap} (icpflow.max_frame_gap=...)"
             )
+        viewer = check_viewer(cfg.get("viewer"))  # the 3D recording (icpflow.viz_rerun)
         problem = offscreen_problem() if int(cfg.render) > 0 else None
         if problem:
             raise EvaluationError(f"render={cfg.render}: {problem}")
@@ -568,6 +571,7 @@ def run_eval(cfg, progress: bool = True, extra_methods: dict[str, MethodFactory]
     out_dir = Path(cfg.out_dir)
     limit = len(dataset) if cfg.limit is None else min(int(cfg.limit), len(dataset))
     long_horizon = len(horizons) > 1
+    recording = PairRecording(out_dir / "recording.rrd") if viewer else None
 
     def pictures(position: int, horizon: int, pair: FramePair, flows: dict[str, np.ndarray]) -> None:
         stem = pair.sample_id.replace("/", "_") or f"pair{position:04d}"
@@ -589,8 +593,13 @@ def run_eval(cfg, progress: bool = True, extra_methods: dict[str, MethodFactory]
                     size=tuple(cfg.render_size),
                     extent=float(cfg.bev_extent),
                 )
+        if recording is not None and position < int(cfg.viewer_pairs):
+            recording.log_pair(position, pair, flows, prefix=sub)
 
-    results = evaluate_horizons(dataset, methods, options, range(limit), on_pair=pictures, progress=progress)
+    with recording or contextlib.nullcontext():
+        results = evaluate_horizons(dataset, methods, options, range(limit), on_pair=pictures, progress=progress)
+    if recording is not None:
+        print(f"eval: 3D recording of {recording.pairs} pairs -> {recording.path} (open it with: rerun <file>)")
     first = results[horizons[0]]
     if not first.pairs:
         print(
