@@ -6,7 +6,8 @@ A run's console is a progress bar, the lines that say what a long step does, and
   line, which shows as a duplicate wherever stderr is not a terminal: logs, pipes, CI).
 - :class:`ProgressSafeHandler`: log records (``name: message``; ``name: warning: message`` from WARNING up) written
   to stderr with ``tqdm.write``, so a warning never lands inside a progress bar. ``conf/hydra/default.yaml`` makes it
-  the console handler of every Hydra entry point (Hydra's default prints timestamps to stdout).
+  the console handler of every Hydra entry point (Hydra's default prints timestamps to stdout). Worker processes,
+  which cannot reach the main process's bar, use :func:`worker_logging` (a line of their own).
 - :func:`quiet`: filters exactly the messages in ``NOISE`` (library advertisements, lines about hardware that is
   absent, a deprecation inside Lightning that its users cannot act on), each matched on its own text; every other
   warning and log line shows as before. Called first by ``label.py``, ``train.py``, ``eval.py``, ``export.py`` and
@@ -60,6 +61,29 @@ class ProgressSafeHandler(logging.Handler):
             tqdm.write(self.format(record), file=self.stream or sys.stderr)
         except Exception:
             self.handleError(record)
+
+
+class WorkerHandler(logging.StreamHandler):
+    """A worker process's log records on stderr, each on a line of its own: on a terminal it first clears the line
+    the main process's progress bar is drawn on (the bar redraws itself at its next update), so a warning never lands
+    inside the bar."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+        self.setFormatter(ConsoleFormatter())
+        self.addFilter(NoiseFilter())
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        return "\r\x1b[2K" + text if getattr(self.stream, "isatty", lambda: False)() else text
+
+
+def worker_logging() -> None:
+    """Log records of a worker process (``label.py``'s) through :class:`WorkerHandler`, WARNING and up."""
+    root = logging.getLogger()
+    if not any(isinstance(handler, WorkerHandler) for handler in root.handlers):
+        root.addHandler(WorkerHandler())
+    quiet()
 
 
 class ConsoleFormatter(logging.Formatter):

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from icpflow.console import ConsoleFormatter, NoiseFilter, Progress
+from icpflow.console import ConsoleFormatter, NoiseFilter, Progress, WorkerHandler
 from icpflow.viz import _renderer_output
 
 REPO = Path(__file__).resolve().parents[1]
@@ -108,3 +108,18 @@ def test_renderer_banner_is_dropped_and_anything_else_kept(capfd):
         os.write(1, b"Vulkan error: device lost\n")
     out, err = capfd.readouterr()
     assert out == "" and err == "Vulkan error: device lost\n"
+
+
+def test_worker_warnings_take_a_line_of_their_own():
+    """A labelling worker cannot reach the main process's bar: on a terminal its warning clears the bar's line."""
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    handler = WorkerHandler()
+    for stream, start in ((Terminal(), "\r\x1b[2K"), (io.StringIO(), "")):
+        handler.setStream(stream)
+        record = logging.LogRecord("icpflow.frames", logging.WARNING, __file__, 1, "x has float16", None, None)
+        handler.handle(record)
+        assert stream.getvalue() == f"{start}frames: warning: x has float16\n"

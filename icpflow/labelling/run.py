@@ -400,7 +400,10 @@ def _worker_init() -> None:
     and never outlives the main process."""
     from multiprocessing.util import Finalize
 
+    from icpflow.console import worker_logging
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    worker_logging()  # warnings on a line of their own, not inside the main process's progress bar
     exit_with_parent()
     Finalize(None, _end_helpers, exitpriority=100)
 
