@@ -176,7 +176,7 @@ def run_export(cfg) -> int:
         return 2
     try:
         formats = parse_formats(cfg.format)
-        if Path(cfg.checkpoint).is_file():  # a long step (issue 21): say what it does
+        if Path(cfg.checkpoint).is_file() and formats and set(formats) <= set(FORMATS):  # a long step: say so
             print(f"export: exporting {cfg.checkpoint}, then checking parity (about 20 s) ...", file=sys.stderr)
         out_dir = export_checkpoint(cfg.checkpoint, cfg.out_dir, formats)
     except (ValueError, RuntimeError, OSError) as error:
