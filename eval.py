@@ -14,11 +14,13 @@ import hydra
 from omegaconf import DictConfig
 
 from fastflow3d.eval_method import student_method
+from icpflow.console import quiet
 from icpflow.evaluation import run_eval
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="eval")
 def main(cfg: DictConfig) -> None:
+    quiet()
     status = run_eval(cfg, extra_methods={"student": student_method})
     if status:
         sys.exit(status)

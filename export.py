@@ -11,10 +11,12 @@ import hydra
 from omegaconf import DictConfig
 
 from fastflow3d.export import run_export
+from icpflow.console import quiet
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="export")
 def main(cfg: DictConfig) -> None:
+    quiet()
     status = run_export(cfg)
     if status:
         sys.exit(status)

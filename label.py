@@ -12,11 +12,13 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from icpflow.console import quiet
 from icpflow.labelling.cli import label
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="label")
 def main(cfg: DictConfig) -> None:
+    quiet()
     status = label(cfg)
     if status == 1 and HydraConfig.get().mode == RunMode.MULTIRUN:
         return  # failed samples are in failures.jsonl and the summary; the sweep goes on with its other jobs

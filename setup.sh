@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Create .venv with the CPU build of torch, this project (editable) and its test/av2/export/lint extras. Idempotent.
+# Create .venv with the CPU build of torch, this project (editable) and its test/av2/export/lint/viz extras, and
+# compile the teacher's numba kernels. Idempotent.
 # Usage: bash setup.sh   (PYTHON=python3.11 bash setup.sh to pick the interpreter)
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -33,4 +34,6 @@ pip=(.venv/bin/python -m pip install -q --disable-pip-version-check)
 # bucketed-scene-flow-eval (metric parity tests) declares the CUDA open3d: install it without its dependencies.
 "${pip[@]}" -c .ci/constraints.txt --no-deps bucketed-scene-flow-eval==2.0.25
 "${pip[@]}" -c .ci/constraints.txt fvcore iopath opencv-python-headless pyquaternion
+# The teacher's numba kernels, compiled once here (about 1 min on 2 cores) rather than in the first labelling run
+.venv/bin/python -m icpflow.teacher.warmup
 echo "setup.sh: .venv ready"

@@ -11,10 +11,12 @@ import hydra
 from omegaconf import DictConfig
 
 from fastflow3d.training import TrainError, fit
+from icpflow.console import quiet
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> None:
+    quiet()
     try:
         fit(cfg)
     except TrainError as error:

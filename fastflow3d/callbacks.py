@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -58,3 +59,36 @@ class ValidateAtEnd(L.Callback):
         last_epoch = loop.max_epochs is not None and 0 < loop.max_epochs <= trainer.current_epoch + 1
         if last_step or (last_epoch and loop.epoch_loop.batch_progress.is_last_batch):
             trainer.should_stop = True
+
+
+def progress_bar() -> L.Callback:
+    """Lightning's progress bar (rich when installed, as Lightning picks it) whose training description is
+    ``Epoch N``, plus ``/last`` only when ``max_epochs`` bounds the run (Lightning's rich bar shows ``Epoch 4/-2``
+    for the unbounded ``max_epochs=-1`` of step-based recipes)."""
+    from lightning.pytorch.callbacks import RichProgressBar, TQDMProgressBar
+    from lightning.pytorch.utilities.imports import _RICH_AVAILABLE
+
+    if not _RICH_AVAILABLE:
+        return TQDMProgressBar()  # its description is "Epoch N" already
+
+    class EpochProgressBar(RichProgressBar):
+        def _get_train_description(self, current_epoch: int) -> str:
+            bounded = self.trainer.max_epochs is not None and self.trainer.max_epochs > 0
+            description = f"Epoch {current_epoch}" + (f"/{self.trainer.max_epochs - 1}" if bounded else "")
+            return f"{description:{len(self.validation_description)}}"
+
+    return EpochProgressBar()
+
+
+class ModelSize(L.Callback):
+    """One line when fitting starts: the network's class and its parameter count (in place of Lightning's model
+    summary table, whose FLOPs column reads 0 for this network: its pillar scatter runs outside the counter)."""
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.is_global_zero:
+            model = getattr(pl_module, "model", pl_module)
+            count = sum(p.numel() for p in model.parameters())
+            trainable = sum(p.numel() for p in model.parameters() if p.requires_grad)
+            logging.getLogger("fastflow3d.training").info(
+                "%s: %.2f M parameters (%.2f M trainable)", type(model).__name__, count / 1e6, trainable / 1e6
+            )

@@ -175,7 +175,10 @@ def run_export(cfg) -> int:
         print("export: pass checkpoint=<path to a training .ckpt>", file=sys.stderr)
         return 2
     try:
-        out_dir = export_checkpoint(cfg.checkpoint, cfg.out_dir, parse_formats(cfg.format))
+        formats = parse_formats(cfg.format)
+        if Path(cfg.checkpoint).is_file() and formats and set(formats) <= set(FORMATS):  # a long step: say so
+            print(f"export: exporting {cfg.checkpoint}, then checking parity (about 20 s) ...", file=sys.stderr)
+        out_dir = export_checkpoint(cfg.checkpoint, cfg.out_dir, formats)
     except (ValueError, RuntimeError, OSError) as error:
         print(f"export: {' '.join(str(error).split())}", file=sys.stderr)
         return 2

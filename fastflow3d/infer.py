@@ -1,7 +1,7 @@
 """Scene flow of two raw scan files with a trained FastFlow3D; writes the flow and a bird's-eye-view PNG.
 
     python -m fastflow3d.infer MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
-        [--bev FILE.png | --no-bev] [--bin-columns N] [--backend onnx|pt2|torchscript] [--device cpu]
+        [--bev FILE.png | --no-bev] [--rerun FILE.rrd] [--bin-columns N] [--backend onnx|pt2|torchscript] [--device cpu]
 
 MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz``
 (array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
@@ -28,6 +28,7 @@ import numpy as np
 
 from fastflow3d.artifact import FORMATS, LEGACY_FORMATS
 from icpflow.atomic import atomic_path
+from icpflow.console import quiet
 from icpflow.datasets.io import SCAN_SUFFIXES, fail, load_npz, read_poses, read_scan
 from icpflow.frames import FramePair, check_points
 from icpflow.geometry import relative_transform, rigid_problem
@@ -92,6 +93,7 @@ def parse_args(argv):
     pictures.add_argument("--bev", type=Path, help="BEV PNG (default: the output's name with .png)")
     pictures.add_argument("--no-bev", action="store_true", help="write no picture")
     parser.add_argument("--extent", type=float, default=40.0, help="half-width of the picture in metres")
+    parser.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="also a 3D recording (icpflow.viz_rerun)")
     parser.add_argument(
         "--bin-columns",
         type=int,
@@ -128,6 +130,12 @@ def infer(args) -> tuple[Path, Path | None]:
             file=sys.stderr,
         )
     write_flow(out, prediction)
+    if args.rerun is not None:  # the 3D viewer: pc0, pc1, the flow, ground and in-grid masks
+        from icpflow.viz_rerun import record_pair
+
+        ground0 = prediction.ground0 if predictor.remove_ground else None
+        scans = FramePair(pc0=pc0, pc1=pc1, ego1_from_ego0=prediction.ego1_from_ego0, ground0=ground0)
+        record_pair(args.rerun, scans, {"fastflow3d": prediction.flow}, prediction.in_grid)
     bev = None
     if not args.no_bev:
         bev = args.bev or out.with_suffix(".png")
@@ -151,13 +159,15 @@ def infer(args) -> tuple[Path, Path | None]:
 
 def main(argv=None) -> int:
     """Command-line entry; returns the exit status (0 written, 2 error)."""
+    quiet()
     args = parse_args(argv)
     try:
         out, bev = infer(args)
     except (ValueError, RuntimeError, OSError) as error:
         print(f"infer: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
-    print(f"infer: flow -> {out}" + (f", BEV -> {bev}" if bev else ""))
+    rerun = f", 3D -> {args.rerun}" if args.rerun else ""
+    print(f"infer: flow -> {out}" + (f", BEV -> {bev}" if bev else "") + rerun)
     return 0
 
 

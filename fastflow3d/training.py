@@ -18,6 +18,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from fastflow3d.artifact import FORMATS
+from fastflow3d.callbacks import ModelSize, progress_bar
 from fastflow3d.checkpoint import CheckpointError, read_checkpoint
 from fastflow3d.data import TEACHER_FIELDS, DataError, ShardDataModule, StudentDataset, labeller_teacher
 from fastflow3d.export import export_checkpoint
@@ -123,6 +124,10 @@ def build_trainer(cfg: DictConfig) -> L.Trainer:
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     callbacks = [instantiate(callback) for callback in (cfg.get("callbacks") or {}).values()]
     trainer_kwargs = OmegaConf.to_container(cfg.trainer, resolve=True)
+    if trainer_kwargs.setdefault("enable_progress_bar", True):  # the console: icpflow.console, fastflow3d.callbacks
+        callbacks.append(progress_bar())
+    if not trainer_kwargs.setdefault("enable_model_summary", False):
+        callbacks.append(ModelSize())
     return L.Trainer(**trainer_kwargs, logger=logger, callbacks=callbacks, default_root_dir=cfg.out_dir)
 
 
@@ -137,6 +142,7 @@ def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -
         raise TrainError(f"training ended with no checkpoint to export in {cfg.checkpoint_dir}")
     if source.name == "last.ckpt":
         log.warning("no best checkpoint (no validation ran?): exporting %s instead", source)
+    log.info("exporting %s (%s) to %s: about 20 s ...", source.name, ", ".join(formats), cfg.export.dir)
     try:
         out_dir = export_checkpoint(source, cfg.export.dir, formats)
     except (ValueError, RuntimeError, OSError) as error:
@@ -144,7 +150,7 @@ def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -
             f"training finished but exporting {source} failed: {' '.join(str(error).split())} "
             f"(retry with `python export.py checkpoint={source}`)"
         ) from None
-    log.info("exported %s (%s) to %s", source.name, ", ".join(formats), out_dir)
+    log.info("exported to %s", out_dir)
     return out_dir
 
 

@@ -11,8 +11,10 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import re
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -105,18 +107,37 @@ def plot_bev(
     return Path(path)
 
 
+#: what open3d's offscreen renderer (Filament on Vulkan) prints for every renderer it makes, on a healthy machine
+RENDERER_BANNER = re.compile(
+    r"(\x1b\[[0-9;]*m)*(\[Open3D INFO\]|\[Open3D WARNING\] GLFWWindowSystem: X11 GLFW init failed|Using 'soft' "
+    r"CircularBuffer|FEngine |Vulkan device driver:|Selected physical device|Backend feature level:)"
+)
+
+
 @contextlib.contextmanager
-def _stdout_to_stderr():
-    """Send file descriptor 1 (where C++ libraries print) to stderr for the duration."""
+def _renderer_output():
+    """Capture what C++ libraries write to file descriptors 1 and 2 for the duration, then pass on to stderr every
+    line that is not ``RENDERER_BANNER`` (so stdout keeps eval.py's tables, and real warnings still show)."""
     sys.stdout.flush()
-    saved = os.dup(1)
-    os.dup2(2, 1)
-    try:
-        yield
-    finally:
-        sys.stdout.flush()
-        os.dup2(saved, 1)
-        os.close(saved)
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    with tempfile.TemporaryFile() as capture:
+        os.dup2(capture.fileno(), 1)
+        os.dup2(capture.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+            capture.seek(0)
+            lines = capture.read().decode(errors="replace").splitlines()
+            kept = [line for line in lines if line.strip() and not RENDERER_BANNER.match(line)]
+            if kept:
+                print("\n".join(kept), file=sys.stderr, flush=True)
 
 
 _PROBE = "from open3d.visualization import rendering; rendering.OffscreenRenderer(16, 16).render_to_image()"
@@ -163,7 +184,7 @@ def render_pair(
     if flow is not None:
         clouds.append(("pc0 + flow", pair.pc0 + flow, MOVED_COLOUR))
     width, height = (int(v) for v in size)
-    with _stdout_to_stderr():  # its engine logs to stdout; keep stdout for eval.py's tables
+    with _renderer_output():  # its engine logs a banner to stdout per renderer; keep stdout for the tables
         renderer = rendering.OffscreenRenderer(width, height)
         renderer.scene.set_background([1.0, 1.0, 1.0, 1.0])
         renderer.scene.view.set_post_processing(False)  # no tone mapping: colours stay exact

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.datasets.base import PairDataset
+from icpflow.datasets.base import PairDataset, too_short
 from icpflow.datasets.io import fail, read_feather
 from icpflow.frames import FramePair, check_points
 from icpflow.geometry import ego_flow, invert, transform_points
@@ -93,6 +93,11 @@ class AV2Dataset(PairDataset):
     def __len__(self) -> int:
         return len(self._index)
 
+    def why_empty(self) -> str:
+        if self._index:
+            return ""
+        return too_short([(f"log {d.name}", len(stamps)) for d, stamps in self._logs], self.max_horizon, "sweeps")
+
     def sample_id(self, index: int) -> str:
         log, t = self._index[index]
         log_dir, stamps = self._logs[log]
@@ -140,7 +145,10 @@ class AV2Dataset(PairDataset):
         """(N, 3) float32 x, y, z of one sweep (ego frame) and (N,) float32 capture times (s) or None."""
         path = self._lidar_path(log_dir, stamp)
         frame = read_feather(path, LIDAR_COLUMNS)
-        points = check_points(frame[["x", "y", "z"]].to_numpy(), path, "x, y, z", allow_empty=False)
+        xyz = frame[["x", "y", "z"]].to_numpy()
+        if xyz.dtype == np.float16:  # AV2's own storage type: converted here, no per-sweep warning (check_points')
+            xyz = xyz.astype(np.float32)
+        points = check_points(xyz, path, "x, y, z", allow_empty=False)
         if "offset_ns" not in frame.columns:
             return points, None
         offsets = frame["offset_ns"].to_numpy()

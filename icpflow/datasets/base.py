@@ -38,6 +38,11 @@ class PairDataset(ABC):
             raise IndexError(f"{self.name}: index {index} outside 0..{len(self) - 1}")
         return self.pair(index)
 
+    def why_empty(self) -> str:
+        """Why the reader has no samples, one line ("" when it has some or cannot tell); readers whose samples need
+        ``max_horizon`` more scans than t say which runs of scans were too short (:func:`too_short`)."""
+        return ""
+
     def metadata(self) -> dict:
         """Facts about the dataset that end up in shard attributes and reports."""
         return {"name": self.name, "size": len(self), "max_horizon": self.max_horizon}
@@ -50,3 +55,13 @@ def sample_id_or_index(dataset, index: int) -> str:
         return dataset.sample_id(index)
     except Exception:
         return f"index {index}"
+
+
+def too_short(runs: list[tuple[str, int]], max_horizon: int, unit: str = "scans") -> str:
+    """Why runs of consecutive scans (``(name, scan count)``, e.g. a log and its sweeps) give no pair (t, t +
+    ``max_horizon``): "" if some run is long enough, else one line naming them, e.g. "log abc has 2 sweeps: a pair
+    2 apart needs at least 3"."""
+    if not runs or any(count > max_horizon for _, count in runs):
+        return ""
+    shown = ", ".join(f"{name} has {count}" for name, count in runs[:3]) + (" ..." if len(runs) > 3 else "")
+    return f"{shown} {unit}: a pair {max_horizon} apart needs at least {max_horizon + 1}"

@@ -67,7 +67,11 @@ def open_dataset(cfg: DictConfig, horizon: int = 1):
             f"dataset {name}: {text}" + (f" (with dataset.reader.max_horizon={horizon})" if raised else "")
         ) from None
     if len(dataset) == 0:
-        raise DatasetError(f"dataset {name}: no samples under {root} (split {cfg.split})")
+        why = dataset.why_empty() if hasattr(dataset, "why_empty") else ""
+        raise DatasetError(
+            f"dataset {name}: no samples under {root} (split {cfg.split})"
+            + (f": {why} (horizon={horizon})" if why else "")
+        )
     if horizon > dataset.max_horizon:
         raise DatasetError(f"dataset {name}: horizon={horizon} exceeds its max_horizon {dataset.max_horizon}")
     return dataset

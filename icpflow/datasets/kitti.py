@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.datasets.base import PairDataset
+from icpflow.datasets.base import PairDataset, too_short
 from icpflow.datasets.io import BIN_COLUMNS, fail, natural_key, read_bin, read_pose_lines
 from icpflow.frames import FramePair
 from icpflow.geometry import invert
@@ -89,6 +89,11 @@ class KittiOdometryDataset(PairDataset):
 
     def __len__(self) -> int:
         return len(self._index)
+
+    def why_empty(self) -> str:
+        if self._index:
+            return ""
+        return too_short([(f"sequence {name}", len(scans)) for name, scans in self._sequences], self.max_horizon)
 
     def sample_id(self, index: int) -> str:
         seq, t = self._index[index]

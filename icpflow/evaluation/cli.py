@@ -9,6 +9,7 @@ run is left. Every error is one line on stderr, naming the option or file.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import multiprocessing
 import os
@@ -124,6 +125,19 @@ def picture_hooks(cfg, options: dict, out_dir: Path, horizons: list[int]) -> lis
     return [pictures(kind, options[kind], draw) for kind, draw in (("bev", bev), ("render", render)) if options[kind]]
 
 
+def recording_hook(recording, count: int, per_gap: bool) -> PairHook:
+    """A per-pair hook logging the first ``count`` pairs (every method) into the rerun ``recording``
+    (``icpflow.viz_rerun.PairRecording``), under ``k<gap>/`` when several gaps are scored."""
+
+    def hook(predictions: PairPredictions) -> None:
+        if predictions.position < count:
+            prefix = f"k{predictions.horizon}" if per_gap else ""
+            recording.log_pair(predictions.position, predictions.pair, predictions.flows, prefix=prefix)
+
+    hook.name = "viewer"
+    return hook
+
+
 def run_eval(
     cfg,
     progress: bool = True,
@@ -158,6 +172,7 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
     from icpflow.datasets.from_config import open_dataset
     from icpflow.teacher.config import teacher_config
     from icpflow.viz import offscreen_problem
+    from icpflow.viz_rerun import PairRecording, check_viewer
 
     names = list(cfg.method) if OmegaConf.is_list(cfg.method) else [cfg.method]
     trackers = list(cfg.tracker) if OmegaConf.is_list(cfg.tracker) else [cfg.tracker]
@@ -172,6 +187,7 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
                 f"icpflow: horizon={horizons[-1]} exceeds the teacher's max_frame_gap "
                 f"{teacher.max_frame_gap} (icpflow.max_frame_gap=...)"
             )
+        viewer = check_viewer(cfg.get("viewer"))  # the 3D recording (icpflow.viz_rerun)
         problem = offscreen_problem() if options["render"] > 0 else None
         if problem:
             raise EvaluationError(f"render={options['render']}: {problem}")
@@ -195,11 +211,18 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
     limit = len(dataset) if options["limit"] is None else min(options["limit"], len(dataset))
     evaluation = Evaluation(dataset, methods, metric_options)
     stopped, status = None, None
-    try:
-        evaluation.run(range(limit), [*picture_hooks(cfg, options, out_dir, horizons), *(hooks or [])], progress)
-    except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated): keep what was scored
-        stopped, status = _stopped(stop)
-        end_child_processes()
+    recording = PairRecording(out_dir / "recording.rrd") if viewer else None
+    all_hooks = [*picture_hooks(cfg, options, out_dir, horizons), *(hooks or [])]
+    if recording is not None:
+        all_hooks.append(recording_hook(recording, int(cfg.viewer_pairs), len(horizons) > 1))
+    with recording or contextlib.nullcontext():
+        try:
+            evaluation.run(range(limit), all_hooks, progress)
+        except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated): keep what was scored
+            stopped, status = _stopped(stop)
+            end_child_processes()
+    if recording is not None:
+        print(f"eval: 3D recording of {recording.pairs} pairs -> {recording.path} (open it with: rerun <file>)")
     result = evaluation.result(stopped)
     first = result.horizons[0]
     if not result.pairs[first] and stopped is None:

@@ -101,7 +101,9 @@ def build_methods(
             shared[name] = lambda pair, index: ego_only_flow(pair)
         elif name == "icpflow":
             from icpflow.teacher import ICPFlow
+            from icpflow.teacher.warmup import ensure_compiled
 
+            ensure_compiled("eval")
             shared[name] = ICPFlow(teacher_config)
         elif name == "shards":
             if not shards:

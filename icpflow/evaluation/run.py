@@ -84,9 +84,9 @@ class Evaluation:
         hooks = list(hooks)
         iterator = indices
         if progress:
-            from tqdm import tqdm
+            from icpflow.console import Progress
 
-            iterator = tqdm(indices, desc="eval", unit="sample", file=sys.stderr)
+            iterator = Progress(indices, desc="eval", unit="sample")
         for index in iterator:
             scored = self._score_sample(index)
             if scored is None:

@@ -23,6 +23,7 @@ from icpflow.labelling.run import (
 )
 from icpflow.shards.schema import COMPRESSIONS
 from icpflow.teacher.config import teacher_config
+from icpflow.teacher.warmup import ensure_compiled
 
 #: failed samples listed at the end of a run (the rest: failures.jsonl)
 SHOWN_FAILURES = 10
@@ -84,6 +85,7 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
             dataset, teacher, Path(cfg.out_dir), labeller_yaml(cfg, teacher), horizon, bool(cfg.tracker), compression
         )
         plan = plan_shards(len(dataset), int(cfg.shard_size), cfg.limit, int(cfg.shard_index), int(cfg.num_shards))
+        ensure_compiled("label")  # once per environment, here rather than in every worker's first sample
         summary = run_labelling(job, plan, workers, cfg.runner, cfg.ray.address, bool(cfg.overwrite), progress)
     except WriteError as error:  # disk full, no permission: the file and the cause
         print(

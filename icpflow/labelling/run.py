@@ -400,7 +400,10 @@ def _worker_init() -> None:
     and never outlives the main process."""
     from multiprocessing.util import Finalize
 
+    from icpflow.console import worker_logging
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    worker_logging()  # warnings on a line of their own, not inside the main process's progress bar
     exit_with_parent()
     Finalize(None, _end_helpers, exitpriority=100)
 
@@ -522,7 +525,7 @@ def run_labelling(
     plan, mean reader + teacher seconds per labelled sample in a worker, wall-clock seconds. ``index.json`` is
     written on every exit (also on Ctrl-C or an error), from the shards then on disk.
     """
-    from tqdm import tqdm
+    from icpflow.console import Progress
 
     if runner not in ("local", "ray"):
         raise LabelError(f"runner must be local or ray, got {runner!r}")
@@ -543,7 +546,7 @@ def run_labelling(
         else:
             results[shard] = record
     seconds, done = 0.0, 0
-    bar = tqdm(
+    bar = Progress(
         total=total,
         unit=" samples",
         disable=not progress,

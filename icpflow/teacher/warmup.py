@@ -1,0 +1,109 @@
+"""The teacher's numba kernels, compiled once per environment, with a line saying so.
+
+numba compiles each ``@numba.njit(cache=True)`` kernel of the teacher (the modules ``KERNEL_MODULES``) on its
+first call and caches the machine code on disk (in ``__pycache__`` next to the sources, or under
+``NUMBA_CACHE_DIR``); later processes load it in well under a second. Compiling costs about 45 s on 2 idle cores
+(minutes on a busy machine), once per environment and source version. ``setup.sh`` pays it
+(``python -m icpflow.teacher.warmup``); ``label.py`` and ``eval.py`` call :func:`ensure_compiled` before their first
+pair, so a cold cache is filled once, in the main process and with a message, instead of by every worker inside its
+first sample behind a progress bar at 0.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import time
+
+#: the modules whose numba kernels the teacher calls on the CPU
+KERNEL_MODULES = (
+    "icpflow.teacher.neighbours",
+    "icpflow.teacher.icp",
+    "icpflow.teacher.histogram",
+    "icpflow.teacher.registration_cpu",
+)
+
+
+def kernels() -> dict:
+    """``{"module.function": numba dispatcher}`` of every jitted function in ``KERNEL_MODULES``."""
+    from numba.core.dispatcher import Dispatcher
+
+    found = {}
+    for name in KERNEL_MODULES:
+        module = importlib.import_module(name)
+        for attribute, value in vars(module).items():
+            if isinstance(value, Dispatcher) and value.__module__ == name:
+                found[f"{name.rsplit('.', 1)[-1]}.{attribute}"] = value
+    return found
+
+
+def _cached(dispatcher) -> bool:
+    """True if numba's on-disk cache holds machine code of ``dispatcher`` for its current source on this CPU."""
+    try:
+        index = dispatcher._cache._cache_file._load_index()  # {} when the source changed since it was written
+        target = dispatcher.targetctx.codegen().magic_tuple()
+    except Exception:  # no cache (cache=False, unwritable) or another numba layout: treat as cold
+        return False
+    return any(key[1] == target for key in index)
+
+
+def cold_kernels() -> list[str]:
+    """Names of the kernels (see :func:`kernels`) with no cached machine code: each compiles on its first call."""
+    return [name for name, dispatcher in kernels().items() if not _cached(dispatcher)]
+
+
+def cache_location() -> str:
+    """Where the kernels' machine code is cached (a folder)."""
+    dispatcher = next(iter(kernels().values()))
+    try:
+        return str(dispatcher._cache._cache_path)
+    except Exception:
+        return "numba's cache"
+
+
+def compile_kernels() -> None:
+    """Call every kernel with the types a labelling run uses: the teacher (av2 preset: histogram vote, ICP both
+    ways, de-skew) on a small synthetic pair with per-point capture times."""
+    import numpy as np
+
+    from icpflow.datasets.synthetic import SyntheticDataset
+    from icpflow.teacher import ICPFlow, ICPFlowConfig
+
+    pair = SyntheticDataset(
+        split="train", num_sequences=1, frames_per_sequence=2, beams=32, azimuth_resolution_deg=0.5
+    ).pair(0)
+    times0 = np.linspace(0.0, 0.1, len(pair.pc0), dtype=np.float32)
+    times1 = np.linspace(0.0, 0.1, len(pair.pc1), dtype=np.float32)
+    ICPFlow(ICPFlowConfig.preset("av2"))(
+        pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1, times0, times1, dt=pair.dt
+    )
+
+
+def ensure_compiled(prefix: str = "icpflow", stream=None) -> bool:
+    """Compile the kernels now if the cache lacks any, saying so on ``stream`` (stderr) before and after; returns
+    True if it compiled. A warm cache costs only the check (milliseconds)."""
+    stream = stream or sys.stderr
+    cold = cold_kernels()
+    if not cold:
+        return False
+    print(
+        f"{prefix}: compiling the teacher's {len(cold)} numba kernels once for this environment (about 1 min on 2 "
+        f"cores; cached in {cache_location()}) ...",
+        file=stream,
+        flush=True,
+    )
+    start = time.perf_counter()
+    compile_kernels()
+    print(f"{prefix}: kernels compiled in {time.perf_counter() - start:.0f} s", file=stream, flush=True)
+    return True
+
+
+def main() -> int:
+    """``python -m icpflow.teacher.warmup``: fill the cache (setup.sh); say so when it was already warm."""
+    if not ensure_compiled("warmup"):
+        print(f"warmup: the teacher's numba kernels are already compiled ({cache_location()})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

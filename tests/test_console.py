@@ -1,0 +1,125 @@
+"""A quiet console (icpflow.console): a tiny label.py and train.py run as a user runs them print a progress bar,
+what long steps do and a summary, none of the library noise of issue 21; the pieces one by one."""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from icpflow.console import ConsoleFormatter, NoiseFilter, Progress, WorkerHandler
+from icpflow.viz import _renderer_output
+
+REPO = Path(__file__).resolve().parents[1]
+#: what issue 21 found on the console, none of which may come back
+NOISE = {
+    "Lightning's logger advertisement": r"💡|litlogger",
+    "an epoch count out of an unbounded max_epochs": r"Epoch \d+/-\d+",
+    "Lightning's FLOPs of the model summary": r"FLOPs",
+    "deprecation warnings": r"[Dd]eprecat|FutureWarning",
+    "hardware that is absent": r"[GTH]PU available: False",
+    "the open3d/Filament banner": r"FEngine|Filament|\[Open3D",
+}
+TINY_MODEL = [
+    "model.x_range=[-16.0,16.0]",
+    "model.y_range=[-16.0,16.0]",
+    "model.cell=1.0",
+    "model.pillar_channels=8",
+    "model.stage_channels=[8,16,32]",
+]
+
+
+def _run(*args, cwd=REPO) -> str:
+    env = {**os.environ, "COLUMNS": "120"}
+    done = subprocess.run([sys.executable, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout + done.stderr
+
+
+def _lines(output: str) -> list[str]:
+    """The console's lines as a terminal shows them in turn (progress bars redraw with carriage returns)."""
+    return [line.strip() for line in re.split(r"[\r\n]", output) if line.strip()]
+
+
+def test_tiny_label_and_train_runs_print_no_noise(tmp_path):
+    shards = tmp_path / "labels"
+    reader = ["dataset.reader.num_sequences=1", "dataset.reader.frames_per_sequence=2", "dataset.reader.beams=32"]
+    label = _run(
+        "label.py", *reader, "dataset.reader.azimuth_resolution_deg=1.0", "workers=1", f"out_dir={shards}",
+        f"+hydra_dir={tmp_path / 'hydra'}",
+    )  # fmt: skip
+    train = _run(
+        "train.py", f"data.train={shards}", f"data.val={shards}", f"out_dir={tmp_path / 'run'}", *TINY_MODEL,
+        "data.workers=0", "data.batch_size=1", "trainer.max_steps=2", "trainer.val_check_interval=1",
+        "trainer.log_every_n_steps=1", "export.formats=[]",
+    )  # fmt: skip
+    for name, output in (("label.py", label), ("train.py", train)):
+        for what, pattern in NOISE.items():
+            found = [line for line in _lines(output) if re.search(pattern, line)]
+            assert not found, f"{name} printed {what}: {found}"
+    bars = [line for line in _lines(label) if line.startswith("labelling:") and "100%" in line]
+    assert len(bars) == 1, bars  # the final bar line once
+    assert "label: 1 samples labelled" in label
+    assert re.search(r"training: FastFlow3D: [0-9.]+ M parameters", train)  # the model in one line
+    assert re.search(r"Epoch \d+ ", train)  # the progress bar is there, without "/-2"
+
+
+def test_progress_prints_its_last_line_once():
+    """tqdm's close repeats the last line wherever stderr is not a terminal; Progress does not."""
+
+    def final_lines(kind) -> list[str]:
+        stream = io.StringIO()
+        for _ in kind(range(3), desc="x", file=stream, mininterval=0):
+            pass
+        return [line for line in _lines(stream.getvalue()) if "3/3" in line]
+
+    assert len(final_lines(tqdm)) == 2  # the defect, as tqdm has it
+    assert len(final_lines(Progress)) == 1
+
+
+def test_log_lines_name_their_source_and_noise_is_dropped():
+    record = logging.LogRecord("fastflow3d.training", logging.WARNING, __file__, 1, "no best %s", ("checkpoint",), None)
+    assert ConsoleFormatter().format(record) == "training: warning: no best checkpoint"
+    info = logging.LogRecord("fastflow3d.training", logging.INFO, __file__, 1, "exported to x", None, None)
+    assert ConsoleFormatter().format(info) == "training: exported to x"
+    noise = NoiseFilter()
+    rank_zero = "lightning.pytorch.utilities.rank_zero"
+    for message, kept in (
+        ("💡 Tip: For seamless cloud logging and experiment tracking, try installing [litlogger](...)", False),
+        ("GPU available: False, used: False", False),
+        ("GPU available: True (cuda), used: True", True),
+        ("`Trainer.fit` stopped: `max_steps=4` reached.", True),
+    ):
+        assert noise.filter(logging.LogRecord(rank_zero, logging.INFO, __file__, 1, message, None, None)) is kept
+
+
+def test_renderer_banner_is_dropped_and_anything_else_kept(capfd):
+    """What open3d's renderer prints per picture is left out; any other native output still reaches stderr."""
+    with _renderer_output():
+        os.write(1, b"FEngine (64 bits) created at 0x55b628724bd0 (threading is enabled)\n")
+        os.write(1, b"\x1b[1;33m[Open3D WARNING] GLFWWindowSystem: X11 GLFW init failed. Falling back.\x1b[0;m\n")
+        os.write(2, b"[Open3D INFO] EngineInstance: Vulkan software device detected\n")
+        os.write(1, b"Vulkan error: device lost\n")
+    out, err = capfd.readouterr()
+    assert out == "" and err == "Vulkan error: device lost\n"
+
+
+def test_worker_warnings_take_a_line_of_their_own():
+    """A labelling worker cannot reach the main process's bar: on a terminal its warning clears the bar's line."""
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    handler = WorkerHandler()
+    for stream, start in ((Terminal(), "\r\x1b[2K"), (io.StringIO(), "")):
+        handler.setStream(stream)
+        record = logging.LogRecord("icpflow.frames", logging.WARNING, __file__, 1, "x has float16", None, None)
+        handler.handle(record)
+        assert stream.getvalue() == f"{start}frames: warning: x has float16\n"

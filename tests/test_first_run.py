@@ -1,0 +1,80 @@
+"""A first run that explains itself: the teacher's numba kernels are cached on disk and compiled once, with a line
+saying so (icpflow.teacher.warmup); a dataset with no samples for a horizon says why (the shipped AV2 log and
+KITTI scans)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from icpflow.datasets.from_config import DatasetError, open_dataset
+from icpflow.teacher import warmup
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+AV2_LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+
+
+def test_every_kernel_is_cached_on_disk():
+    kernels = warmup.kernels()
+    # the teacher's kernels: nearest neighbours, ICP, histogram vote, batch registration
+    expected = {"neighbours.nearest", "icp.icp_point_to_plane", "histogram._scores", "registration_cpu._register_batch"}
+    assert expected <= set(kernels)
+    not_cached = [name for name, kernel in kernels.items() if not kernel._cache.__class__.__name__ == "FunctionCache"]
+    assert not not_cached, f"kernels without cache=True compile in every process: {not_cached}"
+
+
+def test_a_fresh_cache_is_seen_as_cold(tmp_path):
+    """In a new environment (an empty NUMBA_CACHE_DIR) every kernel is cold; nothing is compiled by the check."""
+    code = "import json; from icpflow.teacher import warmup; print(json.dumps(warmup.cold_kernels()))"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert sorted(json.loads(done.stdout)) == sorted(warmup.kernels())
+    assert not list(tmp_path.rglob("*.nbc"))  # no machine code written: the check compiled nothing
+
+
+def test_ensure_compiled_says_what_it_does(monkeypatch, capsys):
+    calls = []
+    monkeypatch.setattr(warmup, "compile_kernels", lambda: calls.append(1))
+    monkeypatch.setattr(warmup, "cold_kernels", lambda: ["icp.icp_point_to_point", "histogram._scores"])
+    assert warmup.ensure_compiled("label") is True and calls == [1]
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0].startswith("label: compiling the teacher's 2 numba kernels once for this environment")
+    assert lines[1].startswith("label: kernels compiled in ")
+    monkeypatch.setattr(warmup, "cold_kernels", lambda: [])
+    assert warmup.ensure_compiled("label") is False and calls == [1]
+    assert capsys.readouterr().err == ""  # a warm cache: not a word
+
+
+def _label_cfg(*overrides):
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose("label", list(overrides))
+
+
+@pytest.mark.skipif(not (DATA / "av2" / "sensor" / "val" / AV2_LOG).is_dir(), reason=f"AV2 sample absent: {DATA}")
+def test_av2_log_too_short_for_the_horizon_says_so():
+    pytest.importorskip("av2", reason="the av2 package is an optional dependency (pip install icpflow[av2])")
+    cfg = _label_cfg("dataset=av2", f"dataset.root={DATA / 'av2'}", "split=val")
+    assert len(open_dataset(cfg, 1)) == 1
+    with pytest.raises(DatasetError) as error:
+        open_dataset(cfg, 2)
+    assert str(error.value) == (
+        f"dataset av2: no samples under {(DATA / 'av2').resolve()} (split val): log {AV2_LOG} has 2 sweeps: "
+        "a pair 2 apart needs at least 3 (horizon=2)"
+    )
+
+
+@pytest.mark.skipif(not (DATA / "kitti_hdl64_scans").is_dir(), reason=f"KITTI scans absent: {DATA}")
+def test_kitti_scans_too_few_for_the_horizon_say_so():
+    root = DATA / "kitti_hdl64_scans"
+    count = len(list(root.glob("*.bin")))
+    cfg = _label_cfg("dataset=kitti", f"dataset.root={root}")
+    assert len(open_dataset(cfg, count - 1)) == 1
+    with pytest.raises(DatasetError, match=rf"sequence kitti_hdl64_scans has {count} scans: a pair {count} apart"):
+        open_dataset(cfg, count)

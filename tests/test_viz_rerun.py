@@ -1,0 +1,150 @@
+"""The 3D viewer (icpflow.viz_rerun): recordings written, then read back through rerun's own reader, entity by
+entity and value by value; from eval.py viewer=rerun and fastflow3d-infer --rerun (on the shipped KITTI scans)."""
+
+from __future__ import annotations
+
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+
+from icpflow.baselines import ego_only_flow, zero_flow
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.evaluation import run_eval
+from icpflow.geometry import full_to_residual, transform_points
+from icpflow.viz_rerun import PairRecording, ViewerUnavailable, import_rerun, speed_colours
+
+from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
+
+pytest.importorskip("rerun", reason="rerun-sdk is an optional dependency (pip install 'icpflow[viz]')")
+from rerun.chunk import RrdReader  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+KITTI = REPO.parent / "shared" / "data" / "kitti_hdl64_scans"
+READER = {"split": "val", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 1.0}
+TINY = {
+    "_target_": "fastflow3d.model.FastFlow3D",
+    "x_range": [-16.0, 16.0],
+    "y_range": [-16.0, 16.0],
+    "z_range": [-3.0, 3.0],
+    "cell": 0.5,
+    "pillar_channels": 8,
+    "stage_channels": [8, 16, 32],
+    "stage_blocks": [1, 1, 1],
+}
+
+
+def read_recording(path) -> dict[str, dict[int, dict]]:
+    """``{entity: {pair step: {component: numpy array}}}`` of an .rrd file, through rerun's RrdReader."""
+    entities = defaultdict(dict)
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        if "pair" not in batch.schema.names:
+            continue
+        for row in range(batch.num_rows):
+            step = batch.column("pair")[row].as_py()
+            values = {}
+            for name in batch.schema.names:
+                if ":" in name:
+                    value = batch.column(name)[row].as_py()
+                    values[name.split(":", 1)[1]] = value if name.startswith("TextDocument") else np.asarray(value)
+            entities[str(chunk.entity_path).lstrip("/")][step] = values
+    return dict(entities)
+
+
+def rgb(packed: np.ndarray) -> np.ndarray:
+    """rerun's packed 0xRRGGBBAA colours as (N, 3) uint8."""
+    packed = np.asarray(packed, np.uint32)
+    return np.stack([(packed >> 24) & 255, (packed >> 16) & 255, (packed >> 8) & 255], axis=1).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    dataset = SyntheticDataset(**READER)
+    return [dataset.pair(i) for i in range(len(dataset))]
+
+
+def test_recording_holds_scans_flows_masks_on_a_timeline(pairs, tmp_path):
+    path = tmp_path / "run" / "pairs.rrd"
+    rng = np.random.default_rng(0)
+    in_grid = [rng.random(len(pair.pc0)) < 0.5 for pair in pairs]
+    with PairRecording(path) as recording:
+        for step, pair in enumerate(pairs):
+            flows = {"zero": zero_flow(pair), "ego": ego_only_flow(pair)}
+            recording.log_pair(step, pair, flows, in_grid=in_grid[step])
+    assert path.is_file() and [p.name for p in path.parent.iterdir()] == ["pairs.rrd"]  # no temporary left
+    entities = read_recording(path)
+    methods = ("zero", "ego", "ground_truth")  # the pairs have ground truth: recorded as one more method
+    expected = {"pc0", "pc1", "masks/ground0", "masks/in_grid", "info"}
+    expected |= {f"flow/{m}/{part}" for m in methods for part in ("moved", "vectors")}
+    assert set(entities) == expected
+    for step, pair in enumerate(pairs):
+        moved = transform_points(pair.ego1_from_ego0, pair.pc0)
+        assert sorted(entities["pc0"]) == list(range(len(pairs)))  # the timeline: one step per pair
+        np.testing.assert_allclose(entities["pc0"][step]["positions"], moved, atol=1e-5)
+        np.testing.assert_array_equal(entities["pc1"][step]["positions"], pair.pc1)
+        np.testing.assert_allclose(entities["masks/ground0"][step]["positions"], moved[pair.ground0], atol=1e-5)
+        np.testing.assert_allclose(entities["masks/in_grid"][step]["positions"], moved[in_grid[step]], atol=1e-5)
+        for name, flow in {"zero": zero_flow(pair), "ego": ego_only_flow(pair), "ground_truth": pair.flow}.items():
+            speed = np.linalg.norm(full_to_residual(flow, pair.pc0, pair.ego1_from_ego0), axis=1) / pair.dt
+            points = entities[f"flow/{name}/moved"][step]
+            np.testing.assert_allclose(points["positions"], pair.pc0 + flow, atol=1e-5)
+            np.testing.assert_array_equal(rgb(points["colors"]), speed_colours(speed))
+            arrows, moving = entities[f"flow/{name}/vectors"][step], speed >= 0.5
+            if name == "ego":  # every point static in the world: no arrow
+                assert not moving.any() and arrows.get("vectors", np.zeros((0, 3))).size == 0
+            else:
+                assert moving.sum() > 100
+                np.testing.assert_allclose(arrows["origins"], moved[moving], atol=1e-5)
+                np.testing.assert_allclose(arrows["vectors"], (pair.pc0 + flow - moved)[moving], atol=1e-4)
+        assert pair.sample_id in entities["info"][step]["text"][0]
+
+
+def test_speed_colours_ramp_and_clip():
+    colours = speed_colours(np.array([0.0, 5.0, 10.0, 50.0]), max_speed=10.0)
+    assert colours.dtype == np.uint8 and colours.shape == (4, 3)
+    assert np.array_equal(colours[2], colours[3]) and not np.array_equal(colours[0], colours[1])
+
+
+def test_without_rerun_one_line_says_how_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "rerun", None)  # import rerun now raises ImportError
+    with pytest.raises(ViewerUnavailable, match=r"^the 3D viewer needs the rerun-sdk package: pip install"):
+        import_rerun()
+
+
+def _cfg(out_dir, *overrides):
+    small = [f"dataset.reader.{key}={value}" for key, value in READER.items() if key != "split"]
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose("eval", [*small, f"out_dir={out_dir}", "bev=0", *overrides])
+
+
+def test_eval_viewer_rerun_records_every_method(pairs, tmp_path, capsys):
+    assert run_eval(_cfg(tmp_path, "viewer=rerun", "viewer_pairs=1", "method=[zero,ego]"), progress=False) == 0
+    entities = read_recording(tmp_path / "recording.rrd")
+    assert {"flow/zero/moved", "flow/ego/moved", "flow/ground_truth/moved", "masks/ground0"} <= set(entities)
+    assert list(entities["pc0"]) == [0]  # viewer_pairs=1 of the 2 pairs scored
+    np.testing.assert_allclose(entities["flow/ego/moved"][0]["positions"], pairs[0].pc0 + ego_only_flow(pairs[0]))
+    assert f"recording of 1 pairs -> {tmp_path / 'recording.rrd'}" in capsys.readouterr().out
+    assert run_eval(_cfg(tmp_path / "bad", "viewer=open3d"), progress=False) == 2
+    assert "eval: viewer must be null or one of rerun, got 'open3d'" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not (KITTI / "000001.bin").is_file(), reason=f"shipped KITTI scans absent: {KITTI}")
+def test_infer_rerun_on_kitti_scans(pairs, tmp_path):
+    from fastflow3d.infer import main as infer_main
+
+    checkpoint = tiny_checkpoint(tmp_path / "tiny.ckpt", TINY, pairs[0], 1)
+    out, recording = tmp_path / "flow.npz", tmp_path / "kitti.rrd"
+    scans = [str(KITTI / "000000.bin"), str(KITTI / "000001.bin")]
+    assert infer_main([str(checkpoint), *scans, "--out", str(out), "--no-bev", "--rerun", str(recording)]) == 0
+    entities = read_recording(recording)
+    assert {"pc0", "pc1", "flow/fastflow3d/moved", "flow/fastflow3d/vectors", "masks/in_grid"} <= set(entities)
+    with np.load(out) as result:
+        pc0 = np.fromfile(scans[0], np.float32).reshape(-1, 4)[:, :3]
+        moved = transform_points(result["ego1_from_ego0"], pc0)
+        np.testing.assert_allclose(entities["pc0"][0]["positions"], moved, atol=1e-4)
+        np.testing.assert_allclose(entities["flow/fastflow3d/moved"][0]["positions"], pc0 + result["flow"], atol=1e-5)
+        np.testing.assert_allclose(entities["masks/in_grid"][0]["positions"], moved[result["in_grid"]], atol=1e-4)
