@@ -1,23 +1,31 @@
-"""FastFlow3D inference latency per frame pair: eager PyTorch, torch.compile, torch.export (.pt2) and ONNX
-Runtime.
+"""FastFlow3D inference latency per frame pair: the whole ``Predictor`` call on real scans, per backend and regime.
 
-Usage: python benchmarks/bench_latency.py [--device cpu|cuda] [--points 80000] [--runs 20] [--warmup 3]
-    [--model fastflow3d|fastflow3d_small|fastflow3d_xl] [--cell 0.2] [--threads N] [--backends eager,compile,pt2,onnx]
+    .venv/bin/python benchmarks/bench_latency.py [--model fastflow3d_small] [--decoder linear|gru] [--threads 2]
+        [--runs 20] [--warmup 3] [--scans kitti,av2] [--regimes given,estimated]
+        [--backends eager,pt2,onnx,onnx-tuned,openvino,openvino-bf16] [--breakdown] [--device cpu|cuda]
 
-Times the exported single-sample network (voxelisation + UNet + per-point head; numpy in, numpy out, so host <->
-device copies are included on a GPU) on two uniform random scans of ``--points`` points each over the default
-102.4 m x 102.4 m x 6 m range (AV2 size after ground removal: about 80k points), grid 512 x 512 at 0.2 m. The
-model has random weights (latency does not depend on them). Exports are made on the CPU and checked against eager
-by ``fastflow3d.export``; the ``torch.export`` program then runs on ``--device``, ONNX Runtime with the CUDA execution
-provider on ``cuda`` (the row is left out, with a note, when onnxruntime has no CUDA provider) and the CPU one on
-``cpu``; torch.compile (``dynamic=True``, default mode) is checked against eager before it is timed. Default
-backends: all four on ``cuda``; on ``cpu`` all but torch.compile, whose first call takes minutes there (about 2 min
-on 2 cores for a 128 x 128 grid; name it in ``--backends`` to time it anyway). On ``cuda`` cuDNN autotuning is on
-(the pseudo-image has a fixed size). Prints the median and minimum of ``--runs`` calls after ``--warmup`` calls
-(the backends take turns within each run, so that a change of load hits all alike) and each backend's speed
-relative to eager; one more row times the whole ``Predictor`` call (ego compensation and ego flow added back,
-transform given) with ONNX Runtime.
+The model (``conf/model/<model>.yaml``, ``--decoder`` and ``--set key=value`` overriding its fields) has random
+weights (latency does not depend on them) and is exported (ONNX + torch.export) and checked against eager by
+``fastflow3d.export``; every backend is then checked again against eager on the export's check clouds (``parity``,
+metres) and on each real scan (``real``). Backends: ``eager`` PyTorch, ``compile`` (torch.compile, dynamic; its first
+call takes minutes on a CPU), ``pt2`` (torch.export), ``onnx`` (ONNX Runtime with its default session, the
+Predictor's before this benchmark's issue), ``onnx-tuned`` and ``openvino`` / ``openvino-bf16``
+(``fastflow3d.runtime``; OpenVINO rows need ``pip install 'icpflow[openvino]'`` and are left out without it).
+
+Scans: KITTI HDL-64E ``000000`` -> ``000001`` (``../shared/data/kitti_hdl64_scans``, ~124k points each) and the
+Argoverse 2 pair (``../shared/data/av2``, ~99k points each); ``uniform`` adds ``--points`` uniform random points over
+the grid. Regimes: ``given`` (ego motion and both ground masks passed in, as from a dataset's poses and labels; they
+are computed once beforehand, outside the timing) and ``estimated`` (none passed: the Predictor runs Patchwork++ on
+both scans and KISS-ICP for the ego motion). The model removes ground (``preprocessing.remove_ground``, as the
+CPU recipes train it) with the teacher settings of the scan's dataset.
+
+Prints, per scan, regime and backend: median and p90 of ``--runs`` calls after ``--warmup`` calls (the backends
+take turns within each run, so that a change of load on a shared machine hits all alike), frames per second
+(1 / median), speed relative to the first backend, and memory: the process's resident-set growth when the backend
+was built and warmed up (MB). ``--breakdown`` adds what one call's time is made of (first backend, per step).
 """
+
+from __future__ import annotations
 
 import argparse
 import copy
@@ -35,42 +43,58 @@ from omegaconf import OmegaConf
 
 from fastflow3d.artifact import FILE_NAMES, OnnxRuntimeNetwork, SingleSampleNet, TorchNetwork, load_network
 from fastflow3d.checkpoint import build_student
-from fastflow3d.export import PARITY_TOLERANCE, export_model
-from fastflow3d.model import FastFlow3D
+from fastflow3d.export import PARITY_TOLERANCE, export_model, measure_parity
+from fastflow3d.model import compensate
 from fastflow3d.predictor import Predictor
-from icpflow.geometry import make_transform
+from fastflow3d.runtime import BF16_TOLERANCE, runtime_network
+from icpflow.geometry import residual_to_full
+from icpflow.teacher.config import ICPFlowConfig
 
-#: the paper's FastFlow3D settings (the one place of the model's settings); --cell changes the pillar size
-CONF = Path(__file__).resolve().parents[1] / "conf"
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+DATA = ROOT.parent / "shared" / "data"
+BACKENDS = ("eager", "compile", "pt2", "onnx", "onnx-tuned", "openvino", "openvino-bf16")
+#: teacher settings of each scan's dataset (ground segmentation and ego motion in the ``estimated`` regime)
+TEACHERS = {
+    "kitti": ICPFlowConfig.preset("waymo", ground="patchwork", patchwork_z_offset=0.0, crop_xy=51.2),
+    "av2": ICPFlowConfig.preset("av2"),
+    "uniform": ICPFlowConfig.preset("av2"),
+}
 
 
-def model_config(name: str) -> dict:
-    """``conf/model/<name>.yaml`` as train.py composes it (the small and XL models extend the paper's)."""
+def model_config(name: str, overrides: list[str]) -> dict:
+    """``conf/model/<name>.yaml`` as train.py composes it, with ``model.<key>=<value>`` overrides."""
     from hydra import compose, initialize_config_dir
 
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return OmegaConf.to_container(compose("train", [f"model={name}"]).model, resolve=True)
+        cfg = compose("train", [f"model={name}", *(f"model.{item}" for item in overrides)])
+        return OmegaConf.to_container(cfg.model, resolve=True)
 
 
-def random_scan(points: int, seed: int) -> np.ndarray:
-    """(points, 3) float32 uniform over [-51.2, 51.2]^2 x [-3, 3]."""
-    rng = np.random.default_rng(seed)
-    return (rng.random((points, 3)) * [102.4, 102.4, 6.0] - [51.2, 51.2, 3.0]).astype(np.float32)
+def read_scans(name: str, points: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(pc0, pc1) float32 of a shipped scan pair, or None where ../shared/data lacks it."""
+    if name == "kitti":
+        files = sorted((DATA / "kitti_hdl64_scans").glob("*.bin"))[:2]
+        if len(files) < 2:
+            return None
+        return tuple(np.fromfile(f, dtype=np.float32).reshape(-1, 4)[:, :3].copy() for f in files)
+    if name == "av2":
+        import pandas as pd
+
+        sweeps = sorted((DATA / "av2" / "sensor" / "val").glob("*/sensors/lidar/*.feather"))[:2]
+        if len(sweeps) < 2:
+            return None
+        return tuple(pd.read_feather(s, columns=["x", "y", "z"]).to_numpy().astype(np.float32) for s in sweeps)
+    rng = np.random.default_rng(0)
+    return tuple((rng.random((points, 3)) * [64.0, 64.0, 4.0] - [32.0, 32.0, 1.0]).astype(np.float32) for _ in "01")
 
 
-def timed(calls: dict, runs: int, warmup: int) -> dict[str, list[float]]:
-    """Wall-clock seconds of ``runs`` calls of each function after ``warmup`` calls; the functions take turns
-    within each run, so that a change of load on a shared machine hits all of them alike."""
-    for fn in calls.values():
-        for _ in range(warmup):
-            fn()
-    times = {name: [] for name in calls}
-    for _ in range(runs):
-        for name, fn in calls.items():
-            start = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - start)
-    return times
+def rss_mb() -> float:
+    """Current resident set size of this process (MB)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
 
 
 def cpu_name() -> str:
@@ -83,115 +107,158 @@ def cpu_name() -> str:
     return platform.processor() or "unknown CPU"
 
 
-def device_name(device: str) -> str:
-    return torch.cuda.get_device_name() if device == "cuda" else cpu_name()
+def build_network(name: str, model, export_dir: Path, device: str, threads: int):
+    """The runnable network of backend ``name`` (numpy in, numpy out); None when its runtime is not installed."""
+    onnx_file = export_dir / FILE_NAMES["onnx"]
+    if name == "eager":
+        return TorchNetwork(SingleSampleNet(copy.deepcopy(model).to(device)).eval(), device)
+    if name == "compile":
+        return TorchNetwork(
+            torch.compile(SingleSampleNet(copy.deepcopy(model).to(device)).eval(), dynamic=True), device
+        )
+    if name == "pt2":
+        return load_network(export_dir / FILE_NAMES["pt2"], "pt2", device)
+    if name == "onnx":
+        providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if device == "cuda" else ["CPUExecutionProvider"]
+        return OnnxRuntimeNetwork(onnx_file, providers)
+    if name.startswith("openvino"):
+        try:
+            import openvino  # noqa: F401
+        except ImportError:
+            return None
+        return runtime_network(onnx_file, "openvino", threads, "bf16" if name.endswith("bf16") else "f32")
+    return runtime_network(onnx_file, "onnxruntime", threads)
 
 
-def onnx_providers(device: str) -> list[str] | None:
-    """ONNX Runtime providers for ``device``; None when it has no CUDA provider for ``cuda``."""
-    import onnxruntime
+def timed(calls: dict, runs: int, warmup: int) -> dict[str, list[float]]:
+    """Wall-clock seconds of ``runs`` calls of each function after ``warmup`` calls, taking turns within a run."""
+    for fn in calls.values():
+        for _ in range(warmup):
+            fn()
+    times = {name: [] for name in calls}
+    for _ in range(runs):
+        for name, fn in calls.items():
+            start = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - start)
+    return times
 
-    if device == "cpu":
-        return ["CPUExecutionProvider"]
-    if "CUDAExecutionProvider" not in onnxruntime.get_available_providers():
-        return None
-    return ["CUDAExecutionProvider", "CPUExecutionProvider"]
 
-
-def compiled_network(model: FastFlow3D, device: str, pc0: np.ndarray, pc1: np.ndarray) -> TorchNetwork:
-    """``torch.compile`` of the single-sample network on ``device``, compiled by its first call on (pc0, pc1) and
-    checked against eager there."""
-    eager = SingleSampleNet(copy.deepcopy(model).to(device)).eval()
-    network = TorchNetwork(torch.compile(eager, dynamic=True), device)
-    start = time.perf_counter()
-    residual, valid = network(pc0, pc1)
-    expected, expected_valid = TorchNetwork(eager, device)(pc0, pc1)
-    error = float(np.abs(residual - expected).max(initial=0.0))
-    if not error <= PARITY_TOLERANCE or not np.array_equal(valid, expected_valid):
-        sys.exit(f"bench_latency: torch.compile differs from eager by {error:.3g} m or in its validity mask")
-    print(
-        f"torch.compile: first call (compilation) {time.perf_counter() - start:.1f} s; max |compiled - eager| "
-        f"{error:.1e} m"
-    )
-    return network
+def breakdown(predictor: Predictor, pc0, pc1, runs: int) -> dict[str, float]:
+    """Median seconds of each step of one ``estimated``-regime Predictor call (the steps of ``Predictor.predict``)."""
+    steps = {k: [] for k in ("ego motion (KISS-ICP)", "ground (Patchwork++, 2 scans)", "network", "the rest")}
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        ego = predictor.estimate_ego_motion(pc0, pc1)
+        t1 = time.perf_counter()
+        g0, g1 = predictor.ground_mask("ground0", pc0, None), predictor.ground_mask("ground1", pc1, None)
+        t2 = time.perf_counter()
+        moved = compensate(pc0[~g0], ego)
+        t3 = time.perf_counter()
+        kept, valid = predictor.network(moved, pc1[~g1])
+        t4 = time.perf_counter()
+        residual = np.zeros((len(pc0), 3), np.float32)
+        residual[~g0] = np.where(valid[:, None], kept, 0.0)
+        residual_to_full(residual, pc0, ego)
+        t5 = time.perf_counter()
+        for key, value in zip(steps, (t1 - t0, t2 - t1, t4 - t3, (t3 - t2) + (t5 - t4))):
+            steps[key].append(value)
+    return {key: statistics.median(values) for key, values in steps.items()}
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--model", default="fastflow3d_small", help="a conf/model option (fastflow3d_small: CPU recipes)"
+    )
+    parser.add_argument("--decoder", default=None, help="the model's decoder (a model.decoder override)")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more model.<key> overrides")
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
-    parser.add_argument("--points", type=int, default=80_000)
+    parser.add_argument("--threads", type=int, default=2, help="torch, ONNX Runtime and OpenVINO threads")
     parser.add_argument("--runs", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=3)
-    parser.add_argument("--model", default="fastflow3d", help="a conf/model option (fastflow3d_small: CPU recipes)")
-    parser.add_argument("--cell", type=float, default=None, help="pillar size in m (default: the model's)")
-    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    parser.add_argument(
-        "--backends",
-        default=None,
-        help="comma-separated subset of eager,compile,pt2,onnx (default: all on cuda, all but compile on cpu)",
-    )
+    parser.add_argument("--scans", default="kitti,av2", help="comma-separated: kitti, av2, uniform")
+    parser.add_argument("--points", type=int, default=80_000, help="points per scan of the uniform scans")
+    parser.add_argument("--regimes", default="given,estimated", help="comma-separated: given, estimated")
+    parser.add_argument("--backends", default="onnx,onnx-tuned,openvino,eager")
+    parser.add_argument("--breakdown", action="store_true", help="also time each step of the first backend's call")
     args = parser.parse_args()
-    device = args.device
-    if device == "cuda" and not torch.cuda.is_available():
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    unknown = sorted(set(backends) - set(BACKENDS))
+    if unknown or not backends:
+        sys.exit(f"bench_latency: --backends: unknown {', '.join(unknown) or '(none)'}; use {', '.join(BACKENDS)}")
+    if args.device == "cuda" and not torch.cuda.is_available():
         sys.exit("bench_latency: --device cuda but torch sees no CUDA device (a CPU build of torch?)")
     torch.set_num_threads(args.threads)
-    torch.backends.cudnn.benchmark = device == "cuda"
-    default = "eager,compile,pt2,onnx" if device == "cuda" else "eager,pt2,onnx"
-    backends = [name.strip() for name in (args.backends or default).split(",") if name.strip()]
-    unknown = sorted(set(backends) - {"eager", "compile", "pt2", "onnx"})
-    if unknown:
-        sys.exit(f"bench_latency: unknown backend(s) {', '.join(unknown)}; use eager, compile, pt2, onnx")
-    config = model_config(args.model)
-    model = build_student({**config, "cell": args.cell or config["cell"]}).eval()
-    pc0, pc1 = random_scan(args.points, 0), random_scan(args.points, 1)
-    ego = make_transform(yaw=0.01, translation=(1.0, 0.05, 0.0))
-    load = os.getloadavg()
+    overrides = ([f"decoder={args.decoder}"] if args.decoder else []) + list(args.set)
+    model = build_student(model_config(args.model, overrides)).eval()
     print(
-        f"FastFlow3D grid {model.grid.nx}x{model.grid.ny}, {args.points} points per scan, {device}: "
-        f"{device_name(device)}, {os.cpu_count()} logical CPUs, torch {args.threads} threads, torch "
-        f"{torch.__version__}, load average at start {load[0]:.2f}"
+        f"model {args.model} {' '.join(overrides)} grid {model.grid.nx}x{model.grid.ny}; {args.device}: {cpu_name()}, "
+        f"{os.cpu_count()} logical CPUs, {args.threads} threads, torch {torch.__version__}, load average at start "
+        f"{os.getloadavg()[0]:.2f}"
     )
     with tempfile.TemporaryDirectory() as tmp:
-        formats = [name for name in ("onnx", "pt2") if name in backends]
-        start = time.perf_counter()
-        metadata = export_model(model, tmp, formats) if formats else {"parity_max_abs_m": {}}
+        formats = [f for f in ("onnx", "pt2") if any(b.startswith(f) or b.startswith("openvino") for b in backends)]
+        formats = sorted({"onnx" if f.startswith("openvino") else f for f in formats})
         if formats:
-            print(
-                f"export + parity check: {time.perf_counter() - start:.1f} s; max |export - eager| "
-                + ", ".join(f"{k} {v:.1e} m" for k, v in metadata["parity_max_abs_m"].items())
-            )
-        networks = {}
-        if "eager" in backends:
-            networks["eager"] = TorchNetwork(SingleSampleNet(copy.deepcopy(model).to(device)).eval(), device)
-        if "compile" in backends:
-            networks["torch.compile"] = compiled_network(model, device, pc0, pc1)
-        if "pt2" in backends:
-            networks["pt2"] = load_network(Path(tmp) / FILE_NAMES["pt2"], "pt2", device)
-        if "onnx" in backends:
-            providers = onnx_providers(device)
-            if providers is None:
-                print("onnxruntime has no CUDAExecutionProvider here (pip install onnxruntime-gpu): no ONNX row")
-            else:
-                import onnxruntime
-
-                networks["onnx"] = OnnxRuntimeNetwork(Path(tmp) / "fastflow3d.onnx", providers)
-                print(f"onnxruntime {onnxruntime.__version__}, providers {networks['onnx'].session.get_providers()}")
-        calls = {
-            f"{name} (network: voxelisation + UNet + head)": (lambda network=network: network(pc0, pc1))
-            for name, network in networks.items()
-        }
-        if "onnx" in networks:
-            predictor = Predictor(networks["onnx"], {}, "onnx")
-            calls["onnx Predictor call (+ ego compensation, ego flow)"] = lambda: predictor(pc0, pc1, ego)
-        rows = list(timed(calls, args.runs, args.warmup).items())
-    base = statistics.median(rows[0][1]) if "eager" in networks else None  # eager is the first row when timed
-    print(f"| backend ({device}) | median ms | min ms | runs | speed vs eager |")
-    print("|---|---|---|---|---|")
-    for name, times in rows:
-        median = statistics.median(times)
-        ratio = f"{base / median:.2f}x" if base else "-"
-        print(f"| {name} | {1000 * median:.1f} | {1000 * min(times):.1f} | {len(times)} | {ratio} |")
-    print(f"load average at the end {os.getloadavg()[0]:.2f}")
+            export_model(model, tmp, formats)
+        eager_net = SingleSampleNet(copy.deepcopy(model)).eval()
+        networks, memory, parity = {}, {}, {}
+        for name in backends:
+            before = rss_mb()
+            network = build_network(name, model, Path(tmp), args.device, args.threads)
+            if network is None:
+                print(f"{name}: not installed (pip install 'icpflow[openvino]'); no row")
+                continue
+            parity[name] = measure_parity(eager_net, network) if args.device == "cpu" else float("nan")
+            tolerance = BF16_TOLERANCE if name.endswith("bf16") else PARITY_TOLERANCE
+            if not parity[name] <= tolerance:
+                print(f"{name}: differs from eager by {parity[name]:.3g} m (> {tolerance:g} m); no row")
+                continue
+            networks[name], memory[name] = network, rss_mb() - before
+        print(
+            "parity, max |backend - eager| on the export's check clouds (m): "
+            + ", ".join(f"{k} {v:.1e}" for k, v in parity.items())
+        )
+        rows = []
+        for scan in [s.strip() for s in args.scans.split(",") if s.strip()]:
+            data = read_scans(scan, args.points)
+            if data is None:
+                print(f"{scan}: no scans under {DATA}; no rows")
+                continue
+            pc0, pc1 = data
+            metadata = {"preprocessing": {"remove_ground": True, "teacher": TEACHERS[scan].to_dict()}}
+            predictors = {name: Predictor(net, metadata, name) for name, net in networks.items()}
+            first = next(iter(predictors.values()))
+            ego = first.estimate_ego_motion(pc0, pc1)  # the given regime's inputs, computed outside the timing
+            g0, g1 = first.ground_mask("ground0", pc0, None), first.ground_mask("ground1", pc1, None)
+            reference = predictors.get("eager") or first
+            expected = reference(pc0, pc1, ego, g0, g1)
+            real = {name: float(np.abs(p(pc0, pc1, ego, g0, g1) - expected).max()) for name, p in predictors.items()}
+            kept = int((~g0).sum())
+            for regime in [r.strip() for r in args.regimes.split(",") if r.strip()]:
+                given = (ego, g0, g1) if regime == "given" else (None, None, None)
+                calls = {name: (lambda p=p, a=pc0, b=pc1, g=given: p(a, b, *g)) for name, p in predictors.items()}
+                for name, times in timed(calls, args.runs, args.warmup).items():
+                    rows.append((scan, f"{len(pc0)} ({kept} non-ground)", regime, name, times, real[name]))
+            if args.breakdown:
+                steps = breakdown(first, pc0, pc1, max(3, args.runs // 2))
+                print(
+                    f"{scan}, {next(iter(predictors))}: one estimated-regime call, median s per step: "
+                    + ", ".join(f"{k} {1000 * v:.1f} ms" for k, v in steps.items())
+                )
+    head = f"| scan | points pc0 | regime | backend | median ms | p90 ms | Hz | vs {backends[0]} | memory MB |"
+    print(head + " real-scan max |d| m |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    base = {}
+    for scan, points, regime, name, times, error in rows:
+        median, p90 = statistics.median(times), float(np.percentile(times, 90))
+        base.setdefault((scan, regime), median)
+        print(
+            f"| {scan} | {points} | {regime} | {name} | {1000 * median:.1f} | {1000 * p90:.1f} | {1 / median:.1f} | "
+            f"{base[(scan, regime)] / median:.2f}x | {memory[name]:.0f} | {error:.1e} |"
+        )
+    print(f"median and p90 of {args.runs} calls after {args.warmup}; load average at the end {os.getloadavg()[0]:.2f}")
 
 
 if __name__ == "__main__":

@@ -244,7 +244,9 @@ def onnx_opset(path: Path) -> int:
 class OnnxRuntimeNetwork:
     """An exported ``.onnx`` in ONNX Runtime: ``(pc0_compensated, pc1) -> (residual, valid)`` numpy arrays."""
 
-    def __init__(self, path: Path, providers=None):
+    def __init__(self, path: Path, providers=None, options=None):
+        """``options``: an ``onnxruntime.SessionOptions`` (``fastflow3d.runtime.ort_session_options``), or None for
+        ONNX Runtime's defaults."""
         try:
             import onnxruntime
         except ImportError:
@@ -253,7 +255,7 @@ class OnnxRuntimeNetwork:
         if providers is None:
             providers = [name for name in ("CUDAExecutionProvider", "CPUExecutionProvider") if name in available]
         try:
-            self.session = onnxruntime.InferenceSession(str(path), providers=list(providers))
+            self.session = onnxruntime.InferenceSession(str(path), options, providers=list(providers))
         except Exception as error:  # onnxruntime raises its own exception types for damaged or foreign files
             raise ArtifactError(f"{path}: cannot load ONNX model: {' '.join(str(error).split())}") from None
         names = tuple(entry.name for entry in self.session.get_inputs())

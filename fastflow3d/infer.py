@@ -2,6 +2,7 @@
 
     python -m fastflow3d.infer MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
         [--bev FILE.png | --no-bev] [--rerun FILE.rrd] [--bin-columns N] [--backend onnx|pt2|torchscript] [--device cpu]
+        [--runtime onnxruntime|openvino] [--threads N]
 
 MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz``
 (array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
@@ -103,6 +104,10 @@ def parse_args(argv):
     )
     parser.add_argument("--backend", choices=(*FORMATS, *LEGACY_FORMATS), help="format of an export directory")
     parser.add_argument("--device", default="cpu", help="torch device for .pt2, .pt and checkpoints")
+    parser.add_argument(
+        "--runtime", choices=("onnxruntime", "openvino"), help="CPU engine for the ONNX file (fastflow3d.runtime)"
+    )
+    parser.add_argument("--threads", type=int, help="inference threads of --runtime (default: the usable cores)")
     return parser.parse_args(argv)
 
 
@@ -121,7 +126,9 @@ def infer(args) -> tuple[Path, Path | None]:
         ego = relative_transform(pose0, pose1)
     elif args.ego is not None:
         ego = read_transforms(args.ego, 1)[0]
-    predictor = Predictor.load(args.model, backend=args.backend, device=args.device)
+    predictor = Predictor.load(
+        args.model, backend=args.backend, device=args.device, runtime=args.runtime, threads=args.threads
+    )
     prediction = predictor.predict(pc0, pc1, ego)
     if not prediction.in_grid.any():
         print(

@@ -46,6 +46,17 @@ from icpflow.frames import FramePairError, check_points
 from icpflow.geometry import residual_to_full, rigid_problem
 
 
+def _network(file: Path, kind: str, device: str):
+    """``load_network``, except that ONNX on a machine without ONNX Runtime's CUDA provider runs with the tuned CPU
+    session of ``fastflow3d.runtime`` (same numbers, 1.3 to 1.4x faster on 2 cores; BENCHMARKS.md)."""
+    if kind == "onnx":
+        from fastflow3d.runtime import cpu_only, runtime_network
+
+        if cpu_only():
+            return runtime_network(file, "onnxruntime")
+    return load_network(file, kind, device)
+
+
 class PredictorError(ArtifactError):
     """A model that cannot be used or inputs that cannot be used. The message is one line and names the cause."""
 
@@ -99,23 +110,43 @@ class Predictor:
 
     @classmethod
     def load(
-        cls, path: str | os.PathLike, backend: str | None = None, device: str = "cpu", ego_config=None
+        cls,
+        path: str | os.PathLike,
+        backend: str | None = None,
+        device: str = "cpu",
+        ego_config=None,
+        runtime: str | None = None,
+        threads: int | None = None,
+        precision: str = "f32",
     ) -> Predictor:
         """From an export directory, a ``.onnx``, a ``.pt2``, a legacy ``.pt`` (TorchScript) or a ``.ckpt``.
 
         ``backend`` picks the format of an export directory (``onnx``, ``pt2`` or, for older exports,
         ``torchscript``; default ONNX when onnxruntime is installed and the export has it). ``device`` applies to
         PyTorch formats and checkpoints; ONNX Runtime uses CUDA when its CUDA provider is installed, else the CPU.
+        ``runtime`` (``onnxruntime`` or ``openvino``), ``threads`` and ``precision`` (``f32``, ``bf16`` with
+        OpenVINO) run the ONNX file on the CPU as ``fastflow3d.runtime`` tunes it.
         Raises :class:`ArtifactError` (one line) for a path that is not a readable artifact.
         """
         path = Path(path)
+        if runtime is not None:
+            from fastflow3d.runtime import runtime_network
+
+            if path.is_dir():
+                metadata = read_metadata(path / METADATA_NAME)
+                file = listed_file(path, metadata, "onnx")
+            elif path.suffix.lower() == ".onnx" and path.is_file():
+                file, metadata = path, sibling_metadata(path, "onnx")
+            else:
+                raise PredictorError(f"{path}: runtime {runtime!r} needs an export directory with ONNX or a .onnx")
+            return cls(runtime_network(file, runtime, threads, precision), metadata, runtime, ego_config)
         if path.is_dir():
             metadata = read_metadata(path / METADATA_NAME)
             kind = backend or choose_format(metadata["files"])
             if kind not in FORMATS + LEGACY_FORMATS:
                 raise PredictorError(f"{path}: unknown backend {kind!r}; use one of {', '.join(FORMATS)}")
             file = listed_file(path, metadata, kind)
-            return cls(load_network(file, kind, device), metadata, kind, ego_config)
+            return cls(_network(file, kind, device), metadata, kind, ego_config)
         kind = "checkpoint" if path.suffix.lower() == ".ckpt" else SUFFIX_FORMATS.get(path.suffix.lower())
         if kind is None:
             raise PredictorError(f"{path}: expected an export directory, .onnx, .pt2, .pt (TorchScript) or .ckpt")
@@ -129,7 +160,7 @@ class Predictor:
             model, cfg = load_student(path, map_location=device)
             metadata = network_metadata(model, dict(cfg.get("model") or {}), path, preprocessing_metadata(cfg))
             return cls(TorchNetwork(SingleSampleNet(model).eval(), device), metadata, "eager", ego_config)
-        return cls(load_network(path, kind, device), sibling_metadata(path, kind), kind, ego_config)
+        return cls(_network(path, kind, device), sibling_metadata(path, kind), kind, ego_config)
 
     def __call__(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> np.ndarray:
         """(N0, 3) float32 FULL flow of pc0 (N0, 3) towards pc1 (N1, 3), each in its own ego frame; the ego motion

@@ -56,11 +56,23 @@ def invert(transform: np.ndarray) -> np.ndarray:
     return inverse
 
 
+def _affine(points: np.ndarray, matrix: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """(N, 3) float64 ``points @ matrix.T + offset`` column by column: a BLAS matmul of an (N, 3) by a (3, 3)
+    wakes BLAS's threads, which on a busy 2-core machine took 60 ms for 100k points against under 1 ms here."""
+    points = np.asarray(points, dtype=np.float64)
+    flat = points.reshape(-1, 3)
+    out = np.empty_like(flat)
+    for row in range(3):
+        out[:, row] = flat[:, 0] * matrix[row, 0] + flat[:, 1] * matrix[row, 1]
+        out[:, row] += flat[:, 2] * matrix[row, 2] + offset[row]
+    return out.reshape(points.shape)
+
+
 def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a (4, 4) transform to (N, 3) points; computed in float64, returned in the points' float dtype."""
     points = np.asarray(points)
     transform = np.asarray(transform, dtype=np.float64)
-    out = points.astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
+    out = _affine(points, transform[:3, :3], transform[:3, 3])
     return out.astype(points.dtype if np.issubdtype(points.dtype, np.floating) else np.float64)
 
 
@@ -71,9 +83,8 @@ def relative_transform(pose0: np.ndarray, pose1: np.ndarray) -> np.ndarray:
 
 def ego_flow(points: np.ndarray, ego1_from_ego0: np.ndarray) -> np.ndarray:
     """Full flow of static points: ``ego1_from_ego0 * p - p``. (N, 3) in the frame of t -> (N, 3) float32."""
-    points64 = np.asarray(points, dtype=np.float64)
     transform = np.asarray(ego1_from_ego0, dtype=np.float64)
-    return (points64 @ (transform[:3, :3] - np.eye(3)).T + transform[:3, 3]).astype(np.float32)
+    return _affine(points, transform[:3, :3] - np.eye(3), transform[:3, 3]).astype(np.float32)
 
 
 def full_to_residual(flow: np.ndarray, pc0: np.ndarray, ego1_from_ego0: np.ndarray) -> np.ndarray:

@@ -368,3 +368,33 @@ def test_export_cli(checkpoint, tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == [FILE_NAMES["pt2"], METADATA_NAME]
     assert json.loads((out / METADATA_NAME).read_text())["files"].keys() == {"pt2"}
     assert f"{out / METADATA_NAME}" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("runtime", ["onnxruntime", "openvino"])
+def test_cpu_runtimes_keep_the_export_parity(export_dir, expected, pairs, runtime):
+    """fastflow3d.runtime's engines run the same ONNX file to the export's tolerance (1e-4 m), masks equal; the
+    default ONNX Predictor on a machine without CUDA runs ONNX Runtime's tuned session."""
+    if runtime == "openvino":
+        pytest.importorskip("openvino", reason="OpenVINO is an optional extra (icpflow[openvino])")
+    from fastflow3d.runtime import cpu_only
+
+    predictor = Predictor.load(export_dir, runtime=runtime, threads=1)
+    assert predictor.backend == runtime
+    for pair, (flow, valid) in zip(pairs, expected):
+        prediction = predictor.predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+        assert np.array_equal(prediction.in_grid, valid)
+        assert np.abs(prediction.flow - flow).max() <= TOLERANCE
+    if cpu_only():
+        options = Predictor.load(export_dir).network.session.get_session_options()
+        assert options.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+
+
+def test_cpu_runtime_rejects_what_it_cannot_run(export_dir):
+    from fastflow3d.runtime import runtime_network
+
+    with pytest.raises(ArtifactError, match="needs an export directory with ONNX or a .onnx"):
+        Predictor.load(export_dir / FILE_NAMES["pt2"], runtime="onnxruntime")
+    with pytest.raises(ArtifactError, match="precision 'bf16' is not available with onnxruntime"):
+        runtime_network(export_dir / FILE_NAMES["onnx"], "onnxruntime", 1, "bf16")
+    with pytest.raises(ArtifactError, match="unknown runtime 'tensorrt'"):
+        runtime_network(export_dir / FILE_NAMES["onnx"], "tensorrt")

@@ -307,3 +307,23 @@ def test_static_pairs_keep_the_identity_when_a_slide_fits_barely_better():
     assert result.mean_error[0] <= 1.25 * slid[0]  # the identity's own error replaced the slide's
     np.testing.assert_array_equal(result.transforms[1], motion)
     assert result.mean_error[1] == slid[1]
+
+
+def test_identity_quality_measured_in_the_registration_pass_equals_a_separate_pass():
+    import dataclasses
+
+    # pipeline._prefer_static reads the identity's quality from the registration itself: it must be exactly what a
+    # registration with no iteration measures (both roles of the smaller cluster, a pair with an empty cluster)
+    car = _box_surface(600, seed=3)
+    moved = _noisy(transform_points(make_transform(0.2, (0.4, 0.1, 0.0)), car), 0.01, 4)
+    clouds = [(car, moved), (moved[:300], car), (car, np.zeros((0, 3), np.float32))]
+    inits = np.tile(np.eye(4), (3, 1, 1))
+    inits[:, :3, 3] = (0.3, 0.0, 0.0)
+    joint = register_clusters(clouds, inits, params=ICP, identity=True)
+    still = register_clusters(clouds, np.tile(np.eye(4), (3, 1, 1)), params=dataclasses.replace(ICP, max_iter=0))
+    np.testing.assert_array_equal(joint.identity_error, still.mean_error)
+    np.testing.assert_array_equal(joint.identity_iou, still.iou_ratio)
+    plain = register_clusters(clouds, inits, params=ICP)
+    assert plain.identity_error is None
+    np.testing.assert_array_equal(joint.transforms, plain.transforms)  # the registration itself is unchanged
+    np.testing.assert_array_equal(joint.mean_error, plain.mean_error)

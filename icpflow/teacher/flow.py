@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from icpflow.geometry import ego_flow
+from icpflow.geometry import ego_flow, transform_points
 
 
 def match_confidence(error: np.ndarray, iou: np.ndarray, cfg) -> np.ndarray:
@@ -41,8 +41,10 @@ def absorb(pc0, labels0, ego1_from_ego0, matched_src, radius: float, eligible) -
     free = np.flatnonzero((labels0 < 0) & eligible)
     if len(members) == 0 or len(free) == 0:
         return labels
-    points = pc0.astype(np.float64) @ ego1_from_ego0[:3, :3].T + ego1_from_ego0[:3, 3]
-    distance, nearest = cKDTree(points[members]).query(points[free], distance_upper_bound=radius)
+    transform = np.asarray(ego1_from_ego0, np.float64)
+    tree = cKDTree(transform_points(transform, np.asarray(pc0[members], np.float64)))
+    query = transform_points(transform, np.asarray(pc0[free], np.float64))
+    distance, nearest = tree.query(query, distance_upper_bound=radius)
     hit = np.isfinite(distance)
     labels[free[hit]] = labels0[members[nearest[hit]]]
     return labels

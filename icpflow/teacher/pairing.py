@@ -43,13 +43,13 @@ def cluster_stats(points: np.ndarray, labels: np.ndarray, n_labels: int) -> Clus
     centroid = np.zeros((n_labels, 3))
     lower = np.full((n_labels, 3), np.inf)
     upper = np.full((n_labels, 3), -np.inf)
-    if len(order):
-        sorted_points = points[order].astype(np.float64)
-        sorted_labels = labels[order]
-        np.add.at(centroid, sorted_labels, sorted_points)
-        np.minimum.at(lower, sorted_labels, sorted_points)
-        np.maximum.at(upper, sorted_labels, sorted_points)
     present = count > 0
+    if len(order):  # the points sorted by label: one contiguous segment per present label
+        sorted_points = points[order].astype(np.float64)
+        begins = starts[:-1][present]
+        centroid[present] = np.add.reduceat(sorted_points, begins, axis=0)
+        lower[present] = np.minimum.reduceat(sorted_points, begins, axis=0)
+        upper[present] = np.maximum.reduceat(sorted_points, begins, axis=0)
     centroid[present] /= count[present, None]
     extent = np.where(present[:, None], upper - lower, 0.0)
     return ClusterStats(count, centroid, np.sort(extent, axis=1), order, starts)

@@ -95,13 +95,17 @@ def _prefer_static(result, clouds, tolerance: float, params) -> None:
     """Pairs whose mean error at the identity is at most ``(1 + tolerance)`` times their registered error keep the
     identity (no motion), with its error and IoU ratio (``result`` is updated in place). Scans sample a static
     surface differently (scan lines move with the ego), so a small slide along walls often fits slightly better
-    than no motion at all; a real motion fits far better than the identity."""
+    than no motion at all; a real motion fits far better than the identity. The identity's quality is the one
+    ``result`` holds (``register_clusters(identity=True)``), else measured here by a registration with no
+    iteration."""
     identity = np.tile(np.eye(4), (len(clouds), 1, 1))
-    still = registration.register_clusters(clouds, identity, params=dataclasses.replace(params, max_iter=0))
-    static = still.mean_error <= result.mean_error * (1.0 + tolerance)
+    if result.identity_error is None:
+        still = registration.register_clusters(clouds, identity, params=dataclasses.replace(params, max_iter=0))
+        result.identity_error, result.identity_iou = still.mean_error, still.iou_ratio
+    static = result.identity_error <= result.mean_error * (1.0 + tolerance)
     result.transforms[static] = identity[static]
-    result.mean_error[static] = still.mean_error[static]
-    result.iou_ratio[static] = still.iou_ratio[static]
+    result.mean_error[static] = result.identity_error[static]
+    result.iou_ratio[static] = result.identity_iou[static]
 
 
 class ICPFlow:
@@ -301,7 +305,9 @@ class ICPFlow:
         timings["histogram"] += time.perf_counter() - tic
 
         tic = time.perf_counter()
-        result = registration.register_clusters(clouds, inits, backend=cfg.icp_backend, params=self.icp_params)
+        result = registration.register_clusters(
+            clouds, inits, backend=cfg.icp_backend, params=self.icp_params, identity=cfg.static_tolerance > 0
+        )
         if cfg.static_tolerance > 0:
             _prefer_static(result, clouds, cfg.static_tolerance, self.icp_params)
         ok = checks.passes(

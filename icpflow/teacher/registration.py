@@ -40,12 +40,16 @@ from icpflow.teacher.registration_torch import register_batch_torch
 @dataclass
 class RegistrationResult:
     """Per-pair ICP output: ``transforms`` (P, 4, 4) float64 src -> dst, ``mean_error`` (P,) metres,
-    ``iou_ratio`` (P,) in [0, 1], ``iterations`` (P,) ICP iterations run."""
+    ``iou_ratio`` (P,) in [0, 1], ``iterations`` (P,) ICP iterations run; ``identity_error``/``identity_iou``
+    (P,) the same quality at the identity (no motion) when asked for (``register_clusters(identity=True)``),
+    else None."""
 
     transforms: np.ndarray
     mean_error: np.ndarray
     iou_ratio: np.ndarray
     iterations: np.ndarray
+    identity_error: np.ndarray | None = None
+    identity_iou: np.ndarray | None = None
 
 
 def register_plane(
@@ -60,8 +64,8 @@ def register_plane(
         return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
     movings = [subsample(np.asarray(a, np.float64).reshape(-1, 3), params.max_points, params.seed) for a, _ in pairs]
     fixeds = [subsample(np.asarray(b, np.float64).reshape(-1, 3), params.max_points, params.seed) for _, b in pairs]
-    transforms, errors, ious, iters = register_batch_cpu(movings, fixeds, inits, params, [normals(b) for b in fixeds])
-    return RegistrationResult(transforms, errors, ious, iters)
+    out = register_batch_cpu(movings, fixeds, inits, params, [normals(b) for b in fixeds])
+    return RegistrationResult(*out[:4])
 
 
 def register_clusters(
@@ -70,12 +74,14 @@ def register_clusters(
     cfg=None,
     backend: str = "cpu",
     params: ICPParams | None = None,
+    identity: bool = False,
 ) -> RegistrationResult:
     """Register P cluster pairs (src (Ns, 3), dst (Nd, 3)) from initial src -> dst transforms ``inits`` (P, 4, 4).
 
     Settings come from ``params`` if given, else from ``cfg`` (an ``ICPFlowConfig``). Each cluster is capped at
     ``max_points`` by a seeded subsample. A pair with an empty cluster keeps its initial transform, with an
-    infinite error and a zero IoU ratio.
+    infinite error and a zero IoU ratio. With ``identity`` the result also holds each pair's quality at the
+    identity (the CPU kernel measures it in the same pass; the torch backend by a CPU pass with ``max_iter=0``).
     """
     params = params or params_from_config(cfg)
     inits = np.asarray(inits, dtype=np.float64).reshape(-1, 4, 4)
@@ -95,10 +101,17 @@ def register_clusters(
         movings.append(dst if swapped[p] else src)
         fixeds.append(src if swapped[p] else dst)
         starts[p] = invert(inits[p]) if swapped[p] else inits[p]
+    identity_error = identity_iou = None
     if backend == "cpu":
-        transforms, errors, ious, iters = register_batch_cpu(movings, fixeds, starts, params)
+        out = register_batch_cpu(movings, fixeds, starts, params, identity=identity)
+        transforms, errors, ious, iters = out[:4]
+        if identity:
+            identity_error, identity_iou = out[4:]
     else:
         transforms, errors, ious, iters = register_batch_torch(movings, fixeds, starts, params)
+        if identity:
+            still = register_batch_cpu(movings, fixeds, np.tile(np.eye(4), (n_pairs, 1, 1)), params, identity=True)
+            identity_error, identity_iou = still[4:]
     for p in np.flatnonzero(swapped):
         transforms[p] = invert(transforms[p])
-    return RegistrationResult(transforms, errors, ious, iters)
+    return RegistrationResult(transforms, errors, ious, iters, identity_error, identity_iou)

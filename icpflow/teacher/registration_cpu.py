@@ -20,13 +20,21 @@ _EVAL_CELL = 0.3
 
 @numba.njit(cache=True)
 def _register_one(
-    moving, fixed, fixed_normals, init, max_corr, max_iter, rel_rmse, yaw_only, plane, inlier_d2, eval_cell
+    moving, fixed, fixed_normals, init, max_corr, max_iter, rel_rmse, yaw_only, plane, inlier_d2, eval_cell, identity
 ):
     """Register moving (M, 3) onto fixed (N, 3) from ``init``, point-to-point (keeping ``init`` when ICP did not
     lower the forward mean distance) or, with ``plane``, point-to-plane along ``fixed_normals`` (N, 3); returns
-    (transform, mean error, IoU ratio, iterations), error and IoU ratio as in the module docstring (the smaller of
-    the two directions each)."""
+    (transform, mean error, IoU ratio, iterations, mean error at the identity, IoU ratio at the identity), error
+    and IoU ratio as in the module docstring (the smaller of the two directions each); the last two only with
+    ``identity`` (else inf and 0)."""
     fixed_grid = build_grid(fixed, eval_cell)
+    err_id, iou_id = np.inf, 0.0
+    if identity:  # the same quality at no motion (what a separate registration with max_iter=0 measures)
+        err_id_fwd, inl_id_fwd = nn_stats(moving, fixed, fixed_grid, eval_cell, inlier_d2)
+        err_id_bwd, inl_id_bwd = nn_stats(fixed, moving, build_grid(moving, eval_cell), eval_cell, inlier_d2)
+        n_id = moving.shape[0] + fixed.shape[0]
+        err_id = min(err_id_fwd, err_id_bwd)
+        iou_id = min(inl_id_fwd / (n_id - inl_id_fwd), inl_id_bwd / (n_id - inl_id_bwd))
     if plane:
         transform, n_iter = icp_point_to_plane(moving, fixed, fixed_normals, init, max_corr, PLANE_MAX_ITER)
     else:
@@ -41,7 +49,7 @@ def _register_one(
     err_bwd, inl_bwd = nn_stats(fixed, moved, build_grid(moved, eval_cell), eval_cell, inlier_d2)
     n_all = moving.shape[0] + fixed.shape[0]
     iou = min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
-    return transform, min(err_fwd, err_bwd), iou, n_iter
+    return transform, min(err_fwd, err_bwd), iou, n_iter, err_id, iou_id
 
 
 @numba.njit(cache=True, parallel=True)
@@ -60,8 +68,10 @@ def _register_batch(
     inlier_dist,
     eval_cell,
     n_workers,
+    identity,
 ):
-    """:func:`_register_one` for P packed pairs (``nrm_all`` packed like ``fix_all`` with ``plane``, else unused).
+    """:func:`_register_one` for P packed pairs (``nrm_all`` packed like ``fix_all`` with ``plane``, else unused);
+    returns (transforms, errors, IoU ratios, iterations, errors at the identity, IoU ratios at the identity).
     Worker w takes pairs w, w + n_workers, ...: with the pairs sorted by decreasing size this balances the load,
     which numba's contiguous split of a prange does not."""
     n_pairs = inits.shape[0]
@@ -69,6 +79,8 @@ def _register_batch(
     errors = np.full(n_pairs, np.inf)
     ious = np.zeros(n_pairs)
     iters = np.zeros(n_pairs, dtype=np.int64)
+    errors_id = np.full(n_pairs, np.inf)
+    ious_id = np.zeros(n_pairs)
     inlier_d2 = inlier_dist * inlier_dist
     for w in numba.prange(n_workers):
         for p in range(w, n_pairs, n_workers):
@@ -77,7 +89,7 @@ def _register_batch(
             fixed_normals = nrm_all[fix_off[p] : fix_off[p + 1]] if plane else nrm_all
             transforms[p] = inits[p]
             if moving.shape[0] > 0 and fixed.shape[0] > 0:
-                transforms[p], errors[p], ious[p], iters[p] = _register_one(
+                transforms[p], errors[p], ious[p], iters[p], errors_id[p], ious_id[p] = _register_one(
                     moving,
                     fixed,
                     fixed_normals,
@@ -89,13 +101,17 @@ def _register_batch(
                     plane,
                     inlier_d2,
                     eval_cell,
+                    identity,
                 )
-    return transforms, errors, ious, iters
+    return transforms, errors, ious, iters, errors_id, ious_id
 
 
-def register_batch_cpu(movings, fixeds, starts, params: ICPParams, fixed_normals=None) -> tuple[np.ndarray, ...]:
+def register_batch_cpu(
+    movings, fixeds, starts, params: ICPParams, fixed_normals=None, identity: bool = False
+) -> tuple[np.ndarray, ...]:
     """:func:`_register_batch` on lists of clouds (point-to-plane when the fixed clouds' normals are given):
-    (transforms, errors, ious, iterations) in the input order."""
+    (transforms, errors, ious, iterations, errors at the identity, IoU ratios at the identity) in the input order
+    (the last two measured only with ``identity``, else inf and 0)."""
     order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
     mov_all, mov_off = pack([movings[k] for k in order])
     fix_all, fix_off = pack([fixeds[k] for k in order])
@@ -116,6 +132,7 @@ def register_batch_cpu(movings, fixeds, starts, params: ICPParams, fixed_normals
         params.inlier_dist,
         _EVAL_CELL,
         numba.get_num_threads(),
+        identity,
     )
     result = tuple(np.empty_like(a) for a in out)
     for a, b in zip(result, out):
