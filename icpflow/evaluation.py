@@ -542,10 +542,10 @@ def run_eval(cfg, progress: bool = True, extra_methods: dict[str, MethodFactory]
         horizons = parse_horizons(cfg.horizon)
         dataset = open_dataset(cfg, horizons[-1])
         teacher = teacher_config(cfg) if "icpflow" in names else None
-        if teacher is not None and horizons[-1] > teacher.max_frame_gap:
+        if teacher is not None and horizons[-1] > teacher.pairing.max_frame_gap:
             raise EvaluationError(
                 f"icpflow: horizon={horizons[-1]} exceeds the teacher's max_frame_gap "
-                f"{teacher.max_frame_gap} (icpflow.max_frame_gap=...)"
+                f"{teacher.pairing.max_frame_gap} (icpflow.pairing.max_frame_gap=...)"
             )
         problem = offscreen_problem() if int(cfg.render) > 0 else None
         if problem:

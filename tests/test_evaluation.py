@@ -206,7 +206,7 @@ def test_stored_labels_of_other_points_are_refused(tmp_path, dataset, capsys):
         (["horizon=one"], "horizon must be an integer, a list or first..last"),
         (["tracker=[true,true]"], "tracker must be true, false or [false,true]"),
         (
-            ["method=icpflow", "horizon=3", "dataset.reader.frames_per_sequence=5", "icpflow.max_frame_gap=2"],
+            ["method=icpflow", "horizon=3", "dataset.reader.frames_per_sequence=5", "icpflow.pairing.max_frame_gap=2"],
             "icpflow: horizon=3 exceeds the teacher's max_frame_gap 2",
         ),
     ],

@@ -73,10 +73,10 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
         compression = check_options(cfg)
         teacher = teacher_config(cfg)
         horizon = int(cfg.horizon)
-        if horizon > teacher.max_frame_gap:
+        if horizon > teacher.pairing.max_frame_gap:
             raise LabelError(
-                f"horizon={horizon} exceeds the teacher's max_frame_gap {teacher.max_frame_gap} "
-                f"(icpflow.max_frame_gap=...)"
+                f"horizon={horizon} exceeds the teacher's max_frame_gap {teacher.pairing.max_frame_gap} "
+                f"(icpflow.pairing.max_frame_gap=...)"
             )
         dataset = open_dataset(cfg, horizon)
         workers = int(cfg.workers) if cfg.workers else available_cores()
