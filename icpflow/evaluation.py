@@ -40,6 +40,7 @@ from icpflow import metrics
 from icpflow.baselines import ego_only_flow, zero_flow
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.frames import FramePair
+from icpflow.teacher.config import teacher_config  # importing it stores the icpflow schema eval.yaml composes with
 
 METHODS = ("zero", "ego", "icpflow", "shards")
 Method = Callable[[FramePair, int], np.ndarray]
@@ -533,7 +534,6 @@ def run_eval(cfg, progress: bool = True, extra_methods: dict[str, MethodFactory]
     from omegaconf import OmegaConf
 
     from icpflow.datasets.from_config import open_dataset
-    from icpflow.teacher.config import teacher_config
     from icpflow.viz import offscreen_problem, plot_bev, render_pair
 
     names = list(cfg.method) if OmegaConf.is_list(cfg.method) else [cfg.method]

@@ -22,7 +22,7 @@ from icpflow.labelling.run import (
     run_labelling,
 )
 from icpflow.shards.schema import COMPRESSIONS
-from icpflow.teacher.config import teacher_config
+from icpflow.teacher.config import teacher_config  # importing it stores the icpflow schema label.py composes with
 
 #: failed samples listed at the end of a run (the rest: failures.jsonl)
 SHOWN_FAILURES = 10
