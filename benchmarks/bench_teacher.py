@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import dataclasses
 import resource
 import statistics
 import time
@@ -29,7 +30,6 @@ from icpflow.geometry import make_transform, transform_points
 from icpflow.teacher.checks import passes
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.histogram import initial_translations
-from icpflow.teacher.histogram import params_from_config as hist_params
 from icpflow.teacher.pipeline import STAGES
 from icpflow.teacher.registration import register_clusters
 
@@ -100,18 +100,17 @@ def synthetic_pairs(count: int, seed: int = 0):
 
 def bench_kernels(count, cfg, repeats) -> dict:
     pairs = synthetic_pairs(count)
-    windows = np.full(count, cfg.window(0.0))
-    params = hist_params(cfg)
+    windows = np.full(count, cfg.pairing.window(0.0))
 
     def run():
         tic = time.perf_counter()
-        translations, _ = initial_translations(pairs, windows, params)
+        translations, _ = initial_translations(pairs, windows, cfg.histogram, cfg.seed)
         mid = time.perf_counter()
         inits = np.tile(np.eye(4), (count, 1, 1))
         inits[:, :3, 3] = translations
-        result = register_clusters(pairs, inits, cfg, backend="cpu")
+        result = register_clusters(pairs, inits, dataclasses.replace(cfg.icp, backend="cpu"), cfg.seed)
         centroids = np.array([p[0].mean(axis=0) for p in pairs])
-        passes(result.transforms, result.mean_error, result.iou_ratio, windows, cfg, src_centroids=centroids)
+        passes(result.transforms, result.mean_error, result.iou_ratio, windows, cfg.checks, src_centroids=centroids)
         return mid - tic, time.perf_counter() - mid
 
     run()
@@ -145,7 +144,7 @@ def main() -> None:
         nargs="*",
         default=[],
         metavar="FIELD=VALUE",
-        help="ICPFlowConfig overrides of the av2 preset (values parsed as Python literals)",
+        help="ICPFlowConfig overrides of the av2 preset, e.g. icp.backend='torch' (values parsed as Python literals)",
     )
     args = parser.parse_args()
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))

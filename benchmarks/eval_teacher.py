@@ -29,8 +29,8 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 VARIANTS = {
     "teacher": {},
-    "centroid init": {"init": "centroid"},
-    "hungarian": {"association": "hungarian"},
+    "centroid init": {"histogram.init": "centroid"},
+    "hungarian": {"association.method": "hungarian"},
     "kiss-icp ego": {"ego_motion": "kiss_icp"},
     "zero flow": None,
 }

@@ -58,8 +58,8 @@ def test_teacher_block_names_teacher_fields(name):
     assert teacher == ICPFlowConfig.preset(cfg.dataset.preset, **block)
     assert (
         teacher_config(
-            _composed(f"dataset={name}", "dataset.root=/nowhere", "icpflow.min_cluster_size=7")
-        ).min_cluster_size
+            _composed(f"dataset={name}", "dataset.root=/nowhere", "icpflow.clustering.min_cluster_size=7")
+        ).clustering.min_cluster_size
         == 7
     )
 

@@ -213,7 +213,7 @@ def test_stored_labels_of_other_points_are_refused(tmp_path, dataset, capsys):
         (["relative_to=gt"], "relative_to must be one of residual, full, got 'gt'"),
         (["crop=wide"], "crop must be a number > 0, got 'wide'"),
         (
-            ["method=icpflow", "horizon=3", "dataset.reader.frames_per_sequence=5", "icpflow.max_frame_gap=2"],
+            ["method=icpflow", "horizon=3", "dataset.reader.frames_per_sequence=5", "icpflow.pairing.max_frame_gap=2"],
             "icpflow: horizon=3 exceeds the teacher's max_frame_gap 2",
         ),
     ],

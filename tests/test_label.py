@@ -112,7 +112,7 @@ def test_round_trip_holds_reader_input_and_teacher_output(reference):
         np.testing.assert_array_equal(got["ego1_from_ego0"], pair.ego1_from_ego0)
     with h5py.File(reference / "shard_000000.h5") as f:
         stored = yaml.safe_load(f.attrs["config"])
-        assert stored["teacher"]["speed"] == cfg.speed and stored["shard_size"] == 2
+        assert stored["teacher"]["pairing"]["speed"] == cfg.pairing.speed and stored["shard_size"] == 2
         assert stored["dataset"]["reader"]["beams"] == 32 and stored["dataset"]["root"] is None
         assert f.attrs["config_hash"] == json.loads((reference / "index.json").read_text())["config_hash"]
     assert (reference / "failures.jsonl").read_text() == ""
@@ -146,12 +146,12 @@ def test_a_worker_runs_hdbscan_on_its_share_of_threads_without_changing_the_hash
     built = []
     monkeypatch.setattr(icpflow.teacher, "ICPFlow", built.append)  # label_shard builds its teacher from this name
     teacher = teacher_config(_cfg(tmp_path))
-    assert teacher.hdbscan_n_jobs == 2
+    assert teacher.clustering.n_jobs == 2
     job = LabelJob(SyntheticDataset(**READER), teacher, tmp_path, "teacher: {}\n")
     label_shard(job, 0, [], threads=1)
     label_shard(job, 1, [], threads=8)
-    assert [cfg.hdbscan_n_jobs for cfg in built] == [1, 2]  # never more than the config asks for
-    assert built[0].replace(hdbscan_n_jobs=2) == teacher and job.teacher_cfg == teacher
+    assert [cfg.clustering.n_jobs for cfg in built] == [1, 2]  # never more than the config asks for
+    assert built[0].replace(clustering={"n_jobs": 2}) == teacher and job.teacher_cfg == teacher
     with h5py.File(tmp_path / "shard_000000.h5") as f:
         assert f.attrs["config"] == "teacher: {}\n" and f.attrs["config_hash"] == job.hash
 
@@ -206,24 +206,26 @@ def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
 def test_other_config_is_refused_unless_overwrite(reference, tmp_path):
     out = tmp_path / "labels"
     shutil.copytree(reference, out)
-    assert label(_cfg(out, "icpflow.min_cluster_size=25"), progress=False) == 2
+    assert label(_cfg(out, "icpflow.clustering.min_cluster_size=25"), progress=False) == 2
     assert (out / "config.yaml").read_text() == (reference / "config.yaml").read_text()
-    assert label(_cfg(out, "icpflow.min_cluster_size=25", "overwrite=true", "limit=2"), progress=False) == 0
+    assert label(_cfg(out, "icpflow.clustering.min_cluster_size=25", "overwrite=true", "limit=2"), progress=False) == 0
     index = json.loads((out / "index.json").read_text())
     assert index["config_hash"] != json.loads((reference / "index.json").read_text())["config_hash"]
     assert [p.name for p in out.glob("shard_*.h5")] == ["shard_000000.h5"] and _all_valid(out) == 2
     with h5py.File(out / "shard_000000.h5") as f:
-        assert yaml.safe_load(f.attrs["config"])["teacher"]["min_cluster_size"] == 25
+        assert yaml.safe_load(f.attrs["config"])["teacher"]["clustering"]["min_cluster_size"] == 25
 
 
 def test_refusal_message_is_one_line(reference, tmp_path):
     out = tmp_path / "labels"
     shutil.copytree(reference, out)
-    run = subprocess.run(_script(out, "icpflow.min_cluster_size=25"), cwd=tmp_path, capture_output=True, text=True)
+    run = subprocess.run(
+        _script(out, "icpflow.clustering.min_cluster_size=25"), cwd=tmp_path, capture_output=True, text=True
+    )
     assert run.returncode == 2
     lines = [line for line in run.stderr.splitlines() if not line.startswith("label: dataset.teacher keys")]
     assert len(lines) == 1 and "labelled with another config" in lines[0] and "overwrite=true" in lines[0]
-    assert "teacher.min_cluster_size: 30 -> 25" in lines[0]
+    assert "teacher.clustering.min_cluster_size: 30 -> 25" in lines[0]
 
 
 def test_truncated_and_corrupt_shards_are_redone(reference, tmp_path, capsys):
@@ -349,10 +351,10 @@ def test_long_horizon_direct_and_tracker_pass_point_times(tmp_path):
         "dataset.reader.max_horizon=2",
         "horizon=2",
         "limit=2",
-        "icpflow.deskew=true",
+        "icpflow.deskew.enabled=true",
     ]
     cfg = teacher_config(_cfg(tmp_path, *common))
-    assert cfg.deskew
+    assert cfg.deskew.enabled
     direct_out, tracked_out = tmp_path / "direct", tmp_path / "tracker"
     assert label(_cfg(direct_out, *common), progress=False) == 0
     assert label(_cfg(tracked_out, *common, "tracker=true"), progress=False) == 0
@@ -395,7 +397,7 @@ def test_long_horizon_direct_and_tracker_pass_point_times(tmp_path):
         (
             5,
             "dataset.reader.max_horizon=5",
-            "horizon=5 exceeds the teacher's max_frame_gap 4 (icpflow.max_frame_gap=...)",
+            "horizon=5 exceeds the teacher's max_frame_gap 4 (icpflow.pairing.max_frame_gap=...)",
         ),
         (
             2,

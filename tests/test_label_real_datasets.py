@@ -23,7 +23,7 @@ DATA = REPO.parent / "shared" / "data"
 AV2_ROOT = DATA / "av2"
 KITTI_SCANS = DATA / "kitti_hdl64_scans"
 #: one sample, in this process's worker, HDBSCAN without its process pool (the same labels, no pool start-up)
-ONE = ["limit=1", "workers=1", "icpflow.hdbscan_n_jobs=1"]
+ONE = ["limit=1", "workers=1", "icpflow.clustering.n_jobs=1"]
 
 
 def label_script(tmp_path, *overrides) -> dict:

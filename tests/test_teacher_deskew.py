@@ -8,7 +8,8 @@ from teacher_scenes import box_surface  # tests/ is on sys.path (pytest prepend 
 
 from icpflow.geometry import make_transform, transform_points
 from icpflow.teacher import ICPFlow, ICPFlowConfig
-from icpflow.teacher.icp import ICPParams, normals
+from icpflow.teacher.config import ICPConfig
+from icpflow.teacher.icp import normals
 from icpflow.teacher.registration import register_plane
 
 EGO = make_transform(yaw=0.02, translation=(0.8, 0.1, 0.0))
@@ -64,7 +65,7 @@ def results(shutter):
     s = shutter
     out = {}
     for deskew in (False, True):
-        teacher = ICPFlow(CFG.replace(deskew=deskew))
+        teacher = ICPFlow(CFG.replace(deskew={"enabled": deskew}))
         out[deskew] = teacher(s["pc0"], s["pc1"], EGO, time0=s["time0"], time1=s["time1"], dt=DT)
     return out
 
@@ -85,7 +86,7 @@ def test_deskew_recovers_the_motion_between_the_timestamps(shutter, results):
 
 def test_without_times_or_deskew_nothing_changes(shutter, results):
     s = shutter
-    plain = ICPFlow(CFG.replace(deskew=True))(s["pc0"], s["pc1"], EGO)  # no times: no de-skew
+    plain = ICPFlow(CFG.replace(deskew={"enabled": True}))(s["pc0"], s["pc1"], EGO)  # no times: no de-skew
     assert plain.n_deskewed == 0
     np.testing.assert_array_equal(plain.flow, results[False].flow)
 
@@ -110,19 +111,19 @@ def test_bad_times_raise_one_line(shutter, kwargs, words):
     }
     kwargs = {k: values[v] if isinstance(v, str) else v for k, v in kwargs.items()}
     with pytest.raises(ValueError, match=words) as info:
-        ICPFlow(CFG.replace(deskew=True))(s["pc0"], s["pc1"], EGO, **kwargs)
+        ICPFlow(CFG.replace(deskew={"enabled": True}))(s["pc0"], s["pc1"], EGO, **kwargs)
     assert "\n" not in str(info.value)
 
 
-@pytest.mark.parametrize("overrides", [{"deskew": "yes"}, {"deskew_iters": 0}, {"deskew_min_speed": -1.0}])
+@pytest.mark.parametrize("overrides", [{"enabled": "yes"}, {"iters": 0}, {"min_speed": -1.0}])
 def test_deskew_config_is_validated(overrides):
     with pytest.raises(ValueError, match=next(iter(overrides))):
-        ICPFlowConfig.preset("av2", **overrides)
+        ICPFlowConfig.preset("av2", deskew=overrides)
 
 
 def test_presets_deskew_only_av2():
-    assert ICPFlowConfig.preset("av2").deskew
-    assert not ICPFlowConfig.preset("waymo").deskew and not ICPFlowConfig.preset("nuscenes").deskew
+    assert ICPFlowConfig.preset("av2").deskew.enabled
+    assert not ICPFlowConfig.preset("waymo").deskew.enabled and not ICPFlowConfig.preset("nuscenes").deskew.enabled
 
 
 def test_point_to_plane_registration_is_exact_on_a_box():
@@ -131,7 +132,7 @@ def test_point_to_plane_registration_is_exact_on_a_box():
     truth = make_transform(yaw=0.04, translation=(0.6, -0.2, 0.03))
     moved = transform_points(truth, box_surface((4.5, 1.9, 1.6), rng, spacing=0.12))
     start = make_transform(translation=(0.55, -0.17, 0.0))
-    result = register_plane([(box, moved)], start[None], ICPParams())
+    result = register_plane([(box, moved)], start[None], ICPConfig())
     np.testing.assert_allclose(result.transforms[0], truth, atol=0.01)
     assert result.mean_error[0] < 0.05 and result.iou_ratio[0] > 0.3
     # normals of a flat face are perpendicular to it

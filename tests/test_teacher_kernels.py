@@ -6,15 +6,12 @@ import pytest
 from icpflow.geometry import euler_angles, invert, make_transform, transform_points
 from icpflow.teacher.association import associate
 from icpflow.teacher.checks import passes
-from icpflow.teacher.config import ICPFlowConfig
-from icpflow.teacher.histogram import HistogramParams, centroid_translation, initial_translation, initial_translations
-from icpflow.teacher.histogram import params_from_config as hist_params
-from icpflow.teacher.icp import ICPParams
-from icpflow.teacher.icp import params_from_config as icp_params
+from icpflow.teacher.config import ChecksConfig, HistogramConfig, ICPConfig, ICPFlowConfig
+from icpflow.teacher.histogram import centroid_translation, initial_translation, initial_translations
 from icpflow.teacher.registration import register_clusters
 
-HIST = HistogramParams()
-ICP = ICPParams()
+HIST = HistogramConfig(max_points=300)  # the av2 preset's vote
+ICP = ICPConfig()
 
 
 def _box_surface(n, size=(4.4, 1.8, 1.5), seed=0):
@@ -69,8 +66,8 @@ def test_histogram_scoring_overrules_a_stronger_distractor_peak():
     truth = np.array([1.5, -0.8, 0.0])
     copies = [wall + truth + [0.0, 1.0, 0.0], wall + truth + [0.0, 1.03, 0.0]]
     dst = np.concatenate([src + truth, *copies]).astype(np.float32)
-    params = HistogramParams(max_points=2000)
-    top1, _ = initial_translations([(src, dst)], [3.0], HistogramParams(max_points=2000, top_k=1))
+    params = HistogramConfig(max_points=2000)
+    top1, _ = initial_translations([(src, dst)], [3.0], HistogramConfig(max_points=2000, top_k=1))
     assert np.abs(top1[0] - truth).max() > 0.5  # the strongest peak alone is the distractor
     translations, scores = initial_translations([(src, dst)], [3.0], params)
     np.testing.assert_allclose(translations[0], truth, atol=1e-9)
@@ -116,7 +113,7 @@ def test_icp_recovers_rigid_transform_from_nearby_init():
     truth = make_transform(yaw=0.15, translation=(1.8, -0.6, 0.02))
     dst = _noisy(transform_points(truth, src), 0.005, seed=6)
     init = make_transform(yaw=0.12, translation=(1.85, -0.55, 0.0))
-    result = register_clusters([(src, dst)], init[None], params=ICP)
+    result = register_clusters([(src, dst)], init[None], ICP)
     assert np.abs(result.transforms[0, :3, 3] - truth[:3, 3]).max() < 0.01
     assert _rotation_error(result.transforms[0], truth) < np.radians(0.2)
     assert result.iou_ratio[0] > 0.95 and result.mean_error[0] < 0.01
@@ -132,7 +129,7 @@ def test_icp_keeps_initial_transform_when_it_got_worse():
     fixed = np.concatenate([plane(0.0, grid), plane(1.0, grid)]).astype(np.float32)
     moving = np.concatenate([plane(0.05, grid[:9]), plane(0.88, grid[20:70])]).astype(np.float32)
     for backend in ("cpu", "torch"):
-        result = register_clusters([(moving, fixed)], np.eye(4)[None], params=ICP, backend=backend)
+        result = register_clusters([(moving, fixed)], np.eye(4)[None], ICPConfig(backend=backend))
         assert result.iterations[0] >= 1
         np.testing.assert_array_equal(result.transforms[0], np.eye(4))
         # Truncated ICP alone moves 5 cm down: without the check the result would differ from the start.
@@ -144,8 +141,8 @@ def test_smaller_cluster_is_registered_and_result_inverted():
     truth = make_transform(yaw=-0.1, translation=(0.9, 0.4, 0.0))
     small = transform_points(truth, big)[::3]
     init = make_transform(yaw=-0.08, translation=(0.92, 0.38, 0.0))
-    forward = register_clusters([(big, small)], init[None], params=ICP)  # src larger: roles swapped inside
-    backward = register_clusters([(small, big)], invert(init)[None], params=ICP)
+    forward = register_clusters([(big, small)], init[None], ICP)  # src larger: roles swapped inside
+    backward = register_clusters([(small, big)], invert(init)[None], ICP)
     np.testing.assert_allclose(forward.transforms[0], truth, atol=2e-3)
     np.testing.assert_allclose(forward.transforms[0], invert(backward.transforms[0]), atol=1e-9)
     assert forward.mean_error[0] == pytest.approx(backward.mean_error[0], abs=1e-9)
@@ -161,7 +158,7 @@ def test_error_and_iou_match_exact_nearest_neighbours():
         (_box_surface(200, seed=15), _box_surface(400, seed=16) + np.float32([7.0, 3.0, 0.5])),  # far apart
         (rng.uniform(-5, 5, (400, 3)).astype(np.float32), rng.uniform(-3, 8, (250, 3)).astype(np.float32)),
     ]
-    result = register_clusters(pairs, np.tile(np.eye(4), (3, 1, 1)), params=ICPParams(max_iter=3))
+    result = register_clusters(pairs, np.tile(np.eye(4), (3, 1, 1)), ICPConfig(max_iter=3))
     for (src, dst), transform, error, iou in zip(pairs, result.transforms, result.mean_error, result.iou_ratio):
         moved = transform_points(transform, src.astype(np.float64))
         fwd, _ = cKDTree(dst).query(moved)
@@ -183,27 +180,26 @@ def test_cpu_and_torch_backends_agree():
         inits.append(truth @ make_transform(rng.uniform(-0.05, 0.05), (*rng.uniform(-0.08, 0.08, 2), 0.0)))
     pairs.append((pairs[0][0], pairs[0][0][:0]))  # an empty cluster keeps its start
     inits.append(np.eye(4))
-    cpu = register_clusters(pairs, np.array(inits), params=ICP, backend="cpu")
-    gpu = register_clusters(pairs, np.array(inits), params=ICP, backend="torch")
+    cpu = register_clusters(pairs, np.array(inits), ICP)
+    gpu = register_clusters(pairs, np.array(inits), ICPConfig(backend="torch"))
     for a, b in zip(cpu.transforms, gpu.transforms):
         assert np.abs(a[:3, 3] - b[:3, 3]).max() < 1e-3 and _rotation_error(a, b) < 1e-3
     np.testing.assert_allclose(cpu.mean_error[:-1], gpu.mean_error[:-1], atol=1e-4)
     np.testing.assert_allclose(cpu.iou_ratio, gpu.iou_ratio, atol=1e-3)
     assert cpu.mean_error[-1] == np.inf and cpu.iou_ratio[-1] == 0.0 and gpu.mean_error[-1] == np.inf
     np.testing.assert_array_equal(cpu.transforms[-1], np.eye(4))
-    again = register_clusters(pairs, np.array(inits), params=ICP, backend="cpu")
+    again = register_clusters(pairs, np.array(inits), ICP)
     np.testing.assert_array_equal(again.transforms, cpu.transforms)
 
 
 def test_yaw_only_icp_keeps_objects_upright():
-    # icp_dof="yaw" recovers the yaw and the 3D translation with exactly zero roll and pitch, on both backends.
+    # icp.dof="yaw" recovers the yaw and the 3D translation with exactly zero roll and pitch, on both backends.
     src = _box_surface(800, seed=9)
     truth = make_transform(yaw=0.1, translation=(0.8, -0.2, 0.05))
     dst = _noisy(transform_points(truth, src), 0.01, seed=10)
     init = make_transform(yaw=0.08, translation=(0.75, -0.15, 0.0))
-    yaw = ICPParams(yaw_only=True)
     for backend in ("cpu", "torch"):
-        result = register_clusters([(src, dst)], init[None], params=yaw, backend=backend)
+        result = register_clusters([(src, dst)], init[None], ICPConfig(dof="yaw", backend=backend))
         roll, pitch, angle = euler_angles(result.transforms[0])
         assert roll == 0.0 and pitch == 0.0
         assert angle == pytest.approx(0.1, abs=2e-3)
@@ -211,22 +207,22 @@ def test_yaw_only_icp_keeps_objects_upright():
 
 
 def test_settings_come_from_the_config():
-    cfg = ICPFlowConfig.preset("av2", hist_max_points=123, max_points=456, icp_dof="yaw", top_k=2, seed=7)
-    assert hist_params(cfg) == HistogramParams(max_points=123, top_k=2, seed=7)
-    assert icp_params(cfg) == ICPParams(max_points=456, yaw_only=True, seed=7)
+    cfg = ICPFlowConfig.preset("av2", histogram={"max_points": 123, "top_k": 2}, icp={"max_points": 456, "dof": "yaw"})
+    assert cfg.histogram == HistogramConfig(max_points=123, top_k=2)
+    assert cfg.icp == ICPConfig(max_points=456, dof="yaw", static_tolerance=0.25)
     src = _box_surface(200)
-    translation, score = initial_translation(src, src + np.float32([0.5, 0.0, 0.0]), 2.0, cfg)
+    translation, score = initial_translation(src, src + np.float32([0.5, 0.0, 0.0]), 2.0, cfg.histogram, cfg.seed)
     np.testing.assert_allclose(translation, [0.5, 0.0, 0.0], atol=1e-9)
-    result = register_clusters([(src, src)], np.eye(4)[None], cfg, backend=cfg.icp_backend)
+    result = register_clusters([(src, src)], np.eye(4)[None], cfg.icp, cfg.seed)
     np.testing.assert_allclose(result.transforms[0], np.eye(4), atol=1e-9)
-    fails = passes(make_transform(translation=(0.1, 0, 0))[None], [0.25], [0.5], 2.0, cfg)  # av2 max_error 0.2
+    fails = passes(make_transform(translation=(0.1, 0, 0))[None], [0.25], [0.5], 2.0, cfg.checks)  # max_error 0.2
     assert not fails[0]
 
 
 # --------------------------------------------------------------------------------------------------- checks
 
 
-THRESHOLDS = dict(min_iou=0.2, max_roll_pitch_deg=9.0, max_error=0.2)
+THRESHOLDS = ChecksConfig(min_iou=0.2, max_roll_pitch_deg=9.0, max_error=0.2)
 
 
 def test_checks_reject_each_failure_alone():
@@ -242,7 +238,7 @@ def test_checks_reject_each_failure_alone():
         "nan": (good, np.nan, 0.6, False),
     }
     transforms = np.array([c[0] for c in cases.values()])
-    result = passes(transforms, [c[1] for c in cases.values()], [c[2] for c in cases.values()], 2.5, **THRESHOLDS)
+    result = passes(transforms, [c[1] for c in cases.values()], [c[2] for c in cases.values()], 2.5, THRESHOLDS)
     assert dict(zip(cases, result.tolist())) == {name: c[3] for name, c in cases.items()}
 
 
@@ -250,9 +246,9 @@ def test_checks_use_centroid_displacement_when_given():
     # A 0.2 rad turn about the origin moves a cluster at x = 20 m by about 4 m, though T's translation is 0.
     turn = make_transform(yaw=0.2)
     centroid = np.array([[20.0, 0.0, 0.0]])
-    assert passes(turn[None], [0.05], [0.6], 2.5, **THRESHOLDS)[0]
-    assert not passes(turn[None], [0.05], [0.6], 2.5, src_centroids=centroid, **THRESHOLDS)[0]
-    assert passes(turn[None], [0.05], [0.6], 4.5, src_centroids=centroid, **THRESHOLDS)[0]
+    assert passes(turn[None], [0.05], [0.6], 2.5, THRESHOLDS)[0]
+    assert not passes(turn[None], [0.05], [0.6], 2.5, THRESHOLDS, src_centroids=centroid)[0]
+    assert passes(turn[None], [0.05], [0.6], 4.5, THRESHOLDS, src_centroids=centroid)[0]
 
 
 # ---------------------------------------------------------------------------------------------- association
@@ -300,7 +296,7 @@ def test_static_pairs_keep_the_identity_when_a_slide_fits_barely_better():
     moved = _noisy(transform_points(motion, car), 0.01, 4)
     clouds = [(wall0, wall1), (car, moved)]
     transforms = np.stack([make_transform(translation=(0.1, 0.0, 0.0)), motion])
-    result = register_clusters(clouds, transforms, params=dataclasses.replace(ICP, max_iter=0))  # quality only
+    result = register_clusters(clouds, transforms, dataclasses.replace(ICP, max_iter=0))  # quality only
     slid = result.mean_error.copy()
     _prefer_static(result, clouds, 0.25, ICP)
     np.testing.assert_array_equal(result.transforms[0], np.eye(4))

@@ -85,6 +85,8 @@ def test_av2_dynamic_epe_target(av2_pair, av2_result):
     assert error[av2_pair.dynamic].mean() <= 0.15
     assert av2_result.n_deskewed >= 1
     p = av2_pair
-    plain = ICPFlow(ICPFlowConfig.preset("av2", deskew=False))(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1)
+    plain = ICPFlow(ICPFlowConfig.preset("av2", deskew={"enabled": False}))(
+        p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1
+    )
     plain_error = np.linalg.norm(plain.flow - p.flow, axis=1)
     assert plain_error[p.dynamic].mean() > error[p.dynamic].mean() + 0.05  # the de-skew step is what gets there

@@ -25,6 +25,7 @@ from icpflow.evaluation.methods import EvaluationError, MethodFactory, build_met
 from icpflow.evaluation.report import check_writable, format_table, metrics_json, table_rows, write_results
 from icpflow.evaluation.run import Evaluation, PairHook, PairPredictions, signals_held
 from icpflow.evaluation.scoring import MetricOptions
+from icpflow.teacher.config import teacher_config  # importing it stores the icpflow schema eval.yaml composes with
 
 WEIGHTINGS = ("point_weighted", "per_pair")
 RELATIVE_TO = ("residual", "full")
@@ -170,7 +171,6 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
     from omegaconf import OmegaConf
 
     from icpflow.datasets.from_config import open_dataset
-    from icpflow.teacher.config import teacher_config
     from icpflow.viz import offscreen_problem
     from icpflow.viz_rerun import PairRecording, check_viewer
 
@@ -182,10 +182,10 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
         horizons = parse_horizons(cfg.horizon)
         dataset = open_dataset(cfg, horizons[-1])
         teacher = teacher_config(cfg) if "icpflow" in names else None
-        if teacher is not None and horizons[-1] > teacher.max_frame_gap:
+        if teacher is not None and horizons[-1] > teacher.pairing.max_frame_gap:
             raise EvaluationError(
                 f"icpflow: horizon={horizons[-1]} exceeds the teacher's max_frame_gap "
-                f"{teacher.max_frame_gap} (icpflow.max_frame_gap=...)"
+                f"{teacher.pairing.max_frame_gap} (icpflow.pairing.max_frame_gap=...)"
             )
         viewer = check_viewer(cfg.get("viewer"))  # the 3D recording (icpflow.viz_rerun)
         problem = offscreen_problem() if options["render"] > 0 else None

@@ -22,7 +22,7 @@ from icpflow.labelling.run import (
     run_labelling,
 )
 from icpflow.shards.schema import COMPRESSIONS
-from icpflow.teacher.config import teacher_config
+from icpflow.teacher.config import teacher_config  # importing it stores the icpflow schema label.py composes with
 from icpflow.teacher.warmup import ensure_compiled
 
 #: failed samples listed at the end of a run (the rest: failures.jsonl)
@@ -74,10 +74,10 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
         compression = check_options(cfg)
         teacher = teacher_config(cfg)
         horizon = int(cfg.horizon)
-        if horizon > teacher.max_frame_gap:
+        if horizon > teacher.pairing.max_frame_gap:
             raise LabelError(
-                f"horizon={horizon} exceeds the teacher's max_frame_gap {teacher.max_frame_gap} "
-                f"(icpflow.max_frame_gap=...)"
+                f"horizon={horizon} exceeds the teacher's max_frame_gap {teacher.pairing.max_frame_gap} "
+                f"(icpflow.pairing.max_frame_gap=...)"
             )
         dataset = open_dataset(cfg, horizon)
         workers = int(cfg.workers) if cfg.workers else available_cores()

@@ -182,7 +182,7 @@ def label_shard(
     start = time.perf_counter()
     threads = threads or available_cores()
     cfg = job.teacher_cfg
-    teacher = ICPFlow(cfg.replace(hdbscan_n_jobs=min(cfg.hdbscan_n_jobs, threads)))
+    teacher = ICPFlow(cfg.replace(**{"clustering.n_jobs": min(cfg.clustering.n_jobs, threads)}))
     tell = (ticks if callable(ticks) else ticks.put) if ticks is not None else (lambda message: None)
     lost = lost or {}
     name = shard_name(shard)
@@ -190,7 +190,7 @@ def label_shard(
     if previous is not None:
         kept = {int(sample["attrs"]["index"]): sample for sample in read_shard_samples(job.out_dir / name)}
     samples, failures = [], []
-    with thread_limit(threads, torch_too=cfg.icp_backend == "torch"):
+    with thread_limit(threads, torch_too=cfg.icp.backend == "torch"):
         for index in indices:
             if index in kept:
                 samples.append(kept[index])

@@ -1,6 +1,6 @@
 """Step 7: reject implausible cluster registrations.
 
-A pair fails when any of these holds (thresholds from ``ICPFlowConfig``):
+A pair fails when any of these holds (thresholds: ``icpflow.teacher.config.ChecksConfig``):
 
 * its displacement is longer than the search window (``window``, metres, per pair). The displacement is that of
   the source cluster's centroid, ``T c - c``, when centroids are given (the reference's choice: it does not grow
@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from icpflow.geometry import euler_angles
+from icpflow.teacher.config import ChecksConfig
 
 
 def passes(
@@ -23,17 +24,14 @@ def passes(
     mean_error: np.ndarray,
     iou_ratio: np.ndarray,
     window: np.ndarray,
-    cfg=None,
+    cfg: ChecksConfig,
     *,
     src_centroids: np.ndarray | None = None,
-    min_iou: float | None = None,
-    max_roll_pitch_deg: float | None = None,
-    max_error: float | None = None,
 ) -> np.ndarray:
     """(P,) bool: which of P registrations pass every check.
 
     transforms (P, 4, 4) src -> dst; mean_error (P,) metres; iou_ratio (P,); window (P,) or scalar metres;
-    src_centroids (P, 3) optional. Thresholds given as keywords override those of ``cfg``.
+    src_centroids (P, 3) optional.
     """
     transforms = np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4)
     n_pairs = len(transforms)
@@ -42,9 +40,6 @@ def passes(
     window = np.broadcast_to(np.asarray(window, dtype=np.float64), (n_pairs,))
     if len(mean_error) != n_pairs or len(iou_ratio) != n_pairs:
         raise ValueError(f"passes: {n_pairs} transforms but {len(mean_error)} errors and {len(iou_ratio)} IoU ratios")
-    min_iou = cfg.min_iou if min_iou is None else min_iou
-    max_roll_pitch_deg = cfg.max_roll_pitch_deg if max_roll_pitch_deg is None else max_roll_pitch_deg
-    max_error = cfg.max_error if max_error is None else max_error
 
     if src_centroids is None:
         displacement = transforms[:, :3, 3]
@@ -57,8 +52,8 @@ def passes(
         ok = (
             finite
             & (np.linalg.norm(displacement, axis=1) <= window)
-            & (iou_ratio >= min_iou)
-            & (np.abs(np.degrees(angles)).max(axis=1, initial=0.0) <= max_roll_pitch_deg)
-            & (mean_error <= max_error)
+            & (iou_ratio >= cfg.min_iou)
+            & (np.abs(np.degrees(angles)).max(axis=1, initial=0.0) <= cfg.max_roll_pitch_deg)
+            & (mean_error <= cfg.max_error)
         )
     return ok

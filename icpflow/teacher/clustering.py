@@ -1,8 +1,8 @@
 """Step 3: one HDBSCAN over the fused non-ground points of both scans (pc0 already ego-compensated).
 
 Labels: -1 for noise, else 0 .. K-1 with 0 the largest cluster; only the ``max_clusters`` largest are kept.
-Optional voxel down-sampling (``cluster_voxel_size`` > 0): one point (the voxel mean) per occupied voxel is
-clustered and every point takes its voxel's label.
+Optional voxel down-sampling (``voxel_size`` > 0): one point (the voxel mean) per occupied voxel is clustered
+and every point takes its voxel's label. Settings: ``icpflow.teacher.config.ClusteringConfig``.
 """
 
 from __future__ import annotations
@@ -10,6 +10,8 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+
+from icpflow.teacher.config import ClusteringConfig
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -24,14 +26,14 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.n
     return (means / counts[:, None]).astype(np.float32), inverse
 
 
-def cluster_points(points: np.ndarray, cfg) -> np.ndarray:
+def cluster_points(points: np.ndarray, cfg: ClusteringConfig) -> np.ndarray:
     """(N,) int32 cluster labels of (N, 3) fused points (see module docstring)."""
     n = len(points)
     labels = np.full(n, -1, dtype=np.int32)
     if n < cfg.min_cluster_size:
         return labels
-    if cfg.cluster_voxel_size > 0:
-        reduced, inverse = voxel_downsample(points, cfg.cluster_voxel_size)
+    if cfg.voxel_size > 0:
+        reduced, inverse = voxel_downsample(points, cfg.voxel_size)
     else:
         reduced, inverse = points, None
     if len(reduced) < 2:
@@ -41,12 +43,12 @@ def cluster_points(points: np.ndarray, cfg) -> np.ndarray:
     min_size = max(2, min(cfg.min_cluster_size, len(reduced)))
     clusterer = hdbscan.HDBSCAN(
         min_cluster_size=min_size,
-        min_samples=min(cfg.hdbscan_min_samples or min_size, len(reduced) - 1),
-        cluster_selection_epsilon=float(cfg.hdbscan_epsilon),
+        min_samples=min(cfg.min_samples or min_size, len(reduced) - 1),
+        cluster_selection_epsilon=float(cfg.epsilon),
         algorithm="boruvka_kdtree",
         approx_min_span_tree=True,
-        leaf_size=cfg.hdbscan_leaf_size,
-        core_dist_n_jobs=cfg.hdbscan_n_jobs,
+        leaf_size=cfg.leaf_size,
+        core_dist_n_jobs=cfg.n_jobs,
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -1,325 +1,496 @@
-"""``ICPFlowConfig``: every setting of the ICP-Flow teacher, with per-dataset presets.
+"""``ICPFlowConfig``: every setting of the ICP-Flow teacher, one typed block per paper step, with per-dataset presets.
 
-Units: metres, seconds, degrees where the name says ``deg``. ``speed`` is metres per 0.1 s (one frame at 10 Hz);
-the search window of a pair of frames ``k`` apart is ``2 * max(speed * k, |t_ego|)`` (the reference's
-``translation_frame``).
+Units: metres, seconds, degrees where the name says ``deg``. ``pairing.speed`` is metres per 0.1 s (one frame at
+10 Hz); the search window of a pair of frames ``k`` apart is ``2 * max(speed * k, |t_ego|)`` (the reference's
+``translation_frame``, :meth:`PairingConfig.window`).
+
+Blocks (each step module takes its own): ``clustering`` (step 3), ``pairing`` (4), ``histogram`` (5),
+``icp`` (6: registration, its backend and the static preference), ``deskew`` (6b), ``checks`` (7),
+``association`` (8), ``flow`` (9, 10). The ground and ego-motion settings (``ego_motion``, ``kiss_*``,
+``ego_refine_voxel``, ``ground``, ``sensor_height``, ``patchwork_*``, ``range_z``, ``ground_slack``) are flat
+fields for now, like ``crop_xy`` and ``seed`` (the seed of every subsample).
+
+Constraints live on the fields (:func:`setting`'s ``rule``/``choices``, checked in ``__post_init__``), and so does
+each field's name before the blocks (``old``): those flat names (``min_cluster_size``, ``hist_max_points``, ...)
+still work as overrides for one release, with a one-line ``FutureWarning`` naming the new one, and stored flat
+configs (a shard's ``config.yaml`` of an older release) load through :meth:`ICPFlowConfig.from_dict`.
 
 Presets reproduce the reference implementation's command lines (yanconglin/ICP-Flow ``main.sh``), except where
-the issue fixes a value (the AV2 range crop of 51.2 m, the 9 degree roll/pitch check). Hydra: ``from_hydra`` reads
-``conf/icpflow/*.yaml`` where ``null`` means "the preset's value".
+the issue fixes a value (the AV2 range crop of 51.2 m, the 9 degree roll/pitch check). Hydra: :func:`register_configs`
+stores the schema ``icpflow/schema`` (every field, null = the preset's value, generated from these dataclasses) in
+Hydra's ConfigStore, which ``conf/icpflow/*.yaml`` extend; :func:`from_hydra` and :func:`teacher_config` read it.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, fields
+import math
+import typing
+import warnings
+from dataclasses import dataclass, field, fields
 
-CHOICES = {
-    "ego_motion": ("given", "kiss_icp"),
-    "ground": ("both", "patchwork", "zthreshold", "none"),
-    "init": ("histogram", "centroid"),
-    "icp_backend": ("cpu", "torch"),
-    "icp_dof": ("full", "yaw"),
-    "association": ("argmin", "hungarian"),
-    "dataset": ("av2", "waymo", "nuscenes", "custom"),
+#: what each ``rule`` of :func:`setting` accepts, as the error message says it
+RULES = {
+    "positive": "a number > 0",
+    "non_negative": "a number >= 0",
+    "fraction": "a number in [0, 1]",
+    "number": "a number",
+    "count": "an integer >= 1",
+    "count_or_zero": "an integer >= 0",
+    "odd_count": "an odd integer >= 1",
+    "count_or_none": "None or an integer >= 1",
+    "integer": "an integer",
+    "flag": "true or false",
 }
 
-POSITIVE = (
-    "kiss_voxel_size",
-    "kiss_max_range",
-    "patchwork_max_range",
-    "crop_xy",
-    "speed",
-    "hist_bin",
-    "hist_z_range",
-    "icp_max_corr",
-    "icp_rel_rmse",
-    "max_error",
-    "max_roll_pitch_deg",
-    "conf_iou_full",
-)
-NON_NEGATIVE = (
-    "absorb_radius",
-    "static_tolerance",
-    "deskew_min_speed",
-    "ego_refine_voxel",
-    "ground_slack",
-    "cluster_voxel_size",
-    "hdbscan_epsilon",
-    "extent_ratio",
-    "min_iou",
-    "sensor_height",
-)
-POSITIVE_INT = (
-    "min_cluster_size",
-    "max_clusters",
-    "hdbscan_leaf_size",
-    "hdbscan_n_jobs",
-    "max_frame_gap",
-    "hist_z_bins",
-    "nms_kernel",
-    "top_k",
-    "hist_max_points",
-    "max_points",
-    "icp_max_iter",
-    "deskew_iters",
-)
+
+def _accepts(rule: str, value) -> bool:
+    is_int = isinstance(value, int) and not isinstance(value, bool)
+    is_number = (is_int or isinstance(value, float)) and not math.isnan(value)
+    return {
+        "positive": lambda: is_number and value > 0,
+        "non_negative": lambda: is_number and value >= 0,
+        "fraction": lambda: is_number and 0 <= value <= 1,
+        "number": lambda: is_number,
+        "count": lambda: is_int and value >= 1,
+        "count_or_zero": lambda: is_int and value >= 0,
+        "odd_count": lambda: is_int and value >= 1 and value % 2 == 1,
+        "count_or_none": lambda: value is None or (is_int and value >= 1),
+        "integer": lambda: is_int,
+        "flag": lambda: isinstance(value, bool),
+    }[rule]()
+
+
+def setting(default, rule: str | None = None, *, choices: tuple | None = None, old: str | None = None):
+    """A config field: its ``default``, the ``rule`` its value obeys (a key of ``RULES``) or its allowed
+    ``choices``, and its ``old`` flat name (before the per-step blocks) when it had another one."""
+    if rule is not None and rule not in RULES:
+        raise ValueError(f"setting: unknown rule {rule!r}")
+    return field(default=default, metadata={"rule": rule, "choices": choices, "old": old})
+
+
+class _Checked:
+    """``__post_init__`` checks every field against its ``setting`` rule or choices (ValueError, one line)."""
+
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            choices, rule = f.metadata.get("choices"), f.metadata.get("rule")
+            if choices is not None and value not in choices:
+                raise ValueError(f"{type(self).__name__}: {f.name}={value!r} must be one of {list(choices)}")
+            if rule is not None and not _accepts(rule, value):
+                raise ValueError(f"{type(self).__name__}: {f.name}={value!r} must be {RULES[rule]}")
 
 
 @dataclass(frozen=True)
-class ICPFlowConfig:
-    """All fields of the teacher; defaults are the reference's Waymo-like settings (see ``preset``)."""
+class ClusteringConfig(_Checked):
+    """Step 3 (``clustering``): one HDBSCAN over the fused non-ground points of both scans."""
 
-    dataset: str = "custom"
-    # step 1: ego motion
-    # "given": use the ego1_from_ego0 passed in, KISS-ICP when none is; "kiss_icp": always estimate it (the
-    # ablation: a transform passed in is ignored)
-    ego_motion: str = "given"
-    kiss_voxel_size: float = 1.0  # KISS-ICP voxel size (m)
-    kiss_max_range: float = 100.0  # KISS-ICP max range (m)
-    ego_refine_voxel: float = 0.2  # point-to-plane refinement of KISS-ICP on this voxel size (m); 0 = off
-    # step 2: ground removal and crop
-    ground: str = "both"  # a point is non-ground only if every enabled method says so
-    sensor_height: float = 1.723  # Patchwork++ sensor height above the ground (m)
-    patchwork_max_range: float = 64.0  # Patchwork++ max_range (m)
-    patchwork_z_offset: float = 0.0  # added to z before Patchwork++ (ground must sit near z = -sensor_height)
-    range_z: float = 0.04  # z threshold: ground if z <= range_z + ground_slack
-    ground_slack: float = 0.3
-    crop_xy: float = 32.0  # keep |x| < crop_xy and |y| < crop_xy; outside: ego flow, confidence 0
-    # step 3: clustering
-    min_cluster_size: int = 30
-    max_clusters: int = 200
-    cluster_voxel_size: float = 0.0  # 0 = cluster every point; > 0 = voxel down-sample, labels carried back
-    hdbscan_epsilon: float = 0.25  # cluster_selection_epsilon
-    hdbscan_min_samples: int | None = None  # None = min_cluster_size (hdbscan's default)
-    hdbscan_leaf_size: int = 100
-    hdbscan_n_jobs: int = 2  # core_dist_n_jobs (same labels as 1); > 1 costs ~2 s once per process for its pool
-    # step 4: pairing
-    speed: float = 1.67  # max object speed, m per 0.1 s
-    max_frame_gap: int = 4  # largest k accepted for a pair (t, t + k)
-    extent_ratio: float = 0.1  # every sorted bounding-box extent ratio must reach this
-    # step 5: histogram initialisation
-    init: str = "histogram"
-    hist_bin: float = 0.1
-    hist_z_bins: int = 3
-    hist_z_range: float = 0.1
-    nms_kernel: int = 11
-    top_k: int = 5
-    # points per cluster entering the vote (seeded subsample; the reference takes 10000). Measured with
-    # benchmarks/eval_teacher.py: 300 / 1000 / 3000 / 10000 give dynamic-foreground EPE 0.093 / 0.066 / 0.065 /
-    # 0.059 m on 16 synthetic val pairs (waymo preset), while the vote costs 0.05 / 0.12 / 0.35 / 1.26 s on the
-    # AV2 pair: 1000 keeps most of the accuracy at a tenth of the time (the av2 preset keeps 300, see there)
-    hist_max_points: int = 1000
-    # step 6: ICP
-    max_points: int = 10000  # points per cluster entering ICP
-    icp_max_corr: float = 0.1  # correspondence truncation, also the IoU inlier distance (m)
-    icp_max_iter: int = 100
-    icp_rel_rmse: float = 1e-6
-    icp_backend: str = "cpu"
-    icp_dof: str = "full"  # "yaw": rotation about z plus translation only (road objects do not roll or pitch)
-    # step 6 extension: a registered pair whose mean error at the identity (no motion) is within this fraction of
-    # the registered error stays static (identity); 0 = off (the reference)
-    static_tolerance: float = 0.0
-    # step 6b extension (teacher.deskew): with per-point capture times, undo the rolling-shutter smear of moving
-    # matches (v * time) and re-register; off in the reference and without times
-    deskew: bool = False
-    deskew_min_speed: float = 1.0  # m/s: slower matches are left as they are
-    deskew_iters: int = 2  # de-skew / re-register rounds
-    # step 7: checks
-    min_iou: float = 0.2
-    max_roll_pitch_deg: float = 9.0
-    max_error: float = 0.3
-    # step 8: association
-    association: str = "argmin"
-    # step 9 extension: ground/noise points this close (m) to a matched cluster move with it; 0 = off (reference)
-    absorb_radius: float = 0.0
-    # step 10: confidence = clip(1 - error / max_error, 0, 1) * clip(iou / conf_iou_full, 0, 1)
-    conf_iou_full: float = 0.5
-    # step 11: long horizon (teacher.tracker: direct (t, t + k) pairs or the tracker, chosen by the caller)
-    seed: int = 0
+    min_cluster_size: int = setting(30, "count")  # also the pairing's smallest cluster (points)
+    max_clusters: int = setting(200, "count")
+    voxel_size: float = setting(0.0, "non_negative", old="cluster_voxel_size")  # 0 = every point; > 0 = voxel means
+    epsilon: float = setting(0.25, "non_negative", old="hdbscan_epsilon")  # cluster_selection_epsilon
+    min_samples: int | None = setting(None, "count_or_none", old="hdbscan_min_samples")  # None = min_cluster_size
+    leaf_size: int = setting(100, "count", old="hdbscan_leaf_size")
+    # core_dist_n_jobs (same labels as 1); > 1 costs ~2 s once per process for its pool
+    n_jobs: int = setting(2, "count", old="hdbscan_n_jobs")
 
-    def __post_init__(self):
-        problem = _problem(self)
-        if problem:
-            raise ValueError(f"ICPFlowConfig: {problem}")
 
-    @classmethod
-    def preset(cls, name: str, **overrides) -> ICPFlowConfig:
-        """The reference's settings for ``name`` in {"av2", "waymo", "nuscenes"}, then ``overrides``."""
-        if name not in PRESETS:
-            raise ValueError(f"ICPFlowConfig: unknown preset {name!r}, expected one of {sorted(PRESETS)}")
-        unknown = sorted(set(overrides) - {f.name for f in fields(cls)})
-        if unknown:
-            raise ValueError(f"ICPFlowConfig: unknown field(s) {unknown}")
-        return cls(**{**PRESETS[name], **overrides})
+@dataclass(frozen=True)
+class PairingConfig(_Checked):
+    """Step 4 (``pairing``): candidate cluster pairs within the search window."""
 
-    def replace(self, **overrides) -> ICPFlowConfig:
-        """A copy with ``overrides`` applied (validated)."""
-        unknown = sorted(set(overrides) - {f.name for f in fields(self)})
-        if unknown:
-            raise ValueError(f"ICPFlowConfig: unknown field(s) {unknown}")
-        return dataclasses.replace(self, **overrides)
-
-    def to_dict(self) -> dict:
-        """Plain dict of every field."""
-        return dataclasses.asdict(self)
+    speed: float = setting(1.67, "positive")  # max object speed, m per 0.1 s
+    max_frame_gap: int = setting(4, "count")  # largest k accepted for a pair (t, t + k)
+    extent_ratio: float = setting(0.1, "fraction")  # every sorted bounding-box extent ratio must reach this
 
     def window(self, ego_translation_norm: float, k: int = 1) -> float:
         """Search window (m) of a pair k frames apart: ``2 * max(speed * k, |t_ego|)``."""
         return 2.0 * max(self.speed * k, float(ego_translation_norm))
 
 
-def _problem(cfg: ICPFlowConfig) -> str | None:
-    for name, allowed in CHOICES.items():
-        if getattr(cfg, name) not in allowed:
-            return f"{name}={getattr(cfg, name)!r} must be one of {list(allowed)}"
-    for name in POSITIVE:
-        value = getattr(cfg, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            return f"{name}={value!r} must be a number > 0"
-    for name in NON_NEGATIVE:
-        value = getattr(cfg, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
-            return f"{name}={value!r} must be a number >= 0"
-    for name in POSITIVE_INT:
-        value = getattr(cfg, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            return f"{name}={value!r} must be an integer >= 1"
-    for name in ("range_z", "patchwork_z_offset"):
-        value = getattr(cfg, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or value != value:
-            return f"{name}={value!r} must be a number"
-    if cfg.hdbscan_min_samples is not None and (
-        not isinstance(cfg.hdbscan_min_samples, int) or cfg.hdbscan_min_samples < 1
-    ):
-        return f"hdbscan_min_samples={cfg.hdbscan_min_samples!r} must be None or an integer >= 1"
-    if not isinstance(cfg.deskew, bool):
-        return f"deskew={cfg.deskew!r} must be true or false"
-    if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool):
-        return f"seed={cfg.seed!r} must be an integer"
-    if cfg.nms_kernel % 2 == 0:
-        return f"nms_kernel={cfg.nms_kernel} must be odd"
-    if cfg.min_iou > 1 or cfg.extent_ratio > 1:
-        return "min_iou and extent_ratio must be <= 1"
-    return None
+@dataclass(frozen=True)
+class HistogramConfig(_Checked):
+    """Step 5 (``histogram``): the initial translation of a cluster pair, by the translation histogram's vote or
+    (``init="centroid"``, an ablation) the centroid difference."""
+
+    init: str = setting("histogram", choices=("histogram", "centroid"))
+    bin_size: float = setting(0.1, "positive", old="hist_bin")
+    z_bins: int = setting(3, "count", old="hist_z_bins")
+    z_range: float = setting(0.1, "positive", old="hist_z_range")
+    nms_kernel: int = setting(11, "odd_count")
+    top_k: int = setting(5, "count")
+    # points per cluster entering the vote (seeded subsample; the reference takes 10000). Measured with
+    # benchmarks/eval_teacher.py: 300 / 1000 / 3000 / 10000 give dynamic-foreground EPE 0.093 / 0.066 / 0.065 /
+    # 0.059 m on 16 synthetic val pairs (waymo preset), while the vote costs 0.05 / 0.12 / 0.35 / 1.26 s on the
+    # AV2 pair: 1000 keeps most of the accuracy at a tenth of the time (the av2 preset keeps 300, see there)
+    max_points: int = setting(1000, "count", old="hist_max_points")
 
 
-# Every preset adds static_tolerance 0.25 (pipeline._prefer_static): measured with benchmarks/eval_teacher.py,
+@dataclass(frozen=True)
+class ICPConfig(_Checked):
+    """Step 6 (``icp``): point-to-point ICP of each candidate pair (``teacher.registration``)."""
+
+    max_points: int = setting(10000, "count")  # points per cluster entering ICP
+    max_corr: float = setting(0.1, "positive", old="icp_max_corr")  # correspondence truncation and IoU inlier distance
+    max_iter: int = setting(100, "count_or_zero", old="icp_max_iter")  # 0: measure the initial transforms only
+    rel_rmse: float = setting(1e-6, "positive", old="icp_rel_rmse")
+    backend: str = setting("cpu", choices=("cpu", "torch"), old="icp_backend")
+    dof: str = setting("full", choices=("full", "yaw"), old="icp_dof")  # "yaw": rotation about z and translation
+    # extension: a registered pair whose mean error at the identity (no motion) is within this fraction of the
+    # registered error stays static (identity); 0 = off (the reference)
+    static_tolerance: float = setting(0.0, "non_negative")
+
+
+@dataclass(frozen=True)
+class DeskewConfig(_Checked):
+    """Step 6b extension (``teacher.deskew``): with per-point capture times, undo the rolling-shutter smear of
+    moving matches (v * time) and re-register; off in the reference and without times."""
+
+    enabled: bool = setting(False, "flag", old="deskew")
+    min_speed: float = setting(1.0, "non_negative", old="deskew_min_speed")  # m/s: slower matches stay as they are
+    iters: int = setting(2, "count", old="deskew_iters")  # de-skew / re-register rounds
+
+
+@dataclass(frozen=True)
+class ChecksConfig(_Checked):
+    """Step 7 (``checks``): registrations that fail any threshold are rejected."""
+
+    min_iou: float = setting(0.2, "fraction")
+    max_roll_pitch_deg: float = setting(9.0, "positive")
+    max_error: float = setting(0.3, "positive")  # also the error at which the confidence reaches 0 (step 10)
+
+
+@dataclass(frozen=True)
+class AssociationConfig(_Checked):
+    """Step 8 (``association``): which passing candidate pairs become matches."""
+
+    method: str = setting("argmin", choices=("argmin", "hungarian"), old="association")
+
+
+@dataclass(frozen=True)
+class FlowConfig(_Checked):
+    """Steps 9 and 10 (``flow``): per-point flow and confidence
+    ``clip(1 - error / checks.max_error, 0, 1) * clip(iou / conf_iou_full, 0, 1)``."""
+
+    # extension: ground/noise points this close (m) to a matched cluster move with it; 0 = off (reference)
+    absorb_radius: float = setting(0.0, "non_negative")
+    conf_iou_full: float = setting(0.5, "positive")
+
+
+#: the per-step blocks of ``ICPFlowConfig``: field name -> dataclass
+BLOCKS = {
+    "clustering": ClusteringConfig,
+    "pairing": PairingConfig,
+    "histogram": HistogramConfig,
+    "icp": ICPConfig,
+    "deskew": DeskewConfig,
+    "checks": ChecksConfig,
+    "association": AssociationConfig,
+    "flow": FlowConfig,
+}
+#: flat fields of older releases that no longer exist: name -> why (accepted with a warning, ignored)
+REMOVED = {"dataset": "the preset follows dataset.preset"}
+
+
+def _block(kind):
+    return field(default_factory=kind)
+
+
+@dataclass(frozen=True)
+class ICPFlowConfig(_Checked):
+    """All settings of the teacher; defaults are the reference's Waymo-like settings (see ``preset``)."""
+
+    # step 1: ego motion. "given": use the ego1_from_ego0 passed in, KISS-ICP when none is; "kiss_icp": always
+    # estimate it (the ablation: a transform passed in is ignored)
+    ego_motion: str = setting("given", choices=("given", "kiss_icp"))
+    kiss_voxel_size: float = setting(1.0, "positive")  # KISS-ICP voxel size (m)
+    kiss_max_range: float = setting(100.0, "positive")  # KISS-ICP max range (m)
+    ego_refine_voxel: float = setting(0.2, "non_negative")  # point-to-plane refinement voxel (m); 0 = off
+    # step 2: ground removal and crop
+    ground: str = setting("both", choices=("both", "patchwork", "zthreshold", "none"))  # non-ground: every method
+    sensor_height: float = setting(1.723, "non_negative")  # Patchwork++ sensor height above the ground (m)
+    patchwork_max_range: float = setting(64.0, "positive")  # Patchwork++ max_range (m)
+    patchwork_z_offset: float = setting(0.0, "number")  # added to z before Patchwork++ (ground near -sensor_height)
+    range_z: float = setting(0.04, "number")  # z threshold: ground if z <= range_z + ground_slack
+    ground_slack: float = setting(0.3, "non_negative")
+    crop_xy: float = setting(32.0, "positive")  # keep |x| < crop_xy and |y| < crop_xy; outside: ego flow, conf 0
+    clustering: ClusteringConfig = _block(ClusteringConfig)
+    pairing: PairingConfig = _block(PairingConfig)
+    histogram: HistogramConfig = _block(HistogramConfig)
+    icp: ICPConfig = _block(ICPConfig)
+    deskew: DeskewConfig = _block(DeskewConfig)
+    checks: ChecksConfig = _block(ChecksConfig)
+    association: AssociationConfig = _block(AssociationConfig)
+    flow: FlowConfig = _block(FlowConfig)
+    # step 11: long horizon (teacher.tracker: direct (t, t + k) pairs or the tracker, chosen by the caller)
+    seed: int = setting(0, "integer")  # seed of the histogram's and ICP's subsamples
+
+    def __post_init__(self):
+        for name, kind in BLOCKS.items():
+            value = getattr(self, name)
+            if isinstance(value, dict):  # ICPFlowConfig(**cfg.to_dict()): blocks given as dicts
+                value = _build(kind, value, f"ICPFlowConfig.{name}")
+                object.__setattr__(self, name, value)
+            if not isinstance(value, kind):
+                raise ValueError(f"ICPFlowConfig: {name} must be a {kind.__name__}, got {type(value).__name__}")
+        super().__post_init__()
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> ICPFlowConfig:
+        """The reference's settings for ``name`` in {"av2", "waymo", "nuscenes"}, then ``overrides`` (see
+        :meth:`replace`)."""
+        if name not in PRESETS:
+            raise ValueError(f"ICPFlowConfig: unknown preset {name!r}, expected one of {sorted(PRESETS)}")
+        return cls.from_dict(_merge(cls().to_dict(), PRESETS[name], "preset"), overrides)
+
+    def replace(self, **overrides) -> ICPFlowConfig:
+        """A copy with ``overrides`` applied (validated): flat fields by name (``crop_xy=40.0``), a block's fields
+        by a dict (``clustering={"min_cluster_size": 10}``, the others keep their values) or a dotted name
+        (``**{"icp.backend": "torch"}``). An older flat name (``min_cluster_size=10``) works with a
+        ``FutureWarning`` naming the new one."""
+        return self.from_dict(self.to_dict(), overrides)
+
+    @classmethod
+    def from_dict(cls, values: dict, overrides: dict | None = None, *, warn: bool = True) -> ICPFlowConfig:
+        """A config from ``values`` (``to_dict``'s nested form, or the flat form of older releases as stored in
+        their shards' config.yaml), then ``overrides``; older flat names warn only with ``warn``."""
+        merged = _merge(cls().to_dict(), values, "ICPFlowConfig", warn=warn)
+        return cls(**_merge(merged, overrides or {}, "ICPFlowConfig"))
+
+    def to_dict(self) -> dict:
+        """Nested plain dict of every field (a block's fields under its name)."""
+        return dataclasses.asdict(self)
+
+
+class UnknownFieldError(ValueError):
+    """Names that are no teacher setting (``names``); the message is one line."""
+
+    def __init__(self, where: str, names: list[str]):
+        self.names = sorted(names)
+        super().__init__(f"{where}: unknown field(s) {self.names}")
+
+
+def _build(kind, values: dict, where: str):
+    unknown = set(values) - {f.name for f in fields(kind)}
+    if unknown:
+        raise UnknownFieldError(where, [f"{where.rsplit('.', 1)[-1]}.{name}" for name in unknown])
+    return kind(**values)
+
+
+def _old_names() -> dict[str, tuple[str, str]]:
+    """Flat names of older releases -> (block, field), read from the fields' ``old`` or their own name."""
+    names = {}
+    for block, kind in BLOCKS.items():
+        for f in fields(kind):
+            names[f.metadata.get("old") or f.name] = (block, f.name)
+    return names
+
+
+def _merge(base: dict, overrides: dict, where: str, *, warn: bool = True) -> dict:
+    """``base`` (nested, every field) with ``overrides`` applied: flat fields, blocks as (partial) dicts or
+    dataclasses, dotted ``block.field`` names, older flat names (mapped, a FutureWarning each with ``warn``) and
+    removed names (ignored, with a warning). Unknown names: ValueError naming them."""
+    merged = {key: dict(value) if isinstance(value, dict) else value for key, value in base.items()}
+    old_names, unknown = _old_names(), []
+    for key, value in overrides.items():
+        if dataclasses.is_dataclass(value):
+            value = dataclasses.asdict(value)
+        if key in BLOCKS and isinstance(value, dict):
+            merged[key].update(value)
+        elif key in old_names:  # deskew=True and association="hungarian" too: older flat names of block fields
+            block, name = old_names[key]
+            if warn:
+                _deprecated(f"'{key}' is deprecated, use '{block}.{name}'")
+            merged[block][name] = value
+        elif key in BLOCKS:
+            raise ValueError(f"{where}: {key} must be a dict of {BLOCKS[key].__name__} fields, got {value!r}")
+        elif key in merged:
+            merged[key] = value
+        elif "." in key and key.split(".", 1)[0] in BLOCKS:
+            block, name = key.split(".", 1)
+            merged[block][name] = value
+        elif key in REMOVED:
+            if warn:
+                _deprecated(f"'{key}' is deprecated and ignored ({REMOVED[key]})")
+        else:
+            unknown.append(key)
+    if unknown:
+        raise UnknownFieldError(where, unknown)
+    return merged
+
+
+def _deprecated(message: str) -> None:
+    """A FutureWarning printed as one line (no source line: the location is this module, not a file)."""
+    text = f"icpflow: {message}; the old name goes in the next release"
+    warnings.warn_explicit(text, FutureWarning, "icpflow.teacher.config", 0)
+
+
+# Every preset adds icp.static_tolerance 0.25 (pipeline._prefer_static): measured with benchmarks/eval_teacher.py,
 # static_tolerance 0 / 0.25 / 0.5 gives static-background EPE 0.061 / 0.020 / 0.013 m and dynamic-foreground EPE
 # 0.095 / 0.095 / 0.096 on 8 synthetic val pairs, and on the AV2 pair static background 0.025 / 0.009 / 0.004 with
 # dynamic foreground 0.066 / 0.066 / 0.073: 0.25 removes most of the static drift and costs no dynamic accuracy.
 # The reference's main.sh per dataset (waymo, nuscene, argo), in this config's names. HDBSCAN on 0.2 m voxel means
-# (cluster_voxel_size) is 4 to 6 times faster; measured on 12 synthetic pairs it costs dynamic accuracy (EPE 0.347
-# vs 0.257 without), on the AV2 pair it does not (0.206 vs 0.205): on for AV2 only, for its speed target.
+# (clustering.voxel_size) is 4 to 6 times faster; measured on 12 synthetic pairs it costs dynamic accuracy (EPE
+# 0.347 vs 0.257 without), on the AV2 pair it does not (0.206 vs 0.205): on for AV2 only, for its speed target.
 PRESETS: dict[str, dict] = {
     # Waymo's vehicle frame has the ground near z = 0: shifted by -sensor_height it sits where Patchwork++ expects.
     "waymo": dict(
-        dataset="waymo",
-        static_tolerance=0.25,
         patchwork_z_offset=-1.723,
         crop_xy=32.0,
         range_z=0.04,
         ground_slack=0.3,
-        min_cluster_size=30,
-        max_clusters=200,
-        hdbscan_epsilon=0.25,
-        speed=1.67,
-        icp_max_corr=0.1,
-        max_points=10000,
-        extent_ratio=0.1,
-        max_error=0.3,
-        min_iou=0.2,
+        clustering=dict(min_cluster_size=30, max_clusters=200, epsilon=0.25),
+        pairing=dict(speed=1.67, extent_ratio=0.1),
+        icp=dict(max_corr=0.1, max_points=10000, static_tolerance=0.25),
+        checks=dict(max_error=0.3, min_iou=0.2),
     ),
     # nuScenes at 20 Hz: 0.833 m per 0.05 s frame, i.e. the same 16.7 m/s as Waymo per frame of its own.
     "nuscenes": dict(
-        dataset="nuscenes",
-        static_tolerance=0.25,
         crop_xy=32.0,
         range_z=-1.84,
         ground_slack=0.3,
-        min_cluster_size=20,
-        max_clusters=200,
-        hdbscan_epsilon=0.25,
-        speed=0.833333,
-        icp_max_corr=0.1,
-        max_points=5000,
-        extent_ratio=0.1,
-        max_error=0.2,
-        min_iou=0.2,
+        clustering=dict(min_cluster_size=20, max_clusters=200, epsilon=0.25),
+        pairing=dict(speed=0.833333, extent_ratio=0.1),
+        icp=dict(max_corr=0.1, max_points=5000, static_tolerance=0.25),
+        checks=dict(max_error=0.2, min_iou=0.2),
     ),
     # AV2: the reference disables the z threshold (range_z -10000, slack 0); ground comes from the map or
     # Patchwork++. Crop 51.2 m as the issue asks (the reference does not crop AV2). The AV2 ego frame has the
     # ground near z = -0.35 m: shifted by -1.4 m it sits near -sensor_height as Patchwork++ expects.
     # Measured on the real AV2 pair (benchmarks/eval_teacher.py): 0.2 m voxels before HDBSCAN keep the accuracy
-    # (dynamic EPE 0.206 vs 0.205 without) at a third of the time; absorb_radius 0.5 lowers the dynamic EPE from
-    # 0.242 to 0.192 (static 0.019 -> 0.020) by moving the wheels cut off by ground removal with their vehicle.
-    # deskew (with the sweeps' offset_ns times) lowers it further to 0.107 (teacher.deskew; 0.160 -> 0.066 on
-    # eval.py's dynamic foreground); deskew_min_speed 0.5 / 1.0 / 2.0 m/s refine 28 / 11 / 4 matches for 0.107 /
-    # 0.107 / 0.107, and 1 / 2 / 3 rounds give 0.124 / 0.107 / 0.108. hist_max_points 300 rather than the default
-    # 1000: 0.107 / 0.192 (with / without times, map ground) against 0.125 / 0.279 with 1000, and 0.125 / 0.276
-    # against 0.121 / 0.271 with Patchwork++ ground. cluster_voxel_size 0.25 rather than 0.2 (issue 22): HDBSCAN
-    # 1.5x faster (29k rather than 38k voxel means), dynamic-foreground EPE unchanged on the AV2 pair (0.0662 map
-    # ground, 0.0945 Patchwork++), dynamic EPE (all) 0.1067 vs 0.1068, static background 0.0096 vs 0.0120.
+    # (dynamic EPE 0.206 vs 0.205 without) at a third of the time; flow.absorb_radius 0.5 lowers the dynamic EPE
+    # from 0.242 to 0.192 (static 0.019 -> 0.020) by moving the wheels cut off by ground removal with their
+    # vehicle. deskew (with the sweeps' offset_ns times) lowers it further to 0.107 (teacher.deskew; 0.160 ->
+    # 0.066 on eval.py's dynamic foreground); deskew.min_speed 0.5 / 1.0 / 2.0 m/s refine 28 / 11 / 4 matches for
+    # 0.107 / 0.107 / 0.107, and 1 / 2 / 3 rounds give 0.124 / 0.107 / 0.108. histogram.max_points 300 rather than
+    # the default 1000: 0.107 / 0.192 (with / without times, map ground) against 0.125 / 0.279 with 1000, and
+    # 0.125 / 0.276 against 0.121 / 0.271 with Patchwork++ ground. clustering.voxel_size 0.25 rather than 0.2
+    # (issue 22): HDBSCAN 1.5x faster (29k rather than 38k voxel means), dynamic-foreground EPE unchanged on the
+    # AV2 pair (0.0662 map ground, 0.0945 Patchwork++), dynamic EPE (all) 0.1067 vs 0.1068, static background
+    # 0.0096 vs 0.0120.
     "av2": dict(
-        dataset="av2",
-        static_tolerance=0.25,
-        hist_max_points=300,
         crop_xy=51.2,
         range_z=-10000.0,
         ground_slack=0.0,
         patchwork_z_offset=-1.4,
-        cluster_voxel_size=0.25,
-        absorb_radius=0.5,
-        deskew=True,
-        min_cluster_size=20,
-        max_clusters=200,
-        hdbscan_epsilon=0.25,
-        speed=1.0,
-        icp_max_corr=0.1,
-        max_points=10000,
-        extent_ratio=0.1,
-        max_error=0.2,
-        min_iou=0.2,
+        clustering=dict(min_cluster_size=20, max_clusters=200, epsilon=0.25, voxel_size=0.25),
+        pairing=dict(speed=1.0, extent_ratio=0.1),
+        histogram=dict(max_points=300),
+        icp=dict(max_corr=0.1, max_points=10000, static_tolerance=0.25),
+        deskew=dict(enabled=True),
+        checks=dict(max_error=0.2, min_iou=0.2),
+        flow=dict(absorb_radius=0.5),
     ),
 }
 
 
+# ----------------------------------------------------------------------------------------------------- Hydra
+
+
+def _optional(kind, name: str):
+    """A dataclass with ``kind``'s fields, each Optional and None by default (None: the preset's value)."""
+    hints = typing.get_type_hints(kind)
+    return dataclasses.make_dataclass(
+        name, [(f.name, hints[f.name] | None, None) for f in fields(kind) if f.name not in BLOCKS]
+    )
+
+
+def schema():
+    """The Hydra schema of the ``icpflow`` group: ``preset``, every flat field and every block's fields, all
+    null by default (= the preset's value), plus the older flat names (deprecated) and removed ones."""
+    hints = typing.get_type_hints(ICPFlowConfig)
+    entries = [("preset", str | None, None)]
+    entries += [(f.name, hints[f.name] | None, None) for f in fields(ICPFlowConfig) if f.name not in BLOCKS]
+    old_names = _old_names()
+    for block, kind in BLOCKS.items():
+        overrides = _optional(kind, f"{kind.__name__}Overrides")
+        if block in old_names:  # also an older flat name (deskew=true, association=hungarian): untyped, either works
+            entries.append((block, typing.Any, field(default_factory=lambda kind=overrides: vars(kind()))))
+        else:
+            entries.append((block, overrides, field(default_factory=overrides)))
+    flat = {name for name, _, _ in entries}
+    for old, (block, name) in old_names.items():
+        if old not in flat:
+            entries.append((old, typing.get_type_hints(BLOCKS[block])[name] | None, None))
+    entries += [(name, str | None, None) for name in REMOVED]
+    return dataclasses.make_dataclass("ICPFlowOverrides", entries)
+
+
+def register_configs() -> None:
+    """Store the schema as ``icpflow/schema`` in Hydra's ConfigStore (``conf/icpflow/default.yaml`` extends it).
+    Idempotent; :mod:`icpflow.teacher.config` calls it on import."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(group="icpflow", name="schema", node=schema())
+
+
+def _chosen(values: dict) -> dict:
+    """``values`` without its None entries (recursively; a block left empty is dropped)."""
+    kept = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            value = _chosen(value)
+            if value:
+                kept[key] = value
+        elif value is not None:
+            kept[key] = value
+    return kept
+
+
+def _container(node) -> dict:
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
+
+
 def from_hydra(node) -> ICPFlowConfig:
     """``ICPFlowConfig`` from a Hydra/OmegaConf node (or dict) with a ``preset`` key; null fields take the preset's."""
-    try:
-        from omegaconf import OmegaConf
-
-        values = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
-    except ImportError:  # pragma: no cover - hydra-core is a dependency
-        values = dict(node)
+    values = _chosen(_container(node))
     preset = values.pop("preset", None)
     if preset is None:
         raise ValueError("icpflow config: 'preset' is missing (av2, waymo or nuscenes)")
-    overrides = {key: value for key, value in values.items() if value is not None}
-    return ICPFlowConfig.preset(preset, **overrides)
+    return ICPFlowConfig.preset(preset, **values)
 
 
 def teacher_config(cfg) -> ICPFlowConfig:
-    """The teacher of a run config (label.py's, eval.py's): the dataset's preset, then ``dataset.teacher``, then the
-    non-null ``icpflow.*`` fields.
+    """The teacher of a run config (label.py's, eval.py's): the dataset's preset, then ``dataset.teacher`` (fields
+    as in ``icpflow.*``: flat ones, blocks, or older flat names with a warning), then the non-null ``icpflow.*``.
 
     A ``dataset.teacher`` key that is not a teacher field is an error (ValueError naming it).
     """
-    from omegaconf import OmegaConf
-
-    known = {f.name for f in fields(ICPFlowConfig)}
     block = cfg.dataset.get("teacher")
-    per_dataset = OmegaConf.to_container(block, resolve=True) if block is not None else {}
-    unknown = sorted(set(per_dataset) - known)
-    if unknown:
+    per_dataset = _container(block) if block is not None else {}
+    chosen = _chosen(_container(cfg.icpflow))
+    preset = chosen.pop("preset", None)
+    if preset is None:
+        raise ValueError("icpflow config: 'preset' is missing (av2, waymo or nuscenes)")
+    try:
+        base = ICPFlowConfig.preset(preset, **per_dataset)
+    except UnknownFieldError as error:
         raise ValueError(
             f"dataset {cfg.dataset.name}: dataset.teacher has keys that are not ICPFlowConfig fields: "
-            f"{', '.join(unknown)}"
-        )
-    values = dict(per_dataset)
-    chosen = OmegaConf.to_container(cfg.icpflow, resolve=True)
-    values.update({key: value for key, value in chosen.items() if value is not None})
-    return from_hydra(values)
+            f"{', '.join(error.names)}"
+        ) from None
+    return base.replace(**chosen)
 
 
-__all__ = ["ICPFlowConfig", "PRESETS", "from_hydra", "teacher_config"]
+register_configs()
+
+__all__ = [
+    "AssociationConfig",
+    "BLOCKS",
+    "ChecksConfig",
+    "ClusteringConfig",
+    "DeskewConfig",
+    "FlowConfig",
+    "HistogramConfig",
+    "ICPConfig",
+    "ICPFlowConfig",
+    "PRESETS",
+    "PairingConfig",
+    "UnknownFieldError",
+    "from_hydra",
+    "register_configs",
+    "teacher_config",
+]

@@ -8,8 +8,9 @@ Confidence of a matched cluster (0 elsewhere), in [0, 1]:
 
     confidence = clip(1 - error / max_error, 0, 1) * clip(iou / conf_iou_full, 0, 1)
 
-``error`` is the match's mean nearest-neighbour distance (m), ``iou`` its IoU ratio; a perfect registration
-(error 0, IoU >= conf_iou_full) scores 1, one at the acceptance limit (error = max_error) scores 0.
+with ``max_error`` the checks' (``ChecksConfig``) and ``conf_iou_full`` a ``FlowConfig`` field. ``error`` is the
+match's mean nearest-neighbour distance (m), ``iou`` its IoU ratio; a perfect registration (error 0,
+IoU >= conf_iou_full) scores 1, one at the acceptance limit (error = max_error) scores 0.
 
 Optional extension (``absorb_radius`` > 0, off in the reference): a ground or unclustered pc0 point within
 ``absorb_radius`` of a point of a matched cluster moves (and is trusted) with that cluster. It recovers the lowest
@@ -21,13 +22,14 @@ from __future__ import annotations
 import numpy as np
 
 from icpflow.geometry import ego_flow, transform_points
+from icpflow.teacher.config import FlowConfig
 
 
-def match_confidence(error: np.ndarray, iou: np.ndarray, cfg) -> np.ndarray:
+def match_confidence(error: np.ndarray, iou: np.ndarray, cfg: FlowConfig, max_error: float) -> np.ndarray:
     """(M,) float32 confidence of M matches from their errors and IoU ratios (formula above)."""
     error = np.asarray(error, dtype=np.float64)
     iou = np.asarray(iou, dtype=np.float64)
-    quality = np.clip(1.0 - error / cfg.max_error, 0.0, 1.0) * np.clip(iou / cfg.conf_iou_full, 0.0, 1.0)
+    quality = np.clip(1.0 - error / max_error, 0.0, 1.0) * np.clip(iou / cfg.conf_iou_full, 0.0, 1.0)
     return np.nan_to_num(quality, nan=0.0).astype(np.float32)
 
 

@@ -19,36 +19,10 @@ All points are in one common frame (the pipeline compensates ego motion first); 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numba
 import numpy as np
 
-
-@dataclass(frozen=True)
-class HistogramParams:
-    """Histogram settings, read from ``ICPFlowConfig`` by :func:`params_from_config`."""
-
-    bin_size: float = 0.1
-    z_bins: int = 3
-    z_range: float = 0.1
-    nms_kernel: int = 11
-    top_k: int = 5
-    max_points: int = 300
-    seed: int = 0
-
-
-def params_from_config(cfg) -> HistogramParams:
-    """The histogram fields of an ``ICPFlowConfig``."""
-    return HistogramParams(
-        bin_size=float(cfg.hist_bin),
-        z_bins=int(cfg.hist_z_bins),
-        z_range=float(cfg.hist_z_range),
-        nms_kernel=int(cfg.nms_kernel),
-        top_k=int(cfg.top_k),
-        max_points=int(cfg.hist_max_points),
-        seed=int(cfg.seed),
-    )
+from icpflow.teacher.config import HistogramConfig
 
 
 def subsample(points: np.ndarray, cap: int, seed: int) -> np.ndarray:
@@ -217,22 +191,21 @@ def _initial_translations(
 
 
 def initial_translations(
-    pairs: list[tuple[np.ndarray, np.ndarray]], windows: np.ndarray, params: HistogramParams
+    pairs: list[tuple[np.ndarray, np.ndarray]], windows: np.ndarray, params: HistogramConfig, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Histogram translations for P cluster pairs: ((P, 3) float64 src -> dst translations, (P,) scores in metres).
 
-    ``pairs`` holds (src (Ns, 3), dst (Nd, 3)) in one frame, ``windows`` (P,) the x/y search half-width in metres.
-    A pair with an empty cluster gets the zero translation and an infinite score.
+    ``pairs`` holds (src (Ns, 3), dst (Nd, 3)) in one frame, ``windows`` (P,) the x/y search half-width in metres;
+    clusters are capped at ``params.max_points`` by a subsample seeded with ``seed``. A pair with an empty cluster
+    gets the zero translation and an infinite score.
     """
     windows = np.asarray(windows, dtype=np.float64).reshape(-1)
     if len(windows) != len(pairs):
         raise ValueError(f"initial_translations: {len(pairs)} pairs but {len(windows)} windows")
-    if params.z_bins < 1 or params.nms_kernel < 1 or params.top_k < 0 or params.bin_size <= 0:
-        raise ValueError(f"initial_translations: invalid histogram settings {params}")
     if not pairs:
         return np.zeros((0, 3)), np.zeros(0)
-    srcs = [subsample(np.asarray(s, np.float64).reshape(-1, 3), params.max_points, params.seed) for s, _ in pairs]
-    dsts = [subsample(np.asarray(d, np.float64).reshape(-1, 3), params.max_points, params.seed) for _, d in pairs]
+    srcs = [subsample(np.asarray(s, np.float64).reshape(-1, 3), int(params.max_points), seed) for s, _ in pairs]
+    dsts = [subsample(np.asarray(d, np.float64).reshape(-1, 3), int(params.max_points), seed) for _, d in pairs]
     order = np.argsort([-len(s) * len(d) for s, d in zip(srcs, dsts)], kind="stable")  # costly pairs first
     src_all, src_off = pack([srcs[k] for k in order])
     dst_all, dst_off = pack([dsts[k] for k in order])
@@ -242,11 +215,11 @@ def initial_translations(
         dst_all,
         dst_off,
         windows[order],
-        params.bin_size,
-        params.z_bins,
-        params.z_range,
-        params.nms_kernel,
-        params.top_k,
+        float(params.bin_size),
+        int(params.z_bins),
+        float(params.z_range),
+        int(params.nms_kernel),
+        int(params.top_k),
         numba.get_num_threads(),
     )
     translations, scores = np.empty_like(best), np.empty_like(score)
@@ -254,9 +227,11 @@ def initial_translations(
     return translations, scores
 
 
-def initial_translation(src: np.ndarray, dst: np.ndarray, window_xy: float, cfg) -> tuple[np.ndarray, float]:
+def initial_translation(
+    src: np.ndarray, dst: np.ndarray, window_xy: float, params: HistogramConfig, seed: int = 0
+) -> tuple[np.ndarray, float]:
     """Histogram translation (3,) float64 taking src (Ns, 3) onto dst (Nd, 3), and its score (metres)."""
-    translations, scores = initial_translations([(src, dst)], np.array([window_xy]), params_from_config(cfg))
+    translations, scores = initial_translations([(src, dst)], np.array([window_xy]), params, seed)
     return translations[0], float(scores[0])
 
 

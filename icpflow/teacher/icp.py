@@ -1,7 +1,7 @@
 """Step 6's ICP variants on one cluster pair (numba), and the ICP settings.
 
 * :func:`icp_point_to_point`: correspondences are each moving point's nearest fixed point within ``max_corr``
-  (0.1 m); the update is the closed-form (Kabsch) rigid transform to them, or with ``yaw_only`` (``icp_dof="yaw"``)
+  (0.1 m); the update is the closed-form (Kabsch) rigid transform to them, or with ``yaw_only`` (``icp.dof="yaw"``)
   a rotation about z only (angle ``atan2(H01 - H10, H00 + H11)`` of the centred cross-covariance H) and a 3D
   translation; it stops after ``max_iter`` (100) iterations, when the RMSE of an iteration's correspondences after
   its update fell by at most ``rel_rmse`` (1e-6) relative to the previous iteration's (rising counts as converged;
@@ -14,12 +14,11 @@
   ``PLANE_MAX_ITER`` (30) iterations, when the update is below 1e-4 (rad and m), or with fewer than 4
   correspondences.
 
-Clouds (N, 3) float64 in one frame; transforms (4, 4) float64, moving -> fixed.
+Clouds (N, 3) float64 in one frame; transforms (4, 4) float64, moving -> fixed. The settings are
+``icpflow.teacher.config.ICPConfig``'s.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -32,32 +31,6 @@ PLANE_NEIGHBOURS = 10
 # ``PLANE_MAX_ITER`` iterations (nearest-neighbour switches can make it cycle at the 0.1 mm level).
 _PLANE_TOL = 1e-4
 PLANE_MAX_ITER = 30
-
-
-@dataclass(frozen=True)
-class ICPParams:
-    """ICP settings, read from ``ICPFlowConfig`` by :func:`params_from_config`."""
-
-    max_corr: float = 0.1
-    max_iter: int = 100
-    rel_rmse: float = 1e-6
-    inlier_dist: float = 0.1
-    max_points: int = 10000
-    seed: int = 0
-    yaw_only: bool = False  # ``icp_dof="yaw"``: rotation about z only (road objects do not roll or pitch)
-
-
-def params_from_config(cfg) -> ICPParams:
-    """The ICP fields of an ``ICPFlowConfig``."""
-    return ICPParams(
-        max_corr=float(cfg.icp_max_corr),
-        max_iter=int(cfg.icp_max_iter),
-        rel_rmse=float(cfg.icp_rel_rmse),
-        inlier_dist=float(cfg.icp_max_corr),
-        max_points=int(cfg.max_points),
-        seed=int(cfg.seed),
-        yaw_only=cfg.icp_dof == "yaw",
-    )
 
 
 @numba.njit(cache=True)

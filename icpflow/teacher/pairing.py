@@ -4,11 +4,12 @@ Clusters come from one fused clustering, so a label may own points of both scans
 itself (likely static objects); stage 2 pairs the source and destination clusters left unmatched by stage 1,
 every combination. Both stages keep a pair only if (the reference's sanity check):
 
-* both clusters have at least ``min_cluster_size`` points;
+* both clusters have at least ``clustering.min_cluster_size`` points;
 * the xy distance of their centroids is at most the window ``2 * max(speed * k, |t_ego|)``;
 * each ratio of their sorted bounding-box extents (smaller / larger, per rank) is at least ``extent_ratio``.
 
 Points: source (pc0, ego-compensated into pc1's frame) and destination (pc1), both (N, 3); labels (N,) int32.
+Settings: ``icpflow.teacher.config.PairingConfig`` (the window: ``PairingConfig.window``).
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from icpflow.teacher.config import PairingConfig
 
 
 @dataclass
@@ -55,11 +58,13 @@ def cluster_stats(points: np.ndarray, labels: np.ndarray, n_labels: int) -> Clus
     return ClusterStats(count, centroid, np.sort(extent, axis=1), order, starts)
 
 
-def plausible(src: ClusterStats, dst: ClusterStats, src_ids, dst_ids, window: float, cfg) -> np.ndarray:
+def plausible(
+    src: ClusterStats, dst: ClusterStats, src_ids, dst_ids, window: float, cfg: PairingConfig, min_cluster_size: int
+) -> np.ndarray:
     """(P,) bool: which pairs (src_ids[p], dst_ids[p]) pass the sanity check above."""
     src_ids = np.asarray(src_ids, dtype=np.int64)
     dst_ids = np.asarray(dst_ids, dtype=np.int64)
-    big_enough = (src.count[src_ids] >= cfg.min_cluster_size) & (dst.count[dst_ids] >= cfg.min_cluster_size)
+    big_enough = (src.count[src_ids] >= min_cluster_size) & (dst.count[dst_ids] >= min_cluster_size)
     distance = np.linalg.norm(src.centroid[src_ids, :2] - dst.centroid[dst_ids, :2], axis=1)
     a, b = src.extent[src_ids], dst.extent[dst_ids]
     larger = np.maximum(a, b)
@@ -68,19 +73,27 @@ def plausible(src: ClusterStats, dst: ClusterStats, src_ids, dst_ids, window: fl
     return big_enough & (distance <= window) & (ratio >= cfg.extent_ratio).all(axis=1)
 
 
-def stage1_pairs(src: ClusterStats, dst: ClusterStats, window: float, cfg) -> tuple[np.ndarray, np.ndarray]:
+def stage1_pairs(
+    src: ClusterStats, dst: ClusterStats, window: float, cfg: PairingConfig, min_cluster_size: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Same-label candidate pairs: (src_ids, dst_ids) int64."""
     ids = np.flatnonzero((src.count > 0) & (dst.count > 0))
-    keep = plausible(src, dst, ids, ids, window, cfg)
+    keep = plausible(src, dst, ids, ids, window, cfg, min_cluster_size)
     return ids[keep], ids[keep]
 
 
 def stage2_pairs(
-    src: ClusterStats, dst: ClusterStats, src_free: np.ndarray, dst_free: np.ndarray, window: float, cfg
+    src: ClusterStats,
+    dst: ClusterStats,
+    src_free: np.ndarray,
+    dst_free: np.ndarray,
+    window: float,
+    cfg: PairingConfig,
+    min_cluster_size: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Every plausible (src, dst) among the labels not matched in stage 1: (src_ids, dst_ids) int64."""
-    src_ids = np.flatnonzero(src_free & (src.count >= cfg.min_cluster_size))
-    dst_ids = np.flatnonzero(dst_free & (dst.count >= cfg.min_cluster_size))
+    src_ids = np.flatnonzero(src_free & (src.count >= min_cluster_size))
+    dst_ids = np.flatnonzero(dst_free & (dst.count >= min_cluster_size))
     s, d = np.repeat(src_ids, len(dst_ids)), np.tile(dst_ids, len(src_ids))
-    keep = plausible(src, dst, s, d, window, cfg)
+    keep = plausible(src, dst, s, d, window, cfg, min_cluster_size)
     return s[keep], d[keep]

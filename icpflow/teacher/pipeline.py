@@ -3,7 +3,7 @@
 Steps (one module each): ego motion (``ego_motion``), ground removal and crop (``ground``), one clustering of the
 fused non-ground points (``clustering``), candidate pairs in two stages (``pairing``), histogram or centroid
 initialisation (``histogram``), ICP (``registration``), checks (``checks``), association (``association``),
-optional rolling-shutter refinement of moving matches (``deskew``, with ``cfg.deskew`` and per-point capture times
+optional rolling-shutter refinement of moving matches (``deskew``, with ``cfg.deskew.enabled`` and per-point times
 ``time0``/``time1``), flow and confidence (``flow``). Frames: pc0 in the ego frame of t, pc1 in the ego frame of
 t + dt; clustering and registration happen in pc1's frame after ego compensation of pc0.
 
@@ -25,7 +25,7 @@ from icpflow.frames import check_points
 from icpflow.geometry import rigid_problem, transform_points
 from icpflow.teacher import association, checks, deskew, histogram, registration
 from icpflow.teacher.clustering import cluster_points
-from icpflow.teacher.config import ICPFlowConfig
+from icpflow.teacher.config import ICPConfig, ICPFlowConfig
 from icpflow.teacher.ego_motion import estimate_ego_motion
 from icpflow.teacher.flow import absorb, match_confidence, point_flow
 from icpflow.teacher.ground import GroundSegmenter
@@ -91,7 +91,7 @@ def _as_mask(name: str, value, count: int) -> np.ndarray | None:
     return array
 
 
-def _prefer_static(result, clouds, tolerance: float, params) -> None:
+def _prefer_static(result, clouds, tolerance: float, params: ICPConfig, seed: int = 0) -> None:
     """Pairs whose mean error at the identity is at most ``(1 + tolerance)`` times their registered error keep the
     identity (no motion), with its error and IoU ratio (``result`` is updated in place). Scans sample a static
     surface differently (scan lines move with the ego), so a small slide along walls often fits slightly better
@@ -100,7 +100,7 @@ def _prefer_static(result, clouds, tolerance: float, params) -> None:
     iteration."""
     identity = np.tile(np.eye(4), (len(clouds), 1, 1))
     if result.identity_error is None:
-        still = registration.register_clusters(clouds, identity, params=dataclasses.replace(params, max_iter=0))
+        still = registration.register_clusters(clouds, identity, dataclasses.replace(params, max_iter=0), seed)
         result.identity_error, result.identity_iou = still.mean_error, still.iou_ratio
     static = result.identity_error <= result.mean_error * (1.0 + tolerance)
     result.transforms[static] = identity[static]
@@ -116,8 +116,6 @@ class ICPFlow:
         if not isinstance(self.cfg, ICPFlowConfig):
             raise ValueError(f"ICPFlow: cfg must be an ICPFlowConfig, got {type(self.cfg).__name__}")
         self.ground = GroundSegmenter(self.cfg)
-        self.hist_params = histogram.params_from_config(self.cfg)
-        self.icp_params = registration.params_from_config(self.cfg)
 
     def __call__(
         self,
@@ -135,7 +133,7 @@ class ICPFlow:
         """Flow of pc0 (N0, 3) towards pc1 (N1, 3); ``gap`` k: frames between the scans (window scales with k).
 
         ``time0`` (N0,) / ``time1`` (N1,): optional capture time of each point in seconds after its scan's
-        timestamp, and ``dt`` the seconds between the two timestamps; with ``cfg.deskew`` they drive the
+        timestamp, and ``dt`` the seconds between the two timestamps; with ``cfg.deskew.enabled`` they drive the
         rolling-shutter refinement (``deskew``), which then needs all three. Without them nothing is de-skewed.
         """
         cfg = self.cfg
@@ -146,11 +144,12 @@ class ICPFlow:
         ground1 = _as_mask("ground1", ground1, len(pc1_in))
         time0 = _as_times("time0", time0, len(pc0_in))
         time1 = _as_times("time1", time1, len(pc1_in))
-        if isinstance(gap, bool) or not isinstance(gap, (int, np.integer)) or not 1 <= gap <= cfg.max_frame_gap:
-            raise ValueError(f"ICPFlow: gap must be an integer in [1, {cfg.max_frame_gap}], got {gap!r}")
-        deskew_on = cfg.deskew and (time0 is not None or time1 is not None)
+        max_gap = cfg.pairing.max_frame_gap
+        if isinstance(gap, bool) or not isinstance(gap, (int, np.integer)) or not 1 <= gap <= max_gap:
+            raise ValueError(f"ICPFlow: gap must be an integer in [1, {max_gap}], got {gap!r}")
+        deskew_on = cfg.deskew.enabled and (time0 is not None or time1 is not None)
         if deskew_on and (time0 is None or time1 is None or dt is None):
-            raise ValueError("ICPFlow: de-skew needs time0, time1 and dt together (or cfg.deskew=False)")
+            raise ValueError("ICPFlow: de-skew needs time0, time1 and dt together (or cfg.deskew.enabled=False)")
         if deskew_on and not (isinstance(dt, (int, float, np.integer, np.floating)) and np.isfinite(dt) and dt > 0):
             raise ValueError(f"ICPFlow: dt must be a positive number of seconds, got {dt!r}")
         valid0 = np.isfinite(pc0_in).all(axis=1)
@@ -182,11 +181,11 @@ class ICPFlow:
         tic = time.perf_counter()
         src = transform_points(ego, pc0_ok[keep0])
         dst = pc1_ok[keep1]
-        fused = cluster_points(np.concatenate([src, dst]), cfg)
+        fused = cluster_points(np.concatenate([src, dst]), cfg.clustering)
         src_labels, dst_labels = fused[: len(src)], fused[len(src) :]
         timings["clustering"] = time.perf_counter() - tic
 
-        window = cfg.window(np.linalg.norm(ego[:3, 3]), int(gap))
+        window = cfg.pairing.window(np.linalg.norm(ego[:3, 3]), int(gap))
         matches, src_stats, dst_stats = self._match(src, dst, src_labels, dst_labels, window, timings)
 
         tic = time.perf_counter()
@@ -203,7 +202,6 @@ class ICPFlow:
                 float(dt),
                 window,
                 cfg,
-                self.icp_params,
             )
         timings["deskew"] = time.perf_counter() - tic
 
@@ -211,13 +209,13 @@ class ICPFlow:
         labels_ok0 = np.full(len(pc0_ok), -1, dtype=np.int32)
         labels_ok0[keep0] = src_labels
         flow_labels = labels_ok0
-        if cfg.absorb_radius > 0:
+        if cfg.flow.absorb_radius > 0:
             flow_labels = absorb(
                 pc0_ok,
                 labels_ok0,
                 ego,
                 matches["pairs"][:, 0],
-                cfg.absorb_radius,
+                cfg.flow.absorb_radius,
                 (np.abs(pc0_ok[:, :2]) < cfg.crop_xy).all(axis=1),
             )
         flow_ok, conf_ok = point_flow(
@@ -260,7 +258,7 @@ class ICPFlow:
         n_labels = int(max(src_labels.max(initial=-1), dst_labels.max(initial=-1))) + 1
         src_stats = cluster_stats(src, src_labels, n_labels)
         dst_stats = cluster_stats(dst, dst_labels, n_labels)
-        s1, d1 = stage1_pairs(src_stats, dst_stats, window, cfg)
+        s1, d1 = stage1_pairs(src_stats, dst_stats, window, cfg.pairing, cfg.clustering.min_cluster_size)
         timings["pairing"] += time.perf_counter() - tic
         first = self._register(src, dst, src_stats, dst_stats, s1, d1, window, timings)
 
@@ -269,7 +267,9 @@ class ICPFlow:
         dst_free = np.ones(n_labels, dtype=bool)
         src_free[first["pairs"][:, 0]] = False
         dst_free[first["pairs"][:, 1]] = False
-        s2, d2 = stage2_pairs(src_stats, dst_stats, src_free, dst_free, window, cfg)
+        s2, d2 = stage2_pairs(
+            src_stats, dst_stats, src_free, dst_free, window, cfg.pairing, cfg.clustering.min_cluster_size
+        )
         timings["pairing"] += time.perf_counter() - tic
         second = self._register(src, dst, src_stats, dst_stats, s2, d2, window, timings)
 
@@ -296,8 +296,8 @@ class ICPFlow:
             return empty
         tic = time.perf_counter()
         clouds = [(src_stats.points(src, s), dst_stats.points(dst, d)) for s, d in zip(src_ids, dst_ids)]
-        if cfg.init == "histogram":
-            translations, _ = histogram.initial_translations(clouds, np.full(n, window), self.hist_params)
+        if cfg.histogram.init == "histogram":
+            translations, _ = histogram.initial_translations(clouds, np.full(n, window), cfg.histogram, cfg.seed)
         else:
             translations = np.array([histogram.centroid_translation(a, b) for a, b in clouds]).reshape(n, 3)
         inits = np.tile(np.eye(4), (n, 1, 1))
@@ -305,20 +305,18 @@ class ICPFlow:
         timings["histogram"] += time.perf_counter() - tic
 
         tic = time.perf_counter()
-        result = registration.register_clusters(
-            clouds, inits, backend=cfg.icp_backend, params=self.icp_params, identity=cfg.static_tolerance > 0
-        )
-        if cfg.static_tolerance > 0:
-            _prefer_static(result, clouds, cfg.static_tolerance, self.icp_params)
+        result = registration.register_clusters(clouds, inits, cfg.icp, cfg.seed, identity=cfg.icp.static_tolerance > 0)
+        if cfg.icp.static_tolerance > 0:
+            _prefer_static(result, clouds, cfg.icp.static_tolerance, cfg.icp, cfg.seed)
         ok = checks.passes(
             result.transforms,
             result.mean_error,
             result.iou_ratio,
             np.full(n, window),
-            cfg,
+            cfg.checks,
             src_centroids=src_stats.centroid[src_ids],
         )
-        chosen = association.associate(src_ids, dst_ids, result.mean_error, ok, method=cfg.association)
+        chosen = association.associate(src_ids, dst_ids, result.mean_error, ok, method=cfg.association.method)
         timings["icp"] += time.perf_counter() - tic
         pick = np.flatnonzero(chosen)
         return {
@@ -326,6 +324,8 @@ class ICPFlow:
             "transforms": result.transforms[pick],
             "errors": result.mean_error[pick].astype(np.float64),
             "iou_ratios": result.iou_ratio[pick].astype(np.float64),
-            "match_confidence": match_confidence(result.mean_error[pick], result.iou_ratio[pick], cfg),
+            "match_confidence": match_confidence(
+                result.mean_error[pick], result.iou_ratio[pick], cfg.flow, cfg.checks.max_error
+            ),
             "n_candidates": n,
         }

@@ -31,8 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from icpflow.geometry import invert
+from icpflow.teacher.config import ICPConfig
 from icpflow.teacher.histogram import subsample
-from icpflow.teacher.icp import ICPParams, normals, params_from_config
+from icpflow.teacher.icp import normals
 from icpflow.teacher.registration_cpu import register_batch_cpu
 from icpflow.teacher.registration_torch import register_batch_torch
 
@@ -53,17 +54,17 @@ class RegistrationResult:
 
 
 def register_plane(
-    pairs: list[tuple[np.ndarray, np.ndarray]], inits: np.ndarray, params: ICPParams
+    pairs: list[tuple[np.ndarray, np.ndarray]], inits: np.ndarray, params: ICPConfig, seed: int = 0
 ) -> RegistrationResult:
     """Point-to-plane registration of P pairs (src (Ns, 3), dst (Nd, 3)) from ``inits`` (P, 4, 4), src -> dst
-    (see the module docstring); clusters capped at ``params.max_points`` by a seeded subsample."""
+    (see the module docstring); clusters capped at ``params.max_points`` by a subsample seeded with ``seed``."""
     inits = np.asarray(inits, dtype=np.float64).reshape(-1, 4, 4)
     if len(inits) != len(pairs):
         raise ValueError(f"register_plane: {len(pairs)} pairs but {len(inits)} initial transforms")
     if not pairs:
         return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
-    movings = [subsample(np.asarray(a, np.float64).reshape(-1, 3), params.max_points, params.seed) for a, _ in pairs]
-    fixeds = [subsample(np.asarray(b, np.float64).reshape(-1, 3), params.max_points, params.seed) for _, b in pairs]
+    movings = [subsample(np.asarray(a, np.float64).reshape(-1, 3), int(params.max_points), seed) for a, _ in pairs]
+    fixeds = [subsample(np.asarray(b, np.float64).reshape(-1, 3), int(params.max_points), seed) for _, b in pairs]
     out = register_batch_cpu(movings, fixeds, inits, params, [normals(b) for b in fixeds])
     return RegistrationResult(*out[:4])
 
@@ -71,38 +72,35 @@ def register_plane(
 def register_clusters(
     pairs: list[tuple[np.ndarray, np.ndarray]],
     inits: np.ndarray,
-    cfg=None,
-    backend: str = "cpu",
-    params: ICPParams | None = None,
+    params: ICPConfig,
+    seed: int = 0,
     identity: bool = False,
 ) -> RegistrationResult:
-    """Register P cluster pairs (src (Ns, 3), dst (Nd, 3)) from initial src -> dst transforms ``inits`` (P, 4, 4).
+    """Register P cluster pairs (src (Ns, 3), dst (Nd, 3)) from initial src -> dst transforms ``inits`` (P, 4, 4)
+    with ``params.backend``.
 
-    Settings come from ``params`` if given, else from ``cfg`` (an ``ICPFlowConfig``). Each cluster is capped at
-    ``max_points`` by a seeded subsample. A pair with an empty cluster keeps its initial transform, with an
-    infinite error and a zero IoU ratio. With ``identity`` the result also holds each pair's quality at the
-    identity (the CPU kernel measures it in the same pass; the torch backend by a CPU pass with ``max_iter=0``).
+    Each cluster is capped at ``params.max_points`` by a subsample seeded with ``seed``. A pair with an empty
+    cluster keeps its initial transform, with an infinite error and a zero IoU ratio. With ``identity`` the result
+    also holds each pair's quality at the identity (the CPU kernel measures it in the same pass; the torch backend
+    by a CPU pass with ``max_iter=0``).
     """
-    params = params or params_from_config(cfg)
     inits = np.asarray(inits, dtype=np.float64).reshape(-1, 4, 4)
     if len(inits) != len(pairs):
         raise ValueError(f"register_clusters: {len(pairs)} pairs but {len(inits)} initial transforms")
-    if backend not in ("cpu", "torch"):
-        raise ValueError(f"register_clusters: backend must be 'cpu' or 'torch', got {backend!r}")
     n_pairs = len(pairs)
     if n_pairs == 0:
         return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
     movings, fixeds, starts = [], [], np.empty_like(inits)
     swapped = np.zeros(n_pairs, dtype=bool)
     for p, (src, dst) in enumerate(pairs):
-        src = subsample(np.asarray(src, np.float64).reshape(-1, 3), params.max_points, params.seed)
-        dst = subsample(np.asarray(dst, np.float64).reshape(-1, 3), params.max_points, params.seed)
+        src = subsample(np.asarray(src, np.float64).reshape(-1, 3), int(params.max_points), seed)
+        dst = subsample(np.asarray(dst, np.float64).reshape(-1, 3), int(params.max_points), seed)
         swapped[p] = len(src) > len(dst)  # register the smaller cluster to the larger one
         movings.append(dst if swapped[p] else src)
         fixeds.append(src if swapped[p] else dst)
         starts[p] = invert(inits[p]) if swapped[p] else inits[p]
     identity_error = identity_iou = None
-    if backend == "cpu":
+    if params.backend == "cpu":
         out = register_batch_cpu(movings, fixeds, starts, params, identity=identity)
         transforms, errors, ious, iters = out[:4]
         if identity:

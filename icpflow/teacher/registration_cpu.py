@@ -10,8 +10,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from icpflow.teacher.config import ICPConfig
 from icpflow.teacher.histogram import pack
-from icpflow.teacher.icp import PLANE_MAX_ITER, ICPParams, icp_point_to_plane, icp_point_to_point
+from icpflow.teacher.icp import PLANE_MAX_ITER, icp_point_to_plane, icp_point_to_point
 from icpflow.teacher.neighbours import build_grid, nn_stats, transform_cloud
 
 # Cell size (metres) of the grid answering exact nearest-neighbour queries in the quality evaluation.
@@ -107,7 +108,7 @@ def _register_batch(
 
 
 def register_batch_cpu(
-    movings, fixeds, starts, params: ICPParams, fixed_normals=None, identity: bool = False
+    movings, fixeds, starts, params: ICPConfig, fixed_normals=None, identity: bool = False
 ) -> tuple[np.ndarray, ...]:
     """:func:`_register_batch` on lists of clouds (point-to-plane when the fixed clouds' normals are given):
     (transforms, errors, ious, iterations, errors at the identity, IoU ratios at the identity) in the input order
@@ -124,12 +125,12 @@ def register_batch_cpu(
         fix_off,
         nrm_all,
         starts[order],
-        params.max_corr,
-        params.max_iter,
-        params.rel_rmse,
-        params.yaw_only,
+        float(params.max_corr),
+        int(params.max_iter),
+        float(params.rel_rmse),
+        params.dof == "yaw",
         plane,
-        params.inlier_dist,
+        float(params.max_corr),  # the IoU inlier distance is the correspondence truncation
         _EVAL_CELL,
         numba.get_num_threads(),
         identity,

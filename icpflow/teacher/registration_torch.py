@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from icpflow.teacher.icp import ICPParams
+from icpflow.teacher.config import ICPConfig
 
 
-def register_batch_torch(movings, fixeds, inits, params: ICPParams, device=None):
+def register_batch_torch(movings, fixeds, inits, params: ICPConfig, device=None):
     """Padded batched ICP in torch: same algorithm and outputs as the cpu backend (float64 throughout)."""
     import torch
 
@@ -41,7 +41,7 @@ def register_batch_torch(movings, fixeds, inits, params: ICPParams, device=None)
     def mean_nn(query, q_mask, points):
         d, _ = nearest(query, points)
         mean = (d * q_mask).sum(1) / q_mask.sum(1).clamp(min=1)
-        inliers = ((d < params.inlier_dist) & q_mask).sum(1)
+        inliers = ((d < params.max_corr) & q_mask).sum(1)  # inlier distance = truncation
         return mean, inliers
 
     n_m, n_f = m_mask.sum(1), f_mask.sum(1)
@@ -63,7 +63,7 @@ def register_batch_torch(movings, fixeds, inits, params: ICPParams, device=None)
         mean_m = (mov * w[..., None]).sum(1) / cw
         mean_f = (target * w[..., None]).sum(1) / cw
         h = ((mov - mean_m[:, None]) * w[..., None]).transpose(1, 2) @ (target - mean_f[:, None])
-        if params.yaw_only:
+        if params.dof == "yaw":
             angle = torch.atan2(h[:, 0, 1] - h[:, 1, 0], h[:, 0, 0] + h[:, 1, 1])
             rotation = torch.eye(3, dtype=torch.float64, device=device).repeat(n_pairs, 1, 1)
             rotation[:, 0, 0], rotation[:, 0, 1] = torch.cos(angle), -torch.sin(angle)

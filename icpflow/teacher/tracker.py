@@ -1,4 +1,4 @@
-"""Step 11: long horizon, flow from scan 0 to scan k (k <= ``max_frame_gap``) of a sequence.
+"""Step 11: long horizon, flow from scan 0 to scan k (k <= ``pairing.max_frame_gap``) of a sequence.
 
 * ``direct``: one teacher call on (scan 0, scan k) with the composed ego motion; the search window is scaled by k.
 * ``tracker`` (the paper's "Ours+Tracker"): teacher calls on every consecutive pair (i, i + 1); a pc0 cluster
@@ -38,8 +38,9 @@ def long_horizon_flow(
     k = len(scans) - 1
     if mode not in ("direct", "tracker"):
         raise ValueError(f"long_horizon_flow: mode must be 'direct' or 'tracker', got {mode!r}")
-    if not 1 <= k <= teacher.cfg.max_frame_gap:
-        raise ValueError(f"long_horizon_flow: need 2 to {teacher.cfg.max_frame_gap + 1} scans, got {len(scans)}")
+    max_gap = teacher.cfg.pairing.max_frame_gap
+    if not 1 <= k <= max_gap:
+        raise ValueError(f"long_horizon_flow: need 2 to {max_gap + 1} scans, got {len(scans)}")
     egos = list(ego_transforms) if ego_transforms is not None else [None] * k
     grounds = list(grounds) if grounds is not None else [None] * (k + 1)
     times = list(times) if times is not None else [None] * (k + 1)
