@@ -20,7 +20,10 @@ from hydra import compose, initialize_config_dir
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.frames import FramePairError
 from icpflow.labelling.cli import label
-from icpflow.labelling.run import DIED, LabelJob, available_cores, label_shard, thread_limit
+from icpflow.labelling.executors import available_cores
+from icpflow.labelling.job import LabelJob
+from icpflow.labelling.records import DIED, write_shard_and_record
+from icpflow.labelling.sample import label_sample, thread_limit
 from icpflow.shards import ShardDataset, verify_shard
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.config import teacher_config
@@ -144,14 +147,15 @@ def test_a_worker_runs_hdbscan_on_its_share_of_threads_without_changing_the_hash
     import icpflow.teacher
 
     built = []
-    monkeypatch.setattr(icpflow.teacher, "ICPFlow", built.append)  # label_shard builds its teacher from this name
+    monkeypatch.setattr(icpflow.teacher, "ICPFlow", built.append)  # label_sample builds its teacher from this name
     teacher = teacher_config(_cfg(tmp_path))
     assert teacher.hdbscan_n_jobs == 2
     job = LabelJob(SyntheticDataset(**READER), teacher, tmp_path, "teacher: {}\n")
-    label_shard(job, 0, [], threads=1)
-    label_shard(job, 1, [], threads=8)
+    label_sample(job, 0, threads=1)  # the recorded "teacher" (None) then fails the sample: a failure record
+    label_sample(job, 1, threads=8)
     assert [cfg.hdbscan_n_jobs for cfg in built] == [1, 2]  # never more than the config asks for
     assert built[0].replace(hdbscan_n_jobs=2) == teacher and job.teacher_cfg == teacher
+    write_shard_and_record(job, 0, [], [], [], 0, 0.0)
     with h5py.File(tmp_path / "shard_000000.h5") as f:
         assert f.attrs["config"] == "teacher: {}\n" and f.attrs["config_hash"] == job.hash
 
