@@ -12,3 +12,16 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def reference(tmp_path_factory):
+    """The small world labelled once per session by an uninterrupted single-worker run (helpers.labelling): 5 samples
+    in shards of 2, 2, 1; the output every faulted, resumed or parallel run must reproduce."""
+    from icpflow.labelling.cli import label
+
+    from helpers.labelling import label_cfg
+
+    out = tmp_path_factory.mktemp("reference") / "labels"
+    assert label(label_cfg(out), progress=False) == 0
+    return out

@@ -83,9 +83,30 @@ def test_eval_reproduces_the_metrics_module(tmp_path, dataset, capsys):
     assert run_eval(_cfg(tmp_path, "bev=1"), progress=False) == 0
     document = json.loads((tmp_path / "metrics.json").read_text())
     assert document["pairs"] == {"1": [dataset.sample_id(i) for i in range(len(dataset))]}
+    pairs = [dataset[i] for i in range(len(dataset))]
     for name, predict in (("zero", zero_flow), ("ego", ego_only_flow)):
-        pairs = [dataset[i] for i in range(len(dataset))]
         assert_same_numbers(document["methods"][name]["1"], expected_summary(dataset, [(p, predict(p)) for p in pairs]))
+        # Threeway EPE as published (Chodosh et al. 2023), not through icpflow.metrics: over all pairs, the
+        # point-weighted EPE of the valid non-ground points with max(|x|, |y|) < 35 m in three groups, foreground
+        # (any object class: the synthetic world's classes > 0) moving at >= 0.5 m/s beyond the ego motion,
+        # foreground slower, background slower; their mean
+        groups = {"foreground_dynamic": [], "foreground_static": [], "background_static": []}
+        for pair in pairs:
+            flow = predict(pair).astype(np.float64)
+            ego = (pair.pc0 @ pair.ego1_from_ego0[:3, :3].T + pair.ego1_from_ego0[:3, 3]) - pair.pc0
+            moving = np.linalg.norm(pair.flow - ego, axis=1) / pair.dt >= 0.5
+            near = np.abs(pair.pc0[:, :2]).max(axis=1) < 35.0
+            valid = np.ones(len(pair.pc0), bool) if pair.flow_valid is None else pair.flow_valid
+            kept = valid & ~pair.ground0 & near
+            epe = np.linalg.norm(flow - pair.flow, axis=1)
+            foreground = pair.classes > 0
+            groups["foreground_dynamic"].append(epe[kept & foreground & moving])
+            groups["foreground_static"].append(epe[kept & foreground & ~moving])
+            groups["background_static"].append(epe[kept & ~foreground & ~moving])
+        means = {group: float(np.concatenate(values).mean()) for group, values in groups.items()}
+        assert document["methods"][name]["1"]["threeway"] == pytest.approx(
+            {**means, "threeway": float(np.mean(list(means.values())))}, rel=1e-6
+        )
     # ego flow is exact on the static background and scores EPE 1 normalised on movers
     ego = document["methods"]["ego"]["1"]
     assert ego["paper"]["point_weighted"]["static_bg"]["EPE"] < 1e-5

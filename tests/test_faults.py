@@ -13,9 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_label import SUMMARY, TESTS_ENV, _all_valid, _assert_same, _cfg, _running_in_group, _script
-from test_train import _cfg as _train_cfg
-from test_train import _write_shards
 
 from fastflow3d.infer import main as infer_main
 from fastflow3d.infer import read_raw_scan
@@ -29,24 +26,27 @@ from icpflow.labelling.cli import label
 from icpflow.shards import ShardDataset, verify_shard
 from icpflow.teacher import ICPFlow
 
+from helpers.labelling import (
+    SUMMARY,
+    TESTS_ENV,
+    all_valid,
+    assert_same,
+    label_cfg,
+    label_script,
+    running_in_group,
+)
+from helpers.shards import write_pseudo_labels
+from helpers.training import train_cfg
 from students import tiny_checkpoint
 
-SLOW = ["dataset.reader._target_=test_label.SlowSynthetic", "workers=2"]
+SLOW = ["dataset.reader._target_=helpers.labelling.SlowSynthetic", "workers=2"]
 READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 2.0}
-
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory):
-    """An uninterrupted single-worker run of the small world of test_label: 5 samples in shards of 2, 2, 1."""
-    out = tmp_path_factory.mktemp("reference") / "labels"
-    assert label(_cfg(out), progress=False) == 0
-    return out
 
 
 def _start(out_dir, *overrides) -> subprocess.Popen:
     """label.py in its own session (process group = its pid), once its first shard is recorded."""
     process = subprocess.Popen(
-        _script(out_dir, *overrides),
+        label_script(out_dir, *overrides),
         cwd=out_dir.parent,
         env=TESTS_ENV,
         stdout=subprocess.PIPE,
@@ -63,7 +63,7 @@ def _start(out_dir, *overrides) -> subprocess.Popen:
 
 def _none_left_within(group: int, seconds: float) -> bool:
     deadline = time.monotonic() + seconds
-    while _running_in_group(group):
+    while running_in_group(group):
         if time.monotonic() > deadline:
             return False
         time.sleep(0.1)
@@ -85,7 +85,7 @@ def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
             f"label: terminated (SIGTERM); complete shards are kept in {out}, rerun the same command to resume"
         )
         assert "Traceback" not in err
-        assert _all_valid(out) >= 2  # index.json lists exactly the complete shards on disk
+        assert all_valid(out) >= 2  # index.json lists exactly the complete shards on disk
         indexed = {s["file"] for s in json.loads((out / "index.json").read_text())["shards"]}
         assert indexed == {p.name for p in out.glob("shard_*.h5")}
     else:
@@ -95,11 +95,11 @@ def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
     if sig == signal.SIGKILL:
         return  # the rerun after a SIGKILL: test_label.py::test_resume_after_sigkill_matches_uninterrupted_run
     assert not list(out.glob("*.tmp-*"))
-    run = subprocess.run(_script(out, *SLOW), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
+    run = subprocess.run(label_script(out, *SLOW), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     done, skipped = map(int, SUMMARY.search(run.stdout).groups()[:2])
     assert skipped >= 2 and done + skipped == 5
-    _assert_same(reference, out)
+    assert_same(reference, out)
 
 
 class KillOnceSynthetic(SyntheticDataset):
@@ -117,7 +117,7 @@ class KillOnceSynthetic(SyntheticDataset):
 
 
 def test_a_sample_whose_worker_died_is_filled_in_by_the_rerun(reference, tmp_path, capsys):
-    cfg = _cfg(
+    cfg = label_cfg(
         tmp_path / "labels",
         f"dataset.reader._target_={__name__}.KillOnceSynthetic",
         f"+dataset.reader.marker={tmp_path / 'killed'}",
@@ -131,7 +131,7 @@ def test_a_sample_whose_worker_died_is_filled_in_by_the_rerun(reference, tmp_pat
     assert label(cfg, progress=False) == 0
     assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups()[:3] == ("1", "4", "0")
     assert (tmp_path / "labels" / "failures.jsonl").read_text() == ""  # only what failed in the latest run
-    _assert_same(reference, tmp_path / "labels")
+    assert_same(reference, tmp_path / "labels")
 
 
 class FixedLaterSynthetic(SyntheticDataset):
@@ -152,7 +152,7 @@ class FixedLaterSynthetic(SyntheticDataset):
 def test_a_fixed_input_is_labelled_by_the_rerun(reference, tmp_path, capsys):
     broken = tmp_path / "000001.bin"
     broken.touch()
-    cfg = _cfg(
+    cfg = label_cfg(
         tmp_path / "labels",
         f"dataset.reader._target_={__name__}.FixedLaterSynthetic",
         f"+dataset.reader.broken={broken}",
@@ -162,7 +162,7 @@ def test_a_fixed_input_is_labelled_by_the_rerun(reference, tmp_path, capsys):
     broken.unlink()  # the user fixes the input
     assert label(cfg, progress=False) == 0
     assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups()[:3] == ("1", "4", "0")
-    _assert_same(reference, tmp_path / "labels")
+    assert_same(reference, tmp_path / "labels")
 
 
 def _disk_full_after(monkeypatch, writes: int) -> None:
@@ -182,7 +182,7 @@ def test_a_full_disk_is_one_line_and_keeps_the_finished_shards(reference, tmp_pa
     out = tmp_path / "labels"
     # config.yaml, then shard 0 and its record (each file: its own fsync and its folder's), then shard 1 fails
     _disk_full_after(monkeypatch, 6)
-    assert label(_cfg(out), progress=False) == 2
+    assert label(label_cfg(out), progress=False) == 2
     err = capsys.readouterr().err
     assert err == (
         f"label: {out / 'shard_000001.h5'}: cannot write (No space left on device); complete shards are "
@@ -190,29 +190,33 @@ def test_a_full_disk_is_one_line_and_keeps_the_finished_shards(reference, tmp_pa
     )
     assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "shard_000000.h5", "shard_000000.h5.json"]
     monkeypatch.undo()  # space is freed
-    assert label(_cfg(out), progress=False) == 0
+    assert label(label_cfg(out), progress=False) == 0
     assert "3 samples labelled, 2 skipped" in capsys.readouterr().out
-    _assert_same(reference, out)
+    assert_same(reference, out)
 
 
 class DiskFullSynthetic(SyntheticDataset):
-    """The small world in a worker whose disk is full from its first write on (sample 2's shard)."""
+    """The small world in a label.py run whose disk fills up while the workers label: from the moment this reader is
+    built in the main process, which writes the shards, every fsync of shard 0's files fails with ENOSPC (the small
+    index and records still fit)."""
 
-    def pair(self, index, horizon=1):
-        if index == 2:
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        real = os.fsync
 
-            def full(fd):
+        def fsync(fd):
+            if os.readlink(f"/proc/self/fd/{fd}").rsplit("/", 1)[-1].startswith("shard_000000.h5"):
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            real(fd)
 
-            os.fsync = full  # in this worker process only
-        return super().pair(index, horizon)
+        os.fsync = fsync  # in the main process of this label.py run only
 
 
-def test_a_full_disk_in_a_worker_is_one_line_and_leaves_no_process(tmp_path):
+def test_a_full_disk_while_workers_run_is_one_line_and_leaves_no_process(tmp_path):
     out = tmp_path / "labels"
     args = ["dataset.reader._target_=test_faults.DiskFullSynthetic", "workers=2", "shard_size=3"]
     process = subprocess.Popen(
-        _script(out, *args),
+        label_script(out, *args),
         cwd=tmp_path,
         env=TESTS_ENV,
         stdout=subprocess.PIPE,
@@ -354,22 +358,22 @@ def pairs():
 
 
 def test_a_corrupt_shard_stops_training_in_one_line_naming_it(pairs, tmp_path):
-    good, bad = _write_shards(tmp_path / "good", pairs), _write_shards(tmp_path / "bad", pairs)
+    good, bad = write_pseudo_labels(tmp_path / "good", pairs), write_pseudo_labels(tmp_path / "bad", pairs)
     shard = bad / "shard_000000.h5"
     shard.write_bytes(shard.read_bytes()[: shard.stat().st_size // 2])
     with pytest.raises(TrainError) as error:
-        fit(_train_cfg(tmp_path, good, bad, "trainer.fast_dev_run=true"))
+        fit(train_cfg(tmp_path, good, bad, "trainer.fast_dev_run=true"))
     message = str(error.value)
     assert "\n" not in message and message.startswith(f"data.val: {shard}: unreadable")
     assert message.endswith(f"rerun the label.py command that wrote it (same out_dir={bad}): it redoes damaged shards")
 
 
 def test_a_truncated_checkpoint_is_one_line_naming_it(pairs, model, tmp_path):
-    good = _write_shards(tmp_path / "good", pairs)
+    good = write_pseudo_labels(tmp_path / "good", pairs)
     truncated = tmp_path / "last.ckpt"
     truncated.write_bytes(model.read_bytes()[:2000])
     with pytest.raises(TrainError) as error:
-        fit(_train_cfg(tmp_path, good, good, f"ckpt_path={truncated}"))
+        fit(train_cfg(tmp_path, good, good, f"ckpt_path={truncated}"))
     message = str(error.value)
     assert "\n" not in message and message.startswith(
         f"ckpt_path={truncated}: {truncated}: not a readable torch checkpoint, truncated or damaged?"
@@ -377,7 +381,7 @@ def test_a_truncated_checkpoint_is_one_line_naming_it(pairs, model, tmp_path):
     foreign = tmp_path / "foreign.ckpt"
     torch.save({"state_dict": {}, "when": np.datetime64("2026-01-01")}, foreign)  # not loadable with weights_only
     with pytest.raises(TrainError) as error:
-        fit(_train_cfg(tmp_path, good, good, f"ckpt_path={foreign}"))
+        fit(train_cfg(tmp_path, good, good, f"ckpt_path={foreign}"))
     assert "weights_only" not in str(error.value) and "\n" not in str(error.value)
     assert "it holds objects other than tensors and plain data" in str(error.value)
 
@@ -392,7 +396,7 @@ class UnreadableSynthetic(SyntheticDataset):
 
 
 def test_the_summary_says_how_many_failures_it_does_not_list(tmp_path, capsys):
-    cfg = _cfg(
+    cfg = label_cfg(
         tmp_path,
         f"dataset.reader._target_={__name__}.UnreadableSynthetic",
         "dataset.reader.frames_per_sequence=15",

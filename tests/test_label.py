@@ -20,82 +20,35 @@ from hydra import compose, initialize_config_dir
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.frames import FramePairError
 from icpflow.labelling.cli import label
-from icpflow.labelling.run import DIED, LabelJob, available_cores, label_shard, thread_limit
+from icpflow.labelling.executors import available_cores
+from icpflow.labelling.job import LabelJob
+from icpflow.labelling.records import DIED, write_shard_and_record
+from icpflow.labelling.sample import label_sample, thread_limit
 from icpflow.shards import ShardDataset, verify_shard
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.config import teacher_config
 from icpflow.teacher.tracker import long_horizon_flow
 
-REPO = Path(__file__).resolve().parents[1]
-SMALL = [
-    "dataset.reader.beams=32",
-    "dataset.reader.azimuth_resolution_deg=2.0",
-    "dataset.reader.num_sequences=1",
-    "dataset.reader.frames_per_sequence=6",
-    "shard_size=2",
-    "limit=5",
-]
-READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 6, "beams": 32, "azimuth_resolution_deg": 2.0}
-
-
-def _cfg(out_dir, *overrides):
-    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        return compose("label", [*SMALL, f"out_dir={out_dir}", "workers=1", *overrides])
-
-
-def _samples(out_dir) -> list[dict]:
-    dataset = ShardDataset(out_dir)
-    samples = [dataset[i] for i in range(len(dataset))]
-    dataset.close()
-    return samples
-
-
-def _assert_same(out_a, out_b):
-    a, b = _samples(out_a), _samples(out_b)
-    assert [s["sample_id"] for s in a] == [s["sample_id"] for s in b]
-    for x, y in zip(a, b, strict=True):
-        assert set(x) == set(y)
-        for key in x:
-            np.testing.assert_array_equal(x[key], y[key], err_msg=key)
-
-
-def _all_valid(out_dir) -> int:
-    index = json.loads((Path(out_dir) / "index.json").read_text())
-    for shard in index["shards"]:
-        verify_shard(Path(out_dir) / shard["file"], index["config_hash"], len(shard["samples"]))
-    assert not list(Path(out_dir).glob("shard_*.tmp-*"))
-    return sum(len(shard["samples"]) for shard in index["shards"])
-
-
-def _script(out_dir, *overrides):
-    return [sys.executable, str(REPO / "label.py"), *SMALL, f"out_dir={out_dir}", *overrides]
-
-
-#: environment of a label.py subprocess that can import the datasets defined in this file (module test_label)
-TESTS_ENV = {
-    **os.environ,
-    "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO / "tests"), os.environ.get("PYTHONPATH")])),
-}
-SUMMARY = re.compile(
-    r"label: (\d+) samples labelled, (\d+) skipped \(already done\), (\d+) failed; "
-    r"mean \d+\.\d\d s/sample per worker, \d+\.\d\d samples/s in \d+\.\d s -> (.+)"
+from helpers.labelling import (
+    READER,
+    REPO,
+    SUMMARY,
+    TESTS_ENV,
+    all_valid,
+    assert_same,
+    label_cfg,
+    label_script,
+    read_samples,
+    running_in_group,
 )
 
 
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory):
-    """An uninterrupted single-worker run: 5 samples in shards of 2, 2, 1."""
-    out = tmp_path_factory.mktemp("reference") / "labels"
-    assert label(_cfg(out), progress=False) == 0
-    return out
-
-
 def test_round_trip_holds_reader_input_and_teacher_output(reference):
-    assert _all_valid(reference) == 5
+    assert all_valid(reference) == 5
     assert sorted(p.name for p in reference.glob("shard_*.h5")) == [f"shard_00000{i}.h5" for i in range(3)]
     dataset = SyntheticDataset(**READER)
-    samples = _samples(reference)
-    cfg = teacher_config(_cfg(reference))
+    samples = read_samples(reference)
+    cfg = teacher_config(label_cfg(reference))
     teacher = ICPFlow(cfg)
     for i in (0, 4):
         pair, got = dataset.pair(i), samples[i]
@@ -119,8 +72,8 @@ def test_round_trip_holds_reader_input_and_teacher_output(reference):
 
 
 def test_worker_count_does_not_change_output(reference, tmp_path, capsys):
-    assert label(_cfg(tmp_path, "workers=2"), progress=True) == 0
-    _assert_same(reference, tmp_path)
+    assert label(label_cfg(tmp_path, "workers=2"), progress=True) == 0
+    assert_same(reference, tmp_path)
     out, err = capsys.readouterr()
     assert SUMMARY.fullmatch(out.strip()).groups() == ("5", "0", "0", str(tmp_path))
     final = err.split("\r")[-1].strip()  # the progress bar as it is left: rate in samples/s, elapsed<ETA
@@ -144,21 +97,22 @@ def test_a_worker_runs_hdbscan_on_its_share_of_threads_without_changing_the_hash
     import icpflow.teacher
 
     built = []
-    monkeypatch.setattr(icpflow.teacher, "ICPFlow", built.append)  # label_shard builds its teacher from this name
-    teacher = teacher_config(_cfg(tmp_path))
+    monkeypatch.setattr(icpflow.teacher, "ICPFlow", built.append)  # label_sample builds its teacher from this name
+    teacher = teacher_config(label_cfg(tmp_path))
     assert teacher.clustering.n_jobs == 2
     job = LabelJob(SyntheticDataset(**READER), teacher, tmp_path, "teacher: {}\n")
-    label_shard(job, 0, [], threads=1)
-    label_shard(job, 1, [], threads=8)
+    label_sample(job, 0, threads=1)  # the recorded "teacher" (None) then fails the sample: a failure record
+    label_sample(job, 1, threads=8)
     assert [cfg.clustering.n_jobs for cfg in built] == [1, 2]  # never more than the config asks for
     assert built[0].replace(clustering={"n_jobs": 2}) == teacher and job.teacher_cfg == teacher
+    write_shard_and_record(job, 0, [], [], [], 0, 0.0)
     with h5py.File(tmp_path / "shard_000000.h5") as f:
         assert f.attrs["config"] == "teacher: {}\n" and f.attrs["config_hash"] == job.hash
 
 
 def test_resume_after_sigkill_matches_uninterrupted_run(reference, tmp_path):
     process = subprocess.Popen(
-        _script(tmp_path, "workers=1"), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        label_script(tmp_path, "workers=1"), cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE
     )
     deadline = time.monotonic() + 120
     while not (tmp_path / "shard_000000.h5.json").exists() and process.poll() is None:
@@ -169,12 +123,12 @@ def test_resume_after_sigkill_matches_uninterrupted_run(reference, tmp_path):
     assert process.returncode == -signal.SIGKILL
     for shard in tmp_path.glob("shard_*.h5"):  # whatever is there under a final name is complete
         verify_shard(shard)
-    run = subprocess.run(_script(tmp_path, "workers=1"), cwd=tmp_path, capture_output=True, text=True)
+    run = subprocess.run(label_script(tmp_path, "workers=1"), cwd=tmp_path, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     done, skipped = map(int, re.search(r"(\d+) samples labelled, (\d+) skipped", run.stdout).groups())
     assert skipped >= 2 and done + skipped == 5
-    assert _all_valid(tmp_path) == 5
-    _assert_same(reference, tmp_path)
+    assert all_valid(tmp_path) == 5
+    assert_same(reference, tmp_path)
 
 
 def _default_sigint() -> None:
@@ -185,7 +139,7 @@ def _default_sigint() -> None:
 
 def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
     process = subprocess.Popen(
-        _script(tmp_path, "workers=1"),
+        label_script(tmp_path, "workers=1"),
         cwd=tmp_path,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -200,18 +154,21 @@ def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
     _, err = process.communicate(timeout=60)
     assert process.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err
-    assert 2 <= _all_valid(tmp_path) < 5
+    assert 2 <= all_valid(tmp_path) < 5
 
 
 def test_other_config_is_refused_unless_overwrite(reference, tmp_path):
     out = tmp_path / "labels"
     shutil.copytree(reference, out)
-    assert label(_cfg(out, "icpflow.clustering.min_cluster_size=25"), progress=False) == 2
+    assert label(label_cfg(out, "icpflow.clustering.min_cluster_size=25"), progress=False) == 2
     assert (out / "config.yaml").read_text() == (reference / "config.yaml").read_text()
-    assert label(_cfg(out, "icpflow.clustering.min_cluster_size=25", "overwrite=true", "limit=2"), progress=False) == 0
+    assert (
+        label(label_cfg(out, "icpflow.clustering.min_cluster_size=25", "overwrite=true", "limit=2"), progress=False)
+        == 0
+    )
     index = json.loads((out / "index.json").read_text())
     assert index["config_hash"] != json.loads((reference / "index.json").read_text())["config_hash"]
-    assert [p.name for p in out.glob("shard_*.h5")] == ["shard_000000.h5"] and _all_valid(out) == 2
+    assert [p.name for p in out.glob("shard_*.h5")] == ["shard_000000.h5"] and all_valid(out) == 2
     with h5py.File(out / "shard_000000.h5") as f:
         assert yaml.safe_load(f.attrs["config"])["teacher"]["clustering"]["min_cluster_size"] == 25
 
@@ -220,7 +177,7 @@ def test_refusal_message_is_one_line(reference, tmp_path):
     out = tmp_path / "labels"
     shutil.copytree(reference, out)
     run = subprocess.run(
-        _script(out, "icpflow.clustering.min_cluster_size=25"), cwd=tmp_path, capture_output=True, text=True
+        label_script(out, "icpflow.clustering.min_cluster_size=25"), cwd=tmp_path, capture_output=True, text=True
     )
     assert run.returncode == 2
     lines = [line for line in run.stderr.splitlines() if not line.startswith("label: dataset.teacher keys")]
@@ -239,10 +196,10 @@ def test_truncated_and_corrupt_shards_are_redone(reference, tmp_path, capsys):
     data = bytearray(corrupt.read_bytes())
     data[offset + 100] ^= 0x5A
     corrupt.write_bytes(bytes(data))
-    assert label(_cfg(out), progress=False) == 0
+    assert label(label_cfg(out), progress=False) == 0
     assert "3 samples labelled, 2 skipped" in capsys.readouterr().out
-    assert _all_valid(out) == 5
-    _assert_same(reference, out)
+    assert all_valid(out) == 5
+    assert_same(reference, out)
 
 
 class FlakySynthetic(SyntheticDataset):
@@ -259,7 +216,7 @@ class FlakySynthetic(SyntheticDataset):
 
 
 def test_failures_are_recorded_and_the_run_goes_on(tmp_path, capsys):
-    cfg = _cfg(tmp_path, f"dataset.reader._target_={__name__}.FlakySynthetic")
+    cfg = label_cfg(tmp_path, f"dataset.reader._target_={__name__}.FlakySynthetic")
     status = label(cfg, progress=False)
     assert status == 1
     n0 = len(SyntheticDataset(**READER).pair(3).pc0)
@@ -283,31 +240,31 @@ def test_failures_are_recorded_and_the_run_goes_on(tmp_path, capsys):
     out = capsys.readouterr()
     assert SUMMARY.fullmatch(out.out.strip()).groups() == ("3", "0", "2", str(tmp_path))
     assert "failed synthetic-train-0-32b/000001+1" in out.err
-    assert _all_valid(tmp_path) == 3
+    assert all_valid(tmp_path) == 3
     before = {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("shard_*.h5")}
     assert label(cfg, progress=False) == 1  # a rerun tries the failed samples again, they fail again
     assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups() == ("0", "3", "2", str(tmp_path))
     assert [json.loads(line) for line in (tmp_path / "failures.jsonl").read_text().splitlines()] == failures
     after = {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("shard_*.h5")}
     assert after["shard_000002.h5"] == before["shard_000002.h5"]  # no failure there: not rewritten
-    assert after["shard_000000.h5"] != before["shard_000000.h5"] and _all_valid(tmp_path) == 3
+    assert after["shard_000000.h5"] != before["shard_000000.h5"] and all_valid(tmp_path) == 3
 
 
 def test_shard_split_jobs_add_up_to_the_whole(reference, tmp_path):
-    assert label(_cfg(tmp_path, "shard_index=1", "num_shards=2"), progress=False) == 0
+    assert label(label_cfg(tmp_path, "shard_index=1", "num_shards=2"), progress=False) == 0
     assert sorted(p.name for p in tmp_path.glob("shard_*.h5")) == ["shard_000001.h5"]
-    assert label(_cfg(tmp_path, "shard_index=0", "num_shards=2"), progress=False) == 0
-    _assert_same(reference, tmp_path)
+    assert label(label_cfg(tmp_path, "shard_index=0", "num_shards=2"), progress=False) == 0
+    assert_same(reference, tmp_path)
 
 
 def test_ray_runner_matches_local(reference, tmp_path):
     ray = pytest.importorskip("ray", reason="ray is not installed (pip install icpflow[test])")
     try:
-        assert label(_cfg(tmp_path, "runner=ray", "workers=2"), progress=False) == 0
+        assert label(label_cfg(tmp_path, "runner=ray", "workers=2"), progress=False) == 0
         assert ray.cluster_resources().get("CPU") == 2
     finally:
         ray.shutdown()
-    _assert_same(reference, tmp_path)
+    assert_same(reference, tmp_path)
 
 
 @pytest.mark.parametrize("root", ["missing", "empty", None])
@@ -353,13 +310,13 @@ def test_long_horizon_direct_and_tracker_pass_point_times(tmp_path):
         "limit=2",
         "icpflow.deskew.enabled=true",
     ]
-    cfg = teacher_config(_cfg(tmp_path, *common))
+    cfg = teacher_config(label_cfg(tmp_path, *common))
     assert cfg.deskew.enabled
     direct_out, tracked_out = tmp_path / "direct", tmp_path / "tracker"
-    assert label(_cfg(direct_out, *common), progress=False) == 0
-    assert label(_cfg(tracked_out, *common, "tracker=true"), progress=False) == 0
+    assert label(label_cfg(direct_out, *common), progress=False) == 0
+    assert label(label_cfg(tracked_out, *common, "tracker=true"), progress=False) == 0
     pair = dataset.pair(1, horizon=2)
-    direct, tracked = _samples(direct_out)[1], _samples(tracked_out)[1]
+    direct, tracked = read_samples(direct_out)[1], read_samples(tracked_out)[1]
     assert direct["sample_id"] == tracked["sample_id"] == pair.sample_id == "synthetic-train-0-32b/000001+2"
     expected = ICPFlow(cfg)(
         pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1, pair.time0, pair.time1, gap=2, dt=pair.dt
@@ -408,14 +365,14 @@ def test_long_horizon_direct_and_tracker_pass_point_times(tmp_path):
     ],
 )
 def test_horizon_beyond_teacher_or_dataset_is_refused(tmp_path, capsys, horizon, override, message):
-    cfg = _cfg(tmp_path / "out", f"horizon={horizon}", override)
+    cfg = label_cfg(tmp_path / "out", f"horizon={horizon}", override)
     assert label(cfg, progress=False) == 2
     assert capsys.readouterr().err == f"label: {message}\n"
     assert not (tmp_path / "out").exists()
 
 
 def test_failure_ids_name_the_pair_of_the_horizon(tmp_path):
-    cfg = _cfg(
+    cfg = label_cfg(
         tmp_path, f"dataset.reader._target_={__name__}.FlakySynthetic", "dataset.reader.max_horizon=2", "horizon=2"
     )
     assert label(cfg, progress=False) == 1
@@ -478,7 +435,7 @@ def test_resume_redoes_shards_whose_samples_changed(tmp_path, capsys):
     assert label(_pairs_cfg(out, root, "shard_size=1"), progress=False) == 0
     assert SUMMARY.fullmatch(capsys.readouterr().out.strip()).groups() == ("3", "1", "0", str(out))
     assert ShardDataset(out).sample_ids == ["a", "b", "c", "d"]
-    stored, fresh = _samples(out), [SyntheticDataset(**READER).pair(seed) for seed in (0, 3, 1, 2)]
+    stored, fresh = read_samples(out), [SyntheticDataset(**READER).pair(seed) for seed in (0, 3, 1, 2)]
     for got, pair in zip(stored, fresh, strict=True):
         np.testing.assert_array_equal(got["pc0"], pair.pc0)
 
@@ -494,48 +451,26 @@ def test_resume_redoes_shards_whose_samples_changed(tmp_path, capsys):
 )
 def test_bad_options_are_one_line(tmp_path, capsys, monkeypatch, option, message):
     monkeypatch.setitem(sys.modules, "ray", None)  # as if ray were not installed
-    assert label(_cfg(tmp_path / "out", option), progress=False) == 2
+    assert label(label_cfg(tmp_path / "out", option), progress=False) == 2
     assert capsys.readouterr().err == f"label: {message}\n"
     assert not (tmp_path / "out").exists()
 
 
 def test_gzip_compression_through_label_py(reference, tmp_path):
     run = subprocess.run(
-        _script(tmp_path, "compression=gzip", "workers=1"), cwd=tmp_path, capture_output=True, text=True
+        label_script(tmp_path, "compression=gzip", "workers=1"), cwd=tmp_path, capture_output=True, text=True
     )
     assert run.returncode == 0, run.stderr
-    _assert_same(reference, tmp_path)
+    assert_same(reference, tmp_path)
     with h5py.File(tmp_path / "shard_000000.h5") as f, h5py.File(reference / "shard_000000.h5") as g:
         assert f["samples/00000/flow"].compression == "gzip" and g["samples/00000/flow"].compression is None
         assert f.attrs["config_hash"] == g.attrs["config_hash"]  # compression does not change the labels
 
 
-def _running_in_group(group: int) -> list[int]:
-    """Processes of process group ``group`` that still run (zombies left to a non-reaping init do not count)."""
-    running = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:  # it ended meanwhile
-            continue
-        if int(fields[2]) == group and fields[0] != "Z":
-            running.append(int(stat.parent.name))
-    return running
-
-
-class SlowSynthetic(SyntheticDataset):
-    """The small synthetic world, 2 s per sample from sample 2 on (time to interrupt the run)."""
-
-    def pair(self, index, horizon=1):
-        if index >= 2:
-            time.sleep(2)
-        return super().pair(index, horizon)
-
-
 def test_ctrl_c_to_the_process_group_with_two_workers(reference, tmp_path):
-    args = ["dataset.reader._target_=test_label.SlowSynthetic", "workers=2"]
+    args = ["dataset.reader._target_=helpers.labelling.SlowSynthetic", "workers=2"]
     process = subprocess.Popen(
-        _script(tmp_path, *args),
+        label_script(tmp_path, *args),
         cwd=tmp_path,
         env=TESTS_ENV,
         stdout=subprocess.PIPE,
@@ -553,17 +488,17 @@ def test_ctrl_c_to_the_process_group_with_two_workers(reference, tmp_path):
     assert process.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err
     deadline = time.monotonic() + 15  # workers being torn down may take a moment under load
-    while _running_in_group(process.pid) and time.monotonic() < deadline:
+    while running_in_group(process.pid) and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert _running_in_group(process.pid) == []  # no worker outlives the run
-    assert _all_valid(tmp_path) == 2 and sorted(p.name for p in tmp_path.glob("shard_*")) == [
+    assert running_in_group(process.pid) == []  # no worker outlives the run
+    assert all_valid(tmp_path) == 2 and sorted(p.name for p in tmp_path.glob("shard_*")) == [
         "shard_000000.h5",
         "shard_000000.h5.json",
     ]
-    run = subprocess.run(_script(tmp_path, *args), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
+    run = subprocess.run(label_script(tmp_path, *args), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert SUMMARY.search(run.stdout).groups()[:3] == ("3", "2", "0")
-    _assert_same(reference, tmp_path)
+    assert_same(reference, tmp_path)
 
 
 class KillingSynthetic(SyntheticDataset):
@@ -579,7 +514,7 @@ class KillingSynthetic(SyntheticDataset):
 
 
 def test_a_worker_that_dies_fails_its_sample_only(reference, tmp_path, capsys):
-    cfg = _cfg(tmp_path, f"dataset.reader._target_={__name__}.KillingSynthetic", "workers=2")
+    cfg = label_cfg(tmp_path, f"dataset.reader._target_={__name__}.KillingSynthetic", "workers=2")
     assert label(cfg, progress=False) == 1
     out, err = capsys.readouterr()
     assert SUMMARY.fullmatch(out.strip()).groups() == ("4", "0", "1", str(tmp_path))
@@ -594,7 +529,7 @@ def test_a_worker_that_dies_fails_its_sample_only(reference, tmp_path, capsys):
             "deaths": 1,
         }
     ]
-    got, expected = _samples(tmp_path), _samples(reference)
+    got, expected = read_samples(tmp_path), read_samples(reference)
     assert [s["sample_id"] for s in got] == [expected[i]["sample_id"] for i in (0, 1, 2, 4)]
     threads = f"threads {max(1, available_cores() // 2)}"
     for sample, want in zip(got, [expected[i] for i in (0, 1, 2, 4)], strict=True):
@@ -613,7 +548,7 @@ def test_a_worker_that_dies_fails_its_sample_only(reference, tmp_path, capsys):
 
 def test_multirun_jobs_label_the_union(reference, tmp_path):
     flaky = "dataset.reader._target_=test_label.FlakySynthetic"  # samples 1 and 3 fail: each job ends with status 1
-    command = _script(tmp_path / "labels", flaky, "workers=1", "shard_index=0,1", "num_shards=2")
+    command = label_script(tmp_path / "labels", flaky, "workers=1", "shard_index=0,1", "num_shards=2")
     run = subprocess.run(
         [*command[:2], "-m", *command[2:]], cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True
     )
@@ -623,7 +558,7 @@ def test_multirun_jobs_label_the_union(reference, tmp_path):
     assert [shard["file"] for shard in index["shards"]] == [f"shard_00000{i}.h5" for i in range(3)]
     failures = (tmp_path / "labels" / "failures.jsonl").read_text().splitlines()
     assert [json.loads(line)["index"] for line in failures] == [1, 3]
-    got, expected = _samples(tmp_path / "labels"), _samples(reference)
+    got, expected = read_samples(tmp_path / "labels"), read_samples(reference)
     for sample, want in zip(got, [expected[i] for i in (0, 2, 4)], strict=True):
         for key in want:
             np.testing.assert_array_equal(sample[key], want[key], err_msg=key)

@@ -12,11 +12,12 @@ import numpy as np
 import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
-from test_datasets_pcaccumulation import FORMATS, WAYMO_CLASSES, world, write_dataset  # tests/ is on sys.path
-from test_datasets_zeroflow import LOG, dump_arrays, write_dump
 
 from icpflow.labelling.cli import label
 from icpflow.shards import ShardDataset
+
+from helpers.pcaccumulation import FORMATS, WAYMO_CLASSES, world, write_dataset  # tests/ is on sys.path
+from helpers.zeroflow import LOG, dump_arrays, write_dump
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"

@@ -10,6 +10,8 @@ from fastflow3d.schedules import warmup_cosine, warmup_multistep
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import full_to_residual, transform_points
 
+from helpers.shards import write_labels
+
 SMALL = {
     "x_range": (-16.0, 16.0),
     "y_range": (-16.0, 16.0),
@@ -120,7 +122,6 @@ def test_training_dataset_augments_and_validation_does_not(tmp_path, sample):
     """StudentDataset with an Augmentation draws a new transform per read (torch's random state); without, reads
     are identical. The residual target stays consistent with the ego motion either way."""
     from fastflow3d.data import StudentDataset
-    from icpflow.shards.writer import write_index, write_shard
 
     stored = {
         key: sample[key]
@@ -134,13 +135,13 @@ def test_training_dataset_augments_and_validation_does_not(tmp_path, sample):
         "timestamp1_ns": -1,
         "dt": sample["dt"],
     }
-    write_shard(tmp_path / "shard_000000.h5", [stored], "{}", "test")
-    write_index(
-        tmp_path / "index.json",
-        {"config_hash": "test", "shards": [{"file": "shard_000000.h5", "samples": [{"sample_id": "s", "index": 0}]}]},
-    )
+    write_labels(tmp_path, {"shard_000000.h5": [stored]}, "{}", "test")
     plain = StudentDataset(tmp_path)
-    assert torch.equal(plain[0]["pc0"], plain[0]["pc0"])
+    torch.manual_seed(0)  # the state that draws the augmented transforms below
+    read = plain[0]  # validation: exactly the stored points and residual target
+    assert torch.equal(read["pc0"], torch.from_numpy(sample["pc0"]))
+    residual = full_to_residual(sample["flow"], sample["pc0"], sample["ego1_from_ego0"])
+    assert torch.equal(read["pseudo"], torch.from_numpy(residual))
     augmented = StudentDataset(tmp_path, Augmentation())
     torch.manual_seed(0)
     first, second = augmented[0], augmented[0]

@@ -10,8 +10,10 @@ import torch
 
 import icpflow
 from icpflow.labelling.plan import plan_shards
-from icpflow.shards import SCHEMA_VERSION, ShardDataset, ShardError, verify_shard, write_index, write_shard
+from icpflow.shards import SCHEMA_VERSION, ShardDataset, ShardError, verify_shard, write_shard
 from icpflow.shards.schema import COMPRESSIONS, group_name
+
+from helpers.shards import write_labels
 
 
 def _sample(seed: int, n0: int, n1: int, gt: bool) -> dict:
@@ -51,29 +53,7 @@ def written(tmp_path):
         "shard_000000.h5": [_sample(i, 50 + i, 40 + i, True) for i in range(3)],
         "shard_000001.h5": [_sample(3, 7, 9, False)],
     }
-    for name, samples in shards.items():
-        write_shard(tmp_path / name, samples, "teacher: {speed: 1.0}\n", "abc123", "gzip")
-    write_index(
-        tmp_path / "index.json",
-        {
-            "config_hash": "abc123",
-            "shards": [
-                {
-                    "file": name,
-                    "samples": [
-                        {
-                            "sample_id": s["attrs"]["sample_id"],
-                            "index": s["attrs"]["index"],
-                            "n0": len(s["pc0"]),
-                            "n1": len(s["pc1"]),
-                        }
-                        for s in samples
-                    ],
-                }
-                for name, samples in shards.items()
-            ],
-        },
-    )
+    write_labels(tmp_path, shards, "teacher: {speed: 1.0}\n", "abc123", "gzip")
     return tmp_path, [s for samples in shards.values() for s in samples]
 
 
@@ -171,11 +151,23 @@ def test_failed_write_leaves_no_file(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_index_json_is_plain_json(written):
-    root, _ = written
-    index = json.loads((root / "index.json").read_text())
-    assert [s["file"] for s in index["shards"]] == ["shard_000000.h5", "shard_000001.h5"]
-    assert index["shards"][1]["samples"] == [{"sample_id": "log/000003", "index": 3, "n0": 7, "n1": 9}]
+def test_index_json_lists_what_the_labelled_shards_hold(reference):
+    """label.py's index.json: plain JSON whose records (ids, indices, point counts) are those of the samples inside
+    the shard files it lists, in their order."""
+    index = json.loads((reference / "index.json").read_text())
+    for shard in index["shards"]:
+        with h5py.File(reference / shard["file"]) as f:
+            held = [
+                {
+                    "sample_id": str(f[group_name(i)].attrs["sample_id"]),
+                    "index": int(f[group_name(i)].attrs["index"]),
+                    "n0": len(f[group_name(i)]["pc0"]),
+                    "n1": len(f[group_name(i)]["pc1"]),
+                }
+                for i in range(int(f.attrs["num_samples"]))
+            ]
+        assert shard["samples"] == held
+    assert [s["index"] for shard in index["shards"] for s in shard["samples"]] == [0, 1, 2, 3, 4]
 
 
 def test_plan_shards_split_is_a_partition():

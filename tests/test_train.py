@@ -12,7 +12,6 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
@@ -25,33 +24,17 @@ from fastflow3d.training import TrainError, fit
 from fastflow3d.voxelize import Grid
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, transform_points
-from icpflow.shards.writer import write_index, write_shard
+from icpflow.shards.writer import write_index
 from icpflow.teacher.config import ICPFlowConfig
 
+from helpers.shards import TEACHER, write_pseudo_labels
+from helpers.training import CONF, TINY
+from helpers.training import compose_train as _compose
+from helpers.training import train_cfg as _cfg
+
 REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
 GROUPS = ("data", "model", "trainer", "logger", "callbacks", "optim", "scheduler", "experiment")
-# 32 x 32 pillars of 1 m and narrow encoders: a training step takes milliseconds
-TINY = [
-    "model.x_range=[-16.0,16.0]",
-    "model.y_range=[-16.0,16.0]",
-    "model.cell=1.0",
-    "model.pillar_channels=16",
-    "model.stage_channels=[16,32,64]",
-    "data.workers=0",
-    "trainer.log_every_n_steps=1",
-    "+trainer.enable_progress_bar=false",
-    "+trainer.enable_model_summary=false",
-    "export.formats=[]",
-]
 XL_PARAMETERS = 110_618_147  # FastFlow3D XL (conf/model/fastflow3d_xl.yaml), any grid
-# the teacher that "labelled" the test shards (the synthetic dataset's: conf/dataset/synthetic.yaml)
-TEACHER = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
-
-
-def _compose(*overrides):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("train", list(overrides))
 
 
 def _options(group: str) -> list[str]:
@@ -152,51 +135,6 @@ def test_experiment_recipes():
 # ---------------------------------------------------------------------------------------------------- tiny shards
 
 
-def _write_shards(
-    out_dir: Path,
-    pairs,
-    with_gt: bool = True,
-    noise: float = 0.0,
-    config: str = OmegaConf.to_yaml({"split": "train", "teacher": TEACHER.to_dict()}),
-) -> Path:
-    """Shards in the label.py layout whose pseudo-labels are the ground truth (plus Gaussian ``noise`` in m), with
-    a labeller ``config`` attribute as label.py writes it."""
-    rng = np.random.default_rng(0)
-    samples, records = [], []
-    for index, pair in enumerate(pairs):
-        foreground = pair.classes > 0
-        sample = {
-            "pc0": pair.pc0,
-            "pc1": pair.pc1,
-            "ground0": pair.ground0,
-            "ground1": pair.ground1,
-            "ego1_from_ego0": pair.ego1_from_ego0,
-            "flow": (pair.flow + rng.normal(0, noise, pair.flow.shape)).astype(np.float32),
-            "confidence": np.where(pair.ground0, 0.0, 1.0).astype(np.float32),
-            "cluster": np.where(foreground, 0, -1).astype(np.int32),
-            "attrs": {
-                "sample_id": pair.sample_id,
-                "log_id": pair.log_id,
-                "index": index,
-                "timestamp0_ns": -1,
-                "timestamp1_ns": -1,
-                "dt": pair.dt,
-            },
-        }
-        if with_gt:
-            sample.update(
-                gt_flow=pair.flow, gt_flow_valid=pair.flow_valid, gt_classes=pair.classes, gt_dynamic=pair.dynamic
-            )
-        samples.append(sample)
-        records.append({"sample_id": pair.sample_id, "index": index, "n0": len(pair.pc0), "n1": len(pair.pc1)})
-    out_dir.mkdir(parents=True)
-    write_shard(out_dir / "shard_000000.h5", samples, config, "test")
-    write_index(
-        out_dir / "index.json", {"config_hash": "test", "shards": [{"file": "shard_000000.h5", "samples": records}]}
-    )
-    return out_dir
-
-
 @pytest.fixture(scope="module")
 def pairs():
     dataset = SyntheticDataset(
@@ -209,14 +147,10 @@ def pairs():
 def shards(pairs, tmp_path_factory):
     root = tmp_path_factory.mktemp("shards")
     return {
-        "gt": _write_shards(root / "gt", pairs),
-        "pseudo": _write_shards(root / "pseudo", pairs[:1], False),
-        "one": _write_shards(root / "one", pairs[:1]),
+        "gt": write_pseudo_labels(root / "gt", pairs),
+        "pseudo": write_pseudo_labels(root / "pseudo", pairs[:1], False),
+        "one": write_pseudo_labels(root / "one", pairs[:1]),
     }
-
-
-def _cfg(tmp_path, train, val, *overrides):
-    return _compose(f"data.train={train}", f"data.val={val}", f"out_dir={tmp_path / 'run'}", *TINY, *overrides)
 
 
 # ---------------------------------------------------------------------------------------------------- data
@@ -310,7 +244,7 @@ def test_teacher_settings_saved_with_the_model(shards, pairs, tmp_path):
 
     expected = {key: getattr(TEACHER, key) for key in TEACHER_FIELDS}
     assert inference_teacher(_cfg(tmp_path, shards["gt"], shards["gt"])) == expected  # from the shards' config
-    bare = _write_shards(tmp_path / "bare", pairs[:1], config="test: true\n")
+    bare = write_pseudo_labels(tmp_path / "bare", pairs[:1], config="test: true\n")
     given = inference_teacher(_cfg(tmp_path, bare, bare, "data.teacher={preset:av2,sensor_height:1.5}"))
     assert given == {**{key: getattr(ICPFlowConfig.preset("av2"), key) for key in TEACHER_FIELDS}, "sensor_height": 1.5}
     with pytest.raises(TrainError, match=r"data.train=.*bare carry no teacher config; set it"):

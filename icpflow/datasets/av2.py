@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.datasets.base import PairDataset, too_short
+from icpflow.datasets.base import IndexedDataset, too_short
 from icpflow.datasets.io import fail, read_feather
 from icpflow.frames import FramePair, check_points
 from icpflow.geometry import ego_flow, invert, transform_points
@@ -52,7 +52,7 @@ DYNAMIC_METRES_PER_SWEEP = 0.05
 BOX_EXPANSION_M = 0.2
 
 
-class AV2Dataset(PairDataset):
+class AV2Dataset(IndexedDataset):
     """Argoverse 2 sensor-dataset sweep pairs with map ground and annotation flow (see the module docstring)."""
 
     name = "av2"
@@ -78,40 +78,25 @@ class AV2Dataset(PairDataset):
         log_dirs = sorted(p for p in split_dir.iterdir() if p.is_dir())
         if logs is not None:
             log_dirs = [d for d in log_dirs if d.name in set(logs)]
-        self._logs: list[tuple[Path, list[int]]] = []
-        self._index: list[tuple[int, int]] = []
+        logs = []
         for log_dir in log_dirs:
             stamps = sorted(int(p.stem) for p in (log_dir / "sensors" / "lidar").glob("*.feather") if p.stem.isdigit())
-            for t in range(len(stamps) - self.max_horizon):
-                self._index.append((len(self._logs), t))
-            self._logs.append((log_dir, stamps))
-        self._cache: dict = {}
-
-    def __getstate__(self) -> dict:
-        return {**self.__dict__, "_cache": {}}
-
-    def __len__(self) -> int:
-        return len(self._index)
+            logs.append((log_dir, stamps))
+        self._index_sequences(logs)
 
     def why_empty(self) -> str:
         if self._index:
             return ""
-        return too_short([(f"log {d.name}", len(stamps)) for d, stamps in self._logs], self.max_horizon, "sweeps")
-
-    def sample_id(self, index: int) -> str:
-        log, t = self._index[index]
-        log_dir, stamps = self._logs[log]
-        return f"{log_dir.name}/{stamps[t]}"
+        return too_short([(f"log {d.name}", len(stamps)) for d, stamps in self._sequences], self.max_horizon, "sweeps")
 
     def metadata(self) -> dict:
-        return {**super().metadata(), "root": str(self.root), "split": self.split, "logs": len(self._logs),
+        return {**super().metadata(), "root": str(self.root), "split": self.split, "logs": len(self._sequences),
                 "ground_threshold_m": self.ground_threshold}  # fmt: skip
 
     def pair(self, index: int, horizon: int = 1) -> FramePair:
         if not 1 <= horizon <= self.max_horizon:
             raise IndexError(f"{self.name}: horizon {horizon} outside 1..{self.max_horizon}")
-        log, t = self._index[index]
-        log_dir, stamps = self._logs[log]
+        log_dir, stamps, t = self._frames(index)
         stamp0, stamp1 = stamps[t], stamps[t + horizon]
         (pc0, time0), (pc1, time1) = self._points(log_dir, stamp0), self._points(log_dir, stamp1)
         pose0, pose1 = self._pose(log_dir, stamp0), self._pose(log_dir, stamp1)

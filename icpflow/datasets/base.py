@@ -8,6 +8,7 @@ to scan t + k of the index-th sample, converted into the project's conventions a
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from pathlib import Path
 
 from icpflow.frames import FramePair
 
@@ -46,6 +47,55 @@ class PairDataset(ABC):
     def metadata(self) -> dict:
         """Facts about the dataset that end up in shard attributes and reports."""
         return {"name": self.name, "size": len(self), "max_horizon": self.max_horizon}
+
+
+class IndexedDataset(PairDataset):
+    """The shared indexing of the readers whose samples are listed once, at construction: the frames t of sequences
+    for which frame t + ``max_horizon`` exists (:meth:`_index_sequences`: AV2 logs, KITTI sequences), or one file
+    per sample (:meth:`_index_files`: pairs, ZeroFlow dumps). ``_index[i]`` is sample i: ``(sequence, t)`` or the
+    file's path. ``_cache`` holds what this process has read for reuse (a sequence's poses, a log's tables); a
+    pickled copy starts with it empty, so each worker process reads its own."""
+
+    _index: list
+    _cache: dict
+
+    def _index_sequences(self, sequences: list[tuple[object, list]]) -> None:
+        """Index ``sequences``: ``[(sequence, frames)]`` in sample order, each frame list in time order (a sequence
+        given as a folder and frames as files are named by their name and stem in :meth:`sample_id`)."""
+        self._sequences = sequences
+        self._index = [(s, t) for s, (_, frames) in enumerate(sequences) for t in range(len(frames) - self.max_horizon)]
+        self._cache = {}
+
+    def _index_files(self, files: list[Path]) -> None:
+        """Index one sample per file of ``files`` (kept as ``files``), in that order."""
+        self.files = files
+        self._index = files
+        self._cache = {}
+
+    def _frames(self, index: int) -> tuple[object, list, int]:
+        """``(sequence, frames, t)`` of sample ``index`` of a sequence reader."""
+        s, t = self._index[index]
+        sequence, frames = self._sequences[s]
+        return sequence, frames, t
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_cache": {}}
+
+    def __len__(self) -> int:
+        return len(self._index)
+
+    def sample_id(self, index: int) -> str:
+        """``<sequence>/<frame t>`` of a sequence reader, the file's stem of a file reader."""
+        entry = self._index[index]
+        if not isinstance(entry, tuple):
+            return self._file_id(entry)
+        sequence, frames, t = self._frames(index)
+        name, frame = (sequence.name if isinstance(sequence, Path) else sequence), frames[t]
+        return f"{name}/{frame.stem if isinstance(frame, Path) else frame}"
+
+    def _file_id(self, path: Path) -> str:
+        """The sample id of a file reader's sample file ``path``."""
+        return path.stem
 
 
 def sample_id_or_index(dataset, index: int) -> str:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.datasets.base import PairDataset, too_short
+from icpflow.datasets.base import IndexedDataset, too_short
 from icpflow.datasets.io import BIN_COLUMNS, fail, natural_key, read_bin, read_pose_lines
 from icpflow.frames import FramePair
 from icpflow.geometry import invert
@@ -51,7 +51,7 @@ def read_calib_tr(path: Path) -> np.ndarray:
     raise fail(path, "no 'Tr:' line")
 
 
-class KittiOdometryDataset(PairDataset):
+class KittiOdometryDataset(IndexedDataset):
     """KITTI odometry scan pairs with velodyne poses (see the module docstring)."""
 
     name = "kitti"
@@ -70,35 +70,17 @@ class KittiOdometryDataset(PairDataset):
             if sequences is None and split not in SPLITS:
                 raise ValueError(f"kitti: unknown split {split!r}; use one of {', '.join(SPLITS)} or give sequences")
             wanted = [f"{int(s):02d}" if str(s).isdigit() else str(s) for s in (sequences or SPLITS[split])]
-        self._sequences: list[tuple[str, list[Path]]] = []
-        self._index: list[tuple[int, int]] = []
-        for name in wanted:
-            if name not in found:
-                continue
-            scans = sorted(found[name].glob("*.bin"), key=natural_key)
-            for t in range(len(scans) - self.max_horizon):
-                self._index.append((len(self._sequences), t))
-            self._sequences.append((name, scans))
+        self._index_sequences(
+            [(name, sorted(found[name].glob("*.bin"), key=natural_key)) for name in wanted if name in found]
+        )
         if not self._sequences:
             have = ", ".join(found) or "none"
             raise fail(self.root, f"no velodyne scans for sequences {', '.join(wanted)}; found {have}")
-        self._cache: dict = {}
-
-    def __getstate__(self) -> dict:
-        return {**self.__dict__, "_cache": {}}
-
-    def __len__(self) -> int:
-        return len(self._index)
 
     def why_empty(self) -> str:
         if self._index:
             return ""
         return too_short([(f"sequence {name}", len(scans)) for name, scans in self._sequences], self.max_horizon)
-
-    def sample_id(self, index: int) -> str:
-        seq, t = self._index[index]
-        name, scans = self._sequences[seq]
-        return f"{name}/{scans[t].stem}"
 
     def metadata(self) -> dict:
         return {**super().metadata(), "root": str(self.root), "split": self.split,
@@ -138,8 +120,7 @@ class KittiOdometryDataset(PairDataset):
     def pair(self, index: int, horizon: int = 1) -> FramePair:
         if not 1 <= horizon <= self.max_horizon:
             raise IndexError(f"{self.name}: horizon {horizon} outside 1..{self.max_horizon}")
-        seq, t = self._index[index]
-        name, scans = self._sequences[seq]
+        name, scans, t = self._frames(index)
         poses = self._poses(name, len(scans))
         times = self._times(name, len(scans))
         dt = float(times[t + horizon] - times[t])

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.datasets.base import PairDataset
+from icpflow.datasets.base import IndexedDataset
 from icpflow.datasets.io import fail, load_npz
 from icpflow.frames import FramePair, check_points
 
@@ -31,7 +31,7 @@ LABELS = ("classes", "instance")
 KNOWN = ("pc0", "pc1", "flow", "dt", *TRANSFORMS, *MASKS, *LABELS)
 
 
-class NpzPairsDataset(PairDataset):
+class NpzPairsDataset(IndexedDataset):
     """One frame pair per ``.npz`` file (see the module docstring for the keys)."""
 
     name = "pairs"
@@ -40,15 +40,9 @@ class NpzPairsDataset(PairDataset):
         self.root = Path(root)
         self.split = split
         folder = self.root / split if split and (self.root / split).is_dir() else self.root
-        self.files = sorted(folder.glob("*.npz"))
+        self._index_files(sorted(folder.glob("*.npz")))
         if not self.files:
             raise fail(folder, "no .npz pair files")
-
-    def __len__(self) -> int:
-        return len(self.files)
-
-    def sample_id(self, index: int) -> str:
-        return self.files[index].stem
 
     def metadata(self) -> dict:
         return {**super().metadata(), "root": str(self.root), "split": self.split}

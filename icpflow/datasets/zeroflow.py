@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.datasets.base import PairDataset
+from icpflow.datasets.base import IndexedDataset
 from icpflow.datasets.io import fail, load_npz
 from icpflow.frames import FramePair, check_points
 from icpflow.metrics import AV2_META
@@ -61,7 +61,7 @@ def _kept_rows(path, name: str, points: np.ndarray, valid: np.ndarray) -> np.nda
     return rows
 
 
-class ZeroFlowAV2Dataset(PairDataset):
+class ZeroFlowAV2Dataset(IndexedDataset):
     """ZeroFlow dumps of Argoverse 2 pairs (see the module docstring for frames and conversions)."""
 
     name = "zeroflow_av2"
@@ -71,15 +71,11 @@ class ZeroFlowAV2Dataset(PairDataset):
         self.root = Path(root)
         self.split = split
         folder = self.root / subdir.format(split=split)
-        self.files = sorted(folder.glob("*/*.npz"))
+        self._index_files(sorted(folder.glob("*/*.npz")))
         if not self.files:
             raise fail(folder, "no <log_id>/<index>.npz files")
 
-    def __len__(self) -> int:
-        return len(self.files)
-
-    def sample_id(self, index: int) -> str:
-        path = self.files[index]
+    def _file_id(self, path: Path) -> str:
         return f"{path.parent.name}/{path.stem}"
 
     def metadata(self) -> dict:

@@ -12,15 +12,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from icpflow.atomic import WriteError
 from icpflow.datasets.from_config import dataset_root, open_dataset
+from icpflow.labelling.executors import available_cores
+from icpflow.labelling.job import LabelError, LabelJob, Terminated, raise_terminated
 from icpflow.labelling.plan import plan_shards
-from icpflow.labelling.run import (
-    LabelError,
-    LabelJob,
-    Terminated,
-    available_cores,
-    raise_terminated,
-    run_labelling,
-)
+from icpflow.labelling.run import run_labelling
 from icpflow.shards.schema import COMPRESSIONS
 from icpflow.teacher.config import teacher_config  # importing it stores the icpflow schema label.py composes with
 from icpflow.teacher.warmup import ensure_compiled

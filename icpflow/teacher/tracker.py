@@ -15,7 +15,6 @@ seconds between scans i and i + 1 feed the teacher's de-skew step (``teacher.des
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 
@@ -131,25 +130,37 @@ def sample_tracker_flow(teacher, dataset, index: int, horizon: int, pair=None) -
     return long_horizon_flow(teacher, scans, egos, grounds, mode="tracker", times=times, dts=dts)
 
 
-class TeacherSample(NamedTuple):
-    """The teacher on one sample: FULL ``flow`` (N0, 3) float32, ``confidence`` (N0,) float32 in [0, 1],
-    ``ego1_from_ego0`` (4, 4) float64 (scan t to scan t + horizon) and pc0's ``cluster`` ids (N0,) int32 (-1: none;
-    all -1 for a tracker chain, which spans several clusterings)."""
+@dataclass
+class SampleFlow:
+    """The teacher's labels of one sample (t, t + horizon): ``flow`` (N0, 3) float32 full flow in the ego frame of
+    t + horizon, ``confidence`` (N0,) float32, ``ego1_from_ego0`` (4, 4) float64 (ego of t + horizon from ego of t),
+    ``cluster`` (N0,) int32 pc0 cluster ids (-1: none; all -1 in tracker mode, whose chains span several
+    clusterings), ``ground0`` (N0,) and ``ground1`` (N1,) bool ground masks (the pair's own in tracker mode, all
+    False where it has none)."""
 
     flow: np.ndarray
     confidence: np.ndarray
     ego1_from_ego0: np.ndarray
     cluster: np.ndarray
+    ground0: np.ndarray
+    ground1: np.ndarray
 
 
-def teacher_on_sample(teacher, dataset, index: int, pair, horizon: int, tracker: bool) -> TeacherSample:
-    """The teacher (an ``ICPFlow``) on ``pair`` = ``dataset.pair(index, horizon)``, with the pair's ego motion,
-    ground masks and per-point times when it has them; ``tracker`` and ``horizon`` > 1: chained through the
-    intermediate scans (:func:`sample_tracker_flow`). The one teacher-on-a-sample call of labelling and evaluation."""
+def teacher_on_sample(teacher, dataset, index: int, pair, horizon: int, tracker: bool) -> SampleFlow:
+    """The teacher on sample ``index`` of a reader, whose pair (t, t + ``horizon``) ``pair`` the caller has read:
+    one call with the pair's ego motion, ground masks and point times, or (``tracker`` and ``horizon`` > 1) the
+    consecutive pairs chained (:func:`sample_tracker_flow`). The one place labelling and evaluation run it."""
     if tracker and horizon > 1:
-        chained = sample_tracker_flow(teacher, dataset, index, horizon, pair)
-        cluster = np.full(len(pair.pc0), -1, np.int32)
-        return TeacherSample(chained.flow, chained.confidence, chained.ego_k_from_0, cluster)
+        result = sample_tracker_flow(teacher, dataset, index, horizon, pair)
+        no_ground0, no_ground1 = np.zeros(len(pair.pc0), bool), np.zeros(len(pair.pc1), bool)
+        return SampleFlow(
+            flow=np.asarray(result.flow, np.float32),
+            confidence=np.asarray(result.confidence, np.float32),
+            ego1_from_ego0=np.asarray(result.ego_k_from_0, np.float64),
+            cluster=np.full(len(pair.pc0), -1, np.int32),
+            ground0=np.asarray(pair.ground0 if pair.ground0 is not None else no_ground0, bool),
+            ground1=np.asarray(pair.ground1 if pair.ground1 is not None else no_ground1, bool),
+        )
     result = teacher(
         pair.pc0,
         pair.pc1,
@@ -161,9 +172,14 @@ def teacher_on_sample(teacher, dataset, index: int, pair, horizon: int, tracker:
         gap=horizon,
         dt=pair.dt,
     )
-    return TeacherSample(
-        result.flow, result.confidence, np.asarray(result.ego1_from_ego0, np.float64), result.labels0.astype(np.int32)
+    return SampleFlow(
+        flow=np.asarray(result.flow, np.float32),
+        confidence=np.asarray(result.confidence, np.float32),
+        ego1_from_ego0=np.asarray(result.ego1_from_ego0, np.float64),
+        cluster=np.asarray(result.labels0, np.int32),
+        ground0=np.asarray(result.ground0, bool),
+        ground1=np.asarray(result.ground1, bool),
     )
 
 
-__all__ = ["HorizonResult", "TeacherSample", "long_horizon_flow", "sample_tracker_flow", "teacher_on_sample"]
+__all__ = ["HorizonResult", "SampleFlow", "long_horizon_flow", "sample_tracker_flow", "teacher_on_sample"]

@@ -1,0 +1,45 @@
+"""What a labelling run is given (:class:`LabelJob`) and how it stops (:class:`LabelError`, :class:`Terminated`)."""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+def config_hash(config_yaml: str) -> str:
+    """Short stable hash of the labeller config text."""
+    return hashlib.sha256(config_yaml.encode()).hexdigest()[:16]
+
+
+class LabelError(RuntimeError):
+    """A labelling run cannot start or go on (config mismatch, bad option, a worker died outside a sample).
+    The message is one line."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM reached the main process: the run stops as on Ctrl-C (a KeyboardInterrupt, so no sample's
+    ``except Exception`` swallows it)."""
+
+
+def raise_terminated(signum, frame) -> None:
+    """SIGTERM handler of the main process (see :class:`Terminated`)."""
+    raise Terminated()
+
+
+@dataclass
+class LabelJob:
+    """Everything a worker needs to label a sample (picklable): dataset, teacher config and output settings."""
+
+    dataset: object
+    teacher_cfg: object
+    out_dir: Path
+    config_yaml: str
+    horizon: int = 1
+    tracker: bool = False
+    compression: str | None = None
+    hash: str = field(init=False)
+
+    def __post_init__(self):
+        self.out_dir = Path(self.out_dir)
+        self.hash = config_hash(self.config_yaml)

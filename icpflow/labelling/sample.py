@@ -1,0 +1,96 @@
+"""One sample, the unit of work of a labelling run: the teacher on its pair, turned into the rows of a shard
+(``icpflow.shards.schema``), or a failure record when the reader or the teacher raises."""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+
+from icpflow.datasets.base import sample_id_or_index
+from icpflow.frames import FramePairError
+from icpflow.teacher.tracker import SampleFlow, teacher_on_sample
+
+
+@contextmanager
+def thread_limit(threads: int, torch_too: bool = False):
+    """Run the block with numba, BLAS/OpenMP and (``torch_too``) torch on at most ``threads`` threads each;
+    the previous numba and torch settings come back afterwards."""
+    import numba
+    from threadpoolctl import threadpool_limits
+
+    numba_before = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    torch_before = None
+    if torch_too:
+        import torch
+
+        torch_before = torch.get_num_threads()
+        torch.set_num_threads(threads)
+    try:
+        with threadpool_limits(threads):
+            yield
+    finally:
+        numba.set_num_threads(numba_before)
+        if torch_before is not None:
+            torch.set_num_threads(torch_before)
+
+
+def build_teacher(cfg, threads: int):
+    """The teacher of ``cfg`` with hdbscan on at most ``threads`` processes (the labels do not change)."""
+    from icpflow import teacher
+
+    return teacher.ICPFlow(cfg.replace(**{"clustering.n_jobs": min(cfg.clustering.n_jobs, threads)}))
+
+
+def shard_rows(dataset, index: int, pair, labels: SampleFlow) -> dict:
+    """Sample ``index`` as written to a shard: the reader's pair, its ground truth and the teacher's ``labels``."""
+    return {
+        "pc0": pair.pc0,
+        "pc1": pair.pc1,
+        "ground0": labels.ground0,
+        "ground1": labels.ground1,
+        "ego1_from_ego0": labels.ego1_from_ego0,
+        "flow": labels.flow,
+        "confidence": labels.confidence,
+        "cluster": labels.cluster,
+        "gt_flow": pair.flow,
+        "gt_flow_valid": pair.flow_valid,
+        "gt_classes": pair.classes,
+        "gt_dynamic": pair.dynamic,
+        "attrs": {
+            "sample_id": pair.sample_id or sample_id_or_index(dataset, index),
+            "log_id": pair.log_id,
+            "index": index,
+            "timestamp0_ns": -1 if pair.timestamp0_ns is None else int(pair.timestamp0_ns),
+            "timestamp1_ns": -1 if pair.timestamp1_ns is None else int(pair.timestamp1_ns),
+            "dt": float(pair.dt),
+        },
+    }
+
+
+def failure_record(dataset, index: int, pair, error: Exception) -> dict:
+    """``{"index", "sample_id", "file", "reason"}`` of a sample whose reader or teacher raised ``error``: the pair's
+    id, or the reader's ``sample_id(index)`` when the pair could not be read; the file the error names, else the id."""
+    sample_id = pair.sample_id if pair is not None and pair.sample_id else sample_id_or_index(dataset, index)
+    source = getattr(error, "filename", None) or sample_id
+    if isinstance(error, FramePairError) and pair is None:  # a reader's: its message starts with the file
+        source = str(error).split(": ", 1)[0]
+    reason = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+    return {"index": index, "sample_id": sample_id, "file": str(source), "reason": reason}
+
+
+def label_sample(job, index: int, threads: int) -> dict:
+    """Label sample ``index`` of ``job`` with the teacher on at most ``threads`` threads (numba, BLAS, hdbscan's
+    n_jobs). Returns ``{"index", "seconds", "sample": shard rows}`` or, when the reader or the teacher raises,
+    ``{"index", "seconds", "failure": record}`` (:func:`failure_record`): a bad sample is not fatal."""
+    start = time.perf_counter()
+    teacher = build_teacher(job.teacher_cfg, threads)
+    pair = None
+    try:
+        with thread_limit(threads, torch_too=job.teacher_cfg.icp.backend == "torch"):
+            pair = job.dataset.pair(index, horizon=job.horizon)
+            labels = teacher_on_sample(teacher, job.dataset, index, pair, job.horizon, job.tracker)
+        outcome = {"sample": shard_rows(job.dataset, index, pair, labels)}
+    except Exception as error:  # any reader or teacher failure skips this sample only
+        outcome = {"failure": failure_record(job.dataset, index, pair, error)}
+    return {"index": index, "seconds": time.perf_counter() - start, **outcome}
