@@ -65,19 +65,26 @@ def signal_words(signum: int) -> str:
     return f"{verb} ({name})"
 
 
-def raise_stop(signum, frame) -> None:
-    """Signal handler: raise :class:`Stop` where the main thread is."""
-    raise Stop(signum)
+def stop_handler(owner: int) -> Callable:
+    """A signal handler that raises :class:`Stop` in process ``owner``; a process forked from it (a DataLoader
+    worker, which Ctrl-C or a scheduler signals with it) ignores the signal: the owner stops it when it stops."""
+
+    def handle(signum, frame) -> None:
+        if os.getpid() == owner:
+            raise Stop(signum)
+
+    return handle
 
 
 @contextlib.contextmanager
 def stop_on_signals(signums=(signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
-    """Within the block, the signals raise :class:`Stop` (so ``finally`` blocks and atomic writers clean up); the
-    previous handlers come back after it. Outside the main thread it does nothing."""
+    """Within the block, the signals raise :class:`Stop` in this process (so ``finally`` blocks and atomic writers
+    clean up); the previous handlers come back after it. Outside the main thread it does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {signum: signal.signal(signum, raise_stop) for signum in signums}
+    handler = stop_handler(os.getpid())
+    previous = {signum: signal.signal(signum, handler) for signum in signums}
     try:
         yield
     finally:
