@@ -232,18 +232,21 @@ def test_export_is_built_aside_and_swapped_in_whole(checkpoint, tmp_path, monkey
 
 
 def test_export_on_a_real_full_disk_keeps_the_existing_export(checkpoint, tmp_path, mount_tmpfs):
-    """Issue 20.3 on a real 3 MB tmpfs: export.py over an existing export (pt2) with format=all does not fit. It used
-    to abort (SIGABRT in torch's file writer) and delete metadata.json; now one line, exit 2, the export intact."""
-    disk = mount_tmpfs(tmp_path / "disk", "3m")
-    out = disk / "export"
+    """Issue 20.3 on a real tmpfs that holds one export but not two: export.py over the existing export. It used to
+    abort (SIGABRT in torch's file writer) and delete metadata.json; now one line, exit 2, the export intact."""
+    out = tmp_path / "export"
     export_checkpoint(checkpoint, out, formats=("pt2",))
+    size = sum(path.stat().st_size for path in out.iterdir())
+    disk = mount_tmpfs(tmp_path / "disk", f"{size * 3 // 2 // 1024}k")
+    out = Path(shutil.copytree(out, disk / "export"))
     before = _snapshot(out)
-    process = _popen([sys.executable, str(REPO / "export.py"), f"checkpoint={checkpoint}", f"out_dir={out}"], tmp_path)
+    args = [sys.executable, str(REPO / "export.py"), f"checkpoint={checkpoint}", f"out_dir={out}", "format=pt2"]
+    process = _popen(args, tmp_path)
     _, err = process.communicate(timeout=300)
     assert process.returncode == 2, err[-3000:]
     (line,) = _lines(err, "export")
     assert re.fullmatch(
-        rf"export: {re.escape(str(out))}/fastflow3d\.(onnx|pt2): cannot write \(No space left on device\); "
+        rf"export: {re.escape(str(out))}/fastflow3d\.pt2: cannot write \(No space left on device\); "
         r"free space there or write elsewhere; the export there is as it was",
         line,
     ), line
@@ -291,15 +294,15 @@ def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path
     cases = {
         "data.batch_size": (
             _train(tmp_path / "a", shards, *run, "data.batch_size=abc"),
-            "train: data.batch_size=abc: expected a number, got 'abc' (the default is 1)",
+            "train: data.batch_size=abc: expected a number, got 'abc' (the default is 4)",  # the experiment's
         ),
         "trainer.max_steps": (
             _train(tmp_path / "b", shards, *run, "trainer.max_steps=abc"),
-            "train: trainer.max_steps=abc: expected a number, got 'abc' (the default is 1)",
+            "train: trainer.max_steps=abc: expected a number, got 'abc' (the default is 400)",
         ),
         "export.formats": (
             _train(tmp_path / "c", shards, *run, "export.formats=onnx"),
-            "train: export.formats=onnx: expected a list, e.g. [a,b], got 'onnx' (the default is [])",
+            "train: export.formats=onnx: expected a list, e.g. [a,b], got 'onnx' (the default is ['onnx', 'pt2'])",
         ),
         "unknown": (
             _train(tmp_path / "d", shards, *run, "trainer.max_stepz=3"),
@@ -320,7 +323,8 @@ def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path
         _, err = process.communicate(timeout=300)
         assert (process.returncode, err.strip()) == (2, cases[name][1]), name
         assert _none_left(process.pid)
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()  # stopped before any work
+    for name in ("a", "b"):  # stopped before any work: only Hydra's record of the launch
+        assert [path.name for path in (tmp_path / name).iterdir()] == ["hydra"]
     full = subprocess.run(
         _train(tmp_path / "f", shards, *run, "data.batch_size=abc"),
         env={**TESTS_ENV, "HYDRA_FULL_ERROR": "1"},
