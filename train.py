@@ -20,4 +20,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    run("train", main)  # one line and exit 2 on errors; SIGTERM/SIGINT: last.ckpt, 143/130
+    run("train", main)

@@ -195,6 +195,16 @@ def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -
     return out_dir
 
 
+def kept_checkpoint(cfg: DictConfig) -> str:
+    """What a run stopped at once leaves to resume from, in words."""
+    last = Path(cfg.checkpoint_dir) / "last.ckpt"
+    try:
+        step = read_checkpoint(last).get("global_step")
+    except CheckpointError:
+        return "nothing saved; rerun the same command"
+    return f"{last} (step {step}) is kept; to resume, rerun the same command with ckpt_path=last"
+
+
 def fit(cfg: DictConfig) -> L.Trainer:
     """Train the student as ``cfg`` says, then export its best checkpoint; returns the Trainer after ``fit``.
 
@@ -220,11 +230,8 @@ def fit(cfg: DictConfig) -> L.Trainer:
             trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
         except TrainingStopped:
             raise
-        except Stop as stop:  # before the training loop (set-up, sanity check): nothing new to save
-            kept = "the checkpoints there are unchanged" if ckpt_path else "nothing saved"
-            raise Stop(
-                stop.signum, f"{signal_words(stop.signum)} before training started; {kept}; rerun the same command"
-            ) from None
+        except Stop as stop:  # outside the training loop (set-up, sanity check), or a second signal: at once
+            raise Stop(stop.signum, f"{signal_words(stop.signum)}; {kept_checkpoint(cfg)}") from None
         except OSError as error:
             last = Path(cfg.checkpoint_dir) / "last.ckpt"
             resume = f"; then resume with ckpt_path=last ({last} is kept)" if last.is_file() else ""

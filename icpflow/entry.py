@@ -5,8 +5,9 @@ one line on stderr, ``<prog>: <option or file>: <cause>; <fix>``, and an exit st
 Exit statuses: 0 done; 1 partial results (each script says when); 2 bad input or a fault (a wrong option or type, an
 unreadable file, a full or read-only disk); 128 + N stopped by signal N (130 Ctrl-C / SIGINT, 143 SIGTERM).
 
-* :func:`run` calls a ``@hydra.main`` function and turns whatever escapes it into that line and status (Hydra's own
-  errors included: a bad override, an output folder it cannot create).
+* :func:`reported` (around the body of the ``@hydra.main`` function) and :func:`run` (around the call of that
+  function, for Hydra's own errors: a bad override, an output folder it cannot create) turn whatever escapes into
+  that line and status.
 * :func:`check_overrides` (first thing inside the ``@hydra.main`` function): a command-line value of the wrong type
   (``data.batch_size=abc``) is a one-line :class:`OptionError` naming the option, before any work.
 * :class:`Stop` is a signal turned into an exception (:func:`stop_on_signals`); it carries the line that says what
@@ -220,6 +221,7 @@ def check_overrides(types: dict[str, tuple[type, ...]] | None = None) -> None:
     number, got 'abc' (the default is 8)``. ``types``: the types an option may take where the config alone does not
     say it (a null default) or says too little (an int that also takes ``1..4``). Call it inside ``@hydra.main``."""
     from hydra import compose
+    from hydra.core.global_hydra import GlobalHydra
     from hydra.core.hydra_config import HydraConfig
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from omegaconf import OmegaConf
@@ -236,6 +238,8 @@ def check_overrides(types: dict[str, tuple[type, ...]] | None = None) -> None:
         kinds = (types or {}).get(key)
         default = None
         if kinds is None:
+            if not GlobalHydra.instance().is_initialized():  # a job launched elsewhere (submitit): Hydra not here
+                return
             if reference is None:
                 reference = compose(config_name=hydra_cfg.job.config_name, overrides=groups)
             default = OmegaConf.select(reference, key, default=None, throw_on_missing=False)
