@@ -103,7 +103,7 @@ class LastCheckpoint(Checkpoint):
         self._restore_handlers()
 
     def _stop_if_asked(self, trainer: L.Trainer) -> None:
-        if trainer.sanity_checking or not trainer.training and not trainer.validating:
+        if trainer.sanity_checking:
             return
         asked = self.signum is not None
         if trainer.world_size > 1:  # all ranks stop at the same step
