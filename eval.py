@@ -15,16 +15,22 @@ from omegaconf import DictConfig
 
 from fastflow3d.eval_method import student_method
 from icpflow.console import quiet
+from icpflow.entry import check_overrides, reported, run
 from icpflow.evaluation import run_eval
+
+#: options whose type the config alone does not give (null defaults; a horizon may be 2, [1,2] or 1..4)
+TYPES = {"limit": (int,), "horizon": (int, list, str), "tracker": (bool, list), "method": (str, list)}
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="eval")
 def main(cfg: DictConfig) -> None:
     quiet()
-    status = run_eval(cfg, extra_methods={"student": student_method})
-    if status:
-        sys.exit(status)
+    with reported("eval"):
+        check_overrides(TYPES)
+        status = run_eval(cfg, extra_methods={"student": student_method})
+        if status:
+            sys.exit(status)
 
 
 if __name__ == "__main__":
-    main()
+    run("eval", main)

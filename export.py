@@ -12,15 +12,18 @@ from omegaconf import DictConfig
 
 from fastflow3d.export import run_export
 from icpflow.console import quiet
+from icpflow.entry import check_overrides, reported, run
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="export")
 def main(cfg: DictConfig) -> None:
     quiet()
-    status = run_export(cfg)
-    if status:
-        sys.exit(status)
+    with reported("export"):
+        check_overrides()
+        status = run_export(cfg)
+        if status:
+            sys.exit(status)
 
 
 if __name__ == "__main__":
-    main()
+    run("export", main)

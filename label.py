@@ -13,18 +13,21 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from icpflow.console import quiet
+from icpflow.entry import check_overrides, reported, run
 from icpflow.labelling.cli import label
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="label")
 def main(cfg: DictConfig) -> None:
     quiet()
-    status = label(cfg)
-    if status == 1 and HydraConfig.get().mode == RunMode.MULTIRUN:
-        return  # failed samples are in failures.jsonl and the summary; the sweep goes on with its other jobs
-    if status:
-        sys.exit(status)
+    with reported("label"):
+        check_overrides({"limit": (int,)})
+        status = label(cfg)
+        if status == 1 and HydraConfig.get().mode == RunMode.MULTIRUN:
+            return  # failed samples are in failures.jsonl and the summary; the sweep goes on with its other jobs
+        if status:
+            sys.exit(status)
 
 
 if __name__ == "__main__":
-    main()
+    run("label", main)

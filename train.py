@@ -5,24 +5,21 @@ python train.py [experiment=synthetic_quick|paper|zeroflow] [data.train=<shard d
     [out_dir=<dir>] [ckpt_path=last]
 """
 
-import sys
-
 import hydra
 from omegaconf import DictConfig
 
 from fastflow3d.training import TrainError, fit
 from icpflow.console import quiet
+from icpflow.entry import check_overrides, reported, run
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> None:
     quiet()
-    try:
+    with reported("train", TrainError):
+        check_overrides()
         fit(cfg)
-    except TrainError as error:
-        print(f"train: {error}", file=sys.stderr)
-        sys.exit(2)
 
 
 if __name__ == "__main__":
-    main()
+    run("train", main)

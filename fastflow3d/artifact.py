@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import io
 import json
 import os
 from pathlib import Path
@@ -40,6 +41,7 @@ from icpflow.atomic import atomic_path, write_text_atomic
 FORMATS = ("onnx", "pt2")  # what an export writes
 LEGACY_FORMATS = ("torchscript",)  # read only: exports of older versions
 FILE_NAMES = {"onnx": "fastflow3d.onnx", "pt2": "fastflow3d.pt2"}
+LEGACY_FILE_NAMES = ("fastflow3d.pt",)
 SUFFIX_FORMATS = {".onnx": "onnx", ".pt2": "pt2", ".pt": "torchscript"}
 METADATA_NAME = "metadata.json"
 METADATA_VERSION = 1
@@ -202,29 +204,31 @@ def _dynamic_shapes() -> dict:
 def write_onnx(net: SingleSampleNet, path: Path, example: tuple[torch.Tensor, torch.Tensor]) -> None:
     """Write ``net`` as ONNX (dynamo exporter, dynamic N0 and N1, traced on ``example``) to ``path`` atomically.
 
-    Raises ImportError when onnxscript (which the dynamo exporter needs) is missing."""
+    The model is serialised in memory and written by Python, so a write error (a full disk) is an OSError, not an
+    abort in native code. Raises ImportError when onnxscript (which the dynamo exporter needs) is missing."""
     import onnxscript  # noqa: F401
 
+    program = torch.onnx.export(
+        net,
+        example,
+        dynamo=True,
+        verbose=False,
+        input_names=list(INPUT_NAMES),
+        output_names=list(OUTPUT_NAMES),
+        dynamic_shapes=_dynamic_shapes(),
+    )
     with atomic_path(path) as tmp:
-        torch.onnx.export(
-            net,
-            example,
-            str(tmp),
-            dynamo=True,
-            external_data=False,
-            verbose=False,
-            input_names=list(INPUT_NAMES),
-            output_names=list(OUTPUT_NAMES),
-            dynamic_shapes=_dynamic_shapes(),
-        )
+        tmp.write_bytes(program.model_proto.SerializeToString())
 
 
 def write_pt2(net: SingleSampleNet, path: Path, example: tuple[torch.Tensor, torch.Tensor]) -> None:
     """Write ``net`` as a ``torch.export`` ExportedProgram (CPU, dynamic N0 and N1, traced on ``example``) to
-    ``path`` atomically."""
+    ``path`` atomically (serialised in memory first: torch's file writer aborts the process on a full disk)."""
     program = torch.export.export(net, example, dynamic_shapes=_dynamic_shapes())
+    buffer = io.BytesIO()
+    torch.export.save(program, buffer)
     with atomic_path(path) as tmp:
-        torch.export.save(program, tmp)
+        tmp.write_bytes(buffer.getbuffer())
 
 
 WRITERS = {"onnx": write_onnx, "pt2": write_pt2}

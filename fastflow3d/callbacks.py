@@ -1,42 +1,169 @@
-"""Lightning callbacks of the training stage: ``last.ckpt`` kept current, and a final validation."""
+"""Lightning callbacks and checkpoint writing of the training stage: ``last.ckpt`` kept current (and a clean stop on
+SIGTERM/SIGINT), one best checkpoint after a resume, atomic checkpoint files, and a final validation."""
 
 from __future__ import annotations
 
+import io
 import logging
-from contextlib import nullcontext
+import signal
+import threading
 from pathlib import Path
 
 import lightning as L
+import torch
+from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+from lightning.pytorch.callbacks import Checkpoint, ModelCheckpoint
 
 from icpflow.atomic import atomic_path
+from icpflow.entry import Stop, signal_words
+
+log = logging.getLogger(__name__)
 
 
-class LastCheckpoint(L.Callback):
-    """Keep ``<dirpath>/last.ckpt`` at the latest state: after every validation and when training ends.
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's checkpoint writer through ``icpflow.atomic``: the checkpoint is serialised in memory, then written
+    under a temporary name in its own folder and renamed, so a full disk or a kill never leaves a half-written
+    ``.ckpt`` (Lightning's own writer moves a file from the system's temporary folder), and a write error is one
+    ``icpflow.atomic.WriteError`` naming the checkpoint."""
+
+    def save_checkpoint(self, checkpoint: dict, path, storage_options=None) -> None:
+        buffer = io.BytesIO()
+        torch.save(checkpoint, buffer)
+        with atomic_path(path, make_parents=True) as tmp:
+            tmp.write_bytes(buffer.getbuffer())
+
+
+class TrainingStopped(Stop):
+    """A signal stopped the training loop; ``last.ckpt`` holds the state it stopped at (the message says so)."""
+
+
+class LastCheckpoint(Checkpoint):
+    """Keep ``<dirpath>/last.ckpt`` at the latest state: after every validation and when training ends; stop cleanly
+    on SIGTERM or SIGINT.
 
     (Lightning's ModelCheckpoint refreshes ``last.ckpt`` only when it also saves a top-k checkpoint, so it can lag
-    behind.) The file is written atomically (``icpflow.atomic``), so a crash never leaves it half-written.
+    behind.) A ``Checkpoint`` subclass, so Lightning runs it after the other checkpoint callbacks (those listed
+    before it): ``last.ckpt`` then holds their state after the same validation (which best checkpoint exists), and a
+    resume keeps exactly one best checkpoint. Files are written atomically (:class:`AtomicCheckpointIO`).
+
+    Signals: from the start of the training loop to its end, a SIGTERM (a scheduler's pre-emption, ``scancel``) or
+    a SIGINT (Ctrl-C) lets the current step (or validation) finish; then ``last.ckpt`` is saved at that step and
+    :class:`TrainingStopped` is raised (every rank stops at the same step). A second signal stops at once.
+    On a resume (``ckpt_path``), best checkpoints in the folder that the restored state does not know (written by a
+    run killed between the two saves, or by older versions) are weighed by the score they hold: the best ``save_top_k``
+    are kept, the others removed.
     """
 
     def __init__(self, dirpath):
         self.path = Path(dirpath) / "last.ckpt"
         self.saved_step = -1
+        self.signum: int | None = None
+        self._previous: dict = {}
+
+    # -------------------------------------------------------------------------------------------- last.ckpt
 
     def _save(self, trainer: L.Trainer) -> None:
         if trainer.fast_dev_run or trainer.sanity_checking or trainer.global_step == self.saved_step:
             return
-        # every rank takes part in save_checkpoint; the strategy writes on rank 0 only, which renames it in place
-        target = atomic_path(self.path, make_parents=True) if trainer.is_global_zero else nullcontext(self.path)
-        with target as path:
-            trainer.save_checkpoint(path, weights_only=False)
+        trainer.save_checkpoint(self.path, weights_only=False)  # rank 0 writes (AtomicCheckpointIO)
         trainer.strategy.barrier("LastCheckpoint")
         self.saved_step = trainer.global_step
 
     def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._save(trainer)
+        self._stop_if_asked(trainer)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs, batch, index) -> None:
+        self._stop_if_asked(trainer)
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._restore_handlers()
         self._save(trainer)
+
+    # -------------------------------------------------------------------------------------------- signals
+
+    def _note(self, signum, frame) -> None:
+        if self.signum is not None:  # asked twice: stop now
+            raise Stop(signum)
+        self.signum = signum
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.ckpt_path:
+            keep_best_after_resume(trainer)
+        self.signum = None
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {sig: signal.signal(sig, self._note) for sig in (signal.SIGTERM, signal.SIGINT)}
+
+    def _restore_handlers(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        self._restore_handlers()
+
+    def _stop_if_asked(self, trainer: L.Trainer) -> None:
+        if trainer.sanity_checking:
+            return
+        asked = self.signum is not None
+        if trainer.world_size > 1:  # all ranks stop at the same step
+            asked = trainer.strategy.reduce_boolean_decision(asked, all=False)
+        if not asked:
+            return
+        signum = self.signum or signal.SIGTERM
+        self._save(trainer)
+        if self.saved_step == trainer.global_step and not trainer.fast_dev_run:
+            kept = f"saved {self.path}; to resume, rerun the same command with ckpt_path=last"
+        else:
+            kept = "nothing saved (fast_dev_run)"
+        raise TrainingStopped(signum, f"{signal_words(signum)} at step {trainer.global_step}: {kept}")
+
+
+def _stored_score(path: Path, state_key: str) -> float | None:
+    """The monitored score a ModelCheckpoint recorded in a checkpoint file it wrote (None: unreadable or not its)."""
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+        score = checkpoint["callbacks"][state_key]["current_score"]
+        return float(score)
+    except Exception:  # a damaged or foreign file: left alone
+        return None
+
+
+def keep_best_after_resume(trainer: L.Trainer) -> None:
+    """After a resume: every ModelCheckpoint with a monitor keeps its best ``save_top_k`` of the checkpoints it
+    knows (restored state) and of the files in its folder that match its file name but that state does not know;
+    the others are removed (rank 0) and its state says which are kept."""
+    for callback in trainer.checkpoint_callbacks:
+        if not isinstance(callback, ModelCheckpoint) or not callback.monitor or callback.save_top_k < 1:
+            continue
+        prefix = (callback.filename or "").split("{")[0]
+        if not prefix or not callback.dirpath or not Path(callback.dirpath).is_dir():
+            continue
+        known = {str(path): float(score) for path, score in callback.best_k_models.items() if Path(path).is_file()}
+        for path in sorted(Path(callback.dirpath).glob(f"{prefix}*{callback.FILE_EXTENSION}")):
+            if str(path) not in known and path.name != "last.ckpt":
+                score = _stored_score(path, callback.state_key)
+                if score is not None:
+                    known[str(path)] = score
+        if len(known) == len(callback.best_k_models) and set(known) == set(callback.best_k_models):
+            continue
+        ranked = sorted(known.items(), key=lambda item: item[1], reverse=callback.mode == "max")
+        kept, dropped = ranked[: callback.save_top_k], ranked[callback.save_top_k :]
+        if trainer.is_global_zero:
+            for path, _ in dropped:
+                Path(path).unlink(missing_ok=True)
+            if dropped:
+                log.warning(
+                    "resume: kept %s; removed %s (worse %s)",
+                    ", ".join(Path(path).name for path, _ in kept),
+                    ", ".join(Path(path).name for path, _ in dropped),
+                    callback.monitor,
+                )
+        trainer.strategy.barrier("keep_best_after_resume")
+        callback.best_k_models = {path: torch.tensor(score) for path, score in kept}
+        if kept:
+            callback.best_model_path, callback.best_model_score = kept[0][0], torch.tensor(kept[0][1])
+            callback.kth_best_model_path, callback.kth_value = kept[-1][0], torch.tensor(kept[-1][1])
 
 
 class ValidateAtEnd(L.Callback):

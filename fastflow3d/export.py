@@ -22,6 +22,7 @@ import torch
 from fastflow3d.artifact import (
     FILE_NAMES,
     FORMATS,
+    LEGACY_FILE_NAMES,
     METADATA_NAME,
     WRITERS,
     OnnxRuntimeNetwork,
@@ -34,6 +35,8 @@ from fastflow3d.artifact import (
     write_metadata,
 )
 from fastflow3d.model import FastFlow3D
+from icpflow.atomic import atomic_directory
+from icpflow.entry import Stop, os_error_line, signal_words, stop_on_signals
 
 PARITY_TOLERANCE = 1e-4  # metres, max abs difference between an export and eager
 
@@ -99,54 +102,85 @@ def export_model(
 ) -> dict:
     """Export ``model`` (eval mode is set) in ``formats`` to ``out_dir``; returns the metadata written.
 
-    Each export is loaded back and compared with eager on random clouds of several sizes; an export off by more
-    than ``tolerance`` metres raises :class:`ExportError` and is not kept. ``metadata.json`` is written last.
+    The files are built in a temporary folder next to ``out_dir`` and swapped in whole (``icpflow.atomic``):
+    ``out_dir`` holds the previous export or the new one, never a part (a full disk, a signal, a failed check leave
+    it as it was). Each export is loaded back and compared with eager on random clouds of several sizes; an export
+    off by more than ``tolerance`` metres raises :class:`ExportError` and is not kept.
     """
     formats = tuple(formats)
     unknown = [name for name in formats if name not in FORMATS]
     if unknown or not formats:
         raise ExportError(f"unknown export format(s) {unknown or formats}; use {', '.join(FORMATS)} or all")
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / METADATA_NAME).unlink(missing_ok=True)  # a directory without metadata is not a (complete) export
+    check_replaceable(out_dir)
     net = SingleSampleNet(model.eval()).eval()
     example = check_inputs(model, *CHECK_SIZES[0])
     metadata = network_metadata(model, model_config, checkpoint, preprocessing)
     metadata["files"], metadata["parity_max_abs_m"] = {}, {}
-    for name in formats:
-        path = out_dir / FILE_NAMES[name]
-        with quiet_exporters():
-            try:
-                WRITERS[name](net, path, example)
-            except ImportError:  # the ONNX exporter without onnxscript
+    with atomic_directory(out_dir) as build:  # built aside, swapped in whole: a failure leaves out_dir as it was
+        for name in formats:
+            path = build / FILE_NAMES[name]
+            with quiet_exporters():
+                try:
+                    WRITERS[name](net, path, example)
+                except ImportError:  # the ONNX exporter without onnxscript
+                    raise ExportError(
+                        "ONNX export needs onnx, onnxscript and onnxruntime: pip install 'icpflow[export]'"
+                    ) from None
+                runner = (
+                    OnnxRuntimeNetwork(path, ["CPUExecutionProvider"]) if name == "onnx" else load_network(path, name)
+                )
+                error = measure_parity(net, runner)
+            if not error <= tolerance:
                 raise ExportError(
-                    "ONNX export needs onnx, onnxscript and onnxruntime: pip install 'icpflow[export]'"
-                ) from None
-            runner = OnnxRuntimeNetwork(path, ["CPUExecutionProvider"]) if name == "onnx" else load_network(path, name)
-            error = measure_parity(net, runner)
-        if not error <= tolerance:
-            path.unlink()
-            raise ExportError(
-                f"{path}: {name} export differs from eager by {error:.3g} m (> {tolerance:g} m); not kept"
-            )
-        metadata["files"][name] = {"path": path.name, "sha256": sha256_file(path)}
-        metadata["parity_max_abs_m"][name] = error
-    if "onnx" in formats:
-        metadata["onnx_opset"] = onnx_opset(out_dir / FILE_NAMES["onnx"])
-    write_metadata(out_dir, metadata)
+                    f"{out_dir / path.name}: {name} export differs from eager by {error:.3g} m (> {tolerance:g} m); "
+                    "not kept"
+                )
+            metadata["files"][name] = {"path": path.name, "sha256": sha256_file(path)}
+            metadata["parity_max_abs_m"][name] = error
+        if "onnx" in formats:
+            metadata["onnx_opset"] = onnx_opset(build / FILE_NAMES["onnx"])
+        write_metadata(build, metadata)
     return metadata
 
 
+def check_replaceable(out_dir: Path) -> None:
+    """``out_dir`` is absent, empty or an export folder (only export files): an export replaces it whole, so a
+    folder holding anything else (a typo such as ``out_dir=.``) is refused."""
+    if not out_dir.exists():
+        return
+    if not out_dir.is_dir():
+        raise ExportError(f"{out_dir}: exists and is not a folder; give a new or export folder as out_dir")
+    ours = {METADATA_NAME, *FILE_NAMES.values(), *LEGACY_FILE_NAMES}
+    others = sorted(child.name for child in out_dir.iterdir() if child.name not in ours)
+    if others:
+        raise ExportError(
+            f"{out_dir}: holds other files than an export ({', '.join(others[:3])}{', ...' if len(others) > 3 else ''})"
+            "; an export replaces its folder whole: give a new or export folder as out_dir"
+        )
+
+
+def default_export_dir(checkpoint: Path, cfg: dict) -> Path:
+    """Where the run that wrote ``checkpoint`` exports: its config's ``export.dir`` taken relative to its
+    ``checkpoint_dir`` from the checkpoint's folder (``<run>/checkpoints/x.ckpt`` -> ``<run>/export``, wherever the
+    run now lives); for a checkpoint without those settings, ``<run>/export`` when its folder is named
+    ``checkpoints``, else ``<checkpoint's folder>/export``."""
+    checkpoint_dir, export_dir = cfg.get("checkpoint_dir"), (cfg.get("export") or {}).get("dir")
+    if checkpoint_dir and export_dir:
+        return Path(os.path.normpath(checkpoint.parent / os.path.relpath(export_dir, checkpoint_dir)))
+    return (checkpoint.parent.parent if checkpoint.parent.name == "checkpoints" else checkpoint.parent) / "export"
+
+
 def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None, formats=FORMATS) -> Path:
-    """Export a training checkpoint (``fastflow3d.checkpoint.load_student``); ``out_dir`` defaults to
-    ``<checkpoint's directory>/export``. Returns the export directory."""
+    """Export a training checkpoint (``fastflow3d.checkpoint.load_student``) to ``out_dir`` (default:
+    :func:`default_export_dir`). Returns the export directory."""
     from fastflow3d.checkpoint import load_student
 
     checkpoint = Path(checkpoint)
     if not checkpoint.is_file():
         raise ExportError(f"{checkpoint}: checkpoint not found")
     model, cfg = load_student(checkpoint, map_location="cpu")
-    out_dir = checkpoint.parent / "export" if out_dir is None else Path(out_dir)
+    out_dir = default_export_dir(checkpoint, cfg) if out_dir is None else Path(out_dir)
     export_model(
         model,
         out_dir,
@@ -167,7 +201,8 @@ def parse_formats(value: str) -> tuple[str, ...]:
 def run_export(cfg) -> int:
     """``export.py``: export ``cfg.checkpoint`` in ``cfg.format`` to ``cfg.out_dir``; print what was written.
 
-    Returns the exit status: 0 exported, 2 could not export (one line on stderr).
+    Returns the exit status: 0 exported, 2 could not export (one line on stderr: the file, the cause, the fix).
+    SIGTERM and SIGINT raise ``icpflow.entry.Stop`` saying that the existing export is unchanged.
     """
     from omegaconf import OmegaConf
 
@@ -178,8 +213,15 @@ def run_export(cfg) -> int:
         formats = parse_formats(cfg.format)
         if Path(cfg.checkpoint).is_file() and formats and set(formats) <= set(FORMATS):  # a long step: say so
             print(f"export: exporting {cfg.checkpoint}, then checking parity (about 20 s) ...", file=sys.stderr)
-        out_dir = export_checkpoint(cfg.checkpoint, cfg.out_dir, formats)
-    except (ValueError, RuntimeError, OSError) as error:
+        with stop_on_signals():
+            out_dir = export_checkpoint(cfg.checkpoint, cfg.out_dir, formats)
+    except Stop as stop:
+        where = cfg.out_dir or "the export folder"
+        raise Stop(stop.signum, f"{signal_words(stop.signum)}; nothing exported, {where} is as it was") from None
+    except OSError as error:
+        print(f"export: {os_error_line(error)}; the export there is as it was", file=sys.stderr)
+        return 2
+    except (ValueError, RuntimeError) as error:
         print(f"export: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
     metadata = json.loads((out_dir / METADATA_NAME).read_text())

@@ -31,6 +31,7 @@ from fastflow3d.artifact import FORMATS, LEGACY_FORMATS
 from icpflow.atomic import atomic_path
 from icpflow.console import quiet
 from icpflow.datasets.io import SCAN_SUFFIXES, fail, load_npz, read_poses, read_scan
+from icpflow.entry import os_error_line
 from icpflow.frames import FramePair, check_points
 from icpflow.geometry import relative_transform, rigid_problem
 
@@ -170,7 +171,10 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     try:
         out, bev = infer(args)
-    except (ValueError, RuntimeError, OSError) as error:
+    except OSError as error:  # a write error names the file asked for (icpflow.atomic), with the fix
+        print(f"infer: {os_error_line(error)}", file=sys.stderr)
+        return 2
+    except (ValueError, RuntimeError) as error:
         print(f"infer: {' '.join(str(error).split())}", file=sys.stderr)
         return 2
     rerun = f", 3D -> {args.rerun}" if args.rerun else ""

@@ -15,14 +15,16 @@ from pathlib import Path
 
 import lightning as L
 from hydra.utils import instantiate
+from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
 from fastflow3d.artifact import FORMATS
-from fastflow3d.callbacks import ModelSize, progress_bar
+from fastflow3d.callbacks import AtomicCheckpointIO, LastCheckpoint, ModelSize, TrainingStopped, progress_bar
 from fastflow3d.checkpoint import CheckpointError, read_checkpoint
 from fastflow3d.data import TEACHER_FIELDS, DataError, ShardDataModule, StudentDataset, labeller_teacher
 from fastflow3d.export import export_checkpoint
 from fastflow3d.module import StudentModule
+from icpflow.entry import Stop, os_error_line, signal_words, stop_on_signals
 from icpflow.shards.verify import ShardError
 
 log = logging.getLogger(__name__)
@@ -44,6 +46,11 @@ def check_data(cfg: DictConfig) -> None:
             raise TrainError(
                 f"data.{key}: {error}; label a dataset into it first, e.g. "
                 f"`python label.py split={split} out_dir={path}`"
+            ) from None
+        except ValueError as error:  # a damaged index.json
+            raise TrainError(
+                f"data.{key}: {' '.join(str(error).split())}; rerun the label.py command that wrote it "
+                f"(same out_dir={path}): it rebuilds the index"
             ) from None
         try:
             dataset.shards.verify()
@@ -88,8 +95,9 @@ def inference_teacher(cfg: DictConfig) -> dict:
     return {key: getattr(teacher, key) for key in TEACHER_FIELDS}
 
 
-def resolve_ckpt_path(cfg: DictConfig) -> str | None:
-    """The checkpoint to resume from: None, ``<checkpoint_dir>/last.ckpt`` for ``last``, or the given file."""
+def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
+    """The checkpoint to resume from: None, ``<checkpoint_dir>/last.ckpt`` for ``last``, or the given file; it must
+    hold weights of ``module``'s network (same names and shapes), else one line naming the settings that differ."""
     value = cfg.get("ckpt_path")
     if not value:
         return None
@@ -99,11 +107,28 @@ def resolve_ckpt_path(cfg: DictConfig) -> str | None:
             f"ckpt_path={value}: {path} does not exist (nothing to resume; leave ckpt_path unset to start afresh)"
         )
     try:
-        read_checkpoint(path)
+        checkpoint = read_checkpoint(path)
     except CheckpointError as error:
         raise TrainError(
             f"ckpt_path={value}: {error}; give another checkpoint, or leave ckpt_path unset to start afresh"
         ) from None
+    expected = {name: tuple(tensor.shape) for name, tensor in module.state_dict().items()}
+    state = checkpoint.get("state_dict")
+    found = {name: tuple(tensor.shape) for name, tensor in state.items()} if isinstance(state, dict) else {}
+    if found != expected:
+        hparams = checkpoint.get("hyper_parameters")
+        saved = (hparams.get("cfg") or {}).get("model") if isinstance(hparams, dict) else None
+        ours = OmegaConf.to_container(cfg.model, resolve=True)
+        differ = [
+            f"model.{key}={saved.get(key)} (this run: {ours.get(key)})"
+            for key in sorted(set(saved or {}) | set(ours))
+            if isinstance(saved, dict) and saved.get(key) != ours.get(key)
+        ]
+        what = ", ".join(differ) if differ else "its weights have other names or shapes"
+        raise TrainError(
+            f"ckpt_path={value}: {path} holds another network: {what}; resume with the model settings it was "
+            "trained with, or leave ckpt_path unset to start afresh"
+        )
     return str(path)
 
 
@@ -120,15 +145,31 @@ def export_formats(cfg: DictConfig) -> tuple[str, ...]:
 
 
 def build_trainer(cfg: DictConfig) -> L.Trainer:
-    """The Lightning Trainer of ``cfg.trainer`` (Trainer keyword arguments) with the configured logger and callbacks."""
+    """The Lightning Trainer of ``cfg.trainer`` (Trainer keyword arguments) with the configured logger and callbacks
+    (``LastCheckpoint`` after the other checkpoint callbacks, so it saves their state after theirs) and checkpoint
+    files written atomically."""
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     callbacks = [instantiate(callback) for callback in (cfg.get("callbacks") or {}).values()]
+    callbacks.sort(key=lambda callback: isinstance(callback, LastCheckpoint))
     trainer_kwargs = OmegaConf.to_container(cfg.trainer, resolve=True)
     if trainer_kwargs.setdefault("enable_progress_bar", True):  # the console: icpflow.console, fastflow3d.callbacks
         callbacks.append(progress_bar())
     if not trainer_kwargs.setdefault("enable_model_summary", False):
         callbacks.append(ModelSize())
-    return L.Trainer(**trainer_kwargs, logger=logger, callbacks=callbacks, default_root_dir=cfg.out_dir)
+    callbacks.sort(key=lambda callback: isinstance(callback, LastCheckpoint))
+    plugins = trainer_kwargs.pop("plugins", None) or [AtomicCheckpointIO()]
+    return L.Trainer(
+        **trainer_kwargs, logger=logger, callbacks=callbacks, plugins=plugins, default_root_dir=cfg.out_dir
+    )
+
+
+def best_checkpoint(trainer: L.Trainer) -> Path | None:
+    """The best checkpoint of the first monitoring ModelCheckpoint, if it exists."""
+    for callback in trainer.checkpoint_callbacks:
+        if isinstance(callback, ModelCheckpoint) and callback.best_model_path:
+            path = Path(callback.best_model_path)
+            return path if path.is_file() else None
+    return None
 
 
 def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -> Path | None:
@@ -136,8 +177,7 @@ def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -
     directory, or None when there is nothing to do (no formats, fast_dev_run, interrupted run, not rank 0)."""
     if not formats or trainer.fast_dev_run or trainer.interrupted or not trainer.is_global_zero:
         return None
-    best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
-    source = Path(best) if best and Path(best).is_file() else Path(cfg.checkpoint_dir) / "last.ckpt"
+    source = best_checkpoint(trainer) or Path(cfg.checkpoint_dir) / "last.ckpt"
     if not source.is_file():
         raise TrainError(f"training ended with no checkpoint to export in {cfg.checkpoint_dir}")
     if source.name == "last.ckpt":
@@ -146,29 +186,61 @@ def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -
     try:
         out_dir = export_checkpoint(source, cfg.export.dir, formats)
     except (ValueError, RuntimeError, OSError) as error:
+        cause = os_error_line(error) if isinstance(error, OSError) else " ".join(str(error).split())
         raise TrainError(
-            f"training finished but exporting {source} failed: {' '.join(str(error).split())} "
+            f"training finished but exporting {source} failed: {cause} "
             f"(retry with `python export.py checkpoint={source}`)"
         ) from None
-    log.info("exported to %s", out_dir)
+    except Stop as stop:
+        raise Stop(
+            stop.signum,
+            f"{signal_words(stop.signum)} while exporting {source} (training had finished; {cfg.export.dir} is as "
+            f"it was): export it with `python export.py checkpoint={source}`",
+        ) from None
+    log.info("exported %s (%s) to %s", source.name, ", ".join(formats), out_dir)
     return out_dir
 
 
+def kept_checkpoint(cfg: DictConfig) -> str:
+    """What a run stopped at once leaves to resume from, in words."""
+    last = Path(cfg.checkpoint_dir) / "last.ckpt"
+    try:
+        step = read_checkpoint(last).get("global_step")
+    except CheckpointError:
+        return "nothing saved; rerun the same command"
+    return f"{last} (step {step}) is kept; to resume, rerun the same command with ckpt_path=last"
+
+
 def fit(cfg: DictConfig) -> L.Trainer:
-    """Train the student as ``cfg`` says, then export its best checkpoint; returns the Trainer after ``fit``
-    (raises TrainError if it cannot start or the export fails)."""
-    check_data(cfg)
-    ckpt_path = resolve_ckpt_path(cfg)
-    formats = export_formats(cfg)
-    plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-    plain["data"]["teacher"] = inference_teacher(cfg)
-    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    module = StudentModule(plain)
-    if cfg.compile:
-        module.model.compile(dynamic=True)
-    data = plain["data"]
-    datamodule = ShardDataModule(data["train"], data["val"], data["batch_size"], data["workers"], data["augment"])
-    trainer = build_trainer(cfg)
-    trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
-    export_best(trainer, cfg, formats)
+    """Train the student as ``cfg`` says, then export its best checkpoint; returns the Trainer after ``fit``.
+
+    Raises TrainError (one line) if it cannot start, if a file cannot be written (a full or read-only disk: the
+    checkpoints already written are kept) or if the export fails; ``icpflow.entry.Stop`` on SIGTERM or SIGINT: in
+    the training loop after saving ``last.ckpt`` at the current step (``fastflow3d.callbacks.LastCheckpoint``),
+    elsewhere at once; its message says what was kept and how to resume.
+    """
+    with stop_on_signals():
+        check_data(cfg)
+        formats = export_formats(cfg)
+        plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+        plain["data"]["teacher"] = inference_teacher(cfg)
+        L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+        module = StudentModule(plain)
+        ckpt_path = resolve_ckpt_path(cfg, module)
+        if cfg.compile:
+            module.model.compile(dynamic=True)
+        data = plain["data"]
+        datamodule = ShardDataModule(data["train"], data["val"], data["batch_size"], data["workers"], data["augment"])
+        trainer = build_trainer(cfg)
+        try:
+            trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
+        except TrainingStopped:
+            raise
+        except Stop as stop:  # outside the training loop (set-up, sanity check), or a second signal: at once
+            raise Stop(stop.signum, f"{signal_words(stop.signum)}; {kept_checkpoint(cfg)}") from None
+        except OSError as error:
+            last = Path(cfg.checkpoint_dir) / "last.ckpt"
+            resume = f"; then resume with ckpt_path=last ({last} is kept)" if last.is_file() else ""
+            raise TrainError(f"{os_error_line(error)}{resume}") from None
+        export_best(trainer, cfg, formats)
     return trainer

@@ -4,13 +4,17 @@ Every file this project writes as a result (shards, ``index.json``, metrics, che
 goes through :func:`atomic_path`: the writer fills a temporary file in the target's folder, which is then fsynced,
 renamed over the target and the folder fsynced. On any exception the temporary file is removed and the target is
 left as it was; an ``OSError`` (a full disk, no permission, an I/O error) becomes one :class:`WriteError` naming the
-target and the cause.
+target and the cause. A result made of several files (an export) goes through :func:`atomic_directory`: built in a
+temporary folder, then swapped in whole.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import os
+import shutil
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -44,10 +48,10 @@ def atomic_path(path: str | os.PathLike, *, make_parents: bool = False) -> Itera
     raise) leaves ``path`` untouched too: the rename fails with FileNotFoundError.
     """
     path = Path(path)
-    if make_parents:
-        path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_name(path)
     try:
+        if make_parents:
+            path.parent.mkdir(parents=True, exist_ok=True)
         yield tmp
         fsync_path(tmp)
         os.replace(tmp, path)
@@ -57,10 +61,58 @@ def atomic_path(path: str | os.PathLike, *, make_parents: bool = False) -> Itera
     except OSError as error:
         raise WriteError(f"{path}: cannot write ({error.strerror or error})") from None
     finally:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # absent, or a read-only folder: nothing to remove
+            tmp.unlink()
 
 
 def write_text_atomic(path: str | os.PathLike, text: str, *, make_parents: bool = False) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
     with atomic_path(path, make_parents=make_parents) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two existing paths in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where that is unavailable
+    (another system or C library, or a filesystem without it)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    renameat2 = getattr(libc, "renameat2", None)
+    if renameat2 is None:
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP):
+        return False
+    raise OSError(code, os.strerror(code), str(b))
+
+
+@contextlib.contextmanager
+def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield an empty temporary folder next to ``path`` for the caller to fill; on a clean exit its files are fsynced
+    and it replaces ``path`` whole (an existing folder is exchanged with it in one step where the system allows,
+    else renamed aside first, then removed); on an exception it is removed and ``path`` is untouched. Readers see
+    the old folder or the new one, never a mixture; an ``OSError`` becomes one :class:`WriteError` naming ``path``."""
+    path = Path(path)
+    tmp = temporary_name(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.mkdir()
+        yield tmp
+        for child in tmp.iterdir():
+            fsync_path(child)
+        fsync_path(tmp)
+        if not path.exists():
+            os.rename(tmp, path)
+        elif not _exchange(tmp, path):  # tmp now holds the old folder when the exchange worked
+            aside = temporary_name(path)
+            os.rename(path, aside)
+            os.rename(tmp, path)
+            os.rename(aside, tmp)
+        fsync_path(path.parent)
+    except WriteError as error:  # a file inside: named as in its final place
+        raise WriteError(str(error).replace(str(tmp), str(path))) from error.__context__
+    except OSError as error:
+        raise WriteError(f"{path}: cannot write ({error.strerror or error})") from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -1,0 +1,252 @@
+"""What every entry point (``label.py``, ``train.py``, ``export.py``, ``eval.py``) does with an error or a signal:
+one line on stderr, ``<prog>: <option or file>: <cause>; <fix>``, and an exit status; the traceback only with
+``HYDRA_FULL_ERROR=1``.
+
+Exit statuses: 0 done; 1 partial results (each script says when); 2 bad input or a fault (a wrong option or type, an
+unreadable file, a full or read-only disk); 128 + N stopped by signal N (130 Ctrl-C / SIGINT, 143 SIGTERM).
+
+* :func:`reported` (around the body of the ``@hydra.main`` function) and :func:`run` (around the call of that
+  function, for Hydra's own errors: a bad override, an output folder it cannot create) turn whatever escapes into
+  that line and status.
+* :func:`check_overrides` (first thing inside the ``@hydra.main`` function): a command-line value of the wrong type
+  (``data.batch_size=abc``) is a one-line :class:`OptionError` naming the option, before any work.
+* :class:`Stop` is a signal turned into an exception (:func:`stop_on_signals`); it carries the line that says what
+  was kept and how to go on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator
+
+FULL_ERROR = "HYDRA_FULL_ERROR"  # set (to 1) by the user: tracebacks as Python and Hydra print them
+MARKER = "ICPFLOW_ENTRY"  # set by :func:`run` with HYDRA_FULL_ERROR=1: Hydra raises to us, no traceback was asked
+
+#: what to do about an OSError, by errno
+FIXES = {
+    errno.ENOSPC: "free space there or write elsewhere",
+    errno.EDQUOT: "free space there or write elsewhere",
+    errno.EROFS: "write to a writable place",
+    errno.EACCES: "fix its permissions or write elsewhere",
+    errno.EPERM: "fix its permissions or write elsewhere",
+    errno.ENOENT: "check the path",
+    errno.ENOTDIR: "check the path: a part of it is a file",
+    errno.EISDIR: "give a file, not a folder",
+}
+
+
+class OptionError(ValueError):
+    """An option's value cannot be used (wrong type). The message is one line naming the option and the fix."""
+
+
+class Stop(BaseException):
+    """A signal asked the run to stop (a BaseException, so that no ``except Exception`` swallows it).
+
+    ``str(stop)`` is the line to print: what happened, what was kept, how to go on; exit status 128 + ``signum``.
+    """
+
+    def __init__(self, signum: int, message: str | None = None):
+        self.signum = int(signum)
+        super().__init__(message or signal_words(signum))
+
+    @property
+    def status(self) -> int:
+        return 128 + self.signum
+
+
+def signal_words(signum: int) -> str:
+    """``interrupted (SIGINT)`` / ``terminated (SIGTERM)`` / ``stopped (SIGHUP)``."""
+    name = signal.Signals(signum).name
+    verb = {"SIGINT": "interrupted", "SIGTERM": "terminated"}.get(name, "stopped")
+    return f"{verb} ({name})"
+
+
+def stop_handler(owner: int) -> Callable:
+    """A signal handler that raises :class:`Stop` in process ``owner``; a process forked from it (a DataLoader
+    worker, which Ctrl-C or a scheduler signals with it) ignores the signal: the owner stops it when it stops."""
+
+    def handle(signum, frame) -> None:
+        if os.getpid() == owner:
+            raise Stop(signum)
+
+    return handle
+
+
+@contextlib.contextmanager
+def stop_on_signals(signums=(signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
+    """Within the block, the signals raise :class:`Stop` in this process (so ``finally`` blocks and atomic writers
+    clean up); the previous handlers come back after it. Outside the main thread it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    handler = stop_handler(os.getpid())
+    previous = {signum: signal.signal(signum, handler) for signum in signums}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+# ---------------------------------------------------------------------------------------------------- messages
+
+
+def one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def os_error_line(error: OSError, fix: str | None = None) -> str:
+    """``<file>: <cause>; <fix>`` for an OSError (``icpflow.atomic.WriteError`` included: its message already names
+    the file; the errno is that of the error it replaced)."""
+    cause = error
+    while cause.errno is None and isinstance(cause.__cause__ or cause.__context__, OSError):
+        cause = cause.__cause__ or cause.__context__
+    if error.errno is None and error.filename is None:  # a message of ours (WriteError): already "<file>: ..."
+        text = one_line(error)
+    else:
+        target = " -> ".join(str(name) for name in (error.filename, error.filename2) if name is not None)
+        text = f"{target}: {error.strerror or one_line(error)}" if target else one_line(error)
+    fix = fix or FIXES.get(cause.errno)
+    return f"{text}; {fix}" if fix else text
+
+
+def error_line(error: BaseException, expected: tuple[type[BaseException], ...] = ()) -> str:
+    """One line for an exception that escaped an entry point: the message of an ``expected`` (one-line) error or an
+    :class:`OptionError` as it is; an OSError as :func:`os_error_line`; Hydra's and OmegaConf's errors (a bad
+    override, a missing value) by their first lines; anything else as unexpected, pointing at ``HYDRA_FULL_ERROR``."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    if isinstance(error, (OptionError, *expected)):
+        return one_line(error)
+    if isinstance(error, OSError):
+        return os_error_line(error)
+    if isinstance(error, (HydraException, OmegaConfBaseException)):
+        text = one_line(str(error).split("\n    full_key:")[0])
+        cause = error.__cause__
+        if isinstance(cause, OmegaConfBaseException):
+            text = f"{text} ({one_line(str(cause).split('full_key:')[0])})"
+        return f"{text}; see `--help` and `--cfg job` for the options"
+    first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+    return f"unexpected {type(error).__name__}: {first} (set {FULL_ERROR}=1 for the traceback)"
+
+
+# ---------------------------------------------------------------------------------------------------- running
+
+
+def _full_error_asked() -> bool:
+    return os.environ.get(FULL_ERROR, "") not in ("", "0") and MARKER not in os.environ
+
+
+@contextlib.contextmanager
+def reported(prog: str, *expected: type[BaseException]) -> Iterator[None]:
+    """An exception that escapes the block becomes one line on stderr, ``<prog>: ...``, and an exit status (module
+    docstring); with ``HYDRA_FULL_ERROR=1`` set by the user it propagates with its traceback. ``expected``: exception
+    types whose message is the line to print. Used inside the ``@hydra.main`` function (so Hydra adds nothing) and,
+    by :func:`run`, around it (Hydra's own errors)."""
+    full = _full_error_asked()
+    try:
+        yield
+    except Stop as stop:
+        print(f"{prog}: {one_line(stop)}", file=sys.stderr)
+        sys.exit(stop.status)
+    except KeyboardInterrupt:
+        print(f"{prog}: {signal_words(signal.SIGINT)}", file=sys.stderr)
+        sys.exit(128 + signal.SIGINT)
+    except Exception as error:
+        if full:
+            raise
+        print(f"{prog}: {error_line(error, expected)}", file=sys.stderr)
+        sys.exit(2)
+
+
+def run(prog: str, hydra_main: Callable[[], object]) -> None:
+    """Call ``hydra_main`` (a ``@hydra.main`` function whose body is in :func:`reported`), reporting Hydra's own
+    errors (a bad override, an output folder it cannot create) the same way. Hydra is asked to raise them
+    (``HYDRA_FULL_ERROR=1`` and :data:`MARKER` set for the call) instead of printing its multi-line report."""
+    asked = FULL_ERROR in os.environ
+    if not asked:
+        os.environ[FULL_ERROR], os.environ[MARKER] = "1", prog
+    try:
+        with reported(prog):
+            hydra_main()
+    finally:
+        if not asked:
+            os.environ.pop(FULL_ERROR, None)
+            os.environ.pop(MARKER, None)
+
+
+# ---------------------------------------------------------------------------------------------------- option types
+
+_WORDS = {bool: "true or false", int: "an integer", float: "a number", list: "a list, e.g. [a,b]", str: "a text"}
+
+
+def _kinds(value) -> tuple[type, ...] | None:
+    """The types a command-line value may take where the config's value is ``value`` (None: any)."""
+    from omegaconf import DictConfig, ListConfig
+
+    if isinstance(value, bool):
+        return (bool,)
+    if isinstance(value, (int, float)):
+        return (int, float)  # an int option may take a fraction (Lightning's val_check_interval=0.5)
+    if isinstance(value, (list, ListConfig)):
+        return (list,)
+    if isinstance(value, (dict, DictConfig)):
+        return (dict,)
+    return None
+
+
+def _fits(value, kinds: tuple[type, ...]) -> bool:
+    if value is None:
+        return True  # null: the option's "none"
+    if isinstance(value, bool):
+        return bool in kinds
+    return isinstance(value, tuple(kinds))
+
+
+def _words(kinds: tuple[type, ...]) -> str:
+    if set(kinds) == {int, float}:
+        return "a number"
+    return " or ".join(_WORDS.get(kind, "a dict, e.g. {key:value}") for kind in kinds)
+
+
+def check_overrides(types: dict[str, tuple[type, ...]] | None = None) -> None:
+    """Raise :class:`OptionError` for the first command-line override whose value does not have the type of the
+    option in the config (composed with the same config-group choices), e.g. ``data.batch_size=abc: expected a
+    number, got 'abc' (the default is 8)``. ``types``: the types an option may take where the config alone does not
+    say it (a null default) or says too little (an int that also takes ``1..4``). Call it inside ``@hydra.main``."""
+    from hydra import compose
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+
+    hydra_cfg = HydraConfig.get()
+    overrides = OverridesParser.create().parse_overrides(list(hydra_cfg.overrides.task))
+    choices = set(hydra_cfg.runtime.choices)
+    groups = [o.input_line for o in overrides if o.key_or_group in choices]
+    reference = None
+    for override in overrides:
+        key = override.key_or_group
+        if key in choices or key.startswith("hydra.") or override.is_delete() or override.is_sweep_override():
+            continue
+        kinds = (types or {}).get(key)
+        default = None
+        if kinds is None:
+            if not GlobalHydra.instance().is_initialized():  # a job launched elsewhere (submitit): Hydra not here
+                return
+            if reference is None:
+                reference = compose(config_name=hydra_cfg.job.config_name, overrides=groups)
+            default = OmegaConf.select(reference, key, default=None, throw_on_missing=False)
+            kinds = _kinds(default)
+        value = override.value()
+        if kinds is None or _fits(value, kinds):
+            continue
+        shown = OmegaConf.to_container(default) if OmegaConf.is_config(default) else default
+        hint = f" (the default is {shown})" if default is not None else ""
+        raise OptionError(f"{override.input_line}: expected {_words(kinds)}, got {value!r}{hint}")
