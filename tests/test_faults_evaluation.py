@@ -19,6 +19,8 @@ from icpflow.baselines import ego_only_flow
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.evaluation import method_summary, read_metrics, run_eval
 
+from helpers.labelling import running_in_group
+
 REPO = Path(__file__).resolve().parents[1]
 SMALL = [
     "dataset.reader.num_sequences=1",
@@ -50,19 +52,6 @@ class StallAfterFirst(SyntheticDataset):
         return super().pair(index, horizon)
 
 
-def _processes_in_group(group: int) -> list[int]:
-    """Processes of process group ``group`` that still run (zombies do not count)."""
-    running = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:  # it ended meanwhile
-            continue
-        if int(fields[2]) == group and fields[0] != "Z":
-            running.append(int(stat.parent.name))
-    return running
-
-
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_a_stopped_eval_keeps_the_pairs_scored_and_leaves_no_process(tmp_path, sig):
     out, marker = tmp_path / "eval", tmp_path / "second-sample-started"
@@ -90,7 +79,7 @@ def test_a_stopped_eval_keeps_the_pairs_scored_and_leaves_no_process(tmp_path, s
     while not marker.exists():
         assert process.poll() is None and time.monotonic() < deadline, process.communicate()[1]
         time.sleep(0.1)
-    helpers = [pid for pid in _processes_in_group(process.pid) if pid != process.pid]
+    helpers = [pid for pid in running_in_group(process.pid) if pid != process.pid]
     assert helpers, "the teacher started no helper process: this test would prove nothing"
     if sig == signal.SIGTERM:
         process.send_signal(sig)  # the main process only, as a scheduler does
@@ -98,9 +87,9 @@ def test_a_stopped_eval_keeps_the_pairs_scored_and_leaves_no_process(tmp_path, s
         os.killpg(process.pid, sig)  # Ctrl-C: the terminal signals the whole group
     _, err = process.communicate(timeout=120)
     deadline = time.monotonic() + 5
-    while _processes_in_group(process.pid) and time.monotonic() < deadline:
+    while running_in_group(process.pid) and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert _processes_in_group(process.pid) == [], "a process of the run outlived it"
+    assert running_in_group(process.pid) == [], "a process of the run outlived it"
     what, status = ("terminated (SIGTERM)", 143) if sig == signal.SIGTERM else ("interrupted (Ctrl-C)", 130)
     assert process.returncode == status, err
     assert "Traceback" not in err

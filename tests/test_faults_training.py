@@ -17,9 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_label import TESTS_ENV, _default_sigint, _running_in_group
-from test_train import TINY, _write_shards
-from test_train import _cfg as _train_cfg
 
 from fastflow3d.artifact import FILE_NAMES, METADATA_NAME, sha256_file
 from fastflow3d.export import export_checkpoint
@@ -27,6 +24,10 @@ from fastflow3d.infer import main as infer_main
 from fastflow3d.training import TrainError, fit
 from icpflow.atomic import WriteError
 from icpflow.datasets.synthetic import SyntheticDataset
+
+from helpers.labelling import TESTS_ENV, default_sigint, running_in_group
+from helpers.shards import write_pseudo_labels
+from helpers.training import TINY, train_cfg
 
 REPO = Path(__file__).resolve().parents[1]
 READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 2.0}
@@ -37,7 +38,9 @@ STEPS = ["trainer.val_check_interval=2", "data.batch_size=1", "metrics.bev_every
 def shards(tmp_path_factory):
     """Two pairs of the small world as label.py shards (pseudo-labels = ground truth)."""
     dataset = SyntheticDataset(**READER)
-    return _write_shards(tmp_path_factory.mktemp("shards") / "train", [dataset.pair(i) for i in range(len(dataset))])
+    return write_pseudo_labels(
+        tmp_path_factory.mktemp("shards") / "train", [dataset.pair(i) for i in range(len(dataset))]
+    )
 
 
 def _train(out_dir, shard_dir, *overrides) -> list[str]:
@@ -56,13 +59,13 @@ def _popen(args, cwd) -> subprocess.Popen:
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
-        preexec_fn=_default_sigint,
+        preexec_fn=default_sigint,
     )
 
 
 def _none_left(group: int, seconds: float = 10) -> bool:
     deadline = time.monotonic() + seconds
-    while _running_in_group(group):
+    while running_in_group(group):
         if time.monotonic() > deadline:
             return False
         time.sleep(0.1)
@@ -113,7 +116,7 @@ def test_last_checkpoint_knows_the_best_and_a_resume_keeps_only_the_truly_best(s
     know (a run killed between the two saves, an older version) is weighed by its stored score; exactly one is
     kept, the truly best, and the export takes it."""
     checkpoints = tmp_path / "run" / "checkpoints"
-    fit(_train_cfg(tmp_path, shards, shards, "trainer.max_steps=4", *STEPS))
+    fit(train_cfg(tmp_path, shards, shards, "trainer.max_steps=4", *STEPS))
     (best,) = checkpoints.glob("best-*.ckpt")
     assert best.name.startswith("best-step0000004-") or best.name.startswith("best-step0000002-")
     assert _state(checkpoints / "last.ckpt")["best_model_path"] == str(best)  # the state after step 4's validation
@@ -128,7 +131,7 @@ def test_last_checkpoint_knows_the_best_and_a_resume_keeps_only_the_truly_best(s
     truly_best = plant("best-step0000003-dynEPE0.0001.ckpt", 1e-4)  # better than anything this run reaches
     worse = plant("best-step0000001-dynEPE9.9000.ckpt", 9.9)
     trainer = fit(
-        _train_cfg(tmp_path, shards, shards, "trainer.max_steps=6", "ckpt_path=last", "export.formats=[pt2]", *STEPS)
+        train_cfg(tmp_path, shards, shards, "trainer.max_steps=6", "ckpt_path=last", "export.formats=[pt2]", *STEPS)
     )
     assert trainer.global_step == 6
     assert sorted(checkpoints.glob("best-*.ckpt")) == [truly_best] and not worse.exists()
@@ -173,7 +176,7 @@ def test_a_signal_saves_last_checkpoint_at_the_current_step_and_says_how_to_resu
     assert _no_temporary_files(out)
     if sig == signal.SIGINT:
         return
-    trainer = fit(_train_cfg(tmp_path, shards, shards, f"trainer.max_steps={step + 2}", "ckpt_path=last", *STEPS))
+    trainer = fit(train_cfg(tmp_path, shards, shards, f"trainer.max_steps={step + 2}", "ckpt_path=last", *STEPS))
     assert trainer.global_step == step + 2
     assert torch.load(last, weights_only=True, mmap=True)["global_step"] == step + 2
     assert len(list(last.parent.glob("best-*.ckpt"))) == 1
@@ -200,7 +203,7 @@ def _fail_fsync_after(monkeypatch, calls: int) -> None:
 def checkpoint(shards, tmp_path_factory):
     """A tiny trained checkpoint in <run>/checkpoints (2 steps)."""
     root = tmp_path_factory.mktemp("trained")
-    fit(_train_cfg(root, shards, shards, "trainer.max_steps=2", *STEPS))
+    fit(train_cfg(root, shards, shards, "trainer.max_steps=2", *STEPS))
     return root / "run" / "checkpoints" / "last.ckpt"
 
 
@@ -258,7 +261,7 @@ def test_a_full_disk_during_training_is_one_line_and_keeps_last_checkpoint(shard
     disk is full at step 4: one line naming the file and how to resume; last.ckpt of step 2 is intact."""
     _fail_fsync_after(monkeypatch, 4)
     with pytest.raises(TrainError) as error:
-        fit(_train_cfg(tmp_path, shards, shards, "trainer.max_steps=6", *STEPS))
+        fit(train_cfg(tmp_path, shards, shards, "trainer.max_steps=6", *STEPS))
     monkeypatch.undo()
     checkpoints = tmp_path / "run" / "checkpoints"
     last = checkpoints / "last.ckpt"
@@ -351,7 +354,7 @@ def test_a_checkpoint_of_another_network_and_a_corrupt_index_are_one_line(shards
     """Issue 20.6: ckpt_path= a checkpoint of another model size (144 lines of traceback before), a shard folder
     whose index.json is corrupt (17 lines)."""
     with pytest.raises(TrainError) as error:
-        fit(_train_cfg(tmp_path, shards, shards, f"ckpt_path={checkpoint}", "model.pillar_channels=8"))
+        fit(train_cfg(tmp_path, shards, shards, f"ckpt_path={checkpoint}", "model.pillar_channels=8"))
     assert str(error.value) == (
         f"ckpt_path={checkpoint}: {checkpoint} holds another network: model.pillar_channels=16 (this run: 8); "
         "resume with the model settings it was trained with, or leave ckpt_path unset to start afresh"
@@ -360,7 +363,7 @@ def test_a_checkpoint_of_another_network_and_a_corrupt_index_are_one_line(shards
     shutil.copytree(shards, broken)
     (broken / "index.json").write_text('{"shards": [')
     with pytest.raises(TrainError) as error:
-        fit(_train_cfg(tmp_path, broken, shards, "trainer.fast_dev_run=true"))
+        fit(train_cfg(tmp_path, broken, shards, "trainer.fast_dev_run=true"))
     message = str(error.value)
     assert "\n" not in message and message.startswith(f"data.train: {broken / 'index.json'}: not a labelling index")
     assert message.endswith(f"rerun the label.py command that wrote it (same out_dir={broken}): it rebuilds the index")

@@ -36,6 +36,7 @@ from helpers.labelling import (
     TESTS_ENV,
     all_valid,
     assert_same,
+    default_sigint,
     label_cfg,
     label_script,
     read_samples,
@@ -131,12 +132,6 @@ def test_resume_after_sigkill_matches_uninterrupted_run(reference, tmp_path):
     assert_same(reference, tmp_path)
 
 
-def _default_sigint() -> None:
-    """In the child before exec: Ctrl-C back to its default, so the test does not depend on how pytest was started
-    (a shell starts background jobs with SIGINT ignored, and an ignored SIGINT stays ignored across exec)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
     process = subprocess.Popen(
         label_script(tmp_path, "workers=1"),
@@ -144,7 +139,7 @@ def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        preexec_fn=_default_sigint,
+        preexec_fn=default_sigint,
     )
     deadline = time.monotonic() + 120
     while not (tmp_path / "shard_000000.h5.json").exists() and process.poll() is None:
@@ -477,7 +472,7 @@ def test_ctrl_c_to_the_process_group_with_two_workers(reference, tmp_path):
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
-        preexec_fn=_default_sigint,
+        preexec_fn=default_sigint,
     )
     deadline = time.monotonic() + 120
     while not (tmp_path / "shard_000000.h5.json").exists() and process.poll() is None:

@@ -4,6 +4,7 @@ in this process or as a subprocess, and the checks of their output."""
 import json
 import os
 import re
+import signal
 import sys
 import time
 from pathlib import Path
@@ -73,6 +74,12 @@ def all_valid(out_dir) -> int:
         verify_shard(Path(out_dir) / shard["file"], index["config_hash"], len(shard["samples"]))
     assert not list(Path(out_dir).glob("shard_*.tmp-*"))
     return sum(len(shard["samples"]) for shard in index["shards"])
+
+
+def default_sigint() -> None:
+    """In a child before exec: Ctrl-C back to its default, so a test does not depend on how pytest was started
+    (a shell starts background jobs with SIGINT ignored, and an ignored SIGINT stays ignored across exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def running_in_group(group: int) -> list[int]:
