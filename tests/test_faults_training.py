@@ -77,8 +77,11 @@ def _no_temporary_files(folder: Path) -> bool:
 
 
 def _lines(err: str, prog: str) -> list[str]:
-    """The script's own lines on stderr (Lightning's and Hydra's info lines left out)."""
-    return [line for line in err.splitlines() if line.startswith(f"{prog}:")]
+    """The script's own lines on stderr (Lightning's and Hydra's info lines, and the line announcing a long step,
+    ``<prog>: exporting ...``, left out)."""
+    return [
+        line for line in err.splitlines() if line.startswith(f"{prog}:") and not line.startswith(f"{prog}: exporting")
+    ]
 
 
 def _state(checkpoint: Path) -> dict:
