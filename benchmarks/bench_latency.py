@@ -181,7 +181,7 @@ def main():
             for name, network in networks.items()
         }
         if "onnx" in networks:
-            predictor = Predictor(networks["onnx"], {}, "onnx")
+            predictor = Predictor(networks["onnx"], {"preprocessing": {"remove_ground": False}}, "onnx")
             calls["onnx Predictor call (+ ego compensation, ego flow)"] = lambda: predictor(pc0, pc1, ego)
         rows = list(timed(calls, args.runs, args.warmup).items())
     base = statistics.median(rows[0][1]) if "eager" in networks else None  # eager is the first row when timed

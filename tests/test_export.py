@@ -16,7 +16,6 @@ import torch
 
 from fastflow3d.artifact import FILE_NAMES, METADATA_NAME, ArtifactError, SingleSampleNet, sha256_file
 from fastflow3d.checkpoint import load_student
-from fastflow3d.data import TEACHER_FIELDS
 from fastflow3d.export import export_checkpoint, run_export
 from fastflow3d.infer import main as infer_main
 from fastflow3d.model import compensate
@@ -24,6 +23,7 @@ from fastflow3d.predictor import Predictor, PredictorError
 from icpflow import __version__
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, residual_to_full
+from icpflow.preprocess import Preprocessing
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.ego_motion import estimate_ego_motion
 from icpflow.teacher.ground import GroundSegmenter
@@ -198,15 +198,30 @@ def test_predictor_estimates_ego_motion_without_transform(export_dir, pairs, tea
     np.testing.assert_allclose(estimated.flow, given.flow, atol=1e-6, rtol=0)
 
 
+#: the ICPFlowConfig fields that checkpoints of older versions saved as ``data.teacher`` (before the typed block)
+LEGACY_TEACHER_FIELDS = (
+    "ground",
+    "sensor_height",
+    "patchwork_max_range",
+    "patchwork_z_offset",
+    "range_z",
+    "ground_slack",
+    "kiss_voxel_size",
+    "kiss_max_range",
+    "ego_refine_voxel",
+)
+
+
 @pytest.fixture(scope="module")
 def ground_checkpoint(checkpoint):
-    """The same trained weights in a checkpoint whose config says the network saw non-ground points only, with the
-    teacher settings of the synthetic dataset (a 1.9 m high sensor over a z = 0 ground)."""
+    """The same trained weights in a checkpoint of an older version whose config says the network saw non-ground
+    points only, with the teacher settings of the synthetic dataset (a 1.9 m high sensor over a z = 0 ground) as a
+    flat ``data.teacher`` dict (before the typed preprocessing block)."""
     teacher = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
     saved = torch.load(checkpoint, weights_only=True)
     saved["hyper_parameters"]["cfg"]["data"] = {
         "remove_ground": True,
-        "teacher": {key: getattr(teacher, key) for key in TEACHER_FIELDS},
+        "teacher": {key: getattr(teacher, key) for key in LEGACY_TEACHER_FIELDS},
     }
     path = checkpoint.parent / "ground" / "best.ckpt"
     path.parent.mkdir()
@@ -218,7 +233,8 @@ def test_ground_removal_model_sees_non_ground_points_only(ground_checkpoint, eag
     path, teacher = ground_checkpoint
     export_dir = export_checkpoint(path, formats=("pt2",))
     preprocessing = json.loads((export_dir / METADATA_NAME).read_text())["preprocessing"]
-    assert preprocessing["remove_ground"] is True and preprocessing["teacher"]["sensor_height"] == 1.9
+    assert preprocessing["remove_ground"] is True and preprocessing["ground"]["sensor_height"] == 1.9
+    assert preprocessing["frame"] == {"ground_z": 0.0} and preprocessing["version"] == 1
     pair = pairs[0]
     ground0, ground1 = GroundSegmenter(teacher)(pair.pc0), GroundSegmenter(teacher)(pair.pc1)
     assert 0.2 < ground0.mean() < 0.9 and 0.2 < ground1.mean() < 0.9
@@ -235,7 +251,7 @@ def test_ground_removal_model_sees_non_ground_points_only(ground_checkpoint, eag
     flow, valid = expected_flow(ground0, ground1)
     ego = ego_flow(pair.pc0, pair.ego1_from_ego0)
     for predictor in (Predictor.load(path), Predictor.load(export_dir)):
-        assert predictor.remove_ground and predictor.teacher == ICPFlowConfig(**preprocessing["teacher"])
+        assert predictor.remove_ground and predictor.preprocessing == Preprocessing.from_teacher(teacher)
         prediction = predictor.predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)  # masks computed as the teacher does
         assert np.array_equal(prediction.ground0, ground0) and np.array_equal(prediction.in_grid[~ground0], valid)
         assert not prediction.in_grid[ground0].any()

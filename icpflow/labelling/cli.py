@@ -21,6 +21,7 @@ from icpflow.labelling.run import (
     raise_terminated,
     run_labelling,
 )
+from icpflow.preprocess import Preprocessing
 from icpflow.shards.schema import COMPRESSIONS
 from icpflow.teacher.config import teacher_config
 
@@ -38,6 +39,7 @@ def labeller_yaml(cfg: DictConfig, teacher) -> str:
         "dataset": {"name": cfg.dataset.name, "root": dataset_root(cfg), "reader": reader},
         "split": cfg.split,
         "teacher": dataclasses.asdict(teacher),
+        "preprocessing": Preprocessing.from_teacher(teacher).to_dict(),  # what a student needs (icpflow.preprocess)
         "horizon": int(cfg.horizon),
         "tracker": bool(cfg.tracker),
         "shard_size": int(cfg.shard_size),
