@@ -22,7 +22,7 @@ Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FU
 scan1's frame), ``residual`` (ego-compensated), ``in_grid`` (the network predicted the point), ``ground0``
 (left out as ground), ``ego1_from_ego0``, ``ego_estimated``; a ``.npy`` output holds the flow alone. Errors are one
 line on stderr, exit status 2; a scan none of whose points the network sees (outside its grid), a frame converted
-without being told, or an implausible preprocessing (over 60 % ground, under 20 % of scan0 in the grid) gets a
+without being told, or an implausible preprocessing (over 85 % ground, under 20 % of scan0 in the grid) gets a
 one-line warning.
 """
 

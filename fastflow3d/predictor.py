@@ -23,7 +23,7 @@ its metadata or checkpoint): the height frame, the ground and the ego-motion set
   each scan: the masks passed in (``ground0``, ``ground1``) or, without them, those of
   ``icpflow.teacher.ground.GroundSegmenter`` with the saved settings on the lifted scans; ground pc0 points get the
   ego flow.
-* Plausibility: more than 60 % of pc0 called ground, or under 20 % of pc0 inside the network's grid, gives a
+* Plausibility: more than 85 % of pc0 called ground, or under 20 % of pc0 inside the network's grid, gives a
   one-line :class:`PredictorWarning` (a wrong frame or settings).
 
 A bare ``.onnx`` / ``.pt2`` / ``.pt`` without its ``metadata.json`` carries none of this: it is refused unless

@@ -34,7 +34,9 @@ FRAME_DESCRIPTION = (
 FRAME_TOLERANCE = 0.5
 #: Plausibility of the preprocessing of one scan (Predictor, fastflow3d-infer): more ground than this, or fewer of
 #: the points inside the network's grid, and the result is suspect (a wrong frame or settings; warned in one line).
-MAX_GROUND_FRACTION = 0.6
+#: Not 60 %: SemanticKITTI labels 68 % of the points of sequence 01 (a highway through fields) as ground, and the
+#: synthetic settings in the right frame call 78.5 % ground there, against 91.8 % in the wrong (velodyne) frame.
+MAX_GROUND_FRACTION = 0.85
 MIN_GRID_FRACTION = 0.2
 
 
