@@ -12,7 +12,8 @@ point static) it prints:
    ``dataset=sequence`` (the folder reader's estimated lift and its teacher, as ``label.py dataset=sequence``);
 2. the static EPE (mean over the non-car, non-ground points within 32 m, against the exact poses) of the teacher
    with and without poses and, with ``--export``, of a student through the ``Predictor`` with the raw velodyne frame
-   (``sensor_height=0``: the frame mismatch before) and with the default frame check, without poses;
+   (``sensor_height=0``: the frame mismatch before) and with the default frame check, without poses, and told the
+   height with the exact poses (what is left is the network's);
 3. with ``--shards`` (a ``label.py dataset=sequence`` out_dir of these frames without poses), the same scores of
    the stored labels.
 """
@@ -83,11 +84,13 @@ def static_points(data, frame: int) -> np.ndarray:
     return inside & (labels != CAR) & ~np.isin(labels, GROUND_CLASSES)
 
 
-def static_epe(flow: np.ndarray, data, frame: int) -> float:
+def static_epe(flow: np.ndarray, data, frame: int, among: np.ndarray | None = None) -> float:
+    """Mean EPE (m) over the static non-ground points within the crop (and ``among``, e.g. the student's in-grid
+    points: those the network predicted)."""
     pc0 = data[f"points{frame}"].astype(np.float32)
     truth = ego_flow(pc0, relative_transform(data["velo_poses_world"][frame], data["velo_poses_world"][frame + 1]))
-    keep = static_points(data, frame)
-    return float(np.linalg.norm(flow[keep] - truth[keep], axis=1).mean())
+    keep = static_points(data, frame) & (True if among is None else among)
+    return float(np.linalg.norm(flow[keep] - truth[keep], axis=1).mean()) if keep.any() else float("nan")
 
 
 def flow_table(data, export: Path | None, shards: Path | None) -> None:
@@ -100,30 +103,39 @@ def flow_table(data, export: Path | None, shards: Path | None) -> None:
         tic = time.perf_counter()
         result = kitti(pc0, pc1, lift_transform(truth, 1.73))
         rows.setdefault("teacher, dataset=kitti, exact poses", []).append(
-            (static_epe(result.flow, data, frame), result.ground0.mean(), time.perf_counter() - tic)
+            (static_epe(result.flow, data, frame), float("nan"), 0, result.ground0.mean(), time.perf_counter() - tic)
         )
         tic = time.perf_counter()
         raw0, raw1 = (lift_points(data[f"points{k}"].astype(np.float32), lift) for k in (frame, frame + 1))
         result = sequence(raw0, raw1)
         rows.setdefault("teacher, dataset=sequence, no poses (KISS-ICP)", []).append(
-            (static_epe(result.flow, data, frame), result.ground0.mean(), time.perf_counter() - tic)
+            (static_epe(result.flow, data, frame), float("nan"), 0, result.ground0.mean(), time.perf_counter() - tic)
         )
     if export is not None:
         from fastflow3d.predictor import Predictor
 
-        for name, height in (("raw velodyne frame, sensor_height=0 (before)", 0.0), ("default frame check", None)):
+        variants = (
+            ("raw velodyne frame, sensor_height=0 (before), no poses", 0.0, False),
+            ("default frame check, no poses", None, False),
+            ("sensor_height=1.73, exact poses", 1.73, True),
+        )
+        for name, height, given in variants:
             predictor = Predictor.load(export, sensor_height=height)
             for frame in range(2):
                 pc0, pc1 = (data[f"points{k}"].astype(np.float32) for k in (frame, frame + 1))
+                poses = data["velo_poses_world"]
+                ego = relative_transform(poses[frame], poses[frame + 1]) if given else None
                 tic = time.perf_counter()
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always")
-                    prediction = predictor.predict(pc0, pc1)
+                    prediction = predictor.predict(pc0, pc1, ego)
                 for warning in caught:
                     print(f"  ({name}, frame {frame}) warning: {warning.message}")
-                rows.setdefault(f"student {export.parent.name}, {name}, no poses", []).append(
+                rows.setdefault(f"student, {name}", []).append(
                     (
                         static_epe(prediction.flow, data, frame),
+                        static_epe(prediction.flow, data, frame, prediction.in_grid),
+                        int((static_points(data, frame) & prediction.in_grid).sum()),
                         prediction.ground0.mean(),
                         time.perf_counter() - tic,
                     )
@@ -135,14 +147,14 @@ def flow_table(data, export: Path | None, shards: Path | None) -> None:
         for frame in range(min(2, len(stored))):
             sample = stored[frame]
             rows.setdefault(f"label.py dataset=sequence shards ({shards.name}), no poses", []).append(
-                (static_epe(sample["flow"], data, frame), sample["ground0"].mean(), float("nan"))
+                (static_epe(sample["flow"], data, frame), float("nan"), 0, sample["ground0"].mean(), float("nan"))
             )
     print(f"\nStatic EPE on KITTI seq 01 pairs 0->1, 1->2 (non-car, non-ground points within {CROP:g} m, exact poses)")
-    print("| method | static EPE (m) | ground fraction | s/pair |")
-    print("|---|---|---|---|")
+    print("| method | static EPE (m) | static EPE of the points the network predicted (m, count) | ground | s/pair |")
+    print("|---|---|---|---|---|")
     for name, values in rows.items():
-        epe, ground, seconds = np.mean(values, axis=0)
-        print(f"| {name} | {epe:.3f} | {ground:.1%} | {seconds:.1f} |")
+        epe, in_grid, count, ground, seconds = np.mean(values, axis=0)
+        print(f"| {name} | {epe:.3f} | {in_grid:.3f} ({count:.0f}) | {ground:.1%} | {seconds:.1f} |")
 
 
 def main() -> None:

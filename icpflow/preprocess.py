@@ -59,7 +59,7 @@ class HeightFrame:
     ground_z: float = 0.0
 
     def __post_init__(self):
-        object.__setattr__(self, "ground_z", round(_number("frame.ground_z", self.ground_z), 6))
+        object.__setattr__(self, "ground_z", round(_number("frame.ground_z", self.ground_z), 6) + 0.0)  # no -0.0
 
 
 @dataclass(frozen=True)
@@ -124,7 +124,7 @@ class Preprocessing:
     @property
     def patchwork_z_offset(self) -> float:
         """Added to z before Patchwork++, so that the frame's ground sits at -sensor_height."""
-        return round(-(self.ground.sensor_height + self.frame.ground_z), 6)
+        return round(-(self.ground.sensor_height + self.frame.ground_z), 6) + 0.0
 
     # ------------------------------------------------------------------------------------ the teacher's config
     @classmethod
