@@ -126,14 +126,14 @@ class Predictor:
         writes it (its ``preprocessing`` says whether to remove ground, the height frame and the settings);
         ``ego_config`` the ego-motion settings (``icpflow.preprocess.EgoMotionSettings`` or a teacher config;
         default: those saved with the model); ``sensor_height``: None, ``"auto"`` or metres (module docstring)."""
-        if "preprocessing" not in metadata:
-            raise PredictorError(
-                "model metadata has no 'preprocessing' entry (ground removal, height frame); pass preprocessing="
-            )
+        if not metadata:
+            raise PredictorError("no model metadata: its preprocessing (ground removal, height frame) is unknown")
+        # exports older than ground removal have no preprocessing entry: they were trained on every point
+        preprocessing = metadata.get("preprocessing", {"remove_ground": False})
         if not (sensor_height is None or sensor_height == "auto" or _is_number(sensor_height)):
             raise PredictorError(f"sensor_height={sensor_height!r} must be None, 'auto' or metres above the ground")
         self.network, self.metadata, self.backend = network, metadata, backend
-        self.remove_ground, self.preprocessing = read_preprocessing(metadata["preprocessing"])
+        self.remove_ground, self.preprocessing = read_preprocessing(preprocessing)
         self.ego_config = self.preprocessing.ego_motion if ego_config is None else ego_config
         self.sensor_height = sensor_height if sensor_height in (None, "auto") else float(sensor_height)
         self._segmenter = None

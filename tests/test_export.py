@@ -458,6 +458,11 @@ def test_older_export_metadata_still_loads(ground_checkpoint, ground_export, pai
     (current / METADATA_NAME).write_text(json.dumps(metadata))
     old = Predictor.load(current)
     assert old.remove_ground and old.preprocessing == Preprocessing.from_teacher(teacher)
+    # exports older than ground removal had no preprocessing entry: every point, the synthetic frame
+    oldest = Predictor(old.network, {key: value for key, value in metadata.items() if key != "preprocessing"}, "pt2")
+    assert not oldest.remove_ground and oldest.preprocessing.frame.ground_z == 0.0
+    with pytest.raises(PredictorError, match="no model metadata"):
+        Predictor(old.network, {}, "pt2")
     assert old.preprocessing.frame.ground_z == 0.0 and old.preprocessing.patchwork_z_offset == -1.9
     pair = pairs[0]
     new = Predictor.load(path).predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
