@@ -99,6 +99,7 @@ def test_auto_sensor_height_lifts_any_mounting_onto_the_ground(tmp_path, height)
     np.savetxt(tmp_path / "poses.txt", POSES[:3, :3].reshape(3, 12))
     dataset = ScanSequenceDataset(tmp_path)
     assert dataset.lift() == pytest.approx(height, abs=0.05)
+    assert ScanSequenceDataset(tmp_path, sensor_height="auto").lift() == dataset.lift()
     pair = dataset.pair(1)
     road = np.abs(street(height, 1)[:, 2] + height) < 0.1
     assert abs(np.median(pair.pc0[road, 2])) < 0.05
@@ -107,6 +108,15 @@ def test_auto_sensor_height_lifts_any_mounting_onto_the_ground(tmp_path, height)
     point = np.array([[4.0, -2.0, 0.3]])
     world0 = transform_points(pair.pose0, point)
     np.testing.assert_allclose(world0, transform_points(POSES[1], point - [0, 0, dataset.lift()]), atol=1e-9)
+
+
+def test_scans_already_in_the_height_frame_stay(tmp_path):
+    """A ground found within 0.5 m of z = 0 (an ego frame on the ground) means no lift: the scans are read as is."""
+    for index in range(2):
+        np.save(tmp_path / f"{index}.npy", street(-0.3, index))  # the road 0.3 m above the origin
+    dataset = ScanSequenceDataset(tmp_path)
+    assert dataset.lift() == 0.0
+    np.testing.assert_array_equal(dataset.pair(0).pc0, street(-0.3, 0))
 
 
 @pytest.mark.skipif(not SCANS.is_dir(), reason=f"real KITTI scans absent: {SCANS}")

@@ -10,7 +10,8 @@ exists: one pose per scan, world_from_sensor, as 12 values a line (row-major 3 x
 What a pair holds: ``pc0``/``pc1`` (N, 3) float32 in the project's height frame (``icpflow.preprocess``: origin on
 the ground below the sensor, ground near z = 0): every scan is lifted by ``sensor_height`` m, a number (the
 sensor's height above the ground; 0 for scans already in such an ego frame) or ``auto`` (estimated once per
-folder from the first scan by ``icpflow.preprocess.estimate_ground_height``, whatever the mounting height); with
+folder from the first scan by ``icpflow.preprocess.estimate_ground_height``, whatever the mounting height; a ground
+found within 0.5 m of z = 0 means the scans are in the height frame already and stay as they are); with
 poses, ``pose0``/``pose1`` (lowered onto that origin) and hence ``ego1_from_ego0``; without, None (the teacher
 estimates ego motion with KISS-ICP). No ground truth. ``dt`` = horizon / ``frequency_hz``. Samples are the scans t
 for which t + ``max_horizon`` exists.
@@ -25,7 +26,7 @@ import numpy as np
 from icpflow.datasets.base import PairDataset
 from icpflow.datasets.io import SCAN_SUFFIXES, fail, natural_key, read_poses, read_scan
 from icpflow.frames import FramePair
-from icpflow.preprocess import estimate_ground_height, lift_points, lift_pose
+from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points, lift_pose
 
 
 class ScanSequenceDataset(PairDataset):
@@ -67,11 +68,13 @@ class ScanSequenceDataset(PairDataset):
 
     def lift(self) -> float:
         """Metres every scan is raised by (module docstring); ``auto``: minus the ground height found below the
-        sensor in the first scan (0 where it finds none)."""
+        sensor in the first scan (0 where it finds none or finds it within 0.5 m of z = 0: scans already in the
+        height frame are left as they are)."""
         if self._lift is None:
             if self.sensor_height == "auto":
                 ground = estimate_ground_height(read_scan(self.scans[0], self.bin_columns))
-                self._lift = 0.0 if ground is None else -ground
+                near = ground is None or abs(ground) <= FRAME_TOLERANCE  # already in the height frame
+                self._lift = 0.0 if near else -ground
             else:
                 self._lift = float(self.sensor_height)
         return self._lift
