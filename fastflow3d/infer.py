@@ -175,12 +175,15 @@ def infer(args) -> tuple[Path, Path | None]:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PredictorWarning)
         prediction = predictor.predict(pc0, pc1, ego)
+    nothing_seen = not prediction.in_grid.any()  # said below, more precisely than the implausible-grid warning
     for warning in caught:
         if issubclass(warning.category, PredictorWarning):
-            print(f"infer: warning: {str(warning.message).removeprefix('Predictor: ')}", file=sys.stderr)
+            message = str(warning.message)
+            if not (nothing_seen and message.startswith("Predictor: implausible")):
+                print(f"infer: warning: {message.removeprefix('Predictor: ')}", file=sys.stderr)
         else:
             warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
-    if not prediction.in_grid.any():
+    if nothing_seen:
         print(
             f"infer: warning: no point of {args.scan0} lies inside the model's grid (nor is it kept as non-ground): "
             "its flow is the ego motion only; are the scans in metres, in the sensor's frame?",
