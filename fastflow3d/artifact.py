@@ -15,8 +15,9 @@ The network of every format is :class:`SingleSampleNet`:
   (0 outside), and ``valid`` (N0,) bool, True for points inside the grid.
 
 ``metadata.json`` (:func:`network_metadata`) holds the grid, model settings, preprocessing (ground removal and the
-teacher's ground and ego-motion settings), conventions, versions, the source checkpoint's hash, and (``files``) the
-name and hash of each exported file with the parity measured at export. ``fastflow3d.export`` writes artifacts,
+typed block of ``icpflow.preprocess``: the height frame, the ground and ego-motion settings), conventions,
+versions, the source checkpoint's hash, and (``files``) the name and hash of each exported file with the parity
+measured at export. ``fastflow3d.export`` writes artifacts,
 ``fastflow3d.predictor`` runs them.
 """
 
@@ -37,6 +38,7 @@ from torch.export.passes import move_to_device_pass
 import icpflow
 from fastflow3d.model import FastFlow3D
 from icpflow.atomic import atomic_path, write_text_atomic
+from icpflow.preprocess import Preprocessing, PreprocessingError
 
 FORMATS = ("onnx", "pt2")  # what an export writes
 LEGACY_FORMATS = ("torchscript",)  # read only: exports of older versions
@@ -104,17 +106,31 @@ def grid_metadata(model: FastFlow3D) -> dict:
 
 def preprocessing_metadata(cfg: dict) -> dict:
     """What runs before the network, from a training config: ``remove_ground`` (the network was trained on, and
-    takes, non-ground points only) and ``teacher`` (ICPFlowConfig fields for the ground masks and the ego motion of
-    raw scans, ``fastflow3d.data.TEACHER_FIELDS``; None = ``ICPFlowConfig()``'s). A config without ``data`` (a
-    checkpoint from before ground removal) means all points and default settings."""
+    takes, non-ground points only) and the typed block of ``icpflow.preprocess.Preprocessing`` (``version``,
+    ``frame``: where the ground sits in the frame the network saw, ``ground``, ``ego_motion``), from the config's
+    ``data.preprocessing`` or, in checkpoints of older versions, its ``data.teacher`` fields. A config without
+    ``data`` (a checkpoint from before ground removal) means all points and default settings."""
     data = cfg.get("data") or {}
+    block = data["preprocessing"] if data.get("preprocessing") is not None else data.get("teacher")
     return {
         "remove_ground": bool(data.get("remove_ground", False)),
-        "teacher": data.get("teacher"),
-        "note": "with remove_ground, the inputs are the non-ground points of each scan (ground masks by "
-        "icpflow.teacher.ground.GroundSegmenter with these teacher fields, or given); ground pc0 points "
-        "get the ego flow",
+        **Preprocessing.from_dict(block).to_dict(),
+        "note": "inputs are in the height frame (ground near frame.ground_z; a scan in another frame is lifted "
+        "first); with remove_ground, the network gets the non-ground points of each scan (ground masks by "
+        "icpflow.teacher.ground.GroundSegmenter with these settings, or given); ground pc0 points get the ego flow",
     }
+
+
+def read_preprocessing(preprocessing: dict) -> tuple[bool, Preprocessing]:
+    """``(remove_ground, Preprocessing)`` of a metadata ``preprocessing`` entry, this version's or an older one
+    (``{"remove_ground", "teacher": ICPFlowConfig fields or None}``). Raises ArtifactError (one line)."""
+    if not isinstance(preprocessing, dict):
+        raise ArtifactError(f"metadata: preprocessing must be a mapping, got {type(preprocessing).__name__}")
+    block = preprocessing if "version" in preprocessing else preprocessing.get("teacher")
+    try:
+        return bool(preprocessing.get("remove_ground", False)), Preprocessing.from_dict(block)
+    except (PreprocessingError, ValueError) as error:
+        raise ArtifactError(f"metadata: preprocessing: {' '.join(str(error).split())}") from None
 
 
 def network_metadata(

@@ -32,23 +32,12 @@ from torch.utils.data import DataLoader, Dataset
 from fastflow3d.augment import Augmentation
 from fastflow3d.model import compensate
 from icpflow.geometry import full_to_residual
+from icpflow.preprocess import Preprocessing
 from icpflow.shards.reader import ShardDataset
 
 GT_KEYS = ("gt", "gt_valid", "gt_classes")
 PER_POINT0 = ("pc0", "pc0_compensated", "ground0", "pseudo", "confidence", "cluster", *GT_KEYS)
 PER_POINT1 = ("pc1", "ground1")
-#: ICPFlowConfig fields the student needs at inference: ground masks (``icpflow.teacher.ground``) and ego motion
-TEACHER_FIELDS = (
-    "ground",
-    "sensor_height",
-    "patchwork_max_range",
-    "patchwork_z_offset",
-    "range_z",
-    "ground_slack",
-    "kiss_voxel_size",
-    "kiss_max_range",
-    "ego_refine_voxel",
-)
 
 
 class DataError(ValueError):
@@ -125,15 +114,18 @@ def split_samples(batch: dict, key: str = "batch0") -> list[slice]:
     return [slice(end - count, end) for count, end in zip(counts, ends)]
 
 
-def labeller_teacher(shard_dir) -> dict | None:
-    """The teacher settings (ICPFlowConfig fields, dict) that labelled ``shard_dir``: the ``teacher`` block of its
-    first shard's ``config`` attribute (``label.py``'s labeller config); None when the shard has none."""
+def labeller_preprocessing(shard_dir) -> Preprocessing | None:
+    """The preprocessing (height frame, ground and ego-motion settings, ``icpflow.preprocess``) of the teacher that
+    labelled ``shard_dir``: the ``preprocessing`` block of its first shard's ``config`` attribute (``label.py``'s
+    labeller config) or, for shards of older versions, the block that its ``teacher`` fields give; None when the
+    shard has neither."""
     shards = StudentDataset(shard_dir).shards
     with h5py.File(shards.root / shards.entries[0][0], "r") as handle:
         text = handle.attrs.get("config")
     content = yaml.safe_load(text) if isinstance(text, str) else None
-    teacher = content.get("teacher") if isinstance(content, dict) else None
-    return teacher if isinstance(teacher, dict) else None
+    content = content if isinstance(content, dict) else {}
+    block = content.get("preprocessing", content.get("teacher"))
+    return Preprocessing.from_dict(block) if isinstance(block, dict) else None
 
 
 class ShardDataModule(L.LightningDataModule):

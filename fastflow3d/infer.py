@@ -1,8 +1,9 @@
 """Scene flow of two raw scan files with a trained FastFlow3D; writes the flow and a bird's-eye-view PNG.
 
     python -m fastflow3d.infer MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
-        [--bev FILE.png | --no-bev] [--rerun FILE.rrd] [--bin-columns N] [--backend onnx|pt2|torchscript] [--device cpu]
-        [--runtime onnxruntime|openvino] [--threads N]
+        [--bev FILE.png | --no-bev] [--rerun FILE.rrd] [--bin-columns N] [--backend onnx|pt2|torchscript]
+        [--device cpu] [--runtime onnxruntime|openvino] [--threads N] [--sensor-height METRES|auto]
+        [--metadata FILE | --remove-ground yes|no]
 
 MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz``
 (array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
@@ -11,18 +12,26 @@ in the sensor's own frame (``icpflow.frames.check_points``: a transposed (3, N) 
 ``--poses`` (two world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a
 (2, 4, 4) ``.npy``), ``--ego`` (one (4, 4) ``ego1_from_ego0``: 12 or 16 values, or a ``.npy``), or neither
 (estimated by KISS-ICP).
-A model trained with ground removal gets the non-ground points of each scan, found with the teacher's ground
-segmentation and the settings saved with the model (``fastflow3d.predictor``); ground points of scan0 move with the
-ego motion. Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow``
-is in scan1's frame), ``residual`` (ego-compensated), ``in_grid`` (the network predicted the point), ``ground0``
+Height frame (``fastflow3d.predictor``): ``--sensor-height H`` says the scans' origin is H m above the ground
+(1.73 for KITTI's velodyne frame), ``auto`` estimates it from scan0; without it, scans whose ground lies more than
+0.5 m from where the model's frame has it are lifted into that frame with a warning. A model trained with ground
+removal gets the non-ground points of each scan, found with the teacher's ground segmentation and the settings
+saved with the model; ground points of scan0 move with the ego motion. A bare ``.onnx`` / ``.pt2`` without its
+``metadata.json`` is refused unless ``--metadata FILE`` (an export's metadata.json) or ``--remove-ground yes|no``
+(the synthetic frame and settings, with or without ground removal) says how it was trained.
+Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow`` is in
+scan1's frame), ``residual`` (ego-compensated), ``in_grid`` (the network predicted the point), ``ground0``
 (left out as ground), ``ego1_from_ego0``, ``ego_estimated``; a ``.npy`` output holds the flow alone. Errors are one
-line on stderr, exit status 2; a scan none of whose points the network sees (outside its grid) gets a warning.
+line on stderr, exit status 2; a scan none of whose points the network sees (outside its grid), a frame converted
+without being told, or an implausible preprocessing (over 85 % ground, under 20 % of scan0 in the grid) gets a
+one-line warning.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -109,12 +118,49 @@ def parse_args(argv):
         "--runtime", choices=("onnxruntime", "openvino"), help="CPU engine for the ONNX file (fastflow3d.runtime)"
     )
     parser.add_argument("--threads", type=int, help="inference threads of --runtime (default: the usable cores)")
+    parser.add_argument(
+        "--sensor-height",
+        type=sensor_height,
+        metavar="METRES|auto",
+        help="height of the scans' origin above the ground (1.73: KITTI velodyne), or auto (estimated from scan0)",
+    )
+    bare = parser.add_mutually_exclusive_group()
+    bare.add_argument("--metadata", type=Path, help="metadata.json of a bare .onnx/.pt2 (its preprocessing)")
+    bare.add_argument(
+        "--remove-ground",
+        choices=("yes", "no"),
+        help="for a bare .onnx/.pt2 without metadata: trained on non-ground points (yes) or on all (no)",
+    )
     return parser.parse_args(argv)
+
+
+def sensor_height(text: str):
+    """``--sensor-height``: ``auto`` or metres >= 0."""
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is neither metres nor 'auto'") from None
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: the height above the ground must be >= 0")
+    return value
+
+
+def given_preprocessing(args):
+    """What ``--metadata`` / ``--remove-ground`` say about a bare exported file (None: nothing)."""
+    from icpflow.preprocess import Preprocessing
+
+    if args.metadata is not None:
+        return args.metadata
+    if args.remove_ground is not None:
+        return {"remove_ground": args.remove_ground == "yes", **Preprocessing().to_dict()}
+    return None
 
 
 def infer(args) -> tuple[Path, Path | None]:
     """Read, predict, write; returns the flow path and the picture path (or None)."""
-    from fastflow3d.predictor import Predictor
+    from fastflow3d.predictor import Predictor, PredictorWarning
     from icpflow.viz import plot_bev
 
     out = args.out or Path("outputs/infer") / f"{args.scan0.stem}_flow.npz"
@@ -128,10 +174,26 @@ def infer(args) -> tuple[Path, Path | None]:
     elif args.ego is not None:
         ego = read_transforms(args.ego, 1)[0]
     predictor = Predictor.load(
-        args.model, backend=args.backend, device=args.device, runtime=args.runtime, threads=args.threads
+        args.model,
+        backend=args.backend,
+        device=args.device,
+        runtime=args.runtime,
+        threads=args.threads,
+        sensor_height=args.sensor_height,
+        preprocessing=given_preprocessing(args),
     )
-    prediction = predictor.predict(pc0, pc1, ego)
-    if not prediction.in_grid.any():
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PredictorWarning)
+        prediction = predictor.predict(pc0, pc1, ego)
+    nothing_seen = not prediction.in_grid.any()  # said below, more precisely than the implausible-grid warning
+    for warning in caught:
+        if issubclass(warning.category, PredictorWarning):
+            message = str(warning.message)
+            if not (nothing_seen and message.startswith("Predictor: implausible")):
+                print(f"infer: warning: {message.removeprefix('Predictor: ')}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
+    if nothing_seen:
         print(
             f"infer: warning: no point of {args.scan0} lies inside the model's grid (nor is it kept as non-ground): "
             "its flow is the ego motion only; are the scans in metres, in the sensor's frame?",

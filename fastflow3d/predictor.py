@@ -6,20 +6,36 @@
 moves pc0 into the ego frame of t + dt with ``ego1_from_ego0``, runs the network, which gives the residual
 (ego-compensated) flow, and adds the ego flow back, so the result is FULL flow in the project convention
 (``pc0 + flow`` is the position at t + dt in the ego frame of t + dt). Points outside the network's grid get the ego
-flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the
-two scans with the teacher's step (KISS-ICP, then point-to-plane refinement; ``icpflow.teacher.ego_motion``).
+flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the two scans with the teacher's step
+(KISS-ICP, then point-to-plane refinement; ``icpflow.teacher.ego_motion``).
 
-A model trained with ground removal (``preprocessing.remove_ground`` in its metadata, ``data.remove_ground`` in its
-checkpoint's config) sees only the non-ground points of each scan: the masks passed in (``ground0``, ``ground1``) or,
-without them, those of ``icpflow.teacher.ground.GroundSegmenter`` on the raw scans with the teacher settings saved
-with the model; ground pc0 points get the ego flow. The teacher settings saved with the model (or ``ICPFlowConfig()``
-for a model without them) also drive the ego-motion estimate. A bare ``.onnx`` / ``.pt2`` / ``.pt`` without its
-``metadata.json`` carries none of this: it is run on every point.
+What runs before the network is the model's preprocessing block (``icpflow.preprocess.Preprocessing``, saved in
+its metadata or checkpoint): the height frame, the ground and the ego-motion settings.
+
+* Height frame: the network saw points with the ground near ``frame.ground_z`` (0: ego origin on the ground).
+  ``sensor_height`` says where the scans' origin is: a number h (the origin is h m above the ground, e.g. 1.73 for
+  KITTI's velodyne frame: both scans are lifted by ``ground_z + h``), ``"auto"`` (lifted so that the ground that
+  ``icpflow.preprocess.estimate_ground_height`` finds below the sensor of pc0 sits at ``ground_z``), or None (the
+  default: the scans should be in the model's frame; when the ground of pc0 lies more than 0.5 m from
+  ``ground_z`` they are lifted as with ``"auto"`` and a :class:`PredictorWarning` says so). A common lift changes
+  no flow vector; the ego motion given or returned is in the scans' own frame.
+* Ground: a model trained with ground removal (``preprocessing.remove_ground``) sees only the non-ground points of
+  each scan: the masks passed in (``ground0``, ``ground1``) or, without them, those of
+  ``icpflow.teacher.ground.GroundSegmenter`` with the saved settings on the lifted scans; ground pc0 points get the
+  ego flow.
+* Plausibility: more than 85 % of pc0 called ground, or under 20 % of pc0 inside the network's grid, gives a
+  one-line :class:`PredictorWarning` (a wrong frame or settings).
+
+A bare ``.onnx`` / ``.pt2`` / ``.pt`` without its ``metadata.json`` carries none of this: it is refused unless
+``preprocessing=`` says what the metadata would have said (a ``metadata.json``, its ``preprocessing`` entry, or
+``{"remove_ground": false}`` to run it on every point in the synthetic frame).
 """
 
 from __future__ import annotations
 
+import json
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,11 +55,19 @@ from fastflow3d.artifact import (
     network_metadata,
     preprocessing_metadata,
     read_metadata,
+    read_preprocessing,
     sibling_metadata,
 )
 from fastflow3d.model import compensate
 from icpflow.frames import FramePairError, check_points
 from icpflow.geometry import residual_to_full, rigid_problem
+from icpflow.preprocess import (
+    FRAME_TOLERANCE,
+    estimate_ground_height,
+    implausible,
+    lift_points,
+    lift_transform,
+)
 
 
 def _network(file: Path, kind: str, device: str):
@@ -61,12 +85,18 @@ class PredictorError(ArtifactError):
     """A model that cannot be used or inputs that cannot be used. The message is one line and names the cause."""
 
 
+class PredictorWarning(UserWarning):
+    """The scans were converted into the model's height frame without being told, or their preprocessing looks
+    implausible (module docstring). One line."""
+
+
 @dataclass(frozen=True)
 class Prediction:
     """One pair's result. ``flow`` (N0, 3) float32 FULL flow; ``residual`` (N0, 3) float32 ego-compensated flow (0
     where the network did not predict); ``in_grid`` (N0,) bool: the network predicted the point (inside the grid and
     not left out as ground); ``ground0`` (N0,) bool: left out as ground (all False for a model that sees ground);
-    ``ego1_from_ego0`` (4, 4) float64 used (given or estimated)."""
+    ``ego1_from_ego0`` (4, 4) float64 used (given or estimated), in the scans' own frame; ``lift`` (m): how far both
+    scans were raised into the model's height frame (0: they were in it)."""
 
     flow: np.ndarray
     residual: np.ndarray
@@ -74,6 +104,7 @@ class Prediction:
     ground0: np.ndarray
     ego1_from_ego0: np.ndarray
     ego_estimated: bool
+    lift: float = 0.0
 
 
 def as_points(name: str, values) -> np.ndarray:
@@ -85,27 +116,37 @@ def as_points(name: str, values) -> np.ndarray:
         raise PredictorError(str(error)) from None
 
 
+def preprocessing_entry(given) -> dict:
+    """A metadata ``preprocessing`` entry from what a user passes for a bare file: such a dict, a whole metadata
+    dict, or the path of a JSON file holding either."""
+    if isinstance(given, (str, os.PathLike)):
+        try:
+            given = json.loads(Path(given).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise PredictorError(f"{given}: cannot read preprocessing: {' '.join(str(error).split())}") from None
+    if not isinstance(given, dict):
+        raise PredictorError(f"preprocessing must be a dict or a JSON file, got {type(given).__name__}")
+    return given.get("preprocessing", given) if "files" in given or "grid" in given else given
+
+
 class Predictor:
     """A FastFlow3D network behind the project's conventions (see the module docstring)."""
 
-    def __init__(self, network, metadata: dict, backend: str, ego_config=None):
+    def __init__(self, network, metadata: dict, backend: str, ego_config=None, sensor_height=None):
         """``network(pc0_compensated, pc1) -> (residual, valid)`` on float32 numpy arrays; ``metadata`` as an export
-        writes it (its ``preprocessing`` says whether to remove ground and with which teacher settings);
-        ``ego_config`` an ICPFlowConfig for the ego motion (``kiss_voxel_size``, ``kiss_max_range``,
-        ``ego_refine_voxel``; default: the teacher settings saved with the model)."""
-        from icpflow.teacher.config import ICPFlowConfig
-
+        writes it (its ``preprocessing`` says whether to remove ground, the height frame and the settings);
+        ``ego_config`` the ego-motion settings (``icpflow.preprocess.EgoMotionSettings`` or a teacher config;
+        default: those saved with the model); ``sensor_height``: None, ``"auto"`` or metres (module docstring)."""
+        if not metadata:
+            raise PredictorError("no model metadata: its preprocessing (ground removal, height frame) is unknown")
+        # exports older than ground removal have no preprocessing entry: they were trained on every point
+        preprocessing = metadata.get("preprocessing", {"remove_ground": False})
+        if not (sensor_height is None or sensor_height == "auto" or _is_number(sensor_height)):
+            raise PredictorError(f"sensor_height={sensor_height!r} must be None, 'auto' or metres above the ground")
         self.network, self.metadata, self.backend = network, metadata, backend
-        preprocessing = metadata.get("preprocessing") or {}
-        self.remove_ground = bool(preprocessing.get("remove_ground", False))
-        try:
-            self.teacher = ICPFlowConfig(**(preprocessing.get("teacher") or {}))
-        except (TypeError, ValueError) as error:
-            raise PredictorError(
-                f"model metadata: preprocessing.teacher is not a set of ICPFlowConfig fields "
-                f"({' '.join(str(error).split())})"
-            ) from None
-        self.ego_config = self.teacher if ego_config is None else ego_config
+        self.remove_ground, self.preprocessing = read_preprocessing(preprocessing)
+        self.ego_config = self.preprocessing.ego_motion if ego_config is None else ego_config
+        self.sensor_height = sensor_height if sensor_height in (None, "auto") else float(sensor_height)
         self._segmenter = None
 
     @classmethod
@@ -118,6 +159,8 @@ class Predictor:
         runtime: str | None = None,
         threads: int | None = None,
         precision: str = "f32",
+        sensor_height=None,
+        preprocessing=None,
     ) -> Predictor:
         """From an export directory, a ``.onnx``, a ``.pt2``, a legacy ``.pt`` (TorchScript) or a ``.ckpt``.
 
@@ -126,6 +169,8 @@ class Predictor:
         PyTorch formats and checkpoints; ONNX Runtime uses CUDA when its CUDA provider is installed, else the CPU.
         ``runtime`` (``onnxruntime`` or ``openvino``), ``threads`` and ``precision`` (``f32``, ``bf16`` with
         OpenVINO) run the ONNX file on the CPU as ``fastflow3d.runtime`` tunes it.
+        ``sensor_height``: see the module docstring. ``preprocessing`` (a ``metadata.json`` path, a metadata dict or
+        its ``preprocessing`` entry) replaces the saved one; a bare exported file without its metadata needs it.
         Raises :class:`ArtifactError` (one line) for a path that is not a readable artifact.
         """
         path = Path(path)
@@ -139,28 +184,41 @@ class Predictor:
                 file, metadata = path, sibling_metadata(path, "onnx")
             else:
                 raise PredictorError(f"{path}: runtime {runtime!r} needs an export directory with ONNX or a .onnx")
-            return cls(runtime_network(file, runtime, threads, precision), metadata, runtime, ego_config)
-        if path.is_dir():
+            network, kind = runtime_network(file, runtime, threads, precision), runtime
+        elif path.is_dir():
             metadata = read_metadata(path / METADATA_NAME)
             kind = backend or choose_format(metadata["files"])
             if kind not in FORMATS + LEGACY_FORMATS:
                 raise PredictorError(f"{path}: unknown backend {kind!r}; use one of {', '.join(FORMATS)}")
-            file = listed_file(path, metadata, kind)
-            return cls(_network(file, kind, device), metadata, kind, ego_config)
-        kind = "checkpoint" if path.suffix.lower() == ".ckpt" else SUFFIX_FORMATS.get(path.suffix.lower())
-        if kind is None:
-            raise PredictorError(f"{path}: expected an export directory, .onnx, .pt2, .pt (TorchScript) or .ckpt")
-        if not path.is_file():
-            raise PredictorError(f"{path}: file not found")
-        if backend is not None and backend != kind:
-            raise PredictorError(f"{path}: a {path.suffix} file cannot run with backend {backend!r}")
-        if kind == "checkpoint":
-            from fastflow3d.checkpoint import load_student
+            network = _network(listed_file(path, metadata, kind), kind, device)
+        else:
+            kind = "checkpoint" if path.suffix.lower() == ".ckpt" else SUFFIX_FORMATS.get(path.suffix.lower())
+            if kind is None:
+                raise PredictorError(f"{path}: expected an export directory, .onnx, .pt2, .pt (TorchScript) or .ckpt")
+            if not path.is_file():
+                raise PredictorError(f"{path}: file not found")
+            if backend is not None and backend != kind:
+                raise PredictorError(f"{path}: a {path.suffix} file cannot run with backend {backend!r}")
+            if kind == "checkpoint":
+                from fastflow3d.checkpoint import load_student
 
-            model, cfg = load_student(path, map_location=device)
-            metadata = network_metadata(model, dict(cfg.get("model") or {}), path, preprocessing_metadata(cfg))
-            return cls(TorchNetwork(SingleSampleNet(model).eval(), device), metadata, "eager", ego_config)
-        return cls(_network(path, kind, device), sibling_metadata(path, kind), kind, ego_config)
+                model, cfg = load_student(path, map_location=device)
+                metadata = network_metadata(model, dict(cfg.get("model") or {}), path, preprocessing_metadata(cfg))
+                network, kind = TorchNetwork(SingleSampleNet(model).eval(), device), "eager"
+            else:
+                metadata = sibling_metadata(path, kind)
+                network = _network(path, kind, device)
+        if not metadata and preprocessing is None:
+            raise PredictorError(
+                f"{path}: no {METADATA_NAME} beside it describes this file, so its preprocessing (ground "
+                "removal, height frame) is unknown and running it could silently give wrong flow; load its "
+                "export directory, or pass what the metadata says: preprocessing=<metadata.json> "
+                "(fastflow3d-infer --metadata FILE), or {'remove_ground': False} (--remove-ground no) to run "
+                "it on every point"
+            )
+        if preprocessing is not None:
+            metadata = {**metadata, "preprocessing": preprocessing_entry(preprocessing)}
+        return cls(network, metadata, kind, ego_config, sensor_height)
 
     def __call__(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> np.ndarray:
         """(N0, 3) float32 FULL flow of pc0 (N0, 3) towards pc1 (N1, 3), each in its own ego frame; the ego motion
@@ -170,30 +228,87 @@ class Predictor:
     def predict(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> Prediction:
         """Full flow with the residual, masks and ego motion behind it (see :class:`Prediction`)."""
         pc0, pc1 = as_points("pc0", pc0), as_points("pc1", pc1)
+        lift = self.frame_lift(pc0)
+        pc0_frame, pc1_frame = lift_points(pc0, lift), lift_points(pc1, lift)
         estimated = ego1_from_ego0 is None
-        ego = self.estimate_ego_motion(pc0, pc1) if estimated else np.asarray(ego1_from_ego0, dtype=np.float64)
+        if estimated:
+            ego = self.estimate_ego_motion(pc0_frame, pc1_frame)
+        else:
+            ego = lift_transform(np.asarray(ego1_from_ego0, dtype=np.float64), lift)
         problem = rigid_problem(ego)
         if problem:
             raise PredictorError(f"{'estimated ' if estimated else ''}ego1_from_ego0 {problem}")
-        ground0, ground1 = self.ground_mask("ground0", pc0, ground0), self.ground_mask("ground1", pc1, ground1)
+        ground0 = self.ground_mask("ground0", pc0_frame, ground0)
+        ground1 = self.ground_mask("ground1", pc1_frame, ground1)
         residual, in_grid = np.zeros((len(pc0), 3), np.float32), np.zeros(len(pc0), bool)
         keep0, keep1 = ~ground0, ~ground1
+        compensated = compensate(pc0_frame, ego)
         if keep0.any() and keep1.any():  # the network needs points in both scans
-            kept, valid = self.network(compensate(pc0[keep0], ego), pc1[keep1])
+            kept, valid = self.network(np.ascontiguousarray(compensated[keep0]), pc1_frame[keep1])
             in_grid[keep0] = valid
             residual[keep0] = np.where(valid[:, None], kept, 0.0)
-        return Prediction(residual_to_full(residual, pc0, ego), residual, in_grid, ground0, ego, estimated)
+        self.check_plausible(compensated, ground0)
+        ego_out = ego if lift == 0 else lift_transform(ego, -lift)
+        flow = residual_to_full(residual, pc0_frame, ego)  # a common lift changes no flow vector
+        return Prediction(flow, residual, in_grid, ground0, ego_out, estimated, float(lift))
+
+    def frame_lift(self, pc0: np.ndarray) -> float:
+        """Metres to raise both scans by so that their ground sits where the model's frame has it (module
+        docstring); warns when it lifts scans it was not told about."""
+        target = self.preprocessing.frame.ground_z
+        if self.sensor_height not in (None, "auto"):
+            return target + self.sensor_height
+        ground = estimate_ground_height(pc0)
+        if ground is None:
+            if self.sensor_height == "auto":
+                warnings.warn(
+                    "Predictor: sensor_height='auto' found no ground in pc0 (too few points within 30 m); the scans "
+                    "are used as they are",
+                    PredictorWarning,
+                    stacklevel=3,
+                )
+            return 0.0
+        if self.sensor_height == "auto":
+            return target - ground
+        if abs(ground - target) <= FRAME_TOLERANCE:
+            return 0.0
+        warnings.warn(
+            f"Predictor: the ground of pc0 lies at z = {ground:.2f} m but the model's frame has it at z = "
+            f"{target:.2f} m; both scans lifted by {target - ground:+.2f} m (pass sensor_height=<metres of the "
+            f"origin above the ground>, e.g. 1.73 for KITTI's velodyne frame, or 'auto' to say so)",
+            PredictorWarning,
+            stacklevel=3,
+        )
+        return target - ground
+
+    def check_plausible(self, compensated: np.ndarray, ground0: np.ndarray) -> None:
+        """One-line warning when pc0's ground fraction or its share inside the network's grid is implausible."""
+        grid = self.metadata.get("grid")
+        if not grid or not len(compensated):
+            return
+        inside = np.ones(len(compensated), bool)
+        for axis, key in enumerate(("x_range", "y_range", "z_range")):
+            low, high = grid[key]
+            inside &= (compensated[:, axis] >= low) & (compensated[:, axis] < high)
+        reason = implausible(float(ground0.mean()), float(inside.mean()))
+        if reason:
+            warnings.warn(
+                f"Predictor: implausible preprocessing of pc0: {reason}; is the height frame right "
+                "(sensor_height=...) and are the scans in metres?",
+                PredictorWarning,
+                stacklevel=3,
+            )
 
     def ground_mask(self, name: str, points: np.ndarray, given) -> np.ndarray:
         """(N,) bool mask of the points the network leaves out: none unless the model removes ground; then the
-        given mask, or the teacher's ground segmentation of the raw (N, 3) scan."""
+        given mask, or the teacher's ground segmentation of the (N, 3) scan in the model's height frame."""
         if not self.remove_ground:
             return np.zeros(len(points), bool)
         if given is None:
             if self._segmenter is None:
                 from icpflow.teacher.ground import GroundSegmenter
 
-                self._segmenter = GroundSegmenter(self.teacher)
+                self._segmenter = GroundSegmenter(self.preprocessing)
             return self._segmenter(points)
         mask = np.asarray(given)
         if mask.dtype != bool or mask.shape != (len(points),):
@@ -210,3 +325,7 @@ class Predictor:
             raise PredictorError(
                 f"ego-motion estimation failed ({type(error).__name__}: {' '.join(str(error).split())})"
             ) from None
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value == value

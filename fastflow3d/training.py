@@ -4,8 +4,8 @@ ending with the export of the best checkpoint.
 Everything a run writes lands under ``out_dir``: ``checkpoints/`` (best on validation dynamic EPE and
 ``last.ckpt``), ``tensorboard/``, ``bev/``, ``export/`` and ``hydra/``. ``ckpt_path=last`` resumes from
 ``<checkpoint_dir>/last.ckpt`` (optimiser, schedule and step count included); any other value is a checkpoint file.
-The saved config's ``data.teacher`` holds the teacher's ground and ego-motion settings (``TEACHER_FIELDS`` of
-``fastflow3d.data``) that the Predictor uses on raw scans.
+The saved config's ``data.preprocessing`` holds the typed preprocessing block (``icpflow.preprocess``: height frame,
+ground and ego-motion settings) that the Predictor uses on raw scans.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from fastflow3d.artifact import FORMATS
 from fastflow3d.callbacks import AtomicCheckpointIO, LastCheckpoint, ModelSize, TrainingStopped, progress_bar
 from fastflow3d.checkpoint import CheckpointError, read_checkpoint
-from fastflow3d.data import TEACHER_FIELDS, DataError, ShardDataModule, StudentDataset, labeller_teacher
+from fastflow3d.data import DataError, ShardDataModule, StudentDataset, labeller_preprocessing
 from fastflow3d.export import export_checkpoint
 from fastflow3d.module import StudentModule
 from icpflow.entry import Stop, os_error_line, signal_words, stop_on_signals
@@ -63,36 +63,37 @@ def check_data(cfg: DictConfig) -> None:
             raise TrainError(f"loss.name=supervised needs ground truth, but data.train={path} has none")
 
 
-def inference_teacher(cfg: DictConfig) -> dict:
-    """The teacher settings saved with the model (``TEACHER_FIELDS`` -> value): ``data.teacher`` (an optional
-    ``preset``, then fields) or, when it is null, the settings of the teacher that labelled ``data.train``."""
+def inference_preprocessing(cfg: DictConfig) -> dict:
+    """The preprocessing block saved with the model (``icpflow.preprocess.Preprocessing.to_dict()``): from
+    ``data.teacher`` (an optional ``preset``, then the ICPFlowConfig fields of the ground and ego-motion steps) or,
+    when it is null, the block of the teacher that labelled ``data.train``."""
+    from icpflow.preprocess import TEACHER_NAMES, Preprocessing, PreprocessingError
     from icpflow.teacher.config import ICPFlowConfig
 
     given = cfg.data.get("teacher")
     if given is None:
-        source, values = f"data.train={cfg.data.train}", labeller_teacher(cfg.data.train)
-        if values is None:
+        block = labeller_preprocessing(cfg.data.train)
+        if block is None:
             raise TrainError(
                 f"data.teacher is null and the shards of data.train={cfg.data.train} carry no teacher "
                 "config; set it, e.g. data.teacher={preset:waymo}"
             )
-        values = {key: values[key] for key in TEACHER_FIELDS if key in values}
-    elif not OmegaConf.is_dict(given):
+        return block.to_dict()
+    if not OmegaConf.is_dict(given):
         raise TrainError(f"data.teacher must be null or a dict of preset and ICPFlowConfig fields, got {given!r}")
-    else:
-        source, values = "data.teacher", OmegaConf.to_container(given, resolve=True)
-        unknown = sorted(set(values) - {"preset", *TEACHER_FIELDS})
-        if unknown:
-            raise TrainError(
-                f"data.teacher: {', '.join(unknown)} not used at inference; give preset and/or "
-                f"{', '.join(TEACHER_FIELDS)}"
-            )
+    values = OmegaConf.to_container(given, resolve=True)
+    allowed = (*TEACHER_NAMES, "patchwork_z_offset")
+    unknown = sorted(set(values) - {"preset", *allowed})
+    if unknown:
+        raise TrainError(
+            f"data.teacher: {', '.join(unknown)} not used at inference; give preset and/or {', '.join(allowed)}"
+        )
     preset = values.pop("preset", None)
     try:
         teacher = ICPFlowConfig.preset(preset, **values) if preset else ICPFlowConfig(**values)
-    except ValueError as error:
-        raise TrainError(f"{source}: {error}") from None
-    return {key: getattr(teacher, key) for key in TEACHER_FIELDS}
+        return Preprocessing.from_teacher(teacher).to_dict()
+    except (ValueError, PreprocessingError) as error:
+        raise TrainError(f"data.teacher: {error}") from None
 
 
 def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
@@ -223,7 +224,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
         check_data(cfg)
         formats = export_formats(cfg)
         plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-        plain["data"]["teacher"] = inference_teacher(cfg)
+        plain["data"]["preprocessing"] = inference_preprocessing(cfg)
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
         module = StudentModule(plain)
         ckpt_path = resolve_ckpt_path(cfg, module)

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from icpflow.datasets.kitti import KittiOdometryDataset, read_calib_tr
+from icpflow.datasets.kitti import SENSOR_HEIGHT, KittiOdometryDataset, read_calib_tr
 from icpflow.frames import FramePairError
-from icpflow.geometry import make_transform, transform_points
+from icpflow.geometry import make_transform, relative_transform, transform_points
+from icpflow.preprocess import estimate_ground_height, lift_pose, lift_transform
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SEQ01 = DATA / "kitti_odometry_seq01"
@@ -37,7 +38,8 @@ def kitti_root(tmp_path):
 
 @needs_seq01
 def test_velodyne_poses_match_the_reference(kitti_root):
-    dataset = KittiOdometryDataset(kitti_root, split="train", max_horizon=2)
+    """sensor_height=0 keeps KITTI's velodyne frame: points and poses as the reference has them."""
+    dataset = KittiOdometryDataset(kitti_root, split="train", max_horizon=2, sensor_height=0.0)
     assert len(dataset) == 1 and dataset.sample_id(0) == "01/000000"
     reference = np.load(SEQ01 / "kitti_odom_seq01_frames000-002_with_gt_poses.npz")
     for horizon in (1, 2):
@@ -47,6 +49,25 @@ def test_velodyne_poses_match_the_reference(kitti_root):
         np.testing.assert_array_equal(pair.pc1, reference[f"points{horizon}"])
         assert pair.dt == pytest.approx(reference["timestamps_s"][horizon])
         assert pair.flow is None and pair.sample_id == "01/000000" + ("" if horizon == 1 else "+2")
+
+
+@needs_seq01
+def test_reader_lifts_the_velodyne_frame_onto_the_ground(kitti_root):
+    """By default the scans come in the height frame (README conventions): lifted by the 1.73 m mounting height,
+    so the road (SemanticKITTI class 9) lies near z = 0, and the poses and ego motion are those of that frame."""
+    pair = KittiOdometryDataset(kitti_root, split="train").pair(0)
+    reference = np.load(SEQ01 / "kitti_odom_seq01_frames000-002_with_gt_poses.npz")
+    road = np.load(SEQ01 / "kitti_01_labels_000000.npy").reshape(-1) == 9
+    assert abs(np.median(reference["points0"][road, 2]) + SENSOR_HEIGHT) < 0.15  # the velodyne frame: about -1.73
+    assert abs(np.median(pair.pc0[road, 2])) < 0.15 and abs(estimate_ground_height(pair.pc0)) < 0.15
+    np.testing.assert_allclose(pair.pc1, reference["points1"] + np.float32([0, 0, SENSOR_HEIGHT]), atol=1e-6)
+    np.testing.assert_allclose(pair.pose1, lift_pose(reference["velo_poses_world"][1], SENSOR_HEIGHT), atol=1e-6)
+    velodyne_ego = relative_transform(*reference["velo_poses_world"][:2])
+    np.testing.assert_allclose(pair.ego1_from_ego0, lift_transform(velodyne_ego, SENSOR_HEIGHT), atol=1e-6)
+    # the same static point in both frames: the ego motion maps the lifted scan exactly as the velodyne one
+    point = reference["points0"][:5].astype(np.float64)
+    lifted = transform_points(pair.ego1_from_ego0, point + [0, 0, SENSOR_HEIGHT])
+    np.testing.assert_allclose(lifted - [0, 0, SENSOR_HEIGHT], transform_points(velodyne_ego, point), atol=1e-6)
 
 
 @needs_seq01
@@ -82,7 +103,7 @@ def test_bare_scan_folder_has_no_poses():
     assert pair.ego1_from_ego0 is None and pair.pose0 is None
     assert pair.pc0.dtype == np.float32 and 100_000 < len(pair.pc0) < 150_000
     raw = np.fromfile(SCANS / "000005.bin", np.float32).reshape(-1, 4)
-    np.testing.assert_array_equal(pair.pc1, raw[:, :3])
+    np.testing.assert_array_equal(pair.pc1, raw[:, :3] + np.float32([0, 0, SENSOR_HEIGHT]))
     assert pair.dt == pytest.approx(0.1)
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from icpflow.datasets.sequence import ScanSequenceDataset
 from icpflow.frames import FramePairError
-from icpflow.geometry import invert, make_transform
+from icpflow.geometry import invert, make_transform, transform_points
 
 SCANS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_hdl64_scans"
 RNG = np.random.default_rng(5)
@@ -38,7 +38,7 @@ def write_scans(folder: Path, suffix: str, names=None) -> list[Path]:
 @pytest.mark.parametrize("suffix", [".bin", ".npy", ".ply", ".pcd"])
 def test_each_format_reads_back(tmp_path, suffix):
     write_scans(tmp_path, suffix)
-    dataset = ScanSequenceDataset(tmp_path)
+    dataset = ScanSequenceDataset(tmp_path, sensor_height=0.0)  # random clouds: no ground to lift onto
     assert len(dataset) == 3 and dataset.sample_id(2) == "2"
     pair = dataset.pair(2)
     np.testing.assert_allclose(pair.pc0, CLOUDS[2], atol=1e-5)
@@ -48,7 +48,7 @@ def test_each_format_reads_back(tmp_path, suffix):
 
 def test_natural_order_and_horizon(tmp_path):
     write_scans(tmp_path, ".npy", names=["scan_9", "scan_10", "scan_11", "scan_100"])
-    dataset = ScanSequenceDataset(tmp_path, frequency_hz=20.0, max_horizon=2)
+    dataset = ScanSequenceDataset(tmp_path, frequency_hz=20.0, max_horizon=2, sensor_height=0.0)
     assert [p.name for p in dataset.scans] == ["scan_9.npy", "scan_10.npy", "scan_11.npy", "scan_100.npy"]
     assert len(dataset) == 2
     pair = dataset.pair(1, horizon=2)
@@ -68,7 +68,7 @@ def test_other_pose_formats(tmp_path, name):
     write_scans(tmp_path / "scans", ".npy")
     path = tmp_path / name
     np.save(path, POSES) if name.endswith(".npy") else np.savetxt(path, POSES.reshape(4, 16))
-    dataset = pickle.loads(pickle.dumps(ScanSequenceDataset(tmp_path / "scans", poses_file=path)))
+    dataset = pickle.loads(pickle.dumps(ScanSequenceDataset(tmp_path / "scans", poses_file=path, sensor_height=0)))
     np.testing.assert_allclose(dataset.pair(0).pose1, POSES[1], atol=1e-12)
 
 
@@ -78,6 +78,54 @@ def test_real_scans_without_poses():
     assert len(dataset) == 5
     pair = dataset.pair(0)
     assert pair.ego1_from_ego0 is None and len(pair.pc0) == 124668
+
+
+def street(sensor_height: float, seed: int) -> np.ndarray:
+    """(N, 3) float32 scan of a flat road ``sensor_height`` m below the sensor, with walls and boxes on it."""
+    rng = np.random.default_rng(seed)
+    radius, angle = rng.uniform(3, 40, 20000), rng.uniform(-np.pi, np.pi, 20000)
+    road = np.c_[radius * np.cos(angle), radius * np.sin(angle), rng.normal(0, 0.02, 20000)]
+    wall = np.c_[rng.uniform(-40, 40, 8000), np.full(8000, 12.0), rng.uniform(0, 6, 8000)]
+    boxes = np.c_[rng.uniform(5, 9, 3000), rng.uniform(-3, -1, 3000), rng.uniform(0, 1.6, 3000)]
+    return (np.vstack([road, wall, boxes]) - [0, 0, sensor_height]).astype(np.float32)
+
+
+@pytest.mark.parametrize("height", [0.6, 1.73, 3.2])
+def test_auto_sensor_height_lifts_any_mounting_onto_the_ground(tmp_path, height):
+    """sensor_height=auto (the default) finds the ground below the sensor of the first scan and lifts every scan
+    by it, whatever the mounting height: the road then lies at z = 0 and the poses are the lifted frame's."""
+    for index in range(3):
+        np.save(tmp_path / f"{index}.npy", street(height, index))
+    np.savetxt(tmp_path / "poses.txt", POSES[:3, :3].reshape(3, 12))
+    dataset = ScanSequenceDataset(tmp_path)
+    assert dataset.lift() == pytest.approx(height, abs=0.05)
+    assert ScanSequenceDataset(tmp_path, sensor_height="auto").lift() == dataset.lift()
+    pair = dataset.pair(1)
+    road = np.abs(street(height, 1)[:, 2] + height) < 0.1
+    assert abs(np.median(pair.pc0[road, 2])) < 0.05
+    np.testing.assert_allclose(pair.pc0[:, :2], street(height, 1)[:, :2])
+    # a point fixed in the world keeps its world position through the lifted poses
+    point = np.array([[4.0, -2.0, 0.3]])
+    world0 = transform_points(pair.pose0, point)
+    np.testing.assert_allclose(world0, transform_points(POSES[1], point - [0, 0, dataset.lift()]), atol=1e-9)
+
+
+def test_scans_already_in_the_height_frame_stay(tmp_path):
+    """A ground found within 0.5 m of z = 0 (an ego frame on the ground) means no lift: the scans are read as is."""
+    for index in range(2):
+        np.save(tmp_path / f"{index}.npy", street(-0.3, index))  # the road 0.3 m above the origin
+    dataset = ScanSequenceDataset(tmp_path)
+    assert dataset.lift() == 0.0
+    np.testing.assert_array_equal(dataset.pair(0).pc0, street(-0.3, 0))
+
+
+@pytest.mark.skipif(not SCANS.is_dir(), reason=f"real KITTI scans absent: {SCANS}")
+def test_real_scans_are_lifted_by_their_estimated_height():
+    """The HDL-64E sits about 1.73 m above the road: auto finds that within 0.1 m; a given height is used as is."""
+    assert ScanSequenceDataset(SCANS).lift() == pytest.approx(1.73, abs=0.1)
+    pair = ScanSequenceDataset(SCANS, sensor_height=1.73).pair(0)
+    raw = np.fromfile(SCANS / "000000.bin", np.float32).reshape(-1, 4)[:, :3]
+    np.testing.assert_allclose(pair.pc0, raw + np.float32([0, 0, 1.73]), atol=1e-6)
 
 
 # -- malformed -----------------------------------------------------------------------------------------------------

@@ -16,14 +16,14 @@ import torch
 
 from fastflow3d.artifact import FILE_NAMES, METADATA_NAME, ArtifactError, SingleSampleNet, sha256_file
 from fastflow3d.checkpoint import load_student
-from fastflow3d.data import TEACHER_FIELDS
 from fastflow3d.export import export_checkpoint, run_export
 from fastflow3d.infer import main as infer_main
 from fastflow3d.model import compensate
-from fastflow3d.predictor import Predictor, PredictorError
+from fastflow3d.predictor import Predictor, PredictorError, PredictorWarning
 from icpflow import __version__
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, residual_to_full
+from icpflow.preprocess import Preprocessing, lift_points, lift_transform
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.ego_motion import estimate_ego_motion
 from icpflow.teacher.ground import GroundSegmenter
@@ -131,7 +131,9 @@ def test_metadata_describes_the_export(export_dir, checkpoint):
     assert [entry["name"] for entry in metadata["outputs"]] == ["residual", "valid"]
     assert "ego1_from_ego0 * pc0 - pc0" in metadata["flow_convention"]
     # a checkpoint whose config has no data block (trained on every point, default teacher settings)
-    assert metadata["preprocessing"]["remove_ground"] is False and metadata["preprocessing"]["teacher"] is None
+    preprocessing = metadata["preprocessing"]
+    assert preprocessing["remove_ground"] is False and preprocessing["version"] == 1
+    assert Preprocessing.from_dict(preprocessing).frame.ground_z == 0.0  # trained in the synthetic frame
     for name in ("onnx", "pt2"):
         entry = metadata["files"][name]
         assert entry["path"] == FILE_NAMES[name] and entry["sha256"] == sha256_file(export_dir / entry["path"])
@@ -198,15 +200,30 @@ def test_predictor_estimates_ego_motion_without_transform(export_dir, pairs, tea
     np.testing.assert_allclose(estimated.flow, given.flow, atol=1e-6, rtol=0)
 
 
+#: the ICPFlowConfig fields that checkpoints of older versions saved as ``data.teacher`` (before the typed block)
+LEGACY_TEACHER_FIELDS = (
+    "ground",
+    "sensor_height",
+    "patchwork_max_range",
+    "patchwork_z_offset",
+    "range_z",
+    "ground_slack",
+    "kiss_voxel_size",
+    "kiss_max_range",
+    "ego_refine_voxel",
+)
+
+
 @pytest.fixture(scope="module")
 def ground_checkpoint(checkpoint):
-    """The same trained weights in a checkpoint whose config says the network saw non-ground points only, with the
-    teacher settings of the synthetic dataset (a 1.9 m high sensor over a z = 0 ground)."""
+    """The same trained weights in a checkpoint of an older version whose config says the network saw non-ground
+    points only, with the teacher settings of the synthetic dataset (a 1.9 m high sensor over a z = 0 ground) as a
+    flat ``data.teacher`` dict (before the typed preprocessing block)."""
     teacher = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
     saved = torch.load(checkpoint, weights_only=True)
     saved["hyper_parameters"]["cfg"]["data"] = {
         "remove_ground": True,
-        "teacher": {key: getattr(teacher, key) for key in TEACHER_FIELDS},
+        "teacher": {key: getattr(teacher, key) for key in LEGACY_TEACHER_FIELDS},
     }
     path = checkpoint.parent / "ground" / "best.ckpt"
     path.parent.mkdir()
@@ -214,11 +231,18 @@ def ground_checkpoint(checkpoint):
     return path, teacher
 
 
-def test_ground_removal_model_sees_non_ground_points_only(ground_checkpoint, eager, pairs, tmp_path):
+@pytest.fixture(scope="module")
+def ground_export(ground_checkpoint):
+    """The ground-removal checkpoint exported (pt2 only)."""
+    return export_checkpoint(ground_checkpoint[0], formats=("pt2",))
+
+
+def test_ground_removal_model_sees_non_ground_points_only(ground_checkpoint, ground_export, eager, pairs, tmp_path):
     path, teacher = ground_checkpoint
-    export_dir = export_checkpoint(path, formats=("pt2",))
+    export_dir = ground_export
     preprocessing = json.loads((export_dir / METADATA_NAME).read_text())["preprocessing"]
-    assert preprocessing["remove_ground"] is True and preprocessing["teacher"]["sensor_height"] == 1.9
+    assert preprocessing["remove_ground"] is True and preprocessing["ground"]["sensor_height"] == 1.9
+    assert preprocessing["frame"] == {"ground_z": 0.0} and preprocessing["version"] == 1
     pair = pairs[0]
     ground0, ground1 = GroundSegmenter(teacher)(pair.pc0), GroundSegmenter(teacher)(pair.pc1)
     assert 0.2 < ground0.mean() < 0.9 and 0.2 < ground1.mean() < 0.9
@@ -235,7 +259,7 @@ def test_ground_removal_model_sees_non_ground_points_only(ground_checkpoint, eag
     flow, valid = expected_flow(ground0, ground1)
     ego = ego_flow(pair.pc0, pair.ego1_from_ego0)
     for predictor in (Predictor.load(path), Predictor.load(export_dir)):
-        assert predictor.remove_ground and predictor.teacher == ICPFlowConfig(**preprocessing["teacher"])
+        assert predictor.remove_ground and predictor.preprocessing == Preprocessing.from_teacher(teacher)
         prediction = predictor.predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)  # masks computed as the teacher does
         assert np.array_equal(prediction.ground0, ground0) and np.array_equal(prediction.in_grid[~ground0], valid)
         assert not prediction.in_grid[ground0].any()
@@ -398,3 +422,133 @@ def test_cpu_runtime_rejects_what_it_cannot_run(export_dir):
         runtime_network(export_dir / FILE_NAMES["onnx"], "onnxruntime", 1, "bf16")
     with pytest.raises(ArtifactError, match="unknown runtime 'tensorrt'"):
         runtime_network(export_dir / FILE_NAMES["onnx"], "tensorrt")
+
+
+# ------------------------------------------------------------------------------------- height frame, bare files
+def lowered(pair, height: float):
+    """pc0, pc1 and ego1_from_ego0 of ``pair`` as a sensor ``height`` m above its ground would give them (the
+    KITTI velodyne convention: ground near z = -height)."""
+    return lift_points(pair.pc0, -height), lift_points(pair.pc1, -height), lift_transform(pair.ego1_from_ego0, -height)
+
+
+def test_scans_in_a_sensor_frame_are_lifted_never_run_silently(export_dir, pairs, expected):
+    """A pair given in a sensor frame (ground 1.73 m below the origin) against a model of the ground-level frame:
+    sensor_height=1.73 lifts it exactly (same flow, the ego motion returned in the given frame); the default
+    (None) notices the mismatch, lifts by the estimated ground and warns in one line; 'auto' lifts silently."""
+    pair, (flow, valid) = pairs[0], expected[0]
+    pc0, pc1, ego = lowered(pair, 1.73)
+    predictor = Predictor.load(export_dir, sensor_height=1.73)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PredictorWarning)
+        told = predictor.predict(pc0, pc1, ego)
+    assert told.lift == pytest.approx(1.73) and np.array_equal(told.in_grid, valid)
+    np.testing.assert_allclose(told.ego1_from_ego0, ego, atol=1e-12)
+    assert np.abs(told.flow - flow).max() <= 1e-3  # float32 rounding of the lifted z only
+    with pytest.warns(PredictorWarning, match=r"ground of pc0 lies at z = -1\.\d\d m .* lifted by \+1\.\d\d m") as seen:
+        guessed = Predictor.load(export_dir).predict(pc0, pc1, ego)
+    assert all("\n" not in str(w.message) for w in seen)
+    assert abs(guessed.lift - 1.73) < 0.1 and np.abs(guessed.flow - flow).mean() < 0.02
+    auto = Predictor.load(export_dir, sensor_height="auto").predict(pc0, pc1, ego)
+    assert auto.lift == pytest.approx(guessed.lift)
+    # in its own frame nothing moves: no lift, no frame warning, the flow as before
+    same = Predictor.load(export_dir).predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+    assert same.lift == 0.0 and np.abs(same.flow - flow).max() <= TOLERANCE
+    with pytest.raises(PredictorError, match="sensor_height='high' must be None, 'auto' or metres"):
+        Predictor.load(export_dir, sensor_height="high")
+
+
+def test_implausible_ground_is_warned(ground_checkpoint, pairs):
+    """Scans left in a sensor frame 3.5 m above the ground (told wrongly that they are in the model's:
+    sensor_height=0) put nearly every point under the z threshold: more than 85 % ground gives a one-line
+    warning."""
+    path, _ = ground_checkpoint
+    pc0, pc1, ego = lowered(pairs[0], 3.5)
+    with pytest.warns(PredictorWarning, match=r"implausible preprocessing of pc0: \d+% of the points called ground"):
+        prediction = Predictor.load(path, sensor_height=0.0).predict(pc0, pc1, ego)
+    assert prediction.ground0.mean() > 0.85
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PredictorWarning)
+        right = Predictor.load(path, sensor_height=3.5).predict(pc0, pc1, ego)
+    assert right.ground0.mean() < 0.85 and not [w for w in caught if "called ground" in str(w.message)]
+
+
+def test_older_export_metadata_still_loads(ground_checkpoint, ground_export, pairs, tmp_path):
+    """metadata.json of an older version (``preprocessing: {remove_ground, teacher: ICPFlowConfig fields}``) reads
+    as the typed block, in the synthetic frame it was trained in, and predicts as the current form does."""
+    path, teacher = ground_checkpoint
+    current = tmp_path / "current"
+    current.mkdir()
+    for name in (METADATA_NAME, FILE_NAMES["pt2"]):
+        (current / name).write_bytes((ground_export / name).read_bytes())
+    metadata = json.loads((current / METADATA_NAME).read_text())
+    metadata["preprocessing"] = {
+        "remove_ground": True,
+        "teacher": {key: getattr(teacher, key) for key in LEGACY_TEACHER_FIELDS},
+        "note": "older form",
+    }
+    (current / METADATA_NAME).write_text(json.dumps(metadata))
+    old = Predictor.load(current)
+    assert old.remove_ground and old.preprocessing == Preprocessing.from_teacher(teacher)
+    # exports older than ground removal had no preprocessing entry: every point, the synthetic frame
+    oldest = Predictor(old.network, {key: value for key, value in metadata.items() if key != "preprocessing"}, "pt2")
+    assert not oldest.remove_ground and oldest.preprocessing.frame.ground_z == 0.0
+    with pytest.raises(PredictorError, match="no model metadata"):
+        Predictor(old.network, {}, "pt2")
+    assert old.preprocessing.frame.ground_z == 0.0 and old.preprocessing.patchwork_z_offset == -1.9
+    pair = pairs[0]
+    new = Predictor.load(path).predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+    again = old.predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+    assert np.array_equal(new.ground0, again.ground0) and np.abs(new.flow - again.flow).max() <= TOLERANCE
+
+
+def test_bare_export_without_metadata_is_refused_unless_told(ground_export, pairs, tmp_path, capsys):
+    """A ``.pt2`` without its metadata.json would run with ground removal off: refused (Predictor and CLI, one
+    line), and runs as its export does once told what the metadata says (--metadata, preprocessing=)."""
+    export = ground_export
+    bare = tmp_path / "bare" / "model.pt2"
+    bare.parent.mkdir()
+    bare.write_bytes((export / FILE_NAMES["pt2"]).read_bytes())
+    with pytest.raises(PredictorError, match="no metadata.json beside it describes this file") as error:
+        Predictor.load(bare)
+    assert "\n" not in str(error.value)
+    pair = pairs[0]
+    reference = Predictor.load(export).predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+    told = Predictor.load(bare, preprocessing=export / METADATA_NAME)
+    assert told.remove_ground and told.preprocessing.ground.sensor_height == 1.9
+    assert np.abs(told(pair.pc0, pair.pc1, pair.ego1_from_ego0) - reference.flow).max() <= TOLERANCE
+    every = Predictor.load(bare, preprocessing={"remove_ground": False})
+    assert not every.remove_ground
+    scan0, scan1 = write_scan(tmp_path / "a.npy", pair.pc0), write_scan(tmp_path / "b.npy", pair.pc1)
+    poses, out = write_poses(tmp_path / "poses.txt", [pair.pose0, pair.pose1]), tmp_path / "flow.npz"
+    common = [str(bare), str(scan0), str(scan1), "--poses", str(poses), "--out", str(out), "--no-bev"]
+    assert infer_main(common) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no metadata.json beside it" in err and "--metadata FILE" in err
+    assert not out.exists()
+    assert infer_main([*common, "--metadata", str(export / METADATA_NAME)]) == 0
+    with np.load(out) as result:
+        assert np.array_equal(result["ground0"], reference.ground0)
+        assert np.abs(result["flow"] - reference.flow).max() <= TOLERANCE
+    assert infer_main([*common, "--remove-ground", "no"]) == 0
+    with np.load(out) as result:
+        assert not result["ground0"].any()
+
+
+def test_infer_cli_sensor_height(export_dir, pairs, expected, tmp_path, capsys):
+    """--sensor-height 1.73 reads scans in a sensor frame; without it the CLI lifts them and says so in one line."""
+    pair, (flow, _) = pairs[0], expected[0]
+    pc0, pc1, ego = lowered(pair, 1.73)
+    scan0, scan1 = write_scan(tmp_path / "a.npy", pc0), write_scan(tmp_path / "b.npy", pc1)
+    transform = tmp_path / "ego.npy"
+    np.save(transform, ego)
+    out = tmp_path / "flow.npz"
+    common = [str(export_dir), str(scan0), str(scan1), "--ego", str(transform), "--out", str(out), "--no-bev"]
+    assert infer_main([*common, "--sensor-height", "1.73"]) == 0
+    assert "warning: the ground" not in capsys.readouterr().err
+    with np.load(out) as result:
+        assert np.abs(result["flow"] - flow).max() <= 1e-3
+    assert infer_main(common) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "ground of pc0" in line]
+    assert len(lines) == 1 and lines[0].startswith("infer: warning: the ground of pc0 lies at z = -1.")
+    with pytest.raises(SystemExit):
+        infer_main([*common, "--sensor-height", "tall"])

@@ -79,8 +79,9 @@ def test_label_py_on_the_real_av2_log(tmp_path):
 def test_label_py_on_the_bare_kitti_scans(tmp_path):
     sample = label_script(tmp_path, "dataset=kitti", f"dataset.root={KITTI_SCANS}")  # a bare folder: no poses
     scans = [np.fromfile(KITTI_SCANS / f"{frame:06d}.bin", np.float32).reshape(-1, 4) for frame in (0, 1)]
-    np.testing.assert_array_equal(sample["pc0"], scans[0][:, :3])
-    np.testing.assert_array_equal(sample["pc1"], scans[1][:, :3])
+    lift = np.float32([0, 0, 1.73])  # the reader's height frame: the velodyne frame lifted onto the ground
+    np.testing.assert_array_equal(sample["pc0"], scans[0][:, :3] + lift)
+    np.testing.assert_array_equal(sample["pc1"], scans[1][:, :3] + lift)
     assert sample["sample_id"] == "kitti_hdl64_scans/000000" and "gt_flow" not in sample
     assert sample["flow"].shape == sample["pc0"].shape and np.isfinite(sample["flow"]).all()
     assert 0.5 < np.linalg.norm(sample["ego1_from_ego0"][:3, 3]) < 0.9  # KISS-ICP: the car drives ~0.7 m a frame

@@ -344,7 +344,10 @@ def test_hydra_overrides_are_typed_and_checked():
 def test_an_older_shards_labeller_config_still_loads(tmp_path):
     """A shard of the previous release stores the teacher flat in its ``config`` attribute: the student reads its
     ground and ego settings from it, and the whole teacher rebuilds from it without a warning."""
-    from fastflow3d.data import TEACHER_FIELDS, labeller_teacher
+    import h5py
+
+    from fastflow3d.data import labeller_preprocessing
+    from icpflow.preprocess import Preprocessing
     from icpflow.shards.schema import shard_name
     from icpflow.shards.writer import write_index, write_shard
 
@@ -365,8 +368,9 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
     write_shard(tmp_path / shard_name(0), [sample], config, "oldhash")
     entry = {"file": shard_name(0), "samples": [{"sample_id": "s0", "index": 0, "n0": n, "n1": n}]}
     write_index(tmp_path / "index.json", {"config_hash": "oldhash", "shards": [entry]})
-    stored = labeller_teacher(tmp_path)
-    assert {key: stored[key] for key in TEACHER_FIELDS} == {key: teacher[key] for key in TEACHER_FIELDS}
+    assert labeller_preprocessing(tmp_path) == Preprocessing.from_teacher(teacher)
+    with h5py.File(tmp_path / shard_name(0), "r") as handle:
+        stored = yaml.safe_load(handle.attrs["config"])["teacher"]
     rebuilt = _quiet(lambda: ICPFlowConfig.from_dict(stored, warn=False))
     assert rebuilt == ICPFlowConfig.preset("waymo", sensor_height=1.9, clustering={"voxel_size": 0.1})
 
@@ -375,11 +379,13 @@ def test_older_checkpoints_and_exports_still_load():
     """Checkpoints (``data.teacher``) and exports (``preprocessing.teacher``) of the previous release carry the
     flat ground and ego-motion fields, which keep their names."""
     from fastflow3d.predictor import Predictor
-    from fastflow3d.training import inference_teacher
+    from fastflow3d.training import inference_preprocessing
+    from icpflow.preprocess import Preprocessing
 
     old = {key: {**OLD_DEFAULTS, **OLD_PRESETS["av2"]}[key] for key in PREPROCESSING}
+    expected = Preprocessing.from_teacher(ICPFlowConfig(**old))
     metadata = {"preprocessing": {"remove_ground": True, "teacher": dict(old)}}
     predictor = _quiet(lambda: Predictor(network=None, metadata=metadata, backend="onnx"))
-    assert predictor.teacher == ICPFlowConfig(**old) and predictor.teacher.patchwork_z_offset == -1.4
+    assert predictor.preprocessing == expected and predictor.preprocessing.patchwork_z_offset == -1.4
     checkpoint = OmegaConf.create({"data": {"teacher": dict(old), "train": "unused"}})
-    assert _quiet(lambda: inference_teacher(checkpoint)) == old
+    assert _quiet(lambda: inference_preprocessing(checkpoint)) == expected.to_dict()

@@ -17,13 +17,14 @@ from omegaconf import OmegaConf
 
 from fastflow3d.artifact import FILE_NAMES, METADATA_NAME
 from fastflow3d.checkpoint import CheckpointError, build_student, load_student
-from fastflow3d.data import TEACHER_FIELDS, DataError, StudentDataset, collate
+from fastflow3d.data import DataError, StudentDataset, collate
 from fastflow3d.model import FastFlow3D
 from fastflow3d.module import StudentModule
 from fastflow3d.training import TrainError, fit
 from fastflow3d.voxelize import Grid
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, transform_points
+from icpflow.preprocess import Preprocessing
 from icpflow.shards.writer import write_index
 from icpflow.teacher.config import ICPFlowConfig
 
@@ -240,19 +241,27 @@ def test_ground_removal_network_sees_non_ground_points_only(shards):
 
 
 def test_teacher_settings_saved_with_the_model(shards, pairs, tmp_path):
-    from fastflow3d.training import inference_teacher
+    """The typed preprocessing block comes from the shards (here shards of an older version: only the teacher's
+    fields, the synthetic frame) or from data.teacher, and is refused when it names a field inference does not use."""
+    from fastflow3d.training import inference_preprocessing
 
-    expected = {key: getattr(TEACHER, key) for key in TEACHER_FIELDS}
-    assert inference_teacher(_cfg(tmp_path, shards["gt"], shards["gt"])) == expected  # from the shards' config
+    expected = Preprocessing.from_teacher(TEACHER).to_dict()
+    assert expected["frame"] == {"ground_z": 0.0} and expected["ground"]["sensor_height"] == 1.9
+    assert inference_preprocessing(_cfg(tmp_path, shards["gt"], shards["gt"])) == expected  # from the shards
     bare = write_pseudo_labels(tmp_path / "bare", pairs[:1], config="test: true\n")
-    given = inference_teacher(_cfg(tmp_path, bare, bare, "data.teacher={preset:av2,sensor_height:1.5}"))
-    assert given == {**{key: getattr(ICPFlowConfig.preset("av2"), key) for key in TEACHER_FIELDS}, "sensor_height": 1.5}
+    given = inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={preset:av2,sensor_height:1.5}"))
+    av2 = ICPFlowConfig.preset("av2", sensor_height=1.5)
+    assert Preprocessing.from_dict(given).teacher_fields() == {
+        **{name: getattr(av2, name) for name in Preprocessing().teacher_fields()},
+        "patchwork_z_offset": -1.4,
+    }
+    assert given["frame"]["ground_z"] == pytest.approx(-0.1)  # Patchwork++ at -1.5 after a -1.4 m shift
     with pytest.raises(TrainError, match=r"data.train=.*bare carry no teacher config; set it"):
         fit(_cfg(tmp_path, bare, bare))
     with pytest.raises(TrainError, match="data.teacher: min_cluster_size not used at inference"):
-        inference_teacher(_cfg(tmp_path, bare, bare, "data.teacher={min_cluster_size:3}"))
+        inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={min_cluster_size:3}"))
     with pytest.raises(TrainError, match="data.teacher: ICPFlowConfig: .*ground"):
-        inference_teacher(_cfg(tmp_path, bare, bare, "data.teacher={ground:sometimes}"))
+        inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={ground:sometimes}"))
 
 
 def test_missing_or_empty_shard_dir_is_one_line(tmp_path):
@@ -321,7 +330,11 @@ def test_short_run_validates_at_its_last_step_and_exports_the_best_checkpoint(sh
     assert metadata["source_checkpoint"]["path"] == str(best[0].resolve())
     assert set(metadata["files"]) == set(formats) and max(metadata["parity_max_abs_m"].values()) <= 1e-4
     assert metadata["preprocessing"]["remove_ground"] is True
-    assert metadata["preprocessing"]["teacher"] == {key: getattr(TEACHER, key) for key in TEACHER_FIELDS}
+    assert {key: metadata["preprocessing"][key] for key in ("frame", "ground", "ego_motion")} == {
+        key: value
+        for key, value in Preprocessing.from_teacher(TEACHER).to_dict().items()
+        if key not in ("version", "frame_description")
+    }
 
 
 def test_export_falls_back_to_last_checkpoint_and_says_so(shards, tmp_path, caplog):
@@ -445,7 +458,7 @@ def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
     expected = OmegaConf.to_container(
         _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=5", "ckpt_path=last", *common), resolve=True
     )
-    expected["data"]["teacher"] = {key: getattr(TEACHER, key) for key in TEACHER_FIELDS}  # from the shards
+    expected["data"]["preprocessing"] = Preprocessing.from_teacher(TEACHER).to_dict()  # from the shards
     assert not model.training and cfg == expected
     assert cfg["model"]["cell"] == 1.0 and cfg["model"]["stage_channels"] == [16, 32, 64]
     batch = collate([StudentDataset(shards["gt"])[0]])

@@ -6,10 +6,13 @@ reflectance), ``<root>/sequences/<seq>/calib.txt`` (its ``Tr:`` line: velodyne -
 left camera's pose in the first camera frame; sequences 00-10 only). ``root`` may also be a bare folder of
 ``.bin`` scans: one sequence named after the folder, without poses.
 
-What a pair holds: ``pc0``/``pc1`` (N, 3) float32 in their own velodyne (ego) frames; where poses exist,
-``pose0``/``pose1`` = ``inv(Tr) @ T_cam @ Tr`` (world_from_velodyne, world = the first camera frame) and hence
-``ego1_from_ego0``; without poses those are None (the teacher estimates ego motion). KITTI odometry has no object
-flow: no ``flow``, ``classes``, ``dynamic`` or ground. ``dt`` from ``times.txt``, else 0.1 s per frame.
+What a pair holds: ``pc0``/``pc1`` (N, 3) float32 in the project's height frame (``icpflow.preprocess``): each
+velodyne frame lifted by ``sensor_height`` (1.73 m, the HDL-64E above the road; 0 keeps the raw velodyne frame), so
+the origin is on the ground below the sensor and the ground lies near z = 0, as in the synthetic world; where poses
+exist, ``pose0``/``pose1`` = ``inv(Tr) @ T_cam @ Tr`` (world_from_velodyne, world = the first camera frame) lowered
+onto that origin, and hence ``ego1_from_ego0``; without poses those are None (the teacher estimates ego motion).
+KITTI odometry has no object flow: no ``flow``, ``classes``, ``dynamic`` or ground. ``dt`` from ``times.txt``,
+else 0.1 s per frame.
 
 Splits (SemanticKITTI's): train 00-07, 09, 10; val 08; test 11-21; ``sequences`` overrides. Only sequences
 present under ``root`` are used. Samples are the scans t of each sequence for which t + ``max_horizon`` exists.
@@ -25,6 +28,7 @@ from icpflow.datasets.base import IndexedDataset, too_short
 from icpflow.datasets.io import BIN_COLUMNS, fail, natural_key, read_bin, read_pose_lines
 from icpflow.frames import FramePair
 from icpflow.geometry import invert
+from icpflow.preprocess import lift_points, lift_pose
 
 SPLITS = {
     "train": ["00", "01", "02", "03", "04", "05", "06", "07", "09", "10"],
@@ -32,6 +36,7 @@ SPLITS = {
     "test": [f"{n:02d}" for n in range(11, 22)],
 }
 SCAN_PERIOD_S = 0.1
+SENSOR_HEIGHT = 1.73  # m: the HDL-64E above the road (KITTI's setup)
 
 
 def read_calib_tr(path: Path) -> np.ndarray:
@@ -57,9 +62,15 @@ class KittiOdometryDataset(IndexedDataset):
     name = "kitti"
 
     def __init__(
-        self, root: str | Path, split: str = "train", sequences: list[str] | None = None, max_horizon: int = 1
+        self,
+        root: str | Path,
+        split: str = "train",
+        sequences: list[str] | None = None,
+        max_horizon: int = 1,
+        sensor_height: float = SENSOR_HEIGHT,
     ) -> None:
         self.root = Path(root)
+        self.sensor_height = float(sensor_height)
         self.split = split
         self.max_horizon = int(max_horizon)
         if any(self.root.glob("*.bin")):
@@ -83,7 +94,7 @@ class KittiOdometryDataset(IndexedDataset):
         return too_short([(f"sequence {name}", len(scans)) for name, scans in self._sequences], self.max_horizon)
 
     def metadata(self) -> dict:
-        return {**super().metadata(), "root": str(self.root), "split": self.split,
+        return {**super().metadata(), "root": str(self.root), "split": self.split, "sensor_height": self.sensor_height,
                 "sequences": [name for name, _ in self._sequences]}  # fmt: skip
 
     def _bare(self) -> bool:
@@ -99,7 +110,7 @@ class KittiOdometryDataset(IndexedDataset):
             if len(camera) < count:
                 raise fail(pose_path, f"{len(camera)} poses for {count} scans")
             tr = read_calib_tr(self.root / "sequences" / name / "calib.txt")
-            self._cache["poses", name] = invert(tr) @ camera @ tr
+            self._cache["poses", name] = lift_pose(invert(tr) @ camera @ tr, self.sensor_height)
         return self._cache["poses", name]
 
     def _times(self, name: str, count: int) -> np.ndarray:
@@ -128,8 +139,8 @@ class KittiOdometryDataset(IndexedDataset):
             times_path = self.root / "sequences" / name / "times.txt"
             raise fail(times_path, f"times of scans {t} and {t + horizon} not increasing")
         return FramePair(
-            pc0=read_bin(scans[t], BIN_COLUMNS),
-            pc1=read_bin(scans[t + horizon], BIN_COLUMNS),
+            pc0=lift_points(read_bin(scans[t], BIN_COLUMNS), self.sensor_height),
+            pc1=lift_points(read_bin(scans[t + horizon], BIN_COLUMNS), self.sensor_height),
             pose0=None if poses is None else poses[t],
             pose1=None if poses is None else poses[t + horizon],
             dt=dt,

@@ -7,9 +7,14 @@ folder. Optional poses: ``poses_file`` (relative to ``root`` or absolute), defau
 exists: one pose per scan, world_from_sensor, as 12 values a line (row-major 3 x 4, KITTI) or 16 (4 x 4), or a
 ``.npy`` of shape (T, 4, 4).
 
-What a pair holds: ``pc0``/``pc1`` (N, 3) float32 in their own sensor (ego) frames; with poses, ``pose0``/
-``pose1`` and hence ``ego1_from_ego0``; without, None (the teacher estimates ego motion with KISS-ICP). No ground
-truth. ``dt`` = horizon / ``frequency_hz``. Samples are the scans t for which t + ``max_horizon`` exists.
+What a pair holds: ``pc0``/``pc1`` (N, 3) float32 in the project's height frame (``icpflow.preprocess``: origin on
+the ground below the sensor, ground near z = 0): every scan is lifted by ``sensor_height`` m, a number (the
+sensor's height above the ground; 0 for scans already in such an ego frame) or ``auto`` (estimated once per
+folder from the first scan by ``icpflow.preprocess.estimate_ground_height``, whatever the mounting height; a ground
+found within 0.5 m of z = 0 means the scans are in the height frame already and stay as they are); with
+poses, ``pose0``/``pose1`` (lowered onto that origin) and hence ``ego1_from_ego0``; without, None (the teacher
+estimates ego motion with KISS-ICP). No ground truth. ``dt`` = horizon / ``frequency_hz``. Samples are the scans t
+for which t + ``max_horizon`` exists.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import numpy as np
 from icpflow.datasets.base import PairDataset
 from icpflow.datasets.io import SCAN_SUFFIXES, fail, natural_key, read_poses, read_scan
 from icpflow.frames import FramePair
+from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points, lift_pose
 
 
 class ScanSequenceDataset(PairDataset):
@@ -35,8 +41,12 @@ class ScanSequenceDataset(PairDataset):
         frequency_hz: float = 10.0,
         max_horizon: int = 1,
         bin_columns: int | None = None,
+        sensor_height: float | str = "auto",
     ) -> None:
         self.root = Path(root)
+        if not (sensor_height == "auto" or (isinstance(sensor_height, (int, float)) and sensor_height >= 0)):
+            raise ValueError(f"sequence: sensor_height={sensor_height!r} must be 'auto' or metres >= 0")
+        self.sensor_height = sensor_height
         self.bin_columns = bin_columns
         self.frequency_hz = float(frequency_hz)
         self.max_horizon = int(max_horizon)
@@ -51,9 +61,23 @@ class ScanSequenceDataset(PairDataset):
             poses_file = "poses.txt"
         self.poses_file = None if poses_file is None else self.root / poses_file
         self._poses: np.ndarray | None = None
+        self._lift: float | None = None
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_poses": None}
+
+    def lift(self) -> float:
+        """Metres every scan is raised by (module docstring); ``auto``: minus the ground height found below the
+        sensor in the first scan (0 where it finds none or finds it within 0.5 m of z = 0: scans already in the
+        height frame are left as they are)."""
+        if self._lift is None:
+            if self.sensor_height == "auto":
+                ground = estimate_ground_height(read_scan(self.scans[0], self.bin_columns))
+                near = ground is None or abs(ground) <= FRAME_TOLERANCE  # already in the height frame
+                self._lift = 0.0 if near else -ground
+            else:
+                self._lift = float(self.sensor_height)
+        return self._lift
 
     def __len__(self) -> int:
         return len(self.scans) - self.max_horizon
@@ -63,7 +87,8 @@ class ScanSequenceDataset(PairDataset):
 
     def metadata(self) -> dict:
         return {**super().metadata(), "root": str(self.root),
-                "poses_file": None if self.poses_file is None else str(self.poses_file)}  # fmt: skip
+                "poses_file": None if self.poses_file is None else str(self.poses_file),
+                "sensor_height": self.sensor_height}  # fmt: skip
 
     def poses(self) -> np.ndarray | None:
         """(T, 4, 4) float64 world_from_sensor poses, one per scan, or None without a poses file."""
@@ -79,13 +104,13 @@ class ScanSequenceDataset(PairDataset):
             raise IndexError(f"{self.name}: horizon {horizon} outside 1..{self.max_horizon}")
         if not 0 <= index < len(self):
             raise IndexError(f"{self.name}: index {index} outside 0..{len(self) - 1}")
-        poses = self.poses()
+        poses, lift = self.poses(), self.lift()
         period_ns = 1e9 / self.frequency_hz
         return FramePair(
-            pc0=read_scan(self.scans[index], self.bin_columns),
-            pc1=read_scan(self.scans[index + horizon], self.bin_columns),
-            pose0=None if poses is None else poses[index],
-            pose1=None if poses is None else poses[index + horizon],
+            pc0=lift_points(read_scan(self.scans[index], self.bin_columns), lift),
+            pc1=lift_points(read_scan(self.scans[index + horizon], self.bin_columns), lift),
+            pose0=None if poses is None else lift_pose(poses[index], lift),
+            pose1=None if poses is None else lift_pose(poses[index + horizon], lift),
             dt=horizon / self.frequency_hz,
             log_id=self.root.name,
             sample_id=self.sample_id(index) + ("" if horizon == 1 else f"+{horizon}"),

@@ -16,6 +16,7 @@ from icpflow.labelling.executors import available_cores
 from icpflow.labelling.job import LabelError, LabelJob, Terminated, raise_terminated
 from icpflow.labelling.plan import plan_shards
 from icpflow.labelling.run import run_labelling
+from icpflow.preprocess import Preprocessing
 from icpflow.shards.schema import COMPRESSIONS
 from icpflow.teacher.config import teacher_config  # importing it stores the icpflow schema label.py composes with
 from icpflow.teacher.warmup import ensure_compiled
@@ -34,6 +35,7 @@ def labeller_yaml(cfg: DictConfig, teacher) -> str:
         "dataset": {"name": cfg.dataset.name, "root": dataset_root(cfg), "reader": reader},
         "split": cfg.split,
         "teacher": dataclasses.asdict(teacher),
+        "preprocessing": Preprocessing.from_teacher(teacher).to_dict(),  # what a student needs (icpflow.preprocess)
         "horizon": int(cfg.horizon),
         "tracker": bool(cfg.tracker),
         "shard_size": int(cfg.shard_size),

@@ -4,6 +4,9 @@ optional point-to-plane refinement (open3d ``registration_icp``) of the KISS-ICP
 KISS-ICP is built for sequences; on a single pair its adaptive threshold starts wide and its map holds one scan,
 which leaves a few centimetres of error on KITTI. The refinement (``ego_refine_voxel`` > 0) aligns the two scans
 directly, point-to-plane, from the KISS-ICP estimate.
+
+Settings: ``icpflow.preprocess.EgoMotionSettings`` (or a ``Preprocessing`` block, or a teacher config whose fields
+map onto it, see :func:`ego_settings`).
 """
 
 from __future__ import annotations
@@ -11,6 +14,14 @@ from __future__ import annotations
 import numpy as np
 
 from icpflow.geometry import invert
+from icpflow.preprocess import EgoMotionSettings, Preprocessing
+
+
+def ego_settings(cfg) -> EgoMotionSettings:
+    """The ego-motion settings of ``cfg``: EgoMotionSettings, a Preprocessing block or a teacher config."""
+    if isinstance(cfg, EgoMotionSettings):
+        return cfg
+    return (cfg if isinstance(cfg, Preprocessing) else Preprocessing.from_teacher(cfg)).ego_motion
 
 
 def kiss_icp_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:
@@ -21,8 +32,9 @@ def kiss_icp_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:
 
     config = load_config(None)
     config.data.deskew = False
-    config.data.max_range = float(cfg.kiss_max_range)
-    config.mapping.voxel_size = float(cfg.kiss_voxel_size)
+    settings = ego_settings(cfg)
+    config.data.max_range = float(settings.kiss_max_range)
+    config.mapping.voxel_size = float(settings.kiss_voxel_size)
     odometry = KissICP(config)
     empty = np.zeros(0)
     odometry.register_frame(np.asarray(pc0, np.float64), empty)
@@ -31,10 +43,10 @@ def kiss_icp_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:
 
 
 def refine_motion(pc0: np.ndarray, pc1: np.ndarray, ego1_from_ego0: np.ndarray, cfg) -> np.ndarray:
-    """Point-to-plane ICP of pc0 onto pc1 from ``ego1_from_ego0``, on ``ego_refine_voxel`` down-sampled scans."""
+    """Point-to-plane ICP of pc0 onto pc1 from ``ego1_from_ego0``, on ``refine_voxel`` down-sampled scans."""
     import open3d as o3d
 
-    voxel = float(cfg.ego_refine_voxel)
+    voxel = float(ego_settings(cfg).refine_voxel)
     clouds = []
     for points in (pc0, pc1):
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
@@ -57,6 +69,6 @@ def estimate_ego_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:
     if len(pc0) < 100 or len(pc1) < 100:
         return np.eye(4)
     transform = kiss_icp_motion(pc0, pc1, cfg)
-    if cfg.ego_refine_voxel > 0:
+    if ego_settings(cfg).refine_voxel > 0:
         transform = refine_motion(pc0, pc1, transform, cfg)
     return transform

@@ -1,7 +1,10 @@
-"""Step 2: ground removal per scan, on raw points in their own (sensor or ego) frame.
+"""Step 2: ground removal per scan, on points in the height frame of ``icpflow.preprocess`` (ground near
+z = ``frame.ground_z``).
 
-Methods (``cfg.ground``): ``patchwork`` (Patchwork++, ``pypatchworkpp``), ``zthreshold`` (ground if
-``z <= range_z + ground_slack``), ``both`` (the reference: a point is non-ground only if both say so) and ``none``.
+Settings: ``icpflow.preprocess.GroundSettings`` (a ``Preprocessing`` block, or a teacher config whose fields map
+onto it). Methods (``ground.method``): ``patchwork`` (Patchwork++, ``pypatchworkpp``, on the scan shifted so that
+the ground sits at -sensor_height), ``zthreshold`` (ground if ``z <= range_z + slack``), ``both`` (the reference:
+a point is non-ground only if both say so) and ``none``.
 """
 
 from __future__ import annotations
@@ -10,6 +13,8 @@ import contextlib
 import os
 
 import numpy as np
+
+from icpflow.preprocess import Preprocessing
 
 
 @contextlib.contextmanager
@@ -38,28 +43,31 @@ class GroundSegmenter:
     """
 
     def __init__(self, cfg):
-        self.cfg = cfg
+        """``cfg``: a :class:`~icpflow.preprocess.Preprocessing` or a teacher config (``ICPFlowConfig``)."""
+        self.settings = cfg if isinstance(cfg, Preprocessing) else Preprocessing.from_teacher(cfg)
+        ground = self.settings.ground
         self._params = None
-        if cfg.ground in ("both", "patchwork"):
+        if ground.method in ("both", "patchwork"):
             import pypatchworkpp
 
             params = pypatchworkpp.Parameters()
             params.verbose = False
             params.enable_RNR = False  # intensity-based noise removal: we pass no intensity
             params.intensity_thr = 0.0  # left uninitialised by the binding
-            params.sensor_height = float(cfg.sensor_height)
+            params.sensor_height = float(ground.sensor_height)
             params.min_range = 1.0
-            params.max_range = float(cfg.patchwork_max_range)
+            params.max_range = float(ground.patchwork_max_range)
             self._params = params
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool ground mask of (N, 3) float32 points."""
         n = len(points)
         ground = np.zeros(n, dtype=bool)
-        if n == 0 or self.cfg.ground == "none":
+        settings = self.settings.ground
+        if n == 0 or settings.method == "none":
             return ground
-        if self.cfg.ground in ("both", "zthreshold"):
-            ground |= points[:, 2] <= self.cfg.range_z + self.cfg.ground_slack
+        if settings.method in ("both", "zthreshold"):
+            ground |= points[:, 2] <= settings.range_z + settings.slack
         if self._params is not None:
             ground |= self.patchwork(points)
         return ground
@@ -71,7 +79,7 @@ class GroundSegmenter:
             return ground
         cloud = np.zeros((len(points), 4), dtype=np.float64)  # x, y, z, intensity (unused)
         cloud[:, :3] = points
-        cloud[:, 2] += self.cfg.patchwork_z_offset
+        cloud[:, 2] += self.settings.patchwork_z_offset
         import pypatchworkpp
 
         with _quiet_stdout():
