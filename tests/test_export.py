@@ -368,3 +368,20 @@ def test_export_cli(checkpoint, tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == [FILE_NAMES["pt2"], METADATA_NAME]
     assert json.loads((out / METADATA_NAME).read_text())["files"].keys() == {"pt2"}
     assert f"{out / METADATA_NAME}" in capsys.readouterr().out
+
+
+def test_gru_decoder_exports_with_parity_and_the_predictor_runs_it(pairs, tmp_path):
+    gru = {**TINY, "decoder": "gru", "gru_iterations": 2, "gru_channels": 8}
+    pair = pairs[0]
+    near0 = np.flatnonzero(np.abs(pair.pc0[:, :2]).max(axis=1) < 7.0)[:3000]
+    near1 = np.flatnonzero(np.abs(pair.pc1[:, :2]).max(axis=1) < 7.0)[:3000]
+    checkpoint = tiny_checkpoint(tmp_path / "gru.ckpt", gru, pair, 5, near0, near1, cfg={"out_dir": str(tmp_path)})
+    out_dir = export_checkpoint(checkpoint)
+    metadata = json.loads((out_dir / METADATA_NAME).read_text())
+    assert metadata["model"]["decoder"] == "gru" and max(metadata["parity_max_abs_m"].values()) <= TOLERANCE
+    flow, valid = eager_full_flow(SingleSampleNet(load_student(checkpoint)[0]).eval(), pairs[1])
+    for backend in ("onnx", "pt2"):
+        prediction = Predictor.load(out_dir, backend=backend).predict(
+            pairs[1].pc0, pairs[1].pc1, pairs[1].ego1_from_ego0
+        )
+        assert np.array_equal(prediction.in_grid, valid) and np.abs(prediction.flow - flow).max() <= TOLERANCE
