@@ -133,7 +133,7 @@ def split_linear(linear: nn.Linear, images, ids: torch.Tensor, point_features: t
         channels = image.shape[1]
         part = nn.functional.linear(pillar_rows(image), weight[:, start : start + channels])
         pillar, start = part + pillar, start + channels
-    per_point = pillar[ids.clamp(max=pillar.shape[0] - 1)]
+    per_point = pillar.index_select(0, ids.clamp(max=pillar.shape[0] - 1))
     return per_point if point_features is None else per_point + nn.functional.linear(point_features, weight[:, start:])
 
 
