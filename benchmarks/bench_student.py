@@ -11,6 +11,9 @@ Usage:
   python benchmarks/bench_student.py --train /work/data/labels/train16 --val /work/data/labels/val \\
       --run before=/work/wt/i19-base --run after=. [--run "after-w2=.:data.workers=2"] [--steps 40] [--warmup 10]
 A run is NAME=TREE[:override,override,...] (Hydra overrides added to that tree's train.py command line).
+
+``--work N`` first prints the CPU work of a step in each run's tree (``benchmarks/student_step_work.py``: one
+thread, process time, median of N batches), which holds on a loaded machine where wall-clock step times do not.
 """
 
 from __future__ import annotations
@@ -67,6 +70,24 @@ def run_once(tree: Path, overrides: list[str], args, out: Path) -> dict:
     return {"median": statistics.median(gaps), "mean": (steps[-1] - steps[0]) / len(gaps), "wall": wall}
 
 
+def step_work(tree: Path, overrides: list[str], args) -> dict:
+    """CPU seconds of one step's network work and of one sample's loading in ``tree`` (one thread)."""
+    command = [
+        str(tree / ".venv" / "bin" / "python"),
+        str(HERE / "student_step_work.py"),
+        str(tree / "conf"),
+        str(Path(args.train).resolve()),
+        str(Path(args.val).resolve()),
+        str(args.work),
+        *args.common,
+        *overrides,
+    ]
+    done = subprocess.run(command, cwd=tree, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"bench_student: step work in {tree} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--train", required=True, help="labelled shard directory (data.train)")
@@ -76,10 +97,24 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=10)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--common", nargs="*", default=[], help="overrides for every run")
+    parser.add_argument("--work", type=int, default=0, help="also the CPU work per step, median of N batches")
+    parser.add_argument("--no-loop", action="store_true", help="only --work, no train.py runs")
     args = parser.parse_args()
     if args.steps - args.warmup < 10:
         raise SystemExit("bench_student: need >= 10 timed steps (--steps - --warmup)")
     runs = [parse_run(text) for text in args.run]
+    if args.work:
+        print(f"CPU work per training step, one thread, process time, median of {args.work} batches")
+        print("| run | network step (CPU s) | loading per sample (CPU s) | step + batch loading (CPU s) | ratio |")
+        print("|---|---|---|---|---|")
+        reference = None
+        for name, tree, overrides in runs:
+            work = step_work(tree, overrides, args)
+            total = work["step"] + work["batch"] * work["sample"]
+            reference = reference or total
+            print(f"| {name} | {work['step']:.3f} | {work['sample']:.4f} | {total:.3f} | {reference / total:.2f}x |")
+    if args.no_loop:
+        return
     figures: dict[str, list[dict]] = {name: [] for name, _, _ in runs}
     with tempfile.TemporaryDirectory(prefix="bench_student_") as scratch:
         for repeat in range(args.repeats):
