@@ -385,3 +385,10 @@ def test_gru_decoder_exports_with_parity_and_the_predictor_runs_it(pairs, tmp_pa
             pairs[1].pc0, pairs[1].pc1, pairs[1].ego1_from_ego0
         )
         assert np.array_equal(prediction.in_grid, valid) and np.abs(prediction.flow - flow).max() <= TOLERANCE
+    # the inference CLI on raw scan files with poses
+    poses = write_poses(tmp_path / "poses.txt", [pairs[1].pose0, pairs[1].pose1])
+    scan0, scan1 = write_scan(tmp_path / "a.npy", pairs[1].pc0), write_scan(tmp_path / "b.npy", pairs[1].pc1)
+    out = tmp_path / "flow.npz"
+    assert infer_main([str(out_dir), str(scan0), str(scan1), "--poses", str(poses), "--out", str(out), "--no-bev"]) == 0
+    with np.load(out) as result:
+        assert np.abs(result["flow"] - flow).max() <= TOLERANCE
