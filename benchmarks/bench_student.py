@@ -10,7 +10,8 @@ median over the repeats and the ratio to the first run.
 Usage:
   python benchmarks/bench_student.py --train /work/data/labels/train16 --val /work/data/labels/val \\
       --run before=/work/wt/i19-base --run after=. [--run "after-w2=.:data.workers=2"] [--steps 40] [--warmup 10]
-A run is NAME=TREE[:override,override,...] (Hydra overrides added to that tree's train.py command line).
+A run is NAME=TREE[:override,override,...] (Hydra overrides added to that tree's train.py command line; an item
+``env:NAME=VALUE`` sets an environment variable of the run instead, e.g. ``env:OMP_NUM_THREADS=1``).
 
 ``--work N`` first prints the CPU work of a step in each run's tree (``benchmarks/student_step_work.py``: one
 thread, process time, median of N batches), which holds on a loaded machine where wall-clock step times do not.
@@ -40,8 +41,16 @@ def parse_run(text: str) -> tuple[str, Path, list[str]]:
     return name, Path(tree).resolve(), [item for item in extra.split(",") if item]
 
 
-def run_once(tree: Path, overrides: list[str], args, out: Path) -> dict:
+def split_env(items: list[str]) -> tuple[list[str], dict[str, str]]:
+    """Hydra overrides and ``env:NAME=VALUE`` items -> (overrides, environment variables)."""
+    overrides = [item for item in items if not item.startswith("env:")]
+    env = dict(item[len("env:") :].split("=", 1) for item in items if item.startswith("env:"))
+    return overrides, env
+
+
+def run_once(tree: Path, items: list[str], args, out: Path) -> dict:
     """One ``train.py`` run in ``tree``; returns its step-time figures (seconds)."""
+    overrides, run_env = split_env(items)
     timer = out / "steps.json"
     command = [
         str(tree / ".venv" / "bin" / "python"),
@@ -58,7 +67,7 @@ def run_once(tree: Path, overrides: list[str], args, out: Path) -> dict:
         *args.common,
         *overrides,
     ]
-    env = {**os.environ, "PYTHONPATH": str(HERE)}
+    env = {**os.environ, **run_env, "PYTHONPATH": str(HERE)}
     start = time.perf_counter()
     done = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - start
@@ -70,8 +79,9 @@ def run_once(tree: Path, overrides: list[str], args, out: Path) -> dict:
     return {"median": statistics.median(gaps), "mean": (steps[-1] - steps[0]) / len(gaps), "wall": wall}
 
 
-def step_work(tree: Path, overrides: list[str], args) -> dict:
+def step_work(tree: Path, items: list[str], args) -> dict:
     """CPU seconds of one step's network work and of one sample's loading in ``tree`` (one thread)."""
+    overrides, _ = split_env(items)
     command = [
         str(tree / ".venv" / "bin" / "python"),
         str(HERE / "student_step_work.py"),
