@@ -1,15 +1,16 @@
 """Recipe ablations of the student over several seeds: each variant (a set of train.py overrides) is trained with
-every seed on the same shards, and scored by eval.py on a held-out split (val by default: decisions are made on
-val, reported numbers on test).
+every seed on the same shards, and scored by eval.py on a held-out split (the 64 test pairs by default).
 
     .venv/bin/python benchmarks/student_ablation.py --train <shards> --val <shards> [--steps 200] [--seeds 0,1,2]
-        [--variant NAME=OVERRIDE[,OVERRIDE...] ...] [--experiment synthetic_quick] [--score-split val]
+        [--variant NAME=OVERRIDE[,OVERRIDE...] ...] [--experiment synthetic_quick] [--score-split test]
         [--score-sequences 16] [--out outputs/ablation]
 
-Default variants: ``base`` (the experiment as it is), ``uniform`` (loss.weighting=uniform), ``speed``
-(loss.weighting=speed), ``groupnorm`` (model.norm=group). Prints, per variant, the dynamic-foreground, static
-foreground and static background EPE (mean and standard deviation over seeds) and each seed's dynamic EPE; runs
-whose scores exist are not repeated.
+Default variants (issue 19): ``base`` (the experiment as it is: GRU decoder, all points, bucket loss), ``linear``
+(model.decoder=linear, ZeroFlow's head), ``subsample`` (data.train_points=16384, an inexact speed-up), ``uniform``
+(loss.weighting=uniform). Prints, per variant, the dynamic-foreground, static foreground and static background EPE
+and Threeway EPE (mean and standard deviation over seeds), the difference of the mean dynamic EPE to ``base`` with
+the larger of the two spreads beside it, each seed's dynamic EPE and the mean training time; runs whose scores
+exist are not repeated.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import argparse
 import statistics
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from icpflow.evaluation import is_complete, method_summary, read_metrics
@@ -25,9 +27,9 @@ from icpflow.evaluation import is_complete, method_summary, read_metrics
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_VARIANTS = [
     "base=",
+    "linear=model.decoder=linear",
+    "subsample=data.train_points=16384",
     "uniform=loss.weighting=uniform",
-    "speed=loss.weighting=speed",
-    "groupnorm=model.norm=group",
 ]
 CATEGORIES = ("dynamic_fg", "static_fg", "static_bg")
 
@@ -40,7 +42,7 @@ def main() -> None:
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--variant", action="append", help="NAME=OVERRIDE[,OVERRIDE...] (repeatable)")
     parser.add_argument("--experiment", default="synthetic_quick")
-    parser.add_argument("--score-split", default="val")
+    parser.add_argument("--score-split", default="test")
     parser.add_argument("--score-sequences", type=int, default=16, help="sequences of the scored split")
     parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "ablation")
     args = parser.parse_args()
@@ -54,8 +56,9 @@ def main() -> None:
         for seed in seeds:
             run_dir = args.out.resolve() / f"{name}_seed{seed}"
             scores = run_dir / "score" / "metrics.json"
+            timing = run_dir / "train_seconds.txt"
             if not is_complete(scores):
-                call(
+                seconds = call(
                     [
                         "train.py",
                         f"experiment={args.experiment}",
@@ -69,6 +72,7 @@ def main() -> None:
                         *overrides,
                     ]
                 )
+                timing.write_text(f"{seconds:.1f}\n")
                 call(
                     [
                         "eval.py",
@@ -80,27 +84,49 @@ def main() -> None:
                         "bev=0",
                     ]
                 )
-            table = method_summary(read_metrics(scores), "student")["paper"]["point_weighted"]
-            results.setdefault(name, []).append({c: table[c]["EPE"] for c in CATEGORIES})
+            summary = method_summary(read_metrics(scores), "student")
+            table = summary["paper"]["point_weighted"]
+            row = {c: table[c]["EPE"] for c in CATEGORIES}
+            row["threeway"] = summary["threeway"]["threeway"]
+            row["seconds"] = float(timing.read_text()) if timing.is_file() else float("nan")
+            results.setdefault(name, []).append(row)
     print(
         f"\n{args.experiment}, {args.steps} steps, seeds {seeds}; scored on {args.score_split} "
         f"({args.score_sequences} sequences); EPE (m), mean +- std over seeds"
     )
-    print("| variant | overrides | dynamic fg | static fg | static bg | dynamic fg per seed |")
-    print("|---|---|---|---|---|---|")
+    print(
+        "| variant | overrides | dynamic fg | static fg | static bg | Threeway | dynamic fg - base (larger std) "
+        "| dynamic fg per seed | training (s) |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    base = results.get("base")
+
+    def spread(values):
+        return statistics.stdev(values) if len(values) > 1 else 0.0
+
     for name, rows in results.items():
         cells = []
-        for category in CATEGORIES:
+        for category in (*CATEGORIES, "threeway"):
             values = [row[category] for row in rows]
-            spread = statistics.stdev(values) if len(values) > 1 else 0.0
-            cells.append(f"{statistics.mean(values):.4f} +- {spread:.4f}")
-        per_seed = ", ".join(f"{row['dynamic_fg']:.3f}" for row in rows)
-        print(f"| {name} | {' '.join(variants[name]) or '-'} | {' | '.join(cells)} | {per_seed} |")
+            cells.append(f"{statistics.mean(values):.4f} +- {spread(values):.4f}")
+        dynamic = [row["dynamic_fg"] for row in rows]
+        if base is not None and name != "base":
+            reference = [row["dynamic_fg"] for row in base]
+            worst = max(spread(dynamic), spread(reference))
+            cells.append(f"{statistics.mean(dynamic) - statistics.mean(reference):+.4f} ({worst:.4f})")
+        else:
+            cells.append("-")
+        per_seed = ", ".join(f"{value:.3f}" for value in dynamic)
+        seconds = statistics.mean(row["seconds"] for row in rows)
+        print(f"| {name} | {' '.join(variants[name]) or '-'} | {' | '.join(cells)} | {per_seed} | {seconds:.0f} |")
 
 
-def call(arguments: list[str]) -> None:
+def call(arguments: list[str]) -> float:
+    """Run ``python <arguments>`` in the repository root; seconds taken (raises on a non-zero exit)."""
     print("$ python " + " ".join(arguments), flush=True)
+    tic = time.perf_counter()
     subprocess.run([sys.executable, *arguments], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - tic
 
 
 if __name__ == "__main__":

@@ -16,10 +16,20 @@ One sample (``StudentDataset[i]``) holds torch tensors:
 per-point tensors are concatenated (P0 rows, or P1 for ``pc1`` and ``ground1``), ``batch0`` / ``batch1`` (P0,) /
 (P1,) int64 give each point's sample, ``ego1_from_ego0`` is (B, 4, 4), ``dt`` (B,), ``sample_id`` a list and
 ``batch_size`` an int.
+
+Training samples are cropped to what the network sees (``NetworkCrop``, in the DataLoader workers): the pc0 / pc1
+rows inside the model's grid and, with ``data.remove_ground``, off the ground; the batch then says
+``network_points=True`` and the module runs the network on it as it is. The loss is the same as on the whole
+scans (points outside the grid or on the ground never count), and the main process neither copies nor masks them.
+``NetworkCrop.max_points`` (``data.train_points``) then keeps at most that many random points per scan: an inexact
+speed-up (fewer points per pillar mean), off by default.
 """
 
 from __future__ import annotations
 
+import functools
+import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import h5py
@@ -27,10 +37,13 @@ import lightning as L
 import numpy as np
 import torch
 import yaml
+from lightning.fabric.utilities.seed import pl_worker_init_function
+from threadpoolctl import threadpool_limits
 from torch.utils.data import DataLoader, Dataset
 
 from fastflow3d.augment import Augmentation
 from fastflow3d.model import compensate
+from fastflow3d.voxelize import Grid, pillar_ids
 from icpflow.geometry import full_to_residual
 from icpflow.preprocess import Preprocessing
 from icpflow.shards.reader import ShardDataset
@@ -44,14 +57,51 @@ class DataError(ValueError):
     """Training data cannot be used (missing or empty shard directory). The message is one line."""
 
 
+@dataclass(frozen=True)
+class NetworkCrop:
+    """The rows of a sample the network sees in training: inside ``grid`` (``fastflow3d.voxelize.pillar_ids``, the
+    model's own test) and, with ``remove_ground``, off the ground; then at most ``max_points`` random rows per scan
+    (None = all)."""
+
+    grid: Grid
+    remove_ground: bool
+    max_points: int | None = None
+
+    def __post_init__(self):
+        if self.max_points is not None and self.max_points < 1:
+            raise ValueError(f"data.train_points must be null or >= 1, got {self.max_points}")
+
+    def rows(self, points: torch.Tensor, ground: torch.Tensor) -> torch.Tensor:
+        """Sorted row indices (K,) int64 of one scan's kept points (N, 3) with ground mask (N,)."""
+        _, keep = pillar_ids(points, torch.zeros(len(points), dtype=torch.int64), self.grid, 1)
+        if self.remove_ground:
+            keep &= ~ground
+        rows = torch.nonzero(keep)[:, 0]
+        if self.max_points is not None and len(rows) > self.max_points:
+            rows = rows[torch.randperm(len(rows))[: self.max_points]].sort().values
+        return rows
+
+    def __call__(self, sample: dict) -> dict:
+        """``sample`` (``StudentDataset`` layout) with the per-point tensors of both scans cut to the kept rows."""
+        out = dict(sample, network_points=True)
+        for keys, points, ground in ((PER_POINT0, "pc0_compensated", "ground0"), (PER_POINT1, "pc1", "ground1")):
+            rows = self.rows(sample[points], sample[ground])
+            for key in keys:
+                if key in sample:
+                    out[key] = sample[key][rows]
+        return out
+
+
 class StudentDataset(Dataset):
     """The samples of one shard directory (a ``label.py`` out_dir) as torch tensors (module docstring); with
     ``augment`` (training only) each read is a fresh random augmentation (``fastflow3d.augment``) drawn from torch's
-    random state (seeded per DataLoader worker by Lightning's ``seed_everything(workers=True)``)."""
+    random state (seeded per DataLoader worker by Lightning's ``seed_everything(workers=True)``); with ``crop``
+    (training only) each sample is then cut to the network's points."""
 
-    def __init__(self, shard_dir, augment: Augmentation | None = None):
+    def __init__(self, shard_dir, augment: Augmentation | None = None, crop: NetworkCrop | None = None):
         self.root = Path(shard_dir)
         self.augment = augment
+        self.crop = crop
         if not self.root.is_dir():
             raise DataError(f"{self.root}: shard directory does not exist")
         try:
@@ -90,7 +140,7 @@ class StudentDataset(Dataset):
                 gt_valid=torch.from_numpy(valid),
                 gt_classes=torch.from_numpy(classes),
             )
-        return sample
+        return sample if self.crop is None else self.crop(sample)
 
 
 def collate(samples: list[dict]) -> dict:
@@ -104,7 +154,17 @@ def collate(samples: list[dict]) -> dict:
     batch["dt"] = torch.stack([s["dt"] for s in samples])
     batch["sample_id"] = [s["sample_id"] for s in samples]
     batch["batch_size"] = len(samples)
+    batch["network_points"] = all(s.get("network_points", False) for s in samples)
     return batch
+
+
+def init_worker(worker_id: int, blas_threads: int, rank: int) -> None:
+    """DataLoader ``worker_init_fn``: at most ``blas_threads`` BLAS threads in the worker (numpy's OpenBLAS would
+    otherwise start one per core and take the trainer's cores); then Lightning's per-worker seeding, which Lightning
+    adds itself only to loaders without a ``worker_init_fn``."""
+    threadpool_limits(limits=blas_threads, user_api="blas")
+    if os.environ.get("PL_SEED_WORKERS") == "1":
+        pl_worker_init_function(worker_id, rank)
 
 
 def split_samples(batch: dict, key: str = "batch0") -> list[slice]:
@@ -129,19 +189,46 @@ def labeller_preprocessing(shard_dir) -> Preprocessing | None:
 
 
 class ShardDataModule(L.LightningDataModule):
-    """Train / val shard directories -> DataLoaders of flat batches (``workers`` loader processes per loader);
-    ``augment`` (``Augmentation`` fields, or None) applies to the training samples only."""
+    """Train / val shard directories -> DataLoaders of flat batches (``workers`` loader processes per loader, each
+    with ``worker_blas_threads`` BLAS threads); ``augment`` (``Augmentation`` fields, or None) and ``crop``
+    (``NetworkCrop``, or None) apply to the training samples only."""
 
-    def __init__(self, train, val, batch_size: int = 8, workers: int = 0, augment: dict | None = None):
+    def __init__(
+        self,
+        train,
+        val,
+        batch_size: int = 8,
+        workers: int = 0,
+        augment: dict | None = None,
+        crop: NetworkCrop | None = None,
+        worker_blas_threads: int = 1,
+    ):
         super().__init__()
         self.train_dir, self.val_dir = train, val
         self.batch_size, self.workers = int(batch_size), int(workers)
         self.augment = Augmentation(**augment) if augment else None
+        self.crop = crop
+        self.worker_blas_threads = int(worker_blas_threads)
         self.train_set = self.val_set = None
+
+    @classmethod
+    def from_config(cls, data: dict, grid: Grid) -> ShardDataModule:
+        """The data module of a training config's ``data`` block (plain dict, ``conf/data/shards.yaml``) for a
+        model on ``grid``: training samples cropped to the network's points (``remove_ground``, ``train_points``)."""
+        crop = NetworkCrop(grid, bool(data["remove_ground"]), data.get("train_points"))
+        return cls(
+            data["train"],
+            data["val"],
+            data["batch_size"],
+            data["workers"],
+            data["augment"],
+            crop,
+            data.get("worker_blas_threads", 1),
+        )
 
     def setup(self, stage: str | None = None) -> None:
         if stage in (None, "fit") and self.train_set is None:
-            self.train_set = StudentDataset(self.train_dir, self.augment)
+            self.train_set = StudentDataset(self.train_dir, self.augment, self.crop)
         if stage in (None, "fit", "validate") and self.val_set is None:
             self.val_set = StudentDataset(self.val_dir)
 
@@ -153,6 +240,9 @@ class ShardDataModule(L.LightningDataModule):
             num_workers=self.workers,
             collate_fn=collate,
             persistent_workers=self.workers > 0,
+            worker_init_fn=functools.partial(
+                init_worker, blas_threads=self.worker_blas_threads, rank=self.trainer.global_rank if self.trainer else 0
+            ),
         )
 
     def train_dataloader(self) -> DataLoader:

@@ -1,17 +1,25 @@
-"""FastFlow3D (as ZeroFlow implements it): pillar embedder, two-scan UNet and a per-point flow head.
+"""FastFlow3D (as ZeroFlow implements it): pillar embedder, two-scan UNet and a per-point flow decoder: ZeroFlow's
+Linear-GELU-Linear head (``decoder="linear"``) or a DeFlow-style GRU refinement of each point's feature
+(``decoder="gru"``, Zhang et al., ICRA 2024).
 
 Input convention: ``pc0`` is the scan at t already moved into the ego frame of t + dt (``ego1_from_ego0``
 applied, see ``compensate``) and ``pc1`` is the scan at t + dt as is. The network predicts the ego-compensated
 (residual) flow of every pc0 point inside the grid (0 outside, with a validity mask); the full flow in the
 project convention is ``residual + ego_flow(pc0, ego1_from_ego0)`` (``icpflow.geometry.residual_to_full``).
 Batches are flat point lists with a sample index per point (see ``fastflow3d.voxelize``).
+
+Speed (the numbers are those of the plain formulation up to float rounding): pseudo-images are channels_last views
+of the pillar rows (no copy, and the convolutions run in channels_last); the decoders' first layer is split into
+a per-pillar part, computed once per cell of the pseudo-images, and a per-point part, so the three pillar features
+are never gathered per point; the embedder's BatchNorm skips its masked copy when every point is inside the grid
+(training batches are cropped to the grid by ``fastflow3d.data``).
 """
 
 import numpy as np
 import torch
 from torch import nn
 
-from fastflow3d.scatter import from_pseudo_image, scatter_mean, to_pseudo_image
+from fastflow3d.scatter import scatter_mean, to_pseudo_image
 from fastflow3d.voxelize import Grid, voxelize
 from icpflow.geometry import transform_points
 
@@ -22,6 +30,7 @@ def compensate(pc0: np.ndarray, ego1_from_ego0: np.ndarray) -> np.ndarray:
 
 
 NORMS = ("batch", "group")
+DECODERS = ("linear", "gru")
 
 
 def norm_layer(norm: str, channels: int, embedder: bool = False) -> nn.Module:
@@ -97,14 +106,91 @@ class PillarEmbedder(nn.Module):
         self.norm = norm_layer(norm, channels, embedder=True)
 
     def forward(self, features: torch.Tensor, ids: torch.Tensor, valid: torch.Tensor, num_slots: int):
-        """Pillar rows (num_slots, C) from point features (P, 9); batch statistics use in-range points only."""
+        """Pillar rows (num_slots, C) and per-point embeddings (P, C) from point features (P, 9); batch statistics
+        use in-range points only."""
         h = self.linear(features)
-        if self.training and isinstance(self.norm, nn.BatchNorm1d):
+        if self.training and isinstance(self.norm, nn.BatchNorm1d) and not bool(valid.all()):
             normed = torch.zeros_like(h)
             normed[valid] = self.norm(h[valid])
         else:
             normed = self.norm(h)
-        return scatter_mean(torch.relu(normed), ids, num_slots)
+        points = torch.relu(normed)
+        return scatter_mean(points, ids, num_slots), points
+
+
+def pillar_rows(image: torch.Tensor) -> torch.Tensor:
+    """(B * nx * ny, C) rows of a (B, C, nx, ny) image: a view for a channels_last image."""
+    return image.permute(0, 2, 3, 1).reshape(-1, image.shape[1])
+
+
+def split_linear(linear: nn.Linear, images, ids: torch.Tensor, point_features: torch.Tensor | None = None):
+    """(P, out): ``linear`` applied per point to ``[images[0] at its pillar, ..., point_features]`` without
+    gathering the images: their part of the weight runs once per pillar row (bias included), then one (P, out)
+    gather by pillar id, plus the per-point part (if any). Ids of points outside the grid (the dump id) read an
+    arbitrary row: the caller masks those points."""
+    weight, start, pillar = linear.weight, 0, linear.bias
+    for image in images:
+        channels = image.shape[1]
+        part = nn.functional.linear(pillar_rows(image), weight[:, start : start + channels])
+        pillar, start = part + pillar, start + channels
+    per_point = pillar.index_select(0, ids.clamp(max=pillar.shape[0] - 1))
+    return per_point if point_features is None else per_point + nn.functional.linear(point_features, weight[:, start:])
+
+
+class LinearDecoder(nn.Sequential):
+    """ZeroFlow's head: Linear(4C + 3 -> 32) + GELU + Linear(32 -> 3) on each point's [pc0 pillar, pc1 pillar,
+    decoded pillar features, offset of the point from its pillar centre]; parameters ``0.*`` and ``2.*`` as
+    ZeroFlow's ``nn.Sequential``."""
+
+    def __init__(self, pillar_channels: int):
+        super().__init__(nn.Linear(4 * pillar_channels + 3, 32), nn.GELU(), nn.Linear(32, 3))
+
+    def decode(self, images, point_embedding: torch.Tensor, features: torch.Tensor, ids: torch.Tensor):
+        """Residual flow (P, 3) from the (B, *, nx, ny) images (pc0, pc1, decoded) and the point features (P, 9)."""
+        hidden = split_linear(self[0], images, ids, features[:, 6:9])
+        return self[2](self[1](hidden))
+
+
+class GRUDecoder(nn.Module):
+    """DeFlow's voxel-to-point decoder, as its paper describes it: each point's hidden state starts from its
+    pillar's feature and a GRU refines it ``iterations`` times with the point's own feature as the input; an MLP
+    maps [refined state, point feature] to the flow.
+
+    Here the pillar feature is a linear projection (``hidden`` channels) of [pc0 pillar, pc1 pillar, decoded pillar]
+    features (computed per pillar, see ``split_linear``), and the point feature is the point's embedding (the
+    pillar embedder's per-point output, C channels) with its offset from the pillar centre. The GRU cell is the
+    standard one (update gate z, reset gate r, candidate n; ``h <- (1 - z) n + z h``); the input's part of its
+    gates is computed once for all iterations. The MLP is Linear(hidden + C + 3 -> 32) + GELU + Linear(32 -> 3).
+    """
+
+    def __init__(self, pillar_channels: int, hidden: int, iterations: int):
+        super().__init__()
+        if iterations < 1 or hidden < 1:
+            raise ValueError(f"FastFlow3D: gru_iterations and gru_channels must be >= 1, got {iterations}, {hidden}")
+        point = pillar_channels + 3
+        self.iterations = int(iterations)
+        self.initial = nn.Linear(4 * pillar_channels, hidden)
+        self.input_gates = nn.Linear(point, 3 * hidden)
+        self.hidden_gates = nn.Linear(hidden, 3 * hidden)
+        self.flow = nn.Sequential(nn.Linear(hidden + point, 32), nn.GELU(), nn.Linear(32, 3))
+
+    def decode(self, images, point_embedding: torch.Tensor, features: torch.Tensor, ids: torch.Tensor):
+        """Residual flow (P, 3) from the (B, *, nx, ny) images (pc0, pc1, decoded), the per-point embeddings (P, C)
+        and the point features (P, 9)."""
+        point = torch.cat([point_embedding, features[:, 6:9]], dim=1)
+        # the input's part of the gates once; the z and r gates' hidden bias folded into it (fewer passes per step)
+        x_gates = self.input_gates(point)
+        h = split_linear(self.initial, images, ids).to(x_gates.dtype)  # bf16 under autocast, as the gates
+        hidden = h.shape[1]
+        x_zr = x_gates[:, : 2 * hidden] + self.hidden_gates.bias[: 2 * hidden].to(x_gates.dtype)
+        x_n = x_gates[:, 2 * hidden :]
+        weight_zr, weight_n = self.hidden_gates.weight[: 2 * hidden], self.hidden_gates.weight[2 * hidden :]
+        bias_n = self.hidden_gates.bias[2 * hidden :]
+        for _ in range(self.iterations):
+            z, r = torch.sigmoid(torch.addmm(x_zr, h, weight_zr.T)).chunk(2, dim=1)
+            n = torch.tanh(torch.addcmul(x_n, r, torch.addmm(bias_n, h, weight_n.T)))
+            h = torch.lerp(n, h, z)  # (1 - z) n + z h
+        return self.flow(torch.cat([h, point], dim=1))
 
 
 class FastFlow3D(nn.Module):
@@ -112,15 +198,33 @@ class FastFlow3D(nn.Module):
 
     pc0 (P0, 3) ego-compensated, pc1 (P1, 3), batch0/batch1 int64 sample indices in ``[0, batch_size)``.
 
-    Every argument but ``norm`` is required: the settings live in one place, ``conf/model/*.yaml``
-    (``fastflow3d.yaml`` is FastFlow3D as ZeroFlow implements it; the others extend it), and a checkpoint carries
-    them all (``norm`` defaults to ``batch`` for checkpoints written before it existed).
+    Every argument but ``norm`` and the decoder's is required: the settings live in one place,
+    ``conf/model/*.yaml`` (``fastflow3d.yaml`` is FastFlow3D as ZeroFlow implements it; the others extend it), and a
+    checkpoint carries them all (checkpoints written before an argument existed get its default: ``norm="batch"``,
+    ``decoder="linear"``, ZeroFlow's FastFlow3D). ``decoder``: ``linear`` (ZeroFlow's head) or ``gru``
+    (``GRUDecoder`` with ``gru_channels`` hidden channels and ``gru_iterations`` refinements).
     """
 
-    def __init__(self, *, x_range, y_range, z_range, cell, pillar_channels, stage_channels, stage_blocks, norm="batch"):
+    def __init__(
+        self,
+        *,
+        x_range,
+        y_range,
+        z_range,
+        cell,
+        pillar_channels,
+        stage_channels,
+        stage_blocks,
+        norm="batch",
+        decoder="linear",
+        gru_iterations=4,
+        gru_channels=32,
+    ):
         super().__init__()
         if norm not in NORMS:
             raise ValueError(f"FastFlow3D: norm must be one of {', '.join(NORMS)}, got {norm!r}")
+        if decoder not in DECODERS:
+            raise ValueError(f"FastFlow3D: decoder must be one of {', '.join(DECODERS)}, got {decoder!r}")
         if len(stage_channels) != len(stage_blocks):
             raise ValueError(f"FastFlow3D: {len(stage_channels)} stage_channels but {len(stage_blocks)} stage_blocks")
         self.grid = Grid(tuple(x_range), tuple(y_range), tuple(z_range), float(cell))
@@ -129,28 +233,24 @@ class FastFlow3D(nn.Module):
             raise ValueError(f"FastFlow3D: grid {self.grid.nx}x{self.grid.ny} not divisible by {factor}")
         self.embedder = PillarEmbedder(pillar_channels, norm)
         self.unet = UNet(pillar_channels, tuple(stage_channels), tuple(stage_blocks), norm)
-        self.head = nn.Sequential(nn.Linear(4 * pillar_channels + 3, 32), nn.GELU(), nn.Linear(32, 3))
+        if decoder == "linear":
+            self.head = LinearDecoder(pillar_channels)
+        else:
+            self.head = GRUDecoder(pillar_channels, int(gru_channels), int(gru_iterations))
+        self.to(memory_format=torch.channels_last)
 
     def embed(self, points: torch.Tensor, batch: torch.Tensor, batch_size: int):
-        """Pseudo-image (B, C, nx, ny), per-point features (P, 9), pillar ids and in-range mask of one scan."""
+        """Pseudo-image (B, C, nx, ny) (channels_last), per-point features (P, 9), pillar ids, in-range mask and
+        per-point embeddings (P, C) of one scan."""
         features, ids, valid = voxelize(points, batch, self.grid, batch_size)
-        rows = self.embedder(features, ids, valid, batch_size * self.grid.nx * self.grid.ny + 1)
-        return to_pseudo_image(rows, batch_size, self.grid.nx, self.grid.ny), features, ids, valid
+        rows, embedding = self.embedder(features, ids, valid, batch_size * self.grid.nx * self.grid.ny + 1)
+        return to_pseudo_image(rows, batch_size, self.grid.nx, self.grid.ny), features, ids, valid, embedding
 
     def forward(
         self, pc0: torch.Tensor, batch0: torch.Tensor, pc1: torch.Tensor, batch1: torch.Tensor, batch_size: int = 1
     ):
-        image0, features0, ids0, valid0 = self.embed(pc0, batch0, batch_size)
-        image1, _, _, _ = self.embed(pc1, batch1, batch_size)
+        image0, features0, ids0, valid0, embedding0 = self.embed(pc0, batch0, batch_size)
+        image1 = self.embed(pc1, batch1, batch_size)[0]
         decoded = self.unet(image0, image1)
-        per_point = torch.cat(
-            [
-                from_pseudo_image(image0, ids0),
-                from_pseudo_image(image1, ids0),
-                from_pseudo_image(decoded, ids0),
-                features0[:, 6:9],
-            ],
-            dim=1,
-        )
-        residual = self.head(per_point)
+        residual = self.head.decode((image0, image1, decoded), embedding0, features0, ids0)
         return torch.where(valid0[:, None], residual, torch.zeros_like(residual)), valid0

@@ -55,8 +55,9 @@ class StudentModule(L.LightningModule):
 
     def forward(self, batch: dict):
         """(residual (P0, 3), valid (P0,)) of a collated batch; valid = the network predicted the point (inside the
-        grid and, with ``data.remove_ground``, not ground); residual is 0 elsewhere."""
-        if not self.cfg["data"]["remove_ground"]:
+        grid and, with ``data.remove_ground``, not ground); residual is 0 elsewhere. A batch already cut to the
+        network's points (``network_points``, ``fastflow3d.data.NetworkCrop``) goes to the network as it is."""
+        if batch.get("network_points") or not self.cfg["data"]["remove_ground"]:
             return self.model(
                 batch["pc0_compensated"], batch["batch0"], batch["pc1"], batch["batch1"], batch["batch_size"]
             )

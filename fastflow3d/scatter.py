@@ -25,15 +25,8 @@ def scatter_mean(values: torch.Tensor, ids: torch.Tensor, num_slots: int) -> tor
 
 
 def to_pseudo_image(pillar_values: torch.Tensor, batch_size: int, nx: int, ny: int) -> torch.Tensor:
-    """(B * nx * ny + 1, C) pillar rows (last row is the dump slot) -> pseudo-image (B, C, nx, ny)."""
+    """(B * nx * ny + 1, C) pillar rows (last row is the dump slot) -> pseudo-image (B, C, nx, ny), a view of the
+    rows in channels_last memory format (no copy)."""
     channels = pillar_values.shape[1]
     image = pillar_values[: batch_size * nx * ny].reshape(batch_size, nx, ny, channels)
-    return image.permute(0, 3, 1, 2).contiguous()
-
-
-def from_pseudo_image(image: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
-    """Gather (P, C) rows of a (B, C, nx, ny) image at flat pillar ids; the dump id reads a row of zeros."""
-    channels = image.shape[1]
-    rows = image.permute(0, 2, 3, 1).reshape(-1, channels)
-    rows = torch.cat([rows, rows.new_zeros((1, channels))], dim=0)
-    return rows[ids]
+    return image.permute(0, 3, 1, 2)

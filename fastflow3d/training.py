@@ -231,7 +231,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
         if cfg.compile:
             module.model.compile(dynamic=True)
         data = plain["data"]
-        datamodule = ShardDataModule(data["train"], data["val"], data["batch_size"], data["workers"], data["augment"])
+        datamodule = ShardDataModule.from_config(data, module.model.grid)
         trainer = build_trainer(cfg)
         try:
             trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)

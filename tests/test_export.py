@@ -552,3 +552,27 @@ def test_infer_cli_sensor_height(export_dir, pairs, expected, tmp_path, capsys):
     assert len(lines) == 1 and lines[0].startswith("infer: warning: the ground of pc0 lies at z = -1.")
     with pytest.raises(SystemExit):
         infer_main([*common, "--sensor-height", "tall"])
+
+
+def test_gru_decoder_exports_with_parity_and_the_predictor_runs_it(pairs, tmp_path):
+    gru = {**TINY, "decoder": "gru", "gru_iterations": 2, "gru_channels": 8}
+    pair = pairs[0]
+    near0 = np.flatnonzero(np.abs(pair.pc0[:, :2]).max(axis=1) < 7.0)[:3000]
+    near1 = np.flatnonzero(np.abs(pair.pc1[:, :2]).max(axis=1) < 7.0)[:3000]
+    checkpoint = tiny_checkpoint(tmp_path / "gru.ckpt", gru, pair, 5, near0, near1, cfg={"out_dir": str(tmp_path)})
+    out_dir = export_checkpoint(checkpoint)
+    metadata = json.loads((out_dir / METADATA_NAME).read_text())
+    assert metadata["model"]["decoder"] == "gru" and max(metadata["parity_max_abs_m"].values()) <= TOLERANCE
+    flow, valid = eager_full_flow(SingleSampleNet(load_student(checkpoint)[0]).eval(), pairs[1])
+    for backend in ("onnx", "pt2"):
+        prediction = Predictor.load(out_dir, backend=backend).predict(
+            pairs[1].pc0, pairs[1].pc1, pairs[1].ego1_from_ego0
+        )
+        assert np.array_equal(prediction.in_grid, valid) and np.abs(prediction.flow - flow).max() <= TOLERANCE
+    # the inference CLI on raw scan files with poses
+    poses = write_poses(tmp_path / "poses.txt", [pairs[1].pose0, pairs[1].pose1])
+    scan0, scan1 = write_scan(tmp_path / "a.npy", pairs[1].pc0), write_scan(tmp_path / "b.npy", pairs[1].pc1)
+    out = tmp_path / "flow.npz"
+    assert infer_main([str(out_dir), str(scan0), str(scan1), "--poses", str(poses), "--out", str(out), "--no-bev"]) == 0
+    with np.load(out) as result:
+        assert np.abs(result["flow"] - flow).max() <= TOLERANCE

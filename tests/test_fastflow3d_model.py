@@ -84,7 +84,7 @@ def test_shapes_small_grid_batched():
     gen = torch.Generator().manual_seed(1)
     pc0, b0 = flat_batch([torch.randn(70, 3, generator=gen) * 6, torch.randn(50, 3, generator=gen) * 6])
     pc1, b1 = flat_batch([torch.randn(60, 3, generator=gen) * 6, torch.randn(40, 3, generator=gen) * 6])
-    image, _, _, _ = model.embed(pc0, b0, 2)
+    image = model.embed(pc0, b0, 2)[0]
     assert image.shape == (2, 32, 32, 32)
     assert model.unet(image, image).shape == (2, 64, 32, 32)
     residual, valid = model(pc0, b0, pc1, b1, batch_size=2)
@@ -305,3 +305,72 @@ def test_onnx_dynamo_parity_full_model(tmp_path):
         )
         np.testing.assert_allclose(got, expected.detach().numpy(), atol=1e-4, rtol=0)
         assert np.array_equal(got_valid, valid.numpy())
+
+
+def test_gru_decoder_trains_every_parameter_and_its_iterations_count():
+    with pytest.raises(ValueError, match="decoder must be one of linear, gru"):
+        FastFlow3D(**{**SMALL_MODEL, "decoder": "mlp"})
+    model = FastFlow3D(**{**SMALL_MODEL, "decoder": "gru", "gru_iterations": 3, "gru_channels": 16}).train()
+    assert model.head.hidden_gates.in_features == 16 and model.head.iterations == 3
+    gen = torch.Generator().manual_seed(5)
+    pc0, b0 = flat_batch([torch.rand(300, 3, generator=gen) * 18 - 9, torch.rand(200, 3, generator=gen) * 18 - 9])
+    pc1, b1 = flat_batch([torch.rand(300, 3, generator=gen) * 18 - 9, torch.rand(200, 3, generator=gen) * 18 - 9])
+    residual, valid = model(pc0, b0, pc1, b1, batch_size=2)
+    assert residual.shape == (500, 3) and 0 < valid.sum() < 500 and torch.all(residual[~valid] == 0)
+    flow_loss(residual, torch.randn_like(residual), b0, valid, 2).backward()
+    missing = [n for n, p in model.named_parameters() if p.grad is None or not torch.any(p.grad != 0)]
+    assert missing == []
+    model.eval()
+    with torch.no_grad():
+        three = model(pc0, b0, pc1, b1, 2)[0]
+        model.head.iterations = 1
+        one = model(pc0, b0, pc1, b1, 2)[0]
+        # a sample's flow does not depend on the other sample of the batch
+        alone = model(pc0[:300], b0[:300], pc1[:300], b1[:300], 1)[0]
+    assert not torch.allclose(one, three, atol=1e-4)
+    torch.testing.assert_close(alone, one[:300], atol=1e-5, rtol=0)
+
+
+def test_gru_decoder_follows_the_gru_equations():
+    """One refinement by hand: h0 = initial(pillar features), z/r/n gates of [point embedding, offset] and h."""
+    torch.manual_seed(0)
+    model = FastFlow3D(**{**SMALL_MODEL, "decoder": "gru", "gru_iterations": 1, "gru_channels": 8}).eval()
+    scale, low = torch.tensor([10.0, 10.0, 4.0]), torch.tensor([5.0, 5.0, 2.0])
+    pc0, b0 = flat_batch([torch.rand(50, 3) * scale - low])
+    pc1, b1 = flat_batch([torch.rand(60, 3) * scale - low])
+    with torch.no_grad():
+        image0, features0, ids0, valid0, embedding0 = model.embed(pc0, b0, 1)
+        image1 = model.embed(pc1, b1, 1)[0]
+        decoded = model.unet(image0, image1)
+
+        def gather(image):
+            return image.permute(0, 2, 3, 1).reshape(-1, image.shape[1])[ids0]
+
+        head = model.head
+        h = head.initial(torch.cat([gather(image0), gather(image1), gather(decoded)], 1))
+        x = torch.cat([embedding0, features0[:, 6:9]], 1)
+        w_z, w_r, w_n = head.input_gates.weight.chunk(3)
+        b_z, b_r, b_n = head.input_gates.bias.chunk(3)
+        u_z, u_r, u_n = head.hidden_gates.weight.chunk(3)
+        c_z, c_r, c_n = head.hidden_gates.bias.chunk(3)
+        z = torch.sigmoid(x @ w_z.T + b_z + h @ u_z.T + c_z)
+        r = torch.sigmoid(x @ w_r.T + b_r + h @ u_r.T + c_r)
+        n = torch.tanh(x @ w_n.T + b_n + r * (h @ u_n.T + c_n))
+        expected = head.flow(torch.cat([(1 - z) * n + z * h, x], 1))
+        residual, valid = model(pc0, b0, pc1, b1, 1)
+    assert valid.all()
+    torch.testing.assert_close(residual, expected, atol=1e-5, rtol=0)
+
+
+def test_checkpoints_without_decoder_are_zeroflows_head():
+    from fastflow3d.checkpoint import build_student
+
+    old = {key: value for key, value in PAPER.items() if not key.startswith(("decoder", "gru_"))}
+    model = build_student({"_target_": "fastflow3d.model.FastFlow3D", **old, **SMALL})
+    assert isinstance(model.head, torch.nn.Sequential)
+    assert {k for k in model.state_dict() if k.startswith("head.")} == {
+        "head.0.weight",
+        "head.0.bias",
+        "head.2.weight",
+        "head.2.bias",
+    }

@@ -124,9 +124,11 @@ def test_experiment_recipes():
     assert paper.optim.lr == 2e-4 and paper.optim._target_ == "torch.optim.Adam"
     assert list(paper.scheduler.milestones) == [0.5] and paper.scheduler.gamma == 0.1  # x0.1 after 25 of 50 epochs
     assert paper.trainer.max_epochs == 50 and paper.model.cell == 0.2
+    assert paper.model.decoder == "linear"  # ZeroFlow's FastFlow3D exactly
     zeroflow = _compose("experiment=zeroflow")
     assert zeroflow.optim.lr == 2e-6 and list(zeroflow.scheduler.milestones) == [] and zeroflow.data.augment is None
     assert zeroflow.data.batch_size * zeroflow.trainer.accumulate_grad_batches == 64
+    assert zeroflow.model.decoder == "linear" and zeroflow.data.train_points is None
     quick = _compose()  # python train.py with no arguments
     assert quick.data.train == "outputs/labels/synthetic/train" and quick.data.val == "outputs/labels/synthetic/val"
     assert quick.trainer.max_steps > 0 and quick.trainer.accelerator == "cpu"

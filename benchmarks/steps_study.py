@@ -1,0 +1,140 @@
+"""How far optimiser steps carry the student: the recipe trained at 1x, 2x and 4x its steps (each run with its own
+warm-up and cosine schedule, as a user would run it), every run scored on the synthetic test split beside the
+teacher and ego-only flow. Says whether the student is limited by CPU time or by its design.
+
+    .venv/bin/python benchmarks/steps_study.py --train <shards> --val <shards> [--steps 1400] [--factors 1,2,4]
+        [--experiment synthetic_cpu] [--test-sequences 16] [--baselines <eval.py metrics.json with ego, icpflow>]
+        [--out outputs/steps] [--override KEY=VALUE ...]
+
+Every stage is the project's own command line, run as a subprocess (``train.py``, ``eval.py``); a stage whose
+output exists is skipped, so an interrupted study resumes. Prints a Markdown table and writes ``steps.png`` and
+``steps.json`` under ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from icpflow.atomic import atomic_path, write_text_atomic
+from icpflow.evaluation import method_summary, read_metrics
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run(arguments: list[str]) -> float:
+    """Run ``python <arguments>`` in the repository root; seconds taken (raises on a non-zero exit)."""
+    tic = time.perf_counter()
+    print("$ python " + " ".join(arguments), flush=True)
+    subprocess.run([sys.executable, *arguments], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - tic
+
+
+def scores(metrics_json: Path, method: str) -> dict:
+    """Dynamic-foreground, static-foreground and Threeway EPE of ``method`` in an eval.py ``metrics.json``."""
+    summary = method_summary(read_metrics(metrics_json), method)
+    table = summary["paper"]["point_weighted"]
+    return {
+        "dynamic_fg": table["dynamic_fg"]["EPE"],
+        "static_fg": table["static_fg"]["EPE"],
+        "threeway": summary["threeway"]["threeway"],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--train", type=Path, required=True, help="training shards (a label.py out_dir)")
+    parser.add_argument("--val", type=Path, required=True, help="validation shards (checkpoint selection)")
+    parser.add_argument("--steps", type=int, default=1400, help="the recipe's steps (1x)")
+    parser.add_argument("--factors", default="1,2,4")
+    parser.add_argument("--experiment", default="synthetic_cpu")
+    parser.add_argument("--test-sequences", type=int, default=16, help="test split sequences (4 pairs each)")
+    parser.add_argument("--baselines", type=Path, help="an eval.py metrics.json with ego and icpflow on that split")
+    parser.add_argument("--override", action="append", default=[], help="further train.py overrides")
+    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "steps")
+    args = parser.parse_args()
+    factors = [int(f) for f in args.factors.split(",")]
+    out = args.out.resolve()
+    test = ["split=test", f"dataset.reader.num_sequences={args.test_sequences}", "bev=0"]
+    baselines = args.baselines or out / "eval" / "baselines" / "metrics.json"
+    if not baselines.is_file():
+        run(["eval.py", *test, "method=[ego,icpflow]", f"out_dir={baselines.parent}"])
+    teacher, ego = scores(baselines, "icpflow"), scores(baselines, "ego")
+    rows = []
+    for factor in factors:
+        steps = factor * args.steps
+        run_dir, metrics = out / "runs" / f"steps{steps}", out / "eval" / f"steps{steps}" / "metrics.json"
+        timing = run_dir / "train_seconds.txt"
+        if not timing.is_file():
+            seconds = run(
+                [
+                    "train.py",
+                    f"experiment={args.experiment}",
+                    f"data.train={args.train.resolve()}",
+                    f"data.val={args.val.resolve()}",
+                    f"trainer.max_steps={steps}",
+                    f"out_dir={run_dir}",
+                    "export.formats=[onnx]",
+                    "+trainer.enable_progress_bar=false",
+                    *args.override,
+                ]
+            )
+            write_text_atomic(timing, f"{seconds:.1f}\n")
+        if not metrics.is_file():
+            run(["eval.py", *test, "method=[student]", f"checkpoint={run_dir / 'export'}", f"out_dir={metrics.parent}"])
+        rows.append(
+            {"factor": factor, "steps": steps, **scores(metrics, "student"), "seconds": float(timing.read_text())}
+        )
+    print(
+        f"\nStudent on the synthetic test split ({args.test_sequences * 4} pairs), experiment={args.experiment} "
+        f"{' '.join(args.override)}; teacher dynamic fg {teacher['dynamic_fg']:.4f} m, "
+        f"Threeway {teacher['threeway']:.4f}; ego-only dynamic fg {ego['dynamic_fg']:.4f} m"
+    )
+    print(
+        "| steps | dynamic fg EPE (m) | x teacher | Threeway EPE (m) | x teacher | static fg EPE (m) | training (s) |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for row in rows:
+        print(
+            f"| {row['steps']} ({row['factor']}x) | {row['dynamic_fg']:.4f} "
+            f"| {row['dynamic_fg'] / teacher['dynamic_fg']:.2f} "
+            f"| {row['threeway']:.4f} | {row['threeway'] / teacher['threeway']:.2f} | {row['static_fg']:.4f} "
+            f"| {row['seconds']:.0f} |"
+        )
+    write_text_atomic(
+        out / "steps.json",
+        json.dumps({"rows": rows, "teacher": teacher, "ego": ego, "experiment": args.experiment}, indent=2),
+    )
+    plot(rows, teacher, ego, out / "steps.png", args.experiment)
+
+
+def plot(rows: list[dict], teacher: dict, ego: dict, path: Path, experiment: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axis = plt.subplots(figsize=(6, 4))
+    steps = [row["steps"] for row in rows]
+    axis.plot(steps, [row["dynamic_fg"] for row in rows], "o-", label="student, dynamic foreground")
+    axis.plot(steps, [row["threeway"] for row in rows], "s--", label="student, Threeway")
+    axis.axhline(teacher["dynamic_fg"], color="green", linestyle=":", label="teacher, dynamic foreground")
+    axis.axhline(teacher["threeway"], color="green", linestyle="-.", label="teacher, Threeway")
+    axis.axhline(ego["dynamic_fg"], color="grey", linestyle=":", label="ego-only, dynamic foreground")
+    axis.set_xscale("log", base=2)
+    axis.set_xlabel("optimiser steps (batch 4)")
+    axis.set_ylabel("EPE (m), test split")
+    axis.set_title(f"Student vs steps ({experiment})")
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    with atomic_path(path) as tmp:
+        figure.savefig(tmp, dpi=120, format="png")
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,63 @@
+"""CPU work of one training step of the student, in one process on one thread (``time.process_time``, so the figure
+holds on a shared machine): the network's forward + loss + backward + Adam step under bf16 autocast on a real batch,
+and the DataLoader's work per sample (read, augment, compensate, and, where the tree has it, the crop to the
+network's points). Run by ``bench_student.py --work`` in each source tree: it uses only that tree's own code."""
+
+import json
+import statistics
+import sys
+import time
+
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+
+def main() -> None:
+    conf_dir, train, val, runs = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
+    overrides = sys.argv[5:]
+    torch.set_num_threads(1)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
+    from fastflow3d import data as data_module
+    from fastflow3d.module import StudentModule
+
+    with initialize_config_dir(config_dir=conf_dir, version_base="1.3"):
+        cfg = compose("train", [f"data.train={train}", f"data.val={val}", *overrides])
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    torch.manual_seed(0)
+    module = StudentModule(plain).train()
+    options = plain["data"]
+    if hasattr(data_module.ShardDataModule, "from_config"):
+        datamodule = data_module.ShardDataModule.from_config(options, module.model.grid)
+    else:
+        datamodule = data_module.ShardDataModule(
+            options["train"], options["val"], options["batch_size"], 0, options["augment"]
+        )
+    datamodule.setup("fit")
+    dataset, size = datamodule.train_set, options["batch_size"]
+    sample_times, step_times = [], []
+    optimiser = torch.optim.Adam(module.parameters(), lr=1e-4)
+    for run in range(runs + 1):
+        tic = time.process_time()
+        samples = [dataset[(run * size + i) % len(dataset)] for i in range(size)]
+        sample_times.append((time.process_time() - tic) / size)
+        batch = data_module.collate(samples)
+        tic = time.process_time()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled="bf16" in str(plain["trainer"]["precision"])):
+            pred, valid = module(batch)
+            loss = module.loss(pred, valid, batch)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        step_times.append(time.process_time() - tic)
+    print(
+        json.dumps(
+            {"step": statistics.median(step_times[1:]), "sample": statistics.median(sample_times[1:]), "batch": size}
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
