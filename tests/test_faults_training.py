@@ -27,7 +27,7 @@ from icpflow.datasets.synthetic import SyntheticDataset
 
 from helpers.labelling import TESTS_ENV, default_sigint, running_in_group
 from helpers.shards import write_pseudo_labels
-from helpers.training import TINY, train_cfg
+from helpers.training import TINY, compose_train, train_cfg
 
 REPO = Path(__file__).resolve().parents[1]
 READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 2.0}
@@ -297,14 +297,15 @@ def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path
     """Issue 20.6: a value of the wrong type, an unknown option, a missing checkpoint: exit 2, one line, before any
     work; HYDRA_FULL_ERROR=1 gives the traceback."""
     run = ["trainer.max_steps=1", *STEPS]
+    defaults = compose_train()  # the default experiment's values, as the messages quote them
     cases = {
         "data.batch_size": (
             _train(tmp_path / "a", shards, *run, "data.batch_size=abc"),
-            "train: data.batch_size=abc: expected a number, got 'abc' (the default is 4)",  # the experiment's
+            f"train: data.batch_size=abc: expected a number, got 'abc' (the default is {defaults.data.batch_size})",
         ),
         "trainer.max_steps": (
             _train(tmp_path / "b", shards, *run, "trainer.max_steps=abc"),
-            "train: trainer.max_steps=abc: expected a number, got 'abc' (the default is 400)",
+            f"train: trainer.max_steps=abc: expected a number, got 'abc' (the default is {defaults.trainer.max_steps})",
         ),
         "export.formats": (
             _train(tmp_path / "c", shards, *run, "export.formats=onnx"),
