@@ -41,7 +41,7 @@ MODEL = {
     "stage_channels": [8, 16, 32],
     "stage_blocks": [1, 1, 1],
 }
-SYNTHETIC = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)  # conf/dataset/synthetic.yaml
+SYNTHETIC = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})  # synthetic.yaml
 
 
 @pytest.fixture(scope="module")
