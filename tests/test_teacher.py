@@ -364,7 +364,7 @@ def test_ego_motion_switch(monkeypatch, moving_scene, mode, passed, estimated):
     guess = make_transform(yaw=0.002, translation=(0.55, 0.01, 0.0))
     calls = []
     monkeypatch.setattr("icpflow.teacher.pipeline.estimate_ego_motion", lambda a, b, cfg: calls.append(1) or guess)
-    result = ICPFlow(CFG.replace(ego_motion=mode))(s["pc0"], s["pc1"], s["ego"] if passed else None)
+    result = ICPFlow(CFG.replace(**{"ego_motion.method": mode}))(s["pc0"], s["pc1"], s["ego"] if passed else None)
     assert bool(calls) == estimated
     np.testing.assert_array_equal(result.ego1_from_ego0, guess if estimated else s["ego"])
 

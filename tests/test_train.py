@@ -262,8 +262,8 @@ def test_teacher_settings_saved_with_the_model(shards, pairs, tmp_path):
         fit(_cfg(tmp_path, bare, bare))
     with pytest.raises(TrainError, match="data.teacher: min_cluster_size not used at inference"):
         inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={min_cluster_size:3}"))
-    with pytest.raises(TrainError, match="data.teacher: ICPFlowConfig: .*ground"):
-        inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={ground:sometimes}"))
+    with pytest.raises(TrainError, match="data.teacher: GroundConfig: method='sometimes' must be one of"):
+        inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={ground:{method:sometimes}}"))
 
 
 def test_missing_or_empty_shard_dir_is_one_line(tmp_path):
