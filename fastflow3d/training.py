@@ -66,8 +66,7 @@ def check_data(cfg: DictConfig) -> None:
 def inference_preprocessing(cfg: DictConfig) -> dict:
     """The preprocessing block saved with the model (``icpflow.preprocess.Preprocessing.to_dict()``): from
     ``data.teacher`` (an optional ``preset``, then the ICPFlowConfig blocks ``ground`` and ``ego_motion``; their
-    older flat names with a warning) or,
-    when it is null, the block of the teacher that labelled ``data.train``."""
+    older flat names with a warning) or, when it is null, the block of the teacher that labelled ``data.train``."""
     from icpflow.preprocess import BLOCKS, TEACHER_NAMES, Preprocessing, PreprocessingError
     from icpflow.teacher.config import ICPFlowConfig
 
