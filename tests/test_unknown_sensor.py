@@ -136,7 +136,7 @@ def test_label_py_sequence_without_poses_on_seq01(seq01, tmp_path):
                 f"dataset.root={scans}",
                 "limit=1",
                 "workers=1",
-                "icpflow.hdbscan_n_jobs=1",
+                "icpflow.clustering.n_jobs=1",
                 f"out_dir={tmp_path / 'labels'}",
             ],
         )
