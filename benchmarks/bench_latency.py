@@ -56,7 +56,7 @@ DATA = ROOT.parent / "shared" / "data"
 BACKENDS = ("eager", "compile", "pt2", "onnx", "onnx-tuned", "openvino", "openvino-bf16")
 #: teacher settings of each scan's dataset (ground segmentation and ego motion in the ``estimated`` regime)
 TEACHERS = {
-    "kitti": ICPFlowConfig.preset("waymo", ground="patchwork", patchwork_z_offset=0.0, crop_xy=51.2),
+    "kitti": ICPFlowConfig.preset("waymo", ground={"method": "patchwork", "patchwork_z_offset": 0.0}, crop_xy=51.2),
     "av2": ICPFlowConfig.preset("av2"),
     "uniform": ICPFlowConfig.preset("av2"),
 }

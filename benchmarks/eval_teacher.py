@@ -31,7 +31,7 @@ VARIANTS = {
     "teacher": {},
     "centroid init": {"histogram.init": "centroid"},
     "hungarian": {"association.method": "hungarian"},
-    "kiss-icp ego": {"ego_motion": "kiss_icp"},
+    "kiss-icp ego": {"ego_motion": {"method": "kiss_icp"}},
     "zero flow": None,
 }
 
@@ -93,7 +93,9 @@ def eval_av2(variants, ground: str, use_times: bool, base: dict) -> None:
 def eval_kitti(base: dict) -> None:
     data = np.load(DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz")
     poses = data["velo_poses_world"]
-    teacher = ICPFlow(ICPFlowConfig.preset("waymo", ground="patchwork", patchwork_z_offset=0.0, crop_xy=51.2, **base))
+    teacher = ICPFlow(
+        ICPFlowConfig.preset("waymo", ground={"method": "patchwork", "patchwork_z_offset": 0.0}, crop_xy=51.2, **base)
+    )
     print("\nKITTI seq 01 (KISS-ICP + point-to-plane refinement; static = every non-car point)")
     print("| pair | ego dt (m) | ego drot (deg) | static flow EPE (m) | p95 (m) | s/pair |")
     print("|---|---|---|---|---|---|")

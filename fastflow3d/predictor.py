@@ -135,7 +135,7 @@ class Predictor:
     def __init__(self, network, metadata: dict, backend: str, ego_config=None, sensor_height=None):
         """``network(pc0_compensated, pc1) -> (residual, valid)`` on float32 numpy arrays; ``metadata`` as an export
         writes it (its ``preprocessing`` says whether to remove ground, the height frame and the settings);
-        ``ego_config`` the ego-motion settings (``icpflow.preprocess.EgoMotionSettings`` or a teacher config;
+        ``ego_config`` the ego-motion settings (``icpflow.teacher.config.EgoMotionConfig`` or a teacher config;
         default: those saved with the model); ``sensor_height``: None, ``"auto"`` or metres (module docstring)."""
         if not metadata:
             raise PredictorError("no model metadata: its preprocessing (ground removal, height frame) is unknown")

@@ -65,9 +65,9 @@ def check_data(cfg: DictConfig) -> None:
 
 def inference_preprocessing(cfg: DictConfig) -> dict:
     """The preprocessing block saved with the model (``icpflow.preprocess.Preprocessing.to_dict()``): from
-    ``data.teacher`` (an optional ``preset``, then the ICPFlowConfig fields of the ground and ego-motion steps) or,
-    when it is null, the block of the teacher that labelled ``data.train``."""
-    from icpflow.preprocess import TEACHER_NAMES, Preprocessing, PreprocessingError
+    ``data.teacher`` (an optional ``preset``, then the ICPFlowConfig blocks ``ground`` and ``ego_motion``; their
+    older flat names with a warning) or, when it is null, the block of the teacher that labelled ``data.train``."""
+    from icpflow.preprocess import BLOCKS, TEACHER_NAMES, Preprocessing, PreprocessingError
     from icpflow.teacher.config import ICPFlowConfig
 
     given = cfg.data.get("teacher")
@@ -82,15 +82,16 @@ def inference_preprocessing(cfg: DictConfig) -> dict:
     if not OmegaConf.is_dict(given):
         raise TrainError(f"data.teacher must be null or a dict of preset and ICPFlowConfig fields, got {given!r}")
     values = OmegaConf.to_container(given, resolve=True)
-    allowed = (*TEACHER_NAMES, "patchwork_z_offset")
-    unknown = sorted(set(values) - {"preset", *allowed})
+    dotted = {f"{block}.{name}" for block, name in TEACHER_NAMES.values()}
+    unknown = sorted(set(values) - {"preset", *BLOCKS, *TEACHER_NAMES, *dotted})
     if unknown:
         raise TrainError(
-            f"data.teacher: {', '.join(unknown)} not used at inference; give preset and/or {', '.join(allowed)}"
+            f"data.teacher: {', '.join(unknown)} not used at inference; give preset and/or the blocks "
+            f"{' and '.join(BLOCKS)}"
         )
     preset = values.pop("preset", None)
     try:
-        teacher = ICPFlowConfig.preset(preset, **values) if preset else ICPFlowConfig(**values)
+        teacher = ICPFlowConfig.preset(preset, **values) if preset else ICPFlowConfig.from_dict(values)
         return Preprocessing.from_teacher(teacher).to_dict()
     except (ValueError, PreprocessingError) as error:
         raise TrainError(f"data.teacher: {error}") from None

@@ -24,8 +24,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from icpflow.teacher.config import EgoMotionConfig, GroundConfig
+
 VERSION = 1
-GROUND_METHODS = ("both", "patchwork", "zthreshold", "none")
 FRAME_DESCRIPTION = (
     "ego frame, metres, x forward, y left, z up, origin on or near the ground below the sensor: the ground lies "
     "near z = ground_z (0 for the synthetic world and KITTI as read, -0.32 for Argoverse 2's rear-axle origin)"
@@ -62,97 +63,81 @@ class HeightFrame:
         object.__setattr__(self, "ground_z", round(_number("frame.ground_z", self.ground_z), 6) + 0.0)  # no -0.0
 
 
-@dataclass(frozen=True)
-class GroundSettings:
-    """Step 2 (``icpflow.teacher.ground``) in the height frame: ``method`` (both / patchwork / zthreshold / none),
-    Patchwork++'s ``sensor_height`` and ``max_range`` (it expects the ground at z = -sensor_height: the scan is
-    shifted by ``-(sensor_height + frame.ground_z)``), and the z threshold ``range_z + slack`` (m, in the frame)."""
-
-    method: str = "both"
-    sensor_height: float = 1.723
-    patchwork_max_range: float = 64.0
-    range_z: float = 0.04
-    slack: float = 0.3
-
-    def __post_init__(self):
-        if self.method not in GROUND_METHODS:
-            raise PreprocessingError(f"ground.method={self.method!r} must be one of {list(GROUND_METHODS)}")
-        _number("ground.sensor_height", self.sensor_height, 0.0)
-        _number("ground.patchwork_max_range", self.patchwork_max_range, 0.0, strict=True)
-        _number("ground.range_z", self.range_z)
-        _number("ground.slack", self.slack, 0.0)
-
-
-@dataclass(frozen=True)
-class EgoMotionSettings:
-    """Step 1 (``icpflow.teacher.ego_motion``): KISS-ICP's voxel size and range (m), then point-to-plane
-    refinement on ``refine_voxel`` m voxels (0 = off)."""
-
-    kiss_voxel_size: float = 1.0
-    kiss_max_range: float = 100.0
-    refine_voxel: float = 0.2
-
-    def __post_init__(self):
-        _number("ego_motion.kiss_voxel_size", self.kiss_voxel_size, 0.0, strict=True)
-        _number("ego_motion.kiss_max_range", self.kiss_max_range, 0.0, strict=True)
-        _number("ego_motion.refine_voxel", self.refine_voxel, 0.0)
-
-
-#: ICPFlowConfig field -> (block, field) of this module: the one mapping between the flat teacher config and the
-#: typed block (``patchwork_z_offset`` is derived: ``-(ground.sensor_height + frame.ground_z)``).
+#: older flat teacher names (``ICPFlowConfig`` before its ``ground`` and ``ego_motion`` blocks, as stored in the
+#: shards, checkpoints and exports of older releases) -> (block, field); read from the fields' ``old``
 TEACHER_NAMES = {
-    "ground": ("ground", "method"),
-    "sensor_height": ("ground", "sensor_height"),
-    "patchwork_max_range": ("ground", "patchwork_max_range"),
-    "range_z": ("ground", "range_z"),
-    "ground_slack": ("ground", "slack"),
-    "kiss_voxel_size": ("ego_motion", "kiss_voxel_size"),
-    "kiss_max_range": ("ego_motion", "kiss_max_range"),
-    "ego_refine_voxel": ("ego_motion", "refine_voxel"),
+    f.metadata.get("old") or f.name: (block, f.name)
+    for block, kind in (("ground", GroundConfig), ("ego_motion", EgoMotionConfig))
+    for f in dataclasses.fields(kind)
 }
+#: the teacher's blocks that are this block's
+BLOCKS = {"ground": GroundConfig, "ego_motion": EgoMotionConfig}
+
+
+def _block_values(teacher, block: str) -> dict:
+    """The fields of ``block`` in ``teacher``: an ``ICPFlowConfig`` (its block), or a dict in the nested form (the
+    block as a dict) or the older flat one (``sensor_height``, ``ground_slack``, ...); None values are left out."""
+    if not isinstance(teacher, dict):
+        value = getattr(teacher, block, None)
+        return {} if value is None else dataclasses.asdict(value)
+    nested = teacher.get(block)
+    values = dict(nested) if isinstance(nested, dict) else {}
+    for name, (owner, key) in TEACHER_NAMES.items():
+        if owner == block and not (name == block and isinstance(nested, dict)) and teacher.get(name) is not None:
+            values[key] = teacher[name]
+    return {key: value for key, value in values.items() if value is not None}
+
+
+def _settings(kind, values: dict, where: str):
+    try:
+        return kind(**values)
+    except TypeError as error:
+        raise PreprocessingError(f"{where}: {' '.join(str(error).split())}") from None
+    except ValueError as error:
+        raise PreprocessingError(str(error)) from None
 
 
 @dataclass(frozen=True)
 class Preprocessing:
     """The height frame, ground settings and ego-motion settings of a teacher, as a student needs them at inference.
+    ``ground`` and ``ego_motion`` are the teacher's own blocks (``icpflow.teacher.config``); ``ground``'s
+    ``patchwork_z_offset`` follows from the frame (``-(sensor_height + frame.ground_z)``, set here).
     ``Preprocessing()`` is the synthetic world's (ground at z = 0, a 1.9 m sensor)."""
 
     frame: HeightFrame = field(default_factory=HeightFrame)
-    ground: GroundSettings = field(default_factory=lambda: GroundSettings(sensor_height=1.9))
-    ego_motion: EgoMotionSettings = field(default_factory=EgoMotionSettings)
+    ground: GroundConfig = field(default_factory=lambda: GroundConfig(sensor_height=1.9))
+    ego_motion: EgoMotionConfig = field(default_factory=EgoMotionConfig)
+
+    def __post_init__(self):
+        offset = round(-(self.ground.sensor_height + self.frame.ground_z), 6) + 0.0
+        if self.ground.patchwork_z_offset != offset:
+            object.__setattr__(self, "ground", dataclasses.replace(self.ground, patchwork_z_offset=offset))
 
     @property
     def patchwork_z_offset(self) -> float:
         """Added to z before Patchwork++, so that the frame's ground sits at -sensor_height."""
-        return round(-(self.ground.sensor_height + self.frame.ground_z), 6) + 0.0
+        return self.ground.patchwork_z_offset
 
     # ------------------------------------------------------------------------------------ the teacher's config
     @classmethod
     def from_teacher(cls, teacher) -> Preprocessing:
-        """The block of a teacher config (``ICPFlowConfig`` or any object / dict with its field names)."""
-        get = teacher.get if isinstance(teacher, dict) else lambda name, default=None: getattr(teacher, name, default)
-        blocks: dict = {"ground": {}, "ego_motion": {}}
-        for name, (block, key) in TEACHER_NAMES.items():
-            if get(name) is not None:
-                blocks[block][key] = get(name)
-        sensor_height = get("sensor_height", GroundSettings.sensor_height)
-        offset = get("patchwork_z_offset", 0.0)
-        ground_z = -(_number("sensor_height", sensor_height) + _number("patchwork_z_offset", offset))
-        try:
-            ground, ego_motion = GroundSettings(**blocks["ground"]), EgoMotionSettings(**blocks["ego_motion"])
-            return cls(HeightFrame(ground_z), ground, ego_motion)
-        except TypeError as error:
-            raise PreprocessingError(" ".join(str(error).split())) from None
+        """The block of a teacher config: an ``ICPFlowConfig``, or a dict of its fields (nested, or the older flat
+        names of shards, checkpoints and exports written before the ``ground`` / ``ego_motion`` blocks)."""
+        ground = _settings(GroundConfig, _block_values(teacher, "ground"), "ground")
+        ego_motion = _settings(EgoMotionConfig, _block_values(teacher, "ego_motion"), "ego_motion")
+        return cls(HeightFrame(-(ground.sensor_height + ground.patchwork_z_offset)), ground, ego_motion)
 
     def teacher_fields(self) -> dict:
-        """The same settings as ``ICPFlowConfig`` fields (to build or override a teacher config)."""
-        values = {name: getattr(getattr(self, block), key) for name, (block, key) in TEACHER_NAMES.items()}
-        return {**values, "patchwork_z_offset": self.patchwork_z_offset}
+        """The same settings as ``ICPFlowConfig`` blocks (to build or override a teacher config)."""
+        return {"ground": dataclasses.asdict(self.ground), "ego_motion": dataclasses.asdict(self.ego_motion)}
 
     # ------------------------------------------------------------------------------------ stored form
     def to_dict(self) -> dict:
-        """Plain dict (JSON / YAML) with ``version``, ``frame``, ``ground``, ``ego_motion``."""
-        return {"version": VERSION, "frame_description": FRAME_DESCRIPTION, **dataclasses.asdict(self)}
+        """Plain dict (JSON / YAML) with ``version``, ``frame``, ``ground``, ``ego_motion`` (``ground`` without its
+        ``patchwork_z_offset``: the frame says it)."""
+        values = dataclasses.asdict(self)
+        del values["ground"]["patchwork_z_offset"]
+        return {"version": VERSION, "frame_description": FRAME_DESCRIPTION, **values}
 
     @classmethod
     def from_dict(cls, values: dict | None) -> Preprocessing:
@@ -172,13 +157,13 @@ class Preprocessing:
                 f"preprocessing version {values['version']!r} is newer than this code's ({VERSION}); update icpflow"
             )
         try:
-            return cls(
-                HeightFrame(**values.get("frame", {})),
-                GroundSettings(**values.get("ground", {})),
-                EgoMotionSettings(**values.get("ego_motion", {})),
-            )
+            frame = HeightFrame(**values.get("frame", {}))
         except TypeError as error:
             raise PreprocessingError(f"preprocessing: {' '.join(str(error).split())}") from None
+        ground = {key: value for key, value in values.get("ground", {}).items() if key != "patchwork_z_offset"}
+        ground = _settings(GroundConfig, ground, "preprocessing")
+        ego_motion = _settings(EgoMotionConfig, values.get("ego_motion", {}), "preprocessing")
+        return cls(frame, ground, ego_motion)
 
 
 # ------------------------------------------------------------------------------------------------ the height frame
@@ -254,8 +239,6 @@ def implausible(ground_fraction: float, grid_fraction: float) -> str | None:
 
 
 __all__ = [
-    "EgoMotionSettings",
-    "GroundSettings",
     "HeightFrame",
     "Preprocessing",
     "PreprocessingError",

@@ -200,18 +200,10 @@ def test_predictor_estimates_ego_motion_without_transform(export_dir, pairs, tea
     np.testing.assert_allclose(estimated.flow, given.flow, atol=1e-6, rtol=0)
 
 
-#: the ICPFlowConfig fields that checkpoints of older versions saved as ``data.teacher`` (before the typed block)
-LEGACY_TEACHER_FIELDS = (
-    "ground",
-    "sensor_height",
-    "patchwork_max_range",
-    "patchwork_z_offset",
-    "range_z",
-    "ground_slack",
-    "kiss_voxel_size",
-    "kiss_max_range",
-    "ego_refine_voxel",
-)
+#: the flat ICPFlowConfig fields that checkpoints of older versions saved as ``data.teacher`` (before the typed
+#: block and the teacher's ground / ego_motion blocks), with the synthetic dataset's values
+LEGACY_TEACHER = dict(ground="both", sensor_height=1.9, patchwork_max_range=64.0, patchwork_z_offset=-1.9, range_z=0.04)
+LEGACY_TEACHER.update(ground_slack=0.3, kiss_voxel_size=1.0, kiss_max_range=100.0, ego_refine_voxel=0.2)
 
 
 @pytest.fixture(scope="module")
@@ -219,11 +211,11 @@ def ground_checkpoint(checkpoint):
     """The same trained weights in a checkpoint of an older version whose config says the network saw non-ground
     points only, with the teacher settings of the synthetic dataset (a 1.9 m high sensor over a z = 0 ground) as a
     flat ``data.teacher`` dict (before the typed preprocessing block)."""
-    teacher = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
+    teacher = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})
     saved = torch.load(checkpoint, weights_only=True)
     saved["hyper_parameters"]["cfg"]["data"] = {
         "remove_ground": True,
-        "teacher": {key: getattr(teacher, key) for key in LEGACY_TEACHER_FIELDS},
+        "teacher": dict(LEGACY_TEACHER),
     }
     path = checkpoint.parent / "ground" / "best.ckpt"
     path.parent.mkdir()
@@ -483,7 +475,7 @@ def test_older_export_metadata_still_loads(ground_checkpoint, ground_export, pai
     metadata = json.loads((current / METADATA_NAME).read_text())
     metadata["preprocessing"] = {
         "remove_ground": True,
-        "teacher": {key: getattr(teacher, key) for key in LEGACY_TEACHER_FIELDS},
+        "teacher": dict(LEGACY_TEACHER),
         "note": "older form",
     }
     (current / METADATA_NAME).write_text(json.dumps(metadata))

@@ -42,14 +42,16 @@ def test_each_dataset_teacher_names_its_height_frame(name, ground_z):
     teacher = dataset_teacher(name)
     block = Preprocessing.from_teacher(teacher)
     assert block.frame.ground_z == pytest.approx(ground_z)
-    assert block.patchwork_z_offset == pytest.approx(teacher.patchwork_z_offset)
-    assert ICPFlowConfig.preset("waymo").replace(**block.teacher_fields()).patchwork_z_offset == pytest.approx(
-        teacher.patchwork_z_offset
-    )
+    assert block.patchwork_z_offset == pytest.approx(teacher.ground.patchwork_z_offset)
+    assert block.ground == teacher.ground and block.ego_motion == teacher.ego_motion  # the teacher's own blocks
+    rebuilt = ICPFlowConfig.preset("waymo").replace(**block.teacher_fields())
+    assert (rebuilt.ground, rebuilt.ego_motion) == (teacher.ground, teacher.ego_motion)
 
 
 def test_stored_form_round_trips_through_json_and_yaml():
-    block = Preprocessing.from_teacher(ICPFlowConfig.preset("av2", sensor_height=1.5, kiss_voxel_size=0.5))
+    block = Preprocessing.from_teacher(
+        ICPFlowConfig.preset("av2", ground={"sensor_height": 1.5}, ego_motion={"kiss_voxel_size": 0.5})
+    )
     stored = block.to_dict()
     assert stored["version"] == 1 and stored["frame"] == {"ground_z": -0.1}
     assert stored["ground"]["sensor_height"] == 1.5 and stored["ego_motion"]["kiss_voxel_size"] == 0.5
@@ -60,12 +62,16 @@ def test_stored_form_round_trips_through_json_and_yaml():
 def test_older_forms_are_read():
     """Shards, checkpoints and exports of older versions carried a flat dict of teacher fields (all of them in
     shards, nine in checkpoints and exports) or nothing: they read as the block of the frame they were made in."""
-    synthetic = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
-    from_shard = Preprocessing.from_dict(synthetic.to_dict())
-    nine = ("ground", "sensor_height", "patchwork_max_range", "patchwork_z_offset", "range_z", "ground_slack")
-    nine += ("kiss_voxel_size", "kiss_max_range", "ego_refine_voxel")
-    from_checkpoint = Preprocessing.from_dict({name: getattr(synthetic, name) for name in nine})
-    assert from_shard == from_checkpoint == Preprocessing.from_teacher(synthetic)
+    synthetic = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})
+    from_shard = Preprocessing.from_dict(synthetic.to_dict())  # a shard's nested teacher config
+    nine = dict(ground="both", sensor_height=1.9, patchwork_max_range=64.0, patchwork_z_offset=-1.9, range_z=0.04)
+    nine.update(ground_slack=0.3, kiss_voxel_size=1.0, kiss_max_range=100.0, ego_refine_voxel=0.2)
+    from_checkpoint = Preprocessing.from_dict(nine)  # the flat names of older checkpoints and exports
+    from_old_shard = Preprocessing.from_dict({**nine, "ego_motion": "given", "crop_xy": 32.0, "min_cluster_size": 30})
+    assert from_shard == from_checkpoint == from_old_shard == Preprocessing.from_teacher(synthetic)
+    assert Preprocessing.from_dict({**nine, "ground": "zthreshold", "ego_motion": "kiss_icp"}).ground.method == (
+        "zthreshold"
+    )
     assert from_shard.frame.ground_z == 0.0 and from_shard.ground.sensor_height == 1.9
     assert Preprocessing.from_dict(None).frame.ground_z == 0.0  # an export without teacher settings
     # the ground masks of the older form and of the block are the same masks
@@ -76,11 +82,11 @@ def test_older_forms_are_read():
 def test_bad_blocks_are_one_line_errors():
     with pytest.raises(PreprocessingError, match=r"newer than this code's \(1\)"):
         Preprocessing.from_dict({"version": 7})
-    with pytest.raises(PreprocessingError, match=r"ground.method='sometimes' must be one of"):
+    with pytest.raises(PreprocessingError, match=r"GroundConfig: method='sometimes' must be one of"):
         Preprocessing.from_dict({"version": 1, "ground": {"method": "sometimes"}})
     with pytest.raises(PreprocessingError, match="unexpected keyword argument 'colour'"):
         Preprocessing.from_dict({"version": 1, "ground": {"colour": 1}})
-    with pytest.raises(PreprocessingError, match="ego_motion.kiss_voxel_size=0 must be > 0"):
+    with pytest.raises(PreprocessingError, match="EgoMotionConfig: kiss_voxel_size=0 must be a number > 0"):
         Preprocessing.from_dict({"version": 1, "ego_motion": {"kiss_voxel_size": 0}})
 
 

@@ -20,7 +20,9 @@ from icpflow.teacher.pairing import cluster_stats, plausible
 from icpflow.teacher.tracker import long_horizon_flow
 
 EGO = make_transform(yaw=0.02, translation=(0.8, 0.1, 0.0))
-CFG = ICPFlowConfig.preset("waymo", ground="zthreshold", range_z=0.0, ground_slack=0.1, ego_motion="given")
+CFG = ICPFlowConfig.preset(
+    "waymo", ground={"method": "zthreshold", "range_z": 0.0, "slack": 0.1}, ego_motion={"method": "given"}
+)
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +46,13 @@ def result(teacher, moving_scene):
 
 def test_presets_follow_the_reference():
     av2, waymo, nus = (ICPFlowConfig.preset(n) for n in ("av2", "waymo", "nuscenes"))
-    assert (av2.pairing.speed, av2.crop_xy, av2.clustering.min_cluster_size, av2.checks.max_error, av2.range_z) == (
+    assert (
+        av2.pairing.speed,
+        av2.crop_xy,
+        av2.clustering.min_cluster_size,
+        av2.checks.max_error,
+        av2.ground.range_z,
+    ) == (
         1.0,
         51.2,
         20,
@@ -56,7 +64,7 @@ def test_presets_follow_the_reference():
         waymo.crop_xy,
         waymo.clustering.min_cluster_size,
         waymo.checks.max_error,
-        waymo.range_z,
+        waymo.ground.range_z,
     ) == (
         1.67,
         32.0,
@@ -64,7 +72,7 @@ def test_presets_follow_the_reference():
         0.3,
         0.04,
     )
-    assert (nus.range_z, nus.icp.max_points, nus.checks.max_error, nus.clustering.min_cluster_size) == (
+    assert (nus.ground.range_z, nus.icp.max_points, nus.checks.max_error, nus.clustering.min_cluster_size) == (
         -1.84,
         5000,
         0.2,
@@ -79,7 +87,7 @@ def test_presets_follow_the_reference():
 @pytest.mark.parametrize(
     "overrides, words",
     [
-        ({"ground": "x"}, "ground="),
+        ({"ground.method": "x"}, "method=.x."),
         ({"clustering": {"min_cluster_size": 0}}, "min_cluster_size"),
         ({"histogram.nms_kernel": 10}, "odd"),
         ({"checks": {"max_error": -1.0}}, "max_error"),
@@ -127,14 +135,15 @@ def test_lazy_export_keeps_import_light():
 def test_ground_zthreshold_and_none():
     points = np.array([[0, 0, 0.05], [0, 0, 0.1], [0, 0, 0.11], [5, 5, 2.0]], np.float32)
     assert GroundSegmenter(CFG)(points).tolist() == [True, True, False, False]
-    assert not GroundSegmenter(CFG.replace(ground="none"))(points).any()
+    assert not GroundSegmenter(CFG.replace(**{"ground.method": "none"}))(points).any()
 
 
 @pytest.mark.parametrize(
     "cfg, ground_z",
     [
-        (ICPFlowConfig(ground="patchwork"), -1.723),  # sensor frame: the ground 1.723 m below the lidar
-        (CFG.replace(ground="patchwork"), 0.0),  # Waymo vehicle frame: the ground at z = 0 (patchwork_z_offset)
+        (ICPFlowConfig(ground={"method": "patchwork"}), -1.723),  # sensor frame: the ground 1.723 m below the lidar
+        # Waymo vehicle frame: the ground at z = 0 (ground.patchwork_z_offset)
+        (CFG.replace(**{"ground.method": "patchwork"}), 0.0),
     ],
 )
 def test_patchwork_finds_a_flat_ground(cfg, ground_z):
@@ -227,7 +236,7 @@ def test_same_input_same_output(teacher, result, moving_scene):
 
 def test_given_ground_masks_replace_segmentation(teacher, moving_scene):
     s = moving_scene
-    r = ICPFlow(CFG.replace(ground="none"))(s["pc0"], s["pc1"], s["ego"], s["ground0"], s["ground1"])
+    r = ICPFlow(CFG.replace(**{"ground.method": "none"}))(s["pc0"], s["pc1"], s["ego"], s["ground0"], s["ground1"])
     assert np.linalg.norm(r.flow - s["flow"], axis=1)[s["moving0"]].mean() < 0.03
     np.testing.assert_array_equal(r.ground0, s["ground0"])
 
@@ -355,7 +364,7 @@ def test_ego_motion_switch(monkeypatch, moving_scene, mode, passed, estimated):
     guess = make_transform(yaw=0.002, translation=(0.55, 0.01, 0.0))
     calls = []
     monkeypatch.setattr("icpflow.teacher.pipeline.estimate_ego_motion", lambda a, b, cfg: calls.append(1) or guess)
-    result = ICPFlow(CFG.replace(ego_motion=mode))(s["pc0"], s["pc1"], s["ego"] if passed else None)
+    result = ICPFlow(CFG.replace(**{"ego_motion.method": mode}))(s["pc0"], s["pc1"], s["ego"] if passed else None)
     assert bool(calls) == estimated
     np.testing.assert_array_equal(result.ego1_from_ego0, guess if estimated else s["ego"])
 

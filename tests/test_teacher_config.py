@@ -18,6 +18,8 @@ from icpflow.teacher.config import (
     ChecksConfig,
     ClusteringConfig,
     DeskewConfig,
+    EgoMotionConfig,
+    GroundConfig,
     HistogramConfig,
     ICPConfig,
     ICPFlowConfig,
@@ -122,7 +124,7 @@ OLD_PRESETS = {
         max_error=0.2,
     ),
 }
-# The ground and ego-motion fields (flat in both releases) that shards, checkpoints and exports carry.
+# The flat ground and ego-motion fields that older shards, checkpoints and exports carry.
 PREPROCESSING = (
     "ground",
     "sensor_height",
@@ -189,8 +191,12 @@ def test_round_trip_through_a_dict_and_yaml():
         (lambda: ICPConfig(max_corr=float("nan")), "max_corr=nan must be a number > 0"),
         (lambda: DeskewConfig(enabled="yes"), "enabled='yes' must be true or false"),
         (lambda: ChecksConfig(min_iou=True), "min_iou=True must be a number in"),
-        (lambda: ICPFlowConfig(ground="x"), "ICPFlowConfig: ground='x' must be one of"),
-        (lambda: ICPFlowConfig(range_z="low"), "range_z='low' must be a number"),
+        (lambda: GroundConfig(method="x"), "GroundConfig: method='x' must be one of"),
+        (lambda: GroundConfig(range_z="low"), "range_z='low' must be a number"),
+        (lambda: GroundConfig(slack=-0.1), "slack=-0.1 must be a number >= 0"),
+        (lambda: EgoMotionConfig(method="gps"), "EgoMotionConfig: method='gps' must be one of"),
+        (lambda: EgoMotionConfig(kiss_voxel_size=0), "kiss_voxel_size=0 must be a number > 0"),
+        (lambda: ICPFlowConfig(ground="both"), "ground must be a GroundConfig"),
         (lambda: ICPFlowConfig(seed=1.0), "seed=1.0 must be an integer"),
         (lambda: ICPFlowConfig(clustering=3), "clustering must be a ClusteringConfig"),
         (lambda: ICPFlowConfig().replace(clustering={"bogus": 1}), "unknown field\\(s\\) \\['clustering.bogus'\\]"),
@@ -218,6 +224,16 @@ def test_every_field_declares_a_constraint():
 
 # a valid value other than the waymo preset's for each setting that moved into a block: old name -> (new, value)
 MOVED = {
+    "ego_motion": ("ego_motion.method", "kiss_icp"),
+    "kiss_voxel_size": ("ego_motion.kiss_voxel_size", 0.5),
+    "kiss_max_range": ("ego_motion.kiss_max_range", 60.0),
+    "ego_refine_voxel": ("ego_motion.refine_voxel", 0.3),
+    "ground": ("ground.method", "patchwork"),
+    "sensor_height": ("ground.sensor_height", 1.9),
+    "patchwork_max_range": ("ground.patchwork_max_range", 50.0),
+    "patchwork_z_offset": ("ground.patchwork_z_offset", -1.0),
+    "range_z": ("ground.range_z", 0.1),
+    "ground_slack": ("ground.slack", 0.2),
     "min_cluster_size": ("clustering.min_cluster_size", 12),
     "max_clusters": ("clustering.max_clusters", 50),
     "cluster_voxel_size": ("clustering.voxel_size", 0.1),
@@ -284,6 +300,9 @@ def test_old_names_on_the_command_line_and_in_dataset_teacher_blocks():
                 "icpflow.clustering.min_cluster_size=7",
                 "icpflow.histogram.max_points=500",
                 "icpflow.icp.backend=torch",
+                "icpflow.ground.method=patchwork",
+                "icpflow.ground.sensor_height=1.9",
+                "icpflow.ego_motion.refine_voxel=0.3",
             )
         )
     )
@@ -295,10 +314,13 @@ def test_old_names_on_the_command_line_and_in_dataset_teacher_blocks():
                 "icpflow.min_cluster_size=7",
                 "icpflow.hist_max_points=500",
                 "icpflow.icp_backend=torch",
+                "icpflow.ground=patchwork",
+                "icpflow.sensor_height=1.9",
+                "icpflow.ego_refine_voxel=0.3",
                 "icpflow.dataset=waymo",
             )
         )
-    assert old == new and len(caught) == 6
+    assert old == new and len(caught) == 9 and new.ground.method == "patchwork"
     # a dataset's teacher block of the previous release (flat names) gives the same teacher as the nested one
     nested = _quiet(lambda: teacher_config(_compose("dataset=synthetic")))
     with pytest.warns(FutureWarning, match="'cluster_voxel_size' is deprecated, use 'clustering.voxel_size'"):
@@ -306,6 +328,20 @@ def test_old_names_on_the_command_line_and_in_dataset_teacher_blocks():
             _compose("dataset=synthetic", "~dataset.teacher.clustering", "+dataset.teacher.cluster_voxel_size=0.1")
         )
     assert flat == nested and nested.clustering.voxel_size == 0.1
+    with pytest.warns(FutureWarning) as caught:
+        flat = teacher_config(
+            _compose(
+                "dataset=synthetic",
+                "~dataset.teacher.ground",
+                "+dataset.teacher.sensor_height=1.9",
+                "+dataset.teacher.patchwork_z_offset=-1.9",
+            )
+        )
+    assert flat == nested and nested.ground.sensor_height == 1.9
+    assert [str(w.message).split(";")[0] for w in caught] == [
+        "icpflow: 'sensor_height' is deprecated, use 'ground.sensor_height'",
+        "icpflow: 'patchwork_z_offset' is deprecated, use 'ground.patchwork_z_offset'",
+    ]
 
 
 # ------------------------------------------------------------------------------------------------------ Hydra
@@ -372,20 +408,23 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
     with h5py.File(tmp_path / shard_name(0), "r") as handle:
         stored = yaml.safe_load(handle.attrs["config"])["teacher"]
     rebuilt = _quiet(lambda: ICPFlowConfig.from_dict(stored, warn=False))
-    assert rebuilt == ICPFlowConfig.preset("waymo", sensor_height=1.9, clustering={"voxel_size": 0.1})
+    assert rebuilt == ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9}, clustering={"voxel_size": 0.1})
 
 
 def test_older_checkpoints_and_exports_still_load():
-    """Checkpoints (``data.teacher``) and exports (``preprocessing.teacher``) of the previous release carry the
-    flat ground and ego-motion fields, which keep their names."""
+    """Checkpoints (``data.teacher``) and exports (``preprocessing.teacher``) of the previous releases carry the
+    flat ground and ego-motion fields: an export loads silently, a training config's ``data.teacher`` with the old
+    names gives the same block with one deprecation line per name."""
     from fastflow3d.predictor import Predictor
     from fastflow3d.training import inference_preprocessing
     from icpflow.preprocess import Preprocessing
 
     old = {key: {**OLD_DEFAULTS, **OLD_PRESETS["av2"]}[key] for key in PREPROCESSING}
-    expected = Preprocessing.from_teacher(ICPFlowConfig(**old))
+    expected = Preprocessing.from_teacher(ICPFlowConfig.from_dict(old, warn=False))
     metadata = {"preprocessing": {"remove_ground": True, "teacher": dict(old)}}
     predictor = _quiet(lambda: Predictor(network=None, metadata=metadata, backend="onnx"))
     assert predictor.preprocessing == expected and predictor.preprocessing.patchwork_z_offset == -1.4
     checkpoint = OmegaConf.create({"data": {"teacher": dict(old), "train": "unused"}})
-    assert _quiet(lambda: inference_preprocessing(checkpoint)) == expected.to_dict()
+    with pytest.warns(FutureWarning) as caught:
+        assert inference_preprocessing(checkpoint) == expected.to_dict()
+    assert len(caught) == len(PREPROCESSING)

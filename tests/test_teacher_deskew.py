@@ -13,7 +13,9 @@ from icpflow.teacher.icp import normals
 from icpflow.teacher.registration import register_plane
 
 EGO = make_transform(yaw=0.02, translation=(0.8, 0.1, 0.0))
-CFG = ICPFlowConfig.preset("waymo", ground="zthreshold", range_z=0.0, ground_slack=0.1, ego_motion="given")
+CFG = ICPFlowConfig.preset(
+    "waymo", ground={"method": "zthreshold", "range_z": 0.0, "slack": 0.1}, ego_motion={"method": "given"}
+)
 DT = 0.1
 VELOCITY = np.array([10.0, 0.0, 0.0])  # the car, m/s, in the ego frame of t
 

@@ -24,7 +24,9 @@ def kitti():
 
 @pytest.fixture(scope="module")
 def kitti_result(kitti):
-    teacher = ICPFlow(ICPFlowConfig.preset("waymo", ground="patchwork", patchwork_z_offset=0.0, crop_xy=51.2))
+    teacher = ICPFlow(
+        ICPFlowConfig.preset("waymo", ground={"method": "patchwork", "patchwork_z_offset": 0.0}, crop_xy=51.2)
+    )
     pc0, pc1 = kitti["points0"].astype(np.float32), kitti["points1"].astype(np.float32)
     return teacher(pc0, pc1)  # no ego motion given: KISS-ICP (+ point-to-plane refinement)
 

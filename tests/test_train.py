@@ -251,19 +251,21 @@ def test_teacher_settings_saved_with_the_model(shards, pairs, tmp_path):
     assert expected["frame"] == {"ground_z": 0.0} and expected["ground"]["sensor_height"] == 1.9
     assert inference_preprocessing(_cfg(tmp_path, shards["gt"], shards["gt"])) == expected  # from the shards
     bare = write_pseudo_labels(tmp_path / "bare", pairs[:1], config="test: true\n")
-    given = inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={preset:av2,sensor_height:1.5}"))
-    av2 = ICPFlowConfig.preset("av2", sensor_height=1.5)
-    assert Preprocessing.from_dict(given).teacher_fields() == {
-        **{name: getattr(av2, name) for name in Preprocessing().teacher_fields()},
-        "patchwork_z_offset": -1.4,
-    }
+    given = inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={preset:av2,ground:{sensor_height:1.5}}"))
+    av2 = ICPFlowConfig.preset("av2", ground={"sensor_height": 1.5})
+    block = Preprocessing.from_dict(given)
+    assert (block.ground, block.ego_motion) == (av2.ground, av2.ego_motion) and av2.ground.patchwork_z_offset == -1.4
+    with pytest.warns(FutureWarning, match="'sensor_height' is deprecated, use 'ground.sensor_height'"):  # old name
+        assert inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={preset:av2,sensor_height:1.5}")) == (
+            given
+        )
     assert given["frame"]["ground_z"] == pytest.approx(-0.1)  # Patchwork++ at -1.5 after a -1.4 m shift
     with pytest.raises(TrainError, match=r"data.train=.*bare carry no teacher config; set it"):
         fit(_cfg(tmp_path, bare, bare))
     with pytest.raises(TrainError, match="data.teacher: min_cluster_size not used at inference"):
         inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={min_cluster_size:3}"))
-    with pytest.raises(TrainError, match="data.teacher: ICPFlowConfig: .*ground"):
-        inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={ground:sometimes}"))
+    with pytest.raises(TrainError, match="data.teacher: GroundConfig: method='sometimes' must be one of"):
+        inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={ground:{method:sometimes}}"))
 
 
 def test_missing_or_empty_shard_dir_is_one_line(tmp_path):

@@ -41,7 +41,7 @@ MODEL = {
     "stage_channels": [8, 16, 32],
     "stage_blocks": [1, 1, 1],
 }
-SYNTHETIC = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)  # conf/dataset/synthetic.yaml
+SYNTHETIC = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})  # synthetic.yaml
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +136,7 @@ def test_label_py_sequence_without_poses_on_seq01(seq01, tmp_path):
                 f"dataset.root={scans}",
                 "limit=1",
                 "workers=1",
-                "icpflow.hdbscan_n_jobs=1",
+                "icpflow.clustering.n_jobs=1",
                 f"out_dir={tmp_path / 'labels'}",
             ],
         )

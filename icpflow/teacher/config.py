@@ -4,11 +4,11 @@ Units: metres, seconds, degrees where the name says ``deg``. ``pairing.speed`` i
 10 Hz); the search window of a pair of frames ``k`` apart is ``2 * max(speed * k, |t_ego|)`` (the reference's
 ``translation_frame``, :meth:`PairingConfig.window`).
 
-Blocks (each step module takes its own): ``clustering`` (step 3), ``pairing`` (4), ``histogram`` (5),
-``icp`` (6: registration, its backend and the static preference), ``deskew`` (6b), ``checks`` (7),
-``association`` (8), ``flow`` (9, 10). The ground and ego-motion settings (``ego_motion``, ``kiss_*``,
-``ego_refine_voxel``, ``ground``, ``sensor_height``, ``patchwork_*``, ``range_z``, ``ground_slack``) are flat
-fields for now, like ``crop_xy`` and ``seed`` (the seed of every subsample).
+Blocks (each step module takes its own): ``ego_motion`` (step 1), ``ground`` (2), ``clustering`` (3), ``pairing``
+(4), ``histogram`` (5), ``icp`` (6: registration, its backend and the static preference), ``deskew`` (6b),
+``checks`` (7), ``association`` (8), ``flow`` (9, 10); ``crop_xy`` and ``seed`` (the seed of every subsample) are
+flat. ``ego_motion`` and ``ground`` are also the preprocessing a student needs (``icpflow.preprocess.Preprocessing``
+holds these same dataclasses).
 
 Constraints live on the fields (:func:`setting`'s ``rule``/``choices``, checked in ``__post_init__``), and so does
 each field's name before the blocks (``old``): those flat names (``min_cluster_size``, ``hist_max_points``, ...)
@@ -80,6 +80,32 @@ class _Checked:
                 raise ValueError(f"{type(self).__name__}: {f.name}={value!r} must be one of {list(choices)}")
             if rule is not None and not _accepts(rule, value):
                 raise ValueError(f"{type(self).__name__}: {f.name}={value!r} must be {RULES[rule]}")
+
+
+@dataclass(frozen=True)
+class EgoMotionConfig(_Checked):
+    """Step 1 (``ego_motion``): ``ego1_from_ego0`` by KISS-ICP, then point-to-plane refinement
+    (``teacher.ego_motion``)."""
+
+    # "given": use the ego1_from_ego0 passed in, KISS-ICP when none is; "kiss_icp": always estimate it (the
+    # ablation: a transform passed in is ignored)
+    method: str = setting("given", choices=("given", "kiss_icp"), old="ego_motion")
+    kiss_voxel_size: float = setting(1.0, "positive")  # KISS-ICP voxel size (m)
+    kiss_max_range: float = setting(100.0, "positive")  # KISS-ICP max range (m)
+    refine_voxel: float = setting(0.2, "non_negative", old="ego_refine_voxel")  # refinement voxel (m); 0 = off
+
+
+@dataclass(frozen=True)
+class GroundConfig(_Checked):
+    """Step 2 (``ground``): ground removal per scan (``teacher.ground``). A point is non-ground only if every
+    ``method`` says so (``both``: Patchwork++ and the z threshold)."""
+
+    method: str = setting("both", choices=("both", "patchwork", "zthreshold", "none"), old="ground")
+    sensor_height: float = setting(1.723, "non_negative")  # Patchwork++ sensor height above the ground (m)
+    patchwork_max_range: float = setting(64.0, "positive")  # Patchwork++ max_range (m)
+    patchwork_z_offset: float = setting(0.0, "number")  # added to z before Patchwork++ (ground near -sensor_height)
+    range_z: float = setting(0.04, "number")  # z threshold: ground if z <= range_z + slack
+    slack: float = setting(0.3, "non_negative", old="ground_slack")
 
 
 @dataclass(frozen=True)
@@ -180,6 +206,8 @@ class FlowConfig(_Checked):
 
 #: the per-step blocks of ``ICPFlowConfig``: field name -> dataclass
 BLOCKS = {
+    "ego_motion": EgoMotionConfig,
+    "ground": GroundConfig,
     "clustering": ClusteringConfig,
     "pairing": PairingConfig,
     "histogram": HistogramConfig,
@@ -201,19 +229,9 @@ def _block(kind):
 class ICPFlowConfig(_Checked):
     """All settings of the teacher; defaults are the reference's Waymo-like settings (see ``preset``)."""
 
-    # step 1: ego motion. "given": use the ego1_from_ego0 passed in, KISS-ICP when none is; "kiss_icp": always
-    # estimate it (the ablation: a transform passed in is ignored)
-    ego_motion: str = setting("given", choices=("given", "kiss_icp"))
-    kiss_voxel_size: float = setting(1.0, "positive")  # KISS-ICP voxel size (m)
-    kiss_max_range: float = setting(100.0, "positive")  # KISS-ICP max range (m)
-    ego_refine_voxel: float = setting(0.2, "non_negative")  # point-to-plane refinement voxel (m); 0 = off
-    # step 2: ground removal and crop
-    ground: str = setting("both", choices=("both", "patchwork", "zthreshold", "none"))  # non-ground: every method
-    sensor_height: float = setting(1.723, "non_negative")  # Patchwork++ sensor height above the ground (m)
-    patchwork_max_range: float = setting(64.0, "positive")  # Patchwork++ max_range (m)
-    patchwork_z_offset: float = setting(0.0, "number")  # added to z before Patchwork++ (ground near -sensor_height)
-    range_z: float = setting(0.04, "number")  # z threshold: ground if z <= range_z + ground_slack
-    ground_slack: float = setting(0.3, "non_negative")
+    ego_motion: EgoMotionConfig = _block(EgoMotionConfig)
+    ground: GroundConfig = _block(GroundConfig)
+    # step 2: the crop after ground removal
     crop_xy: float = setting(32.0, "positive")  # keep |x| < crop_xy and |y| < crop_xy; outside: ego flow, conf 0
     clustering: ClusteringConfig = _block(ClusteringConfig)
     pairing: PairingConfig = _block(PairingConfig)
@@ -336,10 +354,8 @@ def _deprecated(message: str) -> None:
 PRESETS: dict[str, dict] = {
     # Waymo's vehicle frame has the ground near z = 0: shifted by -sensor_height it sits where Patchwork++ expects.
     "waymo": dict(
-        patchwork_z_offset=-1.723,
+        ground=dict(patchwork_z_offset=-1.723, range_z=0.04, slack=0.3),
         crop_xy=32.0,
-        range_z=0.04,
-        ground_slack=0.3,
         clustering=dict(min_cluster_size=30, max_clusters=200, epsilon=0.25),
         pairing=dict(speed=1.67, extent_ratio=0.1),
         icp=dict(max_corr=0.1, max_points=10000, static_tolerance=0.25),
@@ -347,9 +363,8 @@ PRESETS: dict[str, dict] = {
     ),
     # nuScenes at 20 Hz: 0.833 m per 0.05 s frame, i.e. the same 16.7 m/s as Waymo per frame of its own.
     "nuscenes": dict(
+        ground=dict(range_z=-1.84, slack=0.3),
         crop_xy=32.0,
-        range_z=-1.84,
-        ground_slack=0.3,
         clustering=dict(min_cluster_size=20, max_clusters=200, epsilon=0.25),
         pairing=dict(speed=0.833333, extent_ratio=0.1),
         icp=dict(max_corr=0.1, max_points=5000, static_tolerance=0.25),
@@ -370,10 +385,8 @@ PRESETS: dict[str, dict] = {
     # AV2 pair (0.0662 map ground, 0.0945 Patchwork++), dynamic EPE (all) 0.1067 vs 0.1068, static background
     # 0.0096 vs 0.0120.
     "av2": dict(
+        ground=dict(range_z=-10000.0, slack=0.0, patchwork_z_offset=-1.4),
         crop_xy=51.2,
-        range_z=-10000.0,
-        ground_slack=0.0,
-        patchwork_z_offset=-1.4,
         clustering=dict(min_cluster_size=20, max_clusters=200, epsilon=0.25, voxel_size=0.25),
         pairing=dict(speed=1.0, extent_ratio=0.1),
         histogram=dict(max_points=300),
@@ -483,7 +496,9 @@ __all__ = [
     "ChecksConfig",
     "ClusteringConfig",
     "DeskewConfig",
+    "EgoMotionConfig",
     "FlowConfig",
+    "GroundConfig",
     "HistogramConfig",
     "ICPConfig",
     "ICPFlowConfig",

@@ -2,11 +2,11 @@
 optional point-to-plane refinement (open3d ``registration_icp``) of the KISS-ICP estimate.
 
 KISS-ICP is built for sequences; on a single pair its adaptive threshold starts wide and its map holds one scan,
-which leaves a few centimetres of error on KITTI. The refinement (``ego_refine_voxel`` > 0) aligns the two scans
+which leaves a few centimetres of error on KITTI. The refinement (``ego_motion.refine_voxel`` > 0) aligns the two scans
 directly, point-to-plane, from the KISS-ICP estimate.
 
-Settings: ``icpflow.preprocess.EgoMotionSettings`` (or a ``Preprocessing`` block, or a teacher config whose fields
-map onto it, see :func:`ego_settings`).
+Settings: the teacher's ``ego_motion`` block (``icpflow.teacher.config.EgoMotionConfig``), or a ``Preprocessing``
+or a teacher config holding it (:func:`ego_settings`).
 """
 
 from __future__ import annotations
@@ -14,14 +14,18 @@ from __future__ import annotations
 import numpy as np
 
 from icpflow.geometry import invert
-from icpflow.preprocess import EgoMotionSettings, Preprocessing
+from icpflow.preprocess import Preprocessing
+from icpflow.teacher.config import EgoMotionConfig
 
 
-def ego_settings(cfg) -> EgoMotionSettings:
-    """The ego-motion settings of ``cfg``: EgoMotionSettings, a Preprocessing block or a teacher config."""
-    if isinstance(cfg, EgoMotionSettings):
+def ego_settings(cfg) -> EgoMotionConfig:
+    """The ego-motion settings of ``cfg``: an EgoMotionConfig, or a Preprocessing / teacher config holding one (a
+    dict of teacher fields, older flat names included, is read by ``Preprocessing.from_teacher``)."""
+    if isinstance(cfg, EgoMotionConfig):
         return cfg
-    return (cfg if isinstance(cfg, Preprocessing) else Preprocessing.from_teacher(cfg)).ego_motion
+    if isinstance(getattr(cfg, "ego_motion", None), EgoMotionConfig):
+        return cfg.ego_motion
+    return Preprocessing.from_teacher(cfg).ego_motion
 
 
 def kiss_icp_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:

@@ -1,10 +1,10 @@
 """Step 2: ground removal per scan, on points in the height frame of ``icpflow.preprocess`` (ground near
 z = ``frame.ground_z``).
 
-Settings: ``icpflow.preprocess.GroundSettings`` (a ``Preprocessing`` block, or a teacher config whose fields map
-onto it). Methods (``ground.method``): ``patchwork`` (Patchwork++, ``pypatchworkpp``, on the scan shifted so that
-the ground sits at -sensor_height), ``zthreshold`` (ground if ``z <= range_z + slack``), ``both`` (the reference:
-a point is non-ground only if both say so) and ``none``.
+Settings: the teacher's ``ground`` block (``icpflow.teacher.config.GroundConfig``), read from a ``Preprocessing``
+or a teacher config. Methods (``ground.method``): ``patchwork`` (Patchwork++, ``pypatchworkpp``, on the scan
+shifted so that the ground sits at -sensor_height), ``zthreshold`` (ground if ``z <= range_z + slack``), ``both``
+(the reference: a point is non-ground only if both say so) and ``none``.
 """
 
 from __future__ import annotations

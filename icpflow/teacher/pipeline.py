@@ -157,7 +157,7 @@ class ICPFlow:
         pc0_ok, pc1_ok = pc0_in[valid0], pc1_in[valid1]
 
         tic = time.perf_counter()
-        if ego1_from_ego0 is None or cfg.ego_motion == "kiss_icp":
+        if ego1_from_ego0 is None or cfg.ego_motion.method == "kiss_icp":
             try:
                 ego = estimate_ego_motion(pc0_ok, pc1_ok, cfg)
             except (RuntimeError, ValueError, MemoryError) as error:

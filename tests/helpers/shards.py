@@ -10,7 +10,7 @@ from icpflow.shards.writer import write_index, write_shard
 from icpflow.teacher.config import ICPFlowConfig
 
 #: the teacher that "labelled" hand-made training shards (the synthetic dataset's: conf/dataset/synthetic.yaml)
-TEACHER = ICPFlowConfig.preset("waymo", sensor_height=1.9, patchwork_z_offset=-1.9)
+TEACHER = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})
 
 
 def pair_sample(pair, index: int, flow, confidence, cluster, with_gt: bool = True) -> dict:
