@@ -374,11 +374,11 @@ def test_fast_dev_run_against_gt_and_pseudo(shards, tmp_path):
 
 
 def test_short_run_validates_at_its_last_step_and_exports_the_best_checkpoint(shards, tmp_path):
-    """python train.py ... trainer.max_steps=3: the default experiment validates every 100 steps, so only the final
+    """python train.py ... trainer.max_steps=3: the default experiment validates every 200 steps, so only the final
     validation makes the best checkpoint; the run ends by exporting it (the default formats) under out_dir."""
     formats = list(_compose().export.formats)
     cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=3", f"export.formats=[{','.join(formats)}]")
-    assert cfg.trainer.val_check_interval == 100 and formats == ["onnx", "pt2"]
+    assert cfg.trainer.val_check_interval == 200 and formats == ["onnx", "pt2"]
     trainer = fit(cfg)
     assert trainer.global_step == 3 and trainer.lightning_module.validations == 1
     best = list((tmp_path / "run" / "checkpoints").glob("best-*.ckpt"))
