@@ -34,17 +34,18 @@ def main() -> None:
     if len(sys.argv) != 2:
         raise SystemExit(__doc__)
     table = rows(Path(sys.argv[1]))
-    columns = list(next(iter(table.values())))
+    columns = list(dict.fromkeys(column for row in table.values() for column in row))
     print("| method | " + " | ".join(columns) + " |")
     print("|---|" + "---|" * len(columns))
     for method, row in table.items():
-        print(f"| {method} | " + " | ".join(f"{row[c]:.3f}" for c in columns) + " |")
+        print(f"| {method} | " + " | ".join("-" if row.get(c) is None else f"{row[c]:.3f}" for c in columns) + " |")
     for reference in ("icpflow", "ego"):
         if reference in table and "student" in table:
-            ratios = [
-                table["student"][c] / table[reference][c] if table[reference][c] else float("nan") for c in columns
-            ]
-            print(f"| student / {reference} | " + " | ".join(f"{r:.2f}x" for r in ratios) + " |")
+            cells = []
+            for column in columns:
+                ours, theirs = table["student"].get(column), table[reference].get(column)
+                cells.append(f"{ours / theirs:.2f}x" if ours is not None and theirs else "-")
+            print(f"| student / {reference} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":
