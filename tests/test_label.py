@@ -557,3 +557,31 @@ def test_multirun_jobs_label_the_union(reference, tmp_path):
     for sample, want in zip(got, [expected[i] for i in (0, 2, 4)], strict=True):
         for key in want:
             np.testing.assert_array_equal(sample[key], want[key], err_msg=key)
+
+
+class InterruptedInKernel(SyntheticDataset):
+    """Reading a pair raises what Ctrl-C inside a numba kernel gives: a SystemError over the KeyboardInterrupt."""
+
+    def pair(self, index, horizon=1):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as stop:
+            raise SystemError("CPUDispatcher(...) returned a result with an exception set") from stop
+
+
+class BrokenInKernel(SyntheticDataset):
+    """Reading a pair raises a SystemError over an ordinary error (a failing sample, not an interrupt)."""
+
+    def pair(self, index, horizon=1):
+        try:
+            raise ValueError("bad values")
+        except ValueError as cause:
+            raise SystemError("CPUDispatcher(...) returned a result with an exception set") from cause
+
+
+def test_an_interrupt_inside_a_kernel_stops_the_run_and_fails_no_sample(tmp_path):
+    job = LabelJob(InterruptedInKernel(**READER), teacher_config(label_cfg(tmp_path)), tmp_path, "teacher: {}\n")
+    with pytest.raises(KeyboardInterrupt):
+        label_sample(job, 0, threads=1)
+    broken = LabelJob(BrokenInKernel(**READER), job.teacher_cfg, tmp_path, "teacher: {}\n")
+    assert label_sample(broken, 0, threads=1)["failure"]["reason"].startswith("SystemError")  # this sample only

@@ -92,5 +92,21 @@ def label_sample(job, index: int, threads: int) -> dict:
             labels = teacher_on_sample(teacher, job.dataset, index, pair, job.horizon, job.tracker)
         outcome = {"sample": shard_rows(job.dataset, index, pair, labels)}
     except Exception as error:  # any reader or teacher failure skips this sample only
+        stop = interrupt_behind(error)
+        if stop is not None:  # Ctrl-C or SIGTERM inside a compiled kernel arrives wrapped in a SystemError
+            raise stop from None
         outcome = {"failure": failure_record(job.dataset, index, pair, error)}
     return {"index": index, "seconds": time.perf_counter() - start, **outcome}
+
+
+def interrupt_behind(error: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt (Ctrl-C, or ``Terminated`` on SIGTERM) that ``error`` was raised over, if any: a signal
+    that arrives while a numba kernel runs surfaces as ``SystemError(... returned a result with an exception set)``
+    whose cause is the interrupt; it must stop the run, not fail the sample."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return error
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return None
