@@ -26,6 +26,7 @@ from icpflow.labelling.cli import label
 from icpflow.shards import ShardDataset, verify_shard
 from icpflow.teacher import ICPFlow
 
+from helpers.disk import fail_fsync_after
 from helpers.labelling import (
     SUMMARY,
     TESTS_ENV,
@@ -165,23 +166,10 @@ def test_a_fixed_input_is_labelled_by_the_rerun(reference, tmp_path, capsys):
     assert_same(reference, tmp_path / "labels")
 
 
-def _disk_full_after(monkeypatch, writes: int) -> None:
-    """Make every fsync after the first ``writes`` fail with ENOSPC, as on a full disk."""
-    real, count = os.fsync, [0]
-
-    def fsync(fd):
-        count[0] += 1
-        if count[0] > writes:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        real(fd)
-
-    monkeypatch.setattr(os, "fsync", fsync)
-
-
 def test_a_full_disk_is_one_line_and_keeps_the_finished_shards(reference, tmp_path, monkeypatch, capsys):
     out = tmp_path / "labels"
     # config.yaml, then shard 0 and its record (each file: its own fsync and its folder's), then shard 1 fails
-    _disk_full_after(monkeypatch, 6)
+    fail_fsync_after(monkeypatch, 6)
     assert label(label_cfg(out), progress=False) == 2
     err = capsys.readouterr().err
     assert err == (

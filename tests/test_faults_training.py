@@ -3,7 +3,6 @@ one line naming the option or the file (exit 2; 143 / 130 for SIGTERM / SIGINT),
 leaves no process and no half-written file behind. Real signals; a real full or read-only filesystem (a small
 tmpfs, where this user may mount one) and an injected ENOSPC otherwise."""
 
-import errno
 import json
 import os
 import re
@@ -25,6 +24,7 @@ from fastflow3d.training import TrainError, fit
 from icpflow.atomic import WriteError
 from icpflow.datasets.synthetic import SyntheticDataset
 
+from helpers.disk import fail_fsync_after
 from helpers.labelling import TESTS_ENV, default_sigint, running_in_group
 from helpers.shards import write_pseudo_labels
 from helpers.training import TINY, compose_train, train_cfg
@@ -188,20 +188,6 @@ def test_a_signal_saves_last_checkpoint_at_the_current_step_and_says_how_to_resu
 # ------------------------------------------------------------------------------------------------ 3. full disk
 
 
-def _fail_fsync_after(monkeypatch, calls: int) -> None:
-    """Every fsync after the first ``calls`` fails with ENOSPC, as on a full disk (icpflow.atomic fsyncs each
-    file it writes and its folder)."""
-    real, count = os.fsync, [0]
-
-    def fsync(fd):
-        count[0] += 1
-        if count[0] > calls:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        real(fd)
-
-    monkeypatch.setattr(os, "fsync", fsync)
-
-
 @pytest.fixture(scope="module")
 def checkpoint(shards, tmp_path_factory):
     """A tiny trained checkpoint in <run>/checkpoints (2 steps)."""
@@ -222,7 +208,7 @@ def test_export_is_built_aside_and_swapped_in_whole(checkpoint, tmp_path, monkey
     export = export_checkpoint(checkpoint, formats=("pt2",))
     assert export == checkpoint.parent.parent / "export"  # <run>/export, not <run>/checkpoints/export
     before = _snapshot(export)
-    _fail_fsync_after(monkeypatch, 0)
+    fail_fsync_after(monkeypatch, 0)
     with pytest.raises(WriteError) as error:
         export_checkpoint(checkpoint, formats=("pt2",))
     monkeypatch.undo()
@@ -262,7 +248,7 @@ def test_export_on_a_real_full_disk_keeps_the_existing_export(checkpoint, tmp_pa
 def test_a_full_disk_during_training_is_one_line_and_keeps_last_checkpoint(shards, tmp_path, monkeypatch):
     """Issue 20.6 (injected ENOSPC): the checkpoints of step 2 are written (best, then last: 2 fsyncs each), the
     disk is full at step 4: one line naming the file and how to resume; last.ckpt of step 2 is intact."""
-    _fail_fsync_after(monkeypatch, 4)
+    fail_fsync_after(monkeypatch, 4)
     with pytest.raises(TrainError) as error:
         fit(train_cfg(tmp_path, shards, shards, "trainer.max_steps=6", *STEPS))
     monkeypatch.undo()
