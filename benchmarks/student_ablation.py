@@ -5,9 +5,12 @@ every seed on the same shards, and scored by eval.py on a held-out split (the 64
         [--variant NAME=OVERRIDE[,OVERRIDE...] ...] [--experiment synthetic_quick] [--score-split test]
         [--score-sequences 16] [--out outputs/ablation]
 
-Default variants (issue 19): ``base`` (the experiment as it is: GRU decoder, all points, bucket loss), ``linear``
-(model.decoder=linear, ZeroFlow's head), ``subsample`` (data.train_points=16384, an inexact speed-up), ``uniform``
-(loss.weighting=uniform). Prints, per variant, the dynamic-foreground, static foreground and static background EPE
+Default variants (issue 19): ``base`` (the experiment as it is: ZeroFlow's linear head, all points, bucket loss,
+no weight averaging), ``ema`` (callbacks=ema: validation, checkpoints and export use an exponential moving average
+of the weights), ``gru`` (model.decoder=gru, DeFlow's point decoder), ``subsample`` (data.train_points=16384, an
+inexact speed-up), ``uniform`` (loss.weighting=uniform). Runs go seed by seed (every variant with seed 0 first), so
+a cut-short study still compares every variant on the same seeds.
+Prints, per variant, the dynamic-foreground, static foreground and static background EPE
 and Threeway EPE (mean and standard deviation over seeds), the difference of the mean dynamic EPE to ``base`` with
 the larger of the two spreads beside it, each seed's dynamic EPE and the mean training time; runs whose scores
 exist are not repeated.
@@ -27,7 +30,8 @@ from icpflow.evaluation import is_complete, method_summary, read_metrics
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_VARIANTS = [
     "base=",
-    "linear=model.decoder=linear",
+    "ema=callbacks=ema",
+    "gru=model.decoder=gru",
     "subsample=data.train_points=16384",
     "uniform=loss.weighting=uniform",
 ]
@@ -51,9 +55,9 @@ def main() -> None:
         name, _, overrides = item.partition("=")
         variants[name] = [o for o in overrides.split(",") if o]
     seeds = [int(s) for s in args.seeds.split(",")]
-    results = {}
-    for name, overrides in variants.items():
-        for seed in seeds:
+    results = {name: [] for name in variants}
+    for seed in seeds:
+        for name, overrides in variants.items():
             run_dir = args.out.resolve() / f"{name}_seed{seed}"
             scores = run_dir / "score" / "metrics.json"
             timing = run_dir / "train_seconds.txt"
@@ -89,7 +93,7 @@ def main() -> None:
             row = {c: table[c]["EPE"] for c in CATEGORIES}
             row["threeway"] = summary["threeway"]["threeway"]
             row["seconds"] = float(timing.read_text()) if timing.is_file() else float("nan")
-            results.setdefault(name, []).append(row)
+            results[name].append(row)
     print(
         f"\n{args.experiment}, {args.steps} steps, seeds {seeds}; scored on {args.score_split} "
         f"({args.score_sequences} sequences); EPE (m), mean +- std over seeds"
