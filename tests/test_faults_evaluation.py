@@ -19,6 +19,7 @@ from icpflow.baselines import ego_only_flow
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.evaluation import method_summary, read_metrics, run_eval
 
+from helpers.disk import fail_fsync_after
 from helpers.labelling import running_in_group
 
 REPO = Path(__file__).resolve().parents[1]
@@ -166,28 +167,13 @@ def _fill(folder: Path) -> None:
             assert error.errno == errno.ENOSPC
 
 
-def _fail_fsync(monkeypatch, code: int, place: Path, after: int = 0) -> None:
-    """Make every fsync of a file or folder under ``place`` after the first ``after`` fail with ``code`` (an
-    injected full or read-only disk; other places stay writable)."""
-    real, count = os.fsync, [0]
-
-    def fsync(fd):
-        if Path(os.readlink(f"/proc/self/fd/{fd}")).is_relative_to(place):
-            count[0] += 1
-            if count[0] > after:
-                raise OSError(code, os.strerror(code))
-        real(fd)
-
-    monkeypatch.setattr(os, "fsync", fsync)
-
-
 @pytest.mark.parametrize("fault", ["read-only", "full"])
 def test_an_unwritable_out_dir_is_one_line_before_any_pair_is_scored(tmp_path, tmpfs, monkeypatch, capsys, fault):
     place = tmpfs(fault, "size=1m,ro" if fault == "read-only" else "size=256k")
     code = errno.EROFS if fault == "read-only" else errno.ENOSPC
     if place is None:  # no tmpfs here: the same error, injected
         place = tmp_path / fault
-        _fail_fsync(monkeypatch, code, place)
+        fail_fsync_after(monkeypatch, 0, code, place)
     elif fault == "full":
         _fill(place)
     method = Counted()
@@ -212,7 +198,7 @@ def test_a_disk_filling_up_during_the_run_is_one_line_and_the_scores_are_saved_e
     if place is None:
         place = tmp_path / "disk"
         method = Counted()
-        _fail_fsync(monkeypatch, errno.ENOSPC, place, after=1)  # the out_dir check's fsync passes, the results' fail
+        fail_fsync_after(monkeypatch, 1, errno.ENOSPC, place)  # the out_dir check's fsync passes, the results' fail
     else:
         method = Counted(then=lambda: _fill(place))
     out = place / "eval"
