@@ -16,30 +16,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
-import time
 from pathlib import Path
 
-from icpflow.atomic import atomic_path, write_text_atomic
-from icpflow.evaluation import is_complete, method_summary, read_metrics
+from studies import ROOT, run_python, save_line_plot, scores, trained_and_scored
 
-ROOT = Path(__file__).resolve().parents[1]
+from icpflow.atomic import write_text_atomic
+from icpflow.evaluation import is_complete
+
 SUPERVISION = {"pseudo": "distillation", "gt": "supervised"}
-
-
-def run(arguments: list[str]) -> float:
-    """Run ``python <arguments>`` in the repository root; seconds taken (raises on a non-zero exit)."""
-    tic = time.perf_counter()
-    print("$ python " + " ".join(arguments), flush=True)
-    subprocess.run([sys.executable, *arguments], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - tic
-
-
-def dynamic_epe(metrics_json: Path, method: str) -> tuple[float, float]:
-    """(dynamic-foreground EPE, Threeway EPE) of ``method`` in an eval.py ``metrics.json``."""
-    summary = method_summary(read_metrics(metrics_json), method)
-    return summary["paper"]["point_weighted"]["dynamic_fg"]["EPE"], summary["threeway"]["threeway"]
 
 
 def main() -> None:
@@ -60,17 +44,17 @@ def main() -> None:
 
     val = out / "labels" / "val"
     if not (val / "index.json").is_file():
-        run(["label.py", "split=val", f"out_dir={val}"])
+        run_python(["label.py", "split=val", f"out_dir={val}"])
     baselines = out / "eval" / "baselines" / "metrics.json"
     if not is_complete(baselines):
-        run(["eval.py", *test, "method=[ego,icpflow]", f"out_dir={baselines.parent}"])
-    teacher, ego = dynamic_epe(baselines, "icpflow"), dynamic_epe(baselines, "ego")
+        run_python(["eval.py", *test, "method=[ego,icpflow]", f"out_dir={baselines.parent}"])
+    teacher, ego = scores(baselines, "icpflow"), scores(baselines, "ego")
 
     rows = []
     for size in sizes:
         labels = out / "labels" / f"train{size}"
         if not (labels / "index.json").is_file():
-            run(
+            run_python(
                 [
                     "label.py",
                     "split=train",
@@ -81,54 +65,29 @@ def main() -> None:
             )
         for supervision in supervisions:
             name = f"{supervision}{size}"
-            run_dir, scores = out / "runs" / name, out / "eval" / name / "metrics.json"
-            timing = run_dir / "train_seconds.txt"
-            if not timing.is_file():
-                seconds = run(
-                    [
-                        "train.py",
-                        f"experiment={args.experiment}",
-                        f"data.train={labels}",
-                        f"data.val={val}",
-                        f"trainer.max_steps={args.steps}",
-                        f"out_dir={run_dir}",
-                        f"loss.name={SUPERVISION[supervision]}",
-                        "export.formats=[onnx]",
-                        "+trainer.enable_progress_bar=false",
-                    ]
-                )
-                write_text_atomic(timing, f"{seconds:.1f}\n")
-            if not is_complete(scores):
-                run(
-                    [
-                        "eval.py",
-                        *test,
-                        "method=[student]",
-                        f"checkpoint={run_dir / 'export'}",
-                        f"out_dir={scores.parent}",
-                    ]
-                )
-            epe, threeway = dynamic_epe(scores, "student")
+            train = [
+                f"experiment={args.experiment}",
+                f"data.train={labels}",
+                f"data.val={val}",
+                f"trainer.max_steps={args.steps}",
+                f"loss.name={SUPERVISION[supervision]}",
+            ]
+            run_dir, metrics = out / "runs" / name, out / "eval" / name / "metrics.json"
             rows.append(
-                {
-                    "pairs": size,
-                    "supervision": supervision,
-                    "dynamic_fg_epe": epe,
-                    "threeway": threeway,
-                    "train_seconds": float(timing.read_text()),
-                }
+                {"pairs": size, "supervision": supervision, **trained_and_scored(run_dir, metrics, train, test)}
             )
 
     print(
         f"\nStudent on the synthetic test split ({args.test_sequences * 4} pairs), {args.steps} steps of "
-        f"experiment={args.experiment}; teacher {teacher[0]:.4f} m, ego-only {ego[0]:.4f} m dynamic-fg EPE"
+        f"experiment={args.experiment}; teacher {teacher['dynamic_fg']:.4f} m, ego-only {ego['dynamic_fg']:.4f} m "
+        "dynamic-fg EPE"
     )
     print("| pairs | supervision | dynamic fg EPE (m) | x teacher | Threeway EPE (m) | training (s) |")
     print("|---|---|---|---|---|---|")
     for row in rows:
         print(
-            f"| {row['pairs']} | {row['supervision']} | {row['dynamic_fg_epe']:.4f} | "
-            f"{row['dynamic_fg_epe'] / teacher[0]:.2f} | {row['threeway']:.4f} | {row['train_seconds']:.0f} |"
+            f"| {row['pairs']} | {row['supervision']} | {row['dynamic_fg']:.4f} | "
+            f"{row['dynamic_fg'] / teacher['dynamic_fg']:.2f} | {row['threeway']:.4f} | {row['seconds']:.0f} |"
         )
     write_text_atomic(
         out / "scaling.json",
@@ -136,33 +95,22 @@ def main() -> None:
             {"rows": rows, "teacher": teacher, "ego": ego, "steps": args.steps, "experiment": args.experiment}, indent=2
         ),
     )
-    plot(rows, teacher[0], ego[0], out / "scaling.png", args.steps)
-
-
-def plot(rows: list[dict], teacher: float, ego: float, path: Path, steps: int) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axis = plt.subplots(figsize=(6, 4))
+    curves = []
     for supervision, style in (("pseudo", "o-"), ("gt", "s--")):
-        points = [(r["pairs"], r["dynamic_fg_epe"]) for r in rows if r["supervision"] == supervision]
+        points = [(row["pairs"], row["dynamic_fg"]) for row in rows if row["supervision"] == supervision]
         if points:
-            axis.plot(
-                *zip(*points), style, label=f"student, {'pseudo-labels' if supervision == 'pseudo' else 'ground truth'}"
-            )
-    axis.axhline(teacher, color="green", linestyle=":", label="teacher (ICP-Flow)")
-    axis.axhline(ego, color="grey", linestyle=":", label="ego-only flow")
-    axis.set_xscale("log", base=2)
-    axis.set_xlabel("labelled training pairs")
-    axis.set_ylabel("dynamic foreground EPE (m), test split")
-    axis.set_title(f"Student data scaling ({steps} steps each)")
-    axis.legend()
-    figure.tight_layout()
-    with atomic_path(path) as tmp:
-        figure.savefig(tmp, dpi=120, format="png")
-    print(f"wrote {path}")
+            label = "pseudo-labels" if supervision == "pseudo" else "ground truth"
+            curves.append((*zip(*points), style, f"student, {label}"))
+    save_line_plot(
+        out / "scaling.png",
+        f"Student data scaling ({args.steps} steps each), dynamic foreground",
+        "labelled training pairs",
+        curves,
+        [
+            (teacher["dynamic_fg"], "green", ":", "teacher (ICP-Flow)"),
+            (ego["dynamic_fg"], "grey", ":", "ego-only flow"),
+        ],
+    )
 
 
 if __name__ == "__main__":

@@ -15,34 +15,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
-import time
 from pathlib import Path
 
-from icpflow.atomic import atomic_path, write_text_atomic
-from icpflow.evaluation import method_summary, read_metrics
+from studies import ROOT, run_python, save_line_plot, scores, trained_and_scored
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def run(arguments: list[str]) -> float:
-    """Run ``python <arguments>`` in the repository root; seconds taken (raises on a non-zero exit)."""
-    tic = time.perf_counter()
-    print("$ python " + " ".join(arguments), flush=True)
-    subprocess.run([sys.executable, *arguments], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - tic
-
-
-def scores(metrics_json: Path, method: str) -> dict:
-    """Dynamic-foreground, static-foreground and Threeway EPE of ``method`` in an eval.py ``metrics.json``."""
-    summary = method_summary(read_metrics(metrics_json), method)
-    table = summary["paper"]["point_weighted"]
-    return {
-        "dynamic_fg": table["dynamic_fg"]["EPE"],
-        "static_fg": table["static_fg"]["EPE"],
-        "threeway": summary["threeway"]["threeway"],
-    }
+from icpflow.atomic import write_text_atomic
+from icpflow.evaluation import is_complete
 
 
 def main() -> None:
@@ -61,34 +39,22 @@ def main() -> None:
     out = args.out.resolve()
     test = ["split=test", f"dataset.reader.num_sequences={args.test_sequences}", "bev=0"]
     baselines = args.baselines or out / "eval" / "baselines" / "metrics.json"
-    if not baselines.is_file():
-        run(["eval.py", *test, "method=[ego,icpflow]", f"out_dir={baselines.parent}"])
+    if not is_complete(baselines):
+        run_python(["eval.py", *test, "method=[ego,icpflow]", f"out_dir={baselines.parent}"])
     teacher, ego = scores(baselines, "icpflow"), scores(baselines, "ego")
     rows = []
     for factor in factors:
         steps = factor * args.steps
+        train = [
+            f"experiment={args.experiment}",
+            f"data.train={args.train.resolve()}",
+            f"data.val={args.val.resolve()}",
+            f"trainer.max_steps={steps}",
+            *args.override,
+        ]
         run_dir, metrics = out / "runs" / f"steps{steps}", out / "eval" / f"steps{steps}" / "metrics.json"
-        timing = run_dir / "train_seconds.txt"
-        if not timing.is_file():
-            seconds = run(
-                [
-                    "train.py",
-                    f"experiment={args.experiment}",
-                    f"data.train={args.train.resolve()}",
-                    f"data.val={args.val.resolve()}",
-                    f"trainer.max_steps={steps}",
-                    f"out_dir={run_dir}",
-                    "export.formats=[onnx]",
-                    "+trainer.enable_progress_bar=false",
-                    *args.override,
-                ]
-            )
-            write_text_atomic(timing, f"{seconds:.1f}\n")
-        if not metrics.is_file():
-            run(["eval.py", *test, "method=[student]", f"checkpoint={run_dir / 'export'}", f"out_dir={metrics.parent}"])
-        rows.append(
-            {"factor": factor, "steps": steps, **scores(metrics, "student"), "seconds": float(timing.read_text())}
-        )
+        rows.append({"factor": factor, "steps": steps, **trained_and_scored(run_dir, metrics, train, test)})
+
     print(
         f"\nStudent on the synthetic test split ({args.test_sequences * 4} pairs), experiment={args.experiment} "
         f"{' '.join(args.override)}; teacher dynamic fg {teacher['dynamic_fg']:.4f} m, "
@@ -109,31 +75,21 @@ def main() -> None:
         out / "steps.json",
         json.dumps({"rows": rows, "teacher": teacher, "ego": ego, "experiment": args.experiment}, indent=2),
     )
-    plot(rows, teacher, ego, out / "steps.png", args.experiment)
-
-
-def plot(rows: list[dict], teacher: dict, ego: dict, path: Path, experiment: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axis = plt.subplots(figsize=(6, 4))
     steps = [row["steps"] for row in rows]
-    axis.plot(steps, [row["dynamic_fg"] for row in rows], "o-", label="student, dynamic foreground")
-    axis.plot(steps, [row["threeway"] for row in rows], "s--", label="student, Threeway")
-    axis.axhline(teacher["dynamic_fg"], color="green", linestyle=":", label="teacher, dynamic foreground")
-    axis.axhline(teacher["threeway"], color="green", linestyle="-.", label="teacher, Threeway")
-    axis.axhline(ego["dynamic_fg"], color="grey", linestyle=":", label="ego-only, dynamic foreground")
-    axis.set_xscale("log", base=2)
-    axis.set_xlabel("optimiser steps (batch 4)")
-    axis.set_ylabel("EPE (m), test split")
-    axis.set_title(f"Student vs steps ({experiment})")
-    axis.legend(fontsize=8)
-    figure.tight_layout()
-    with atomic_path(path) as tmp:
-        figure.savefig(tmp, dpi=120, format="png")
-    print(f"wrote {path}")
+    save_line_plot(
+        out / "steps.png",
+        f"Student vs steps ({args.experiment})",
+        "optimiser steps (batch 4)",
+        [
+            (steps, [row["dynamic_fg"] for row in rows], "o-", "student, dynamic foreground"),
+            (steps, [row["threeway"] for row in rows], "s--", "student, Threeway"),
+        ],
+        [
+            (teacher["dynamic_fg"], "green", ":", "teacher, dynamic foreground"),
+            (teacher["threeway"], "green", "-.", "teacher, Threeway"),
+            (ego["dynamic_fg"], "grey", ":", "ego-only, dynamic foreground"),
+        ],
+    )
 
 
 if __name__ == "__main__":

@@ -20,14 +20,10 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import subprocess
-import sys
-import time
 from pathlib import Path
 
-from icpflow.evaluation import is_complete, method_summary, read_metrics
+from studies import CATEGORIES, ROOT, trained_and_scored
 
-ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_VARIANTS = [
     "base=",
     "ema=callbacks=ema",
@@ -35,7 +31,6 @@ DEFAULT_VARIANTS = [
     "subsample=data.train_points=16384",
     "uniform=loss.weighting=uniform",
 ]
-CATEGORIES = ("dynamic_fg", "static_fg", "static_bg")
 
 
 def main() -> None:
@@ -58,41 +53,17 @@ def main() -> None:
     results = {name: [] for name in variants}
     for seed in seeds:
         for name, overrides in variants.items():
+            train = [
+                f"experiment={args.experiment}",
+                f"data.train={args.train.resolve()}",
+                f"data.val={args.val.resolve()}",
+                f"trainer.max_steps={args.steps}",
+                f"seed={seed}",
+                *overrides,
+            ]
+            test = [f"split={args.score_split}", f"dataset.reader.num_sequences={args.score_sequences}", "bev=0"]
             run_dir = args.out.resolve() / f"{name}_seed{seed}"
-            scores = run_dir / "score" / "metrics.json"
-            timing = run_dir / "train_seconds.txt"
-            if not is_complete(scores):
-                seconds = call(
-                    [
-                        "train.py",
-                        f"experiment={args.experiment}",
-                        f"data.train={args.train.resolve()}",
-                        f"data.val={args.val.resolve()}",
-                        f"trainer.max_steps={args.steps}",
-                        f"seed={seed}",
-                        f"out_dir={run_dir}",
-                        "export.formats=[onnx]",
-                        "+trainer.enable_progress_bar=false",
-                        *overrides,
-                    ]
-                )
-                timing.write_text(f"{seconds:.1f}\n")
-                call(
-                    [
-                        "eval.py",
-                        f"split={args.score_split}",
-                        f"dataset.reader.num_sequences={args.score_sequences}",
-                        "method=[student]",
-                        f"checkpoint={run_dir / 'export'}",
-                        f"out_dir={scores.parent}",
-                        "bev=0",
-                    ]
-                )
-            summary = method_summary(read_metrics(scores), "student")
-            table = summary["paper"]["point_weighted"]
-            row = {c: table[c]["EPE"] for c in CATEGORIES}
-            row["threeway"] = summary["threeway"]["threeway"]
-            row["seconds"] = float(timing.read_text()) if timing.is_file() else float("nan")
+            row = trained_and_scored(run_dir, run_dir / "score" / "metrics.json", train, test)
             results[name].append(row)
     print(
         f"\n{args.experiment}, {args.steps} steps, seeds {seeds}; scored on {args.score_split} "
@@ -123,14 +94,6 @@ def main() -> None:
         per_seed = ", ".join(f"{value:.3f}" for value in dynamic)
         seconds = statistics.mean(row["seconds"] for row in rows)
         print(f"| {name} | {' '.join(variants[name]) or '-'} | {' | '.join(cells)} | {per_seed} | {seconds:.0f} |")
-
-
-def call(arguments: list[str]) -> float:
-    """Run ``python <arguments>`` in the repository root; seconds taken (raises on a non-zero exit)."""
-    print("$ python " + " ".join(arguments), flush=True)
-    tic = time.perf_counter()
-    subprocess.run([sys.executable, *arguments], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
-    return time.perf_counter() - tic
 
 
 if __name__ == "__main__":

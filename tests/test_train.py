@@ -473,6 +473,35 @@ def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
     assert torch.equal(expected, got) and torch.any(expected != 0)
 
 
+def test_weight_averaging_is_what_checkpoints_hold_and_a_resume_keeps_both(shards, tmp_path):
+    """callbacks=ema with decay 1: the average is the weights after the first step, frozen. Checkpoints' state_dict
+    (what load_student, eval.py and the export read) is that average, also after a resume that trained on from the
+    current weights (current_model_state)."""
+    common = ("callbacks=ema", "callbacks.ema.decay=1.0", "trainer.val_check_interval=1", "data.batch_size=1")
+    fit(_cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=1", *common))
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    first = torch.load(last, weights_only=True)
+    second_trainer = fit(_cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=3", "ckpt_path=last", *common))
+    second = torch.load(last, weights_only=True)
+    assert second["global_step"] == 3
+    assert {float(state["step"]) for state in second["optimizer_states"][0]["state"].values()} == {3.0}
+    weights = [key for key in first["state_dict"] if key.endswith("weight")]
+    for key in weights:
+        assert torch.equal(second["state_dict"][key], first["state_dict"][key]), key  # the frozen average
+        assert torch.equal(first["current_model_state"][key], first["state_dict"][key]), key
+    assert any(not torch.equal(second["current_model_state"][k], second["state_dict"][k]) for k in weights)
+    (best,) = last.parent.glob("best-*.ckpt")
+    assert all(
+        torch.equal(torch.load(best, weights_only=True)["state_dict"][k], first["state_dict"][k]) for k in weights
+    )
+    model, _ = load_student(last)
+    averaged = {k[len("model.") :]: v for k, v in first["state_dict"].items() if k.startswith("model.")}
+    assert all(torch.equal(model.state_dict()[k], averaged[k]) for k in averaged)
+    # the end of fit leaves the average in the module too (what an in-process caller would use)
+    trained = second_trainer.lightning_module.model.state_dict()
+    assert all(torch.equal(trained[k], averaged[k]) for k in averaged)
+
+
 def test_ckpt_path_last_without_checkpoint(shards, tmp_path):
     with pytest.raises(TrainError, match="last.ckpt does not exist"):
         fit(_cfg(tmp_path, shards["gt"], shards["gt"], "ckpt_path=last"))
