@@ -9,6 +9,21 @@ from fastflow3d.loss import flow_loss
 from fastflow3d.model import FastFlow3D, compensate
 
 
+def tiny_model(half_width: float, cell: float) -> dict:
+    """The config (``conf/model`` form) of a tiny FastFlow3D over ``[-half_width, half_width]^2`` m with ``cell``
+    m pillars: 8 pillar channels, encoders of 8 / 16 / 32 channels with one extra conv each."""
+    return {
+        "_target_": "fastflow3d.model.FastFlow3D",
+        "x_range": [-half_width, half_width],
+        "y_range": [-half_width, half_width],
+        "z_range": [-3.0, 3.0],
+        "cell": cell,
+        "pillar_channels": 8,
+        "stage_channels": [8, 16, 32],
+        "stage_blocks": [1, 1, 1],
+    }
+
+
 def tiny_checkpoint(path, model_cfg: dict, pair, steps: int, keep0=None, keep1=None, cfg: dict | None = None):
     """Save at ``path`` a training checkpoint (the ``fastflow3d.checkpoint`` contract) of the FastFlow3D of
     ``model_cfg`` after ``steps`` Adam steps towards ``pair``'s true residual flow (on the rows ``keep0`` / ``keep1``

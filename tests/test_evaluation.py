@@ -22,7 +22,7 @@ from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.evaluation import MetricOptions, PairScorer, evaluate, method_summary, read_metrics, run_eval
 from icpflow.shards.writer import write_index, write_shard
 
-from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
+from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 
 STUDENT = {"student": student_method}  # what eval.py adds to the teacher package's methods
 
@@ -374,16 +374,7 @@ def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
     )
 
 
-TINY_STUDENT = {
-    "_target_": "fastflow3d.model.FastFlow3D",
-    "x_range": [-16.0, 16.0],
-    "y_range": [-16.0, 16.0],
-    "z_range": [-3.0, 3.0],
-    "cell": 0.5,
-    "pillar_channels": 8,
-    "stage_channels": [8, 16, 32],
-    "stage_blocks": [1, 1, 1],
-}
+TINY_STUDENT = tiny_model(16.0, 0.5)
 
 
 def tiny_student_checkpoint(path: Path, pair) -> Path:

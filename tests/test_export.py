@@ -28,22 +28,13 @@ from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.ego_motion import estimate_ego_motion
 from icpflow.teacher.ground import GroundSegmenter
 
-from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
+from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = {
-    "_target_": "fastflow3d.model.FastFlow3D",
-    "x_range": [-6.4, 6.4],
-    "y_range": [-6.4, 6.4],
-    "z_range": [-3.0, 3.0],
-    "cell": 0.2,
-    "pillar_channels": 8,
-    "stage_channels": [8, 16, 32],
-    "stage_blocks": [1, 1, 1],
-}
+TINY = tiny_model(6.4, 0.2)
 TOLERANCE = 1e-4  # metres
 
 

@@ -34,11 +34,11 @@ from helpers.labelling import (
     assert_same,
     label_cfg,
     label_script,
-    running_in_group,
+    none_left_within,
 )
 from helpers.shards import write_pseudo_labels
 from helpers.training import train_cfg
-from students import tiny_checkpoint
+from students import tiny_checkpoint, tiny_model
 
 SLOW = ["dataset.reader._target_=helpers.labelling.SlowSynthetic", "workers=2"]
 READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 2.0}
@@ -62,15 +62,6 @@ def _start(out_dir, *overrides) -> subprocess.Popen:
     return process
 
 
-def _none_left_within(group: int, seconds: float) -> bool:
-    deadline = time.monotonic() + seconds
-    while running_in_group(group):
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.1)
-    return True
-
-
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
     out = tmp_path / "labels"
@@ -79,7 +70,7 @@ def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
     time.sleep(0.5)  # both workers busy in their slow shards
     process.send_signal(sig)  # the main process only, as a supervisor or a job scheduler does
     _, err = process.communicate(timeout=60)
-    assert _none_left_within(process.pid, 5), "a process of the run outlived it"
+    assert none_left_within(process.pid, 5), "a process of the run outlived it"
     if sig == signal.SIGTERM:
         assert process.returncode == 143, err
         assert err.strip().splitlines()[-1] == (
@@ -219,7 +210,7 @@ def test_a_full_disk_while_workers_run_is_one_line_and_leaves_no_process(tmp_pat
         f"complete shards are kept in {out}, fix this and rerun the same command "
         "to resume"
     ]
-    assert _none_left_within(process.pid, 5)
+    assert none_left_within(process.pid, 5)
     assert not list(out.glob("*.tmp-*"))
     assert json.loads((out / "index.json").read_text())["shards"] == [
         {"file": p.name, "samples": json.loads((out / f"{p.name}.json").read_text())["samples"]}
@@ -240,16 +231,7 @@ def scan():
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
     """An untrained tiny student checkpoint (a +-6.4 m grid)."""
-    cfg = {
-        "_target_": "fastflow3d.model.FastFlow3D",
-        "x_range": [-6.4, 6.4],
-        "y_range": [-6.4, 6.4],
-        "z_range": [-3.0, 3.0],
-        "cell": 0.4,
-        "pillar_channels": 8,
-        "stage_channels": [8, 16, 32],
-        "stage_blocks": [1, 1, 1],
-    }
+    cfg = tiny_model(6.4, 0.4)
     return tiny_checkpoint(tmp_path_factory.mktemp("model") / "tiny.ckpt", cfg, SyntheticDataset(**READER).pair(0), 0)
 
 

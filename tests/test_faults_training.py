@@ -25,7 +25,7 @@ from icpflow.atomic import WriteError
 from icpflow.datasets.synthetic import SyntheticDataset
 
 from helpers.disk import fail_fsync_after
-from helpers.labelling import TESTS_ENV, default_sigint, running_in_group
+from helpers.labelling import TESTS_ENV, default_sigint, none_left_within
 from helpers.shards import write_pseudo_labels
 from helpers.training import TINY, compose_train, train_cfg
 
@@ -61,15 +61,6 @@ def _popen(args, cwd) -> subprocess.Popen:
         start_new_session=True,
         preexec_fn=default_sigint,
     )
-
-
-def _none_left(group: int, seconds: float = 10) -> bool:
-    deadline = time.monotonic() + seconds
-    while running_in_group(group):
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.1)
-    return True
 
 
 def _no_temporary_files(folder: Path) -> bool:
@@ -164,7 +155,7 @@ def test_a_signal_saves_last_checkpoint_at_the_current_step_and_says_how_to_resu
         process.send_signal(sig)  # the main process only, as a scheduler does
     _, err = process.communicate(timeout=120)
     assert process.returncode == 128 + sig, err[-3000:]
-    assert _none_left(process.pid), "a process of the run outlived it"
+    assert none_left_within(process.pid), "a process of the run outlived it"
     assert "Traceback" not in err
     words = "terminated (SIGTERM)" if sig == signal.SIGTERM else "interrupted (SIGINT)"
     (line,) = _lines(err, "train")
@@ -242,7 +233,7 @@ def test_export_on_a_real_full_disk_keeps_the_existing_export(checkpoint, tmp_pa
         r"free space there or write elsewhere; the export there is as it was",
         line,
     ), line
-    assert _snapshot(out) == before and _no_temporary_files(disk) and _none_left(process.pid)
+    assert _snapshot(out) == before and _no_temporary_files(disk) and none_left_within(process.pid)
 
 
 def test_a_full_disk_during_training_is_one_line_and_keeps_last_checkpoint(shards, tmp_path, monkeypatch):
@@ -268,7 +259,7 @@ def test_train_on_a_real_full_disk_is_one_line_and_keeps_last_checkpoint(shards,
     process = _popen(_train(out, shards, "trainer.max_steps=8", *STEPS), tmp_path)
     _, err = process.communicate(timeout=300)
     assert process.returncode == 2, err[-3000:]
-    assert "Traceback" not in err and _none_left(process.pid)
+    assert "Traceback" not in err and none_left_within(process.pid)
     (line,) = _lines(err, "train")
     last = out / "checkpoints" / "last.ckpt"
     assert line.startswith(f"train: {out / 'checkpoints'}/") and "cannot write (No space left on device)" in line
@@ -315,7 +306,7 @@ def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path
     for name, process in processes.items():
         _, err = process.communicate(timeout=300)
         assert (process.returncode, err.strip()) == (2, cases[name][1]), name
-        assert _none_left(process.pid)
+        assert none_left_within(process.pid)
     for name in ("a", "b"):  # stopped before any work: only Hydra's record of the launch
         assert [path.name for path in (tmp_path / name).iterdir()] == ["hydra"]
     full = subprocess.run(

@@ -20,7 +20,7 @@ from icpflow.preprocess import Preprocessing, estimate_ground_height
 from icpflow.shards import ShardDataset
 from icpflow.teacher.config import ICPFlowConfig
 
-from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
+from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -31,16 +31,7 @@ CAR = 1
 needs_seq01 = pytest.mark.skipif(not SEQ01.is_file(), reason=f"real KITTI sample absent: {SEQ01}")
 needs_scans = pytest.mark.skipif(not SCANS.is_dir(), reason=f"real KITTI scans absent: {SCANS}")
 #: a small network over +-32 m (1 m pillars), the synthetic world's preprocessing block (ground at z = 0)
-MODEL = {
-    "_target_": "fastflow3d.model.FastFlow3D",
-    "x_range": [-32.0, 32.0],
-    "y_range": [-32.0, 32.0],
-    "z_range": [-3.0, 3.0],
-    "cell": 1.0,
-    "pillar_channels": 8,
-    "stage_channels": [8, 16, 32],
-    "stage_blocks": [1, 1, 1],
-}
+MODEL = tiny_model(32.0, 1.0)
 SYNTHETIC = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})  # synthetic.yaml
 
 

@@ -17,7 +17,7 @@ from icpflow.evaluation import run_eval
 from icpflow.geometry import full_to_residual, transform_points
 from icpflow.viz_rerun import PairRecording, ViewerUnavailable, import_rerun, speed_colours
 
-from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
+from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 
 pytest.importorskip("rerun", reason="rerun-sdk is an optional dependency (pip install 'icpflow[viz]')")
 from rerun.chunk import RrdReader  # noqa: E402
@@ -25,16 +25,7 @@ from rerun.chunk import RrdReader  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO.parent / "shared" / "data" / "kitti_hdl64_scans"
 READER = {"split": "val", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 1.0}
-TINY = {
-    "_target_": "fastflow3d.model.FastFlow3D",
-    "x_range": [-16.0, 16.0],
-    "y_range": [-16.0, 16.0],
-    "z_range": [-3.0, 3.0],
-    "cell": 0.5,
-    "pillar_channels": 8,
-    "stage_channels": [8, 16, 32],
-    "stage_blocks": [1, 1, 1],
-}
+TINY = tiny_model(16.0, 0.5)
 
 
 def read_recording(path) -> dict[str, dict[int, dict]]:

@@ -95,6 +95,16 @@ def running_in_group(group: int) -> list[int]:
     return running
 
 
+def none_left_within(group: int, seconds: float = 10) -> bool:
+    """Whether every process of the process group ``group`` is gone within ``seconds``."""
+    deadline = time.monotonic() + seconds
+    while running_in_group(group):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.1)
+    return True
+
+
 class SlowSynthetic(SyntheticDataset):
     """The small synthetic world, 2 s per sample from sample 2 on (time to interrupt the run)."""
 
