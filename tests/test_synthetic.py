@@ -233,8 +233,12 @@ def test_hydra_config_instantiates():
     config = OmegaConf.create({"split": "val", "dataset": OmegaConf.load(CONF)})
     assert config.dataset.name == "synthetic" and config.dataset.preset == "waymo" and config.dataset.root is None
     data = instantiate(config.dataset.reader)
-    assert isinstance(data, SyntheticDataset) and data.split == "val" and data.lidar.beams == 64
-    assert len(data) <= 8
+    assert isinstance(data, SyntheticDataset) and data.split == "val" and len(data) <= 8
+    # the reader takes the YAML's settings, not its own defaults: change them in the config and see them arrive
+    config.dataset.reader.beams, config.dataset.reader.frequency_hz = 32, 20.0
+    changed = instantiate(config.dataset.reader)
+    assert (changed.lidar.beams, changed.frequency_hz) == (32, 20.0)
+    assert changed.pair(0).dt == 0.05 and changed.sample_id(0).endswith("-32b/000000+1")
 
 
 def test_some_agents_enter_or_leave_the_sensor_range():
