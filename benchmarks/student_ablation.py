@@ -6,10 +6,11 @@ every seed on the same shards, and scored by eval.py on a held-out split (the 64
         [--score-sequences 16] [--out outputs/ablation]
 
 Default variants (issue 19): ``base`` (the experiment as it is: ZeroFlow's linear head, all points, uniform loss
-weighting, no weight averaging), ``ema`` (callbacks=ema: validation, checkpoints and export use an exponential moving average
-of the weights), ``gru`` (model.decoder=gru, DeFlow's point decoder), ``subsample`` (data.train_points=16384, an
-inexact speed-up), ``buckets`` (loss.weighting=buckets, the speed-bucket loss the recipes had before the study). Runs go seed by seed (every variant with seed 0 first), so
-a cut-short study still compares every variant on the same seeds.
+weighting, no weight averaging), ``ema`` (callbacks=ema: validation, checkpoints and export use an exponential
+moving average of the weights), ``gru`` (model.decoder=gru, DeFlow's point decoder), ``subsample``
+(data.train_points=16384, an inexact speed-up), ``buckets`` (loss.weighting=buckets, the speed-bucket loss the
+recipes had before the study). Runs go seed by seed (every variant with seed 0 first), so a cut-short study still
+compares every variant on the same seeds.
 Prints, per variant, the dynamic-foreground, static foreground and static background EPE
 and Threeway EPE (mean and standard deviation over seeds), the difference of the mean dynamic EPE to ``base`` with
 the larger of the two spreads beside it, each seed's dynamic EPE and the mean training time; runs whose scores
