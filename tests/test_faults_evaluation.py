@@ -29,8 +29,8 @@ SMALL = [
     "dataset.reader.beams=32",
     "dataset.reader.azimuth_resolution_deg=1.0",
 ]
-#: the default 64-beam sensor: enough points for hdbscan to start its joblib (loky) workers, the helper processes
-#: that outlived a terminated eval.py
+#: the default 64-beam sensor: the scan size a user runs (hdbscan's joblib workers, which once outlived a terminated
+#: eval.py, started at this size; the teacher no longer starts any, and the test checks that nothing is left)
 WORLD_64 = ["dataset.reader.beams=64", "dataset.reader.azimuth_resolution_deg=0.2"]
 #: environment of an eval.py subprocess that can import the readers defined in this file
 TESTS_ENV = {

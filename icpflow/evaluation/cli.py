@@ -53,8 +53,8 @@ def sigterm_stops():
 
 
 def end_child_processes() -> None:
-    """End the processes the libraries started for this run (hdbscan's joblib/loky workers, which would otherwise
-    outlive it with their resource trackers)."""
+    """End the helper processes a library started for this run (a multiprocessing or joblib pool), which would
+    otherwise outlive it with their resource trackers."""
     for child in multiprocessing.active_children():
         child.terminate()
     for child in multiprocessing.active_children():

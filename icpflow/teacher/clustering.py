@@ -7,11 +7,10 @@ and every point takes its voxel's label. Settings: ``icpflow.teacher.config.Clus
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 from icpflow.teacher.config import ClusteringConfig
+from icpflow.teacher.hdbscan_labels import hdbscan_labels
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -38,21 +37,15 @@ def cluster_points(points: np.ndarray, cfg: ClusteringConfig) -> np.ndarray:
         reduced, inverse = points, None
     if len(reduced) < 2:
         return labels
-    import hdbscan
-
     min_size = max(2, min(cfg.min_cluster_size, len(reduced)))
-    clusterer = hdbscan.HDBSCAN(
+    raw = hdbscan_labels(
+        reduced,
         min_cluster_size=min_size,
         min_samples=min(cfg.min_samples or min_size, len(reduced) - 1),
-        cluster_selection_epsilon=float(cfg.epsilon),
-        algorithm="boruvka_kdtree",
-        approx_min_span_tree=True,
+        epsilon=float(cfg.epsilon),
         leaf_size=cfg.leaf_size,
-        core_dist_n_jobs=cfg.n_jobs,
+        workers=cfg.n_jobs,
     )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        raw = clusterer.fit_predict(np.asarray(reduced, dtype=np.float64))
     if inverse is not None:
         raw = raw[inverse]
     return relabel_by_size(raw, cfg.max_clusters)

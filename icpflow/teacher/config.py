@@ -118,7 +118,7 @@ class ClusteringConfig(_Checked):
     epsilon: float = setting(0.25, "non_negative", old="hdbscan_epsilon")  # cluster_selection_epsilon
     min_samples: int | None = setting(None, "count_or_none", old="hdbscan_min_samples")  # None = min_cluster_size
     leaf_size: int = setting(100, "count", old="hdbscan_leaf_size")
-    # core_dist_n_jobs (same labels as 1); > 1 costs ~2 s once per process for its pool
+    # threads of the core distances' neighbour query (scipy's cKDTree; the labels do not depend on it)
     n_jobs: int = setting(2, "count", old="hdbscan_n_jobs")
 
 

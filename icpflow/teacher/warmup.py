@@ -21,6 +21,7 @@ KERNEL_MODULES = (
     "icpflow.teacher.icp",
     "icpflow.teacher.histogram",
     "icpflow.teacher.registration_cpu",
+    "icpflow.teacher.hdbscan_labels",
 )
 
 
