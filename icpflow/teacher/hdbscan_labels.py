@@ -1,6 +1,6 @@
 """HDBSCAN labels of a point set, as ``hdbscan.HDBSCAN(algorithm="boruvka_kdtree", approx_min_span_tree=True,
 cluster_selection_method="eom", metric="euclidean").fit_predict`` gives them, point for point (up to neighbours
-tied in distance, see :func:`hdbscan_labels`), in about a third of its time.
+tied in distance, see :func:`hdbscan_labels`), in 40 % of its time (the teacher's clustering step 2.4x faster).
 
 Where the time goes in the package (the AV2 pair's 29k fused voxel means, 2 cores): the core distances (a
 k-nearest-neighbour query that the package runs through a joblib process pool) about 0.12 s, the dual-tree Boruvka
