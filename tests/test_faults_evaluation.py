@@ -37,6 +37,13 @@ TESTS_ENV = {
 }
 
 
+def idle_helper(ready: str) -> None:
+    """A library's worker process: ignores Ctrl-C (its parent handles it), says it is up, waits ten minutes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    Path(ready).touch()
+    time.sleep(600)
+
+
 class StallAfterFirst(SyntheticDataset):
     """The small synthetic world whose second sample takes a minute to read; ``marker`` appears when it starts.
     Before it stalls it starts a helper process that would run for ten minutes, as a library's worker pool does
@@ -48,7 +55,10 @@ class StallAfterFirst(SyntheticDataset):
 
     def pair(self, index, horizon=1):
         if index >= 1:
-            multiprocessing.get_context("spawn").Process(target=time.sleep, args=(600,)).start()
+            ready = self.marker.with_name("helper-ready")
+            multiprocessing.get_context("spawn").Process(target=idle_helper, args=(str(ready),)).start()
+            while not ready.exists():  # up and ignoring Ctrl-C before the test signals the group
+                time.sleep(0.05)
             self.marker.touch()
             time.sleep(60)
         return super().pair(index, horizon)
