@@ -27,9 +27,9 @@ from bench_latency import read_scans
 from studies import ROOT, run_python, scores
 
 from fastflow3d.artifact import sha256_file
+from fastflow3d.model import compensate
 from icpflow.atomic import write_text_atomic
 from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import transform_points
 
 
 def calibration_feeds(pairs: int) -> list[dict]:
@@ -38,7 +38,7 @@ def calibration_feeds(pairs: int) -> list[dict]:
     feeds = []
     for index in range(pairs):
         pair = dataset.pair(index)
-        pc0 = transform_points(pair.ego1_from_ego0, pair.pc0[~pair.ground0]).astype(np.float32)
+        pc0 = compensate(pair.pc0[~pair.ground0], pair.ego1_from_ego0).astype(np.float32)
         feeds.append({"pc0_compensated": pc0, "pc1": pair.pc1[~pair.ground1].astype(np.float32)})
     return feeds
 

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from icpflow.datasets.io import read_feather
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.teacher.clustering import voxel_downsample
 from icpflow.teacher.hdbscan_labels import hdbscan_labels, labels_from_spanning_tree, single_linkage
@@ -57,11 +58,10 @@ def synthetic_scene() -> np.ndarray:
 
 def av2_sweep() -> np.ndarray:
     """One real AV2 sweep above 0.3 m within 51.2 m, on the av2 preset's 0.25 m voxels (about 25k points)."""
-    pd = pytest.importorskip("pandas")
     sweeps = sorted(AV2_LOGS.glob("*/sensors/lidar/*.feather"))
     if not sweeps:
         pytest.skip(f"real AV2 sample absent: {AV2_LOGS}")
-    points = pd.read_feather(sweeps[0], columns=["x", "y", "z"]).to_numpy().astype(np.float32)
+    points = read_feather(sweeps[0], ("x", "y", "z"))[["x", "y", "z"]].to_numpy().astype(np.float32)
     keep = (points[:, 2] > 0.3) & (np.abs(points[:, :2]).max(axis=1) < 51.2)
     return voxel_downsample(points[keep], 0.25)[0].astype(np.float64)
 
