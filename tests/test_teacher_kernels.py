@@ -120,6 +120,32 @@ def test_icp_recovers_rigid_transform_from_nearby_init():
     assert 1 <= result.iterations[0] < ICP.max_iter
 
 
+@pytest.mark.parametrize("yaw_only", [False, True])
+def test_icp_does_not_depend_on_the_grid_cell(yaw_only):
+    # The correspondence search is exact whatever the cell size of the fixed cloud's grid, so the registration
+    # shares the quality grid (0.3 m cells) with no change to any transform: 0.1 m (the truncation), 0.3 m and
+    # 2 m cells give the same iterations and bit-identical transforms, point-to-point and point-to-plane.
+    from icpflow.teacher.icp import icp_point_to_plane, icp_point_to_point, normals
+    from icpflow.teacher.neighbours import build_grid
+
+    src = _box_surface(1500, seed=11).astype(np.float64)
+    truth = make_transform(yaw=0.08, translation=(0.9, 0.3, 0.05))
+    dst = _noisy(transform_points(truth, _box_surface(1400, seed=12)), 0.01, seed=13).astype(np.float64)
+    init = make_transform(yaw=0.05, translation=(0.85, 0.35, 0.0))
+    dst_normals = normals(dst)
+    point, plane = [], []
+    for cell in (0.1, 0.3, 2.0):
+        grid = build_grid(dst, cell)
+        point.append(icp_point_to_point(src, dst, grid, cell, init, 0.1, 100, 1e-6, yaw_only))
+        plane.append(icp_point_to_plane(src, dst, dst_normals, grid, cell, init, 0.1, 30))
+    for results in (point, plane):
+        assert results[0][1] >= 2
+        for transform, iterations in results[1:]:
+            assert iterations == results[0][1]
+            np.testing.assert_array_equal(transform, results[0][0])
+    assert np.abs(point[0][0][:3, 3] - truth[:3, 3]).max() < 0.05
+
+
 def test_icp_keeps_initial_transform_when_it_got_worse():
     # Fixed: two parallel planes y = 0 and y = 1. Moving: a small patch 5 cm above y = 0 (inside the 0.1 m
     # correspondence range) and a large patch 12 cm below y = 1 (outside it). ICP snaps the small patch onto

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from icpflow.teacher.neighbours import build_grid, nearest, transform_cloud
+from icpflow.teacher.neighbours import nearest, transform_cloud
 
 # Neighbours (the point included) whose covariance gives a destination point's normal in point-to-plane ICP.
 PLANE_NEIGHBOURS = 10
@@ -34,9 +34,10 @@ PLANE_MAX_ITER = 30
 
 
 @numba.njit(cache=True)
-def icp_point_to_point(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_only):
-    """Point-to-point ICP of moving (M, 3) onto fixed (N, 3) from ``init``: ((4, 4) transform, iterations run)."""
-    grid = build_grid(fixed, max_corr)
+def icp_point_to_point(moving, fixed, grid, cell, init, max_corr, max_iter, rel_rmse, yaw_only):
+    """Point-to-point ICP of moving (M, 3) onto fixed (N, 3) from ``init``: ((4, 4) transform, iterations run).
+    ``grid`` is fixed's ``build_grid`` with cells of ``cell`` metres (any size: the search is exact; cells a few
+    times ``max_corr`` answer fastest)."""
     transform = init.copy()
     max_d2 = max_corr * max_corr
     matches = np.empty(moving.shape[0], dtype=np.int64)
@@ -56,7 +57,7 @@ def icp_point_to_point(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_on
                     + transform[a, 2] * moving[i, 2]
                     + transform[a, 3]
                 )
-            j, _ = nearest(q, fixed, grid, max_corr, max_d2)
+            j, _ = nearest(q, fixed, grid, cell, max_d2)
             matches[i] = j
             if j < 0:
                 continue
@@ -108,10 +109,10 @@ def icp_point_to_point(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_on
 
 
 @numba.njit(cache=True)
-def icp_point_to_plane(moving, fixed, normals, init, max_corr, max_iter):
+def icp_point_to_plane(moving, fixed, normals, grid, cell, init, max_corr, max_iter):
     """Point-to-plane ICP (rotation about z and 3D translation) of moving (M, 3) onto fixed (N, 3) with unit
-    ``normals`` (N, 3), from ``init``: ((4, 4) transform, iterations run)."""
-    grid = build_grid(fixed, max_corr)
+    ``normals`` (N, 3), from ``init``: ((4, 4) transform, iterations run). ``grid``/``cell`` as in
+    :func:`icp_point_to_point`."""
     transform = init.copy()
     max_d2 = max_corr * max_corr
     iterations = 0
@@ -126,7 +127,7 @@ def icp_point_to_plane(moving, fixed, normals, init, max_corr, max_iter):
         row = np.empty(4)
         count = 0
         for i in range(moved.shape[0]):
-            j, _ = nearest(moved[i], fixed, grid, max_corr, max_d2)
+            j, _ = nearest(moved[i], fixed, grid, cell, max_d2)
             if j < 0:
                 continue
             n = normals[j]

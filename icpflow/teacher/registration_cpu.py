@@ -1,8 +1,8 @@
 """Step 6's batch registration on the CPU (numba, parallel over pairs): register each packed pair with
 ``icpflow.teacher.icp`` and measure its match quality (see ``icpflow.teacher.registration``).
 
-Nearest neighbours come from a sorted voxel grid per cluster (``icpflow.teacher.neighbours``); the quality is
-measured with exact nearest neighbours on a grid of ``_EVAL_CELL`` cells.
+Nearest neighbours are exact, from one sorted voxel grid of ``_GRID_CELL`` cells per fixed cluster
+(``icpflow.teacher.neighbours``) that serves both the ICP correspondences and the quality.
 """
 
 from __future__ import annotations
@@ -15,39 +15,45 @@ from icpflow.teacher.histogram import pack
 from icpflow.teacher.icp import PLANE_MAX_ITER, icp_point_to_plane, icp_point_to_point
 from icpflow.teacher.neighbours import build_grid, nn_stats, transform_cloud
 
-# Cell size (metres) of the grid answering exact nearest-neighbour queries in the quality evaluation.
-_EVAL_CELL = 0.3
+# Cell size (metres) of the grid answering the exact nearest-neighbour queries. Any size gives the same
+# neighbours; 0.3 m answers the ICP's 0.1 m-truncated queries 1.7x faster than 0.1 m cells and the quality's
+# untruncated ones fastest (benchmarks/bench_teacher.py, AV2 pair).
+_GRID_CELL = 0.3
 
 
 @numba.njit(cache=True)
 def _register_one(
-    moving, fixed, fixed_normals, init, max_corr, max_iter, rel_rmse, yaw_only, plane, inlier_d2, eval_cell, identity
+    moving, fixed, fixed_normals, init, max_corr, max_iter, rel_rmse, yaw_only, plane, inlier_d2, grid_cell, identity
 ):
     """Register moving (M, 3) onto fixed (N, 3) from ``init``, point-to-point (keeping ``init`` when ICP did not
     lower the forward mean distance) or, with ``plane``, point-to-plane along ``fixed_normals`` (N, 3); returns
     (transform, mean error, IoU ratio, iterations, mean error at the identity, IoU ratio at the identity), error
     and IoU ratio as in the module docstring (the smaller of the two directions each); the last two only with
     ``identity`` (else inf and 0)."""
-    fixed_grid = build_grid(fixed, eval_cell)
+    fixed_grid = build_grid(fixed, grid_cell)
     err_id, iou_id = np.inf, 0.0
     if identity:  # the same quality at no motion (what a separate registration with max_iter=0 measures)
-        err_id_fwd, inl_id_fwd = nn_stats(moving, fixed, fixed_grid, eval_cell, inlier_d2)
-        err_id_bwd, inl_id_bwd = nn_stats(fixed, moving, build_grid(moving, eval_cell), eval_cell, inlier_d2)
+        err_id_fwd, inl_id_fwd = nn_stats(moving, fixed, fixed_grid, grid_cell, inlier_d2)
+        err_id_bwd, inl_id_bwd = nn_stats(fixed, moving, build_grid(moving, grid_cell), grid_cell, inlier_d2)
         n_id = moving.shape[0] + fixed.shape[0]
         err_id = min(err_id_fwd, err_id_bwd)
         iou_id = min(inl_id_fwd / (n_id - inl_id_fwd), inl_id_bwd / (n_id - inl_id_bwd))
     if plane:
-        transform, n_iter = icp_point_to_plane(moving, fixed, fixed_normals, init, max_corr, PLANE_MAX_ITER)
+        transform, n_iter = icp_point_to_plane(
+            moving, fixed, fixed_normals, fixed_grid, grid_cell, init, max_corr, PLANE_MAX_ITER
+        )
     else:
-        transform, n_iter = icp_point_to_point(moving, fixed, init, max_corr, max_iter, rel_rmse, yaw_only)
+        transform, n_iter = icp_point_to_point(
+            moving, fixed, fixed_grid, grid_cell, init, max_corr, max_iter, rel_rmse, yaw_only
+        )
     moved = transform_cloud(moving, transform)
-    err_fwd, inl_fwd = nn_stats(moved, fixed, fixed_grid, eval_cell, inlier_d2)
+    err_fwd, inl_fwd = nn_stats(moved, fixed, fixed_grid, grid_cell, inlier_d2)
     if not plane and n_iter > 0:
         moved_init = transform_cloud(moving, init)
-        err_init, inl_init = nn_stats(moved_init, fixed, fixed_grid, eval_cell, inlier_d2)
+        err_init, inl_init = nn_stats(moved_init, fixed, fixed_grid, grid_cell, inlier_d2)
         if not err_fwd < err_init:  # ICP made it worse: keep the initial transform
             transform, moved, err_fwd, inl_fwd = init, moved_init, err_init, inl_init
-    err_bwd, inl_bwd = nn_stats(fixed, moved, build_grid(moved, eval_cell), eval_cell, inlier_d2)
+    err_bwd, inl_bwd = nn_stats(fixed, moved, build_grid(moved, grid_cell), grid_cell, inlier_d2)
     n_all = moving.shape[0] + fixed.shape[0]
     iou = min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
     return transform, min(err_fwd, err_bwd), iou, n_iter, err_id, iou_id
@@ -67,7 +73,7 @@ def _register_batch(
     yaw_only,
     plane,
     inlier_dist,
-    eval_cell,
+    grid_cell,
     n_workers,
     identity,
 ):
@@ -101,7 +107,7 @@ def _register_batch(
                     yaw_only,
                     plane,
                     inlier_d2,
-                    eval_cell,
+                    grid_cell,
                     identity,
                 )
     return transforms, errors, ious, iters, errors_id, ious_id
@@ -131,7 +137,7 @@ def register_batch_cpu(
         params.dof == "yaw",
         plane,
         float(params.max_corr),  # the IoU inlier distance is the correspondence truncation
-        _EVAL_CELL,
+        _GRID_CELL,
         numba.get_num_threads(),
         identity,
     )
