@@ -28,9 +28,9 @@ def ego_settings(cfg) -> EgoMotionConfig:
     return Preprocessing.from_teacher(cfg).ego_motion
 
 
-def kiss_icp_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:
-    """(4, 4) float64 ``ego1_from_ego0`` by KISS-ICP: pc0 is registered first (its pose becomes the identity), then
-    pc1 against the map of pc0; pc1's pose is ``ego0_from_ego1``. Deskewing is off (no per-point timestamps)."""
+def kiss_odometry(cfg):
+    """A fresh ``kiss_icp.kiss_icp.KissICP`` with ``cfg``'s ego-motion settings (max range, voxel size), deskewing off
+    (no per-point timestamps)."""
     from kiss_icp.config import load_config
     from kiss_icp.kiss_icp import KissICP
 
@@ -39,7 +39,13 @@ def kiss_icp_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:
     settings = ego_settings(cfg)
     config.data.max_range = float(settings.kiss_max_range)
     config.mapping.voxel_size = float(settings.kiss_voxel_size)
-    odometry = KissICP(config)
+    return KissICP(config)
+
+
+def kiss_icp_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:
+    """(4, 4) float64 ``ego1_from_ego0`` by KISS-ICP: pc0 is registered first (its pose becomes the identity), then
+    pc1 against the map of pc0; pc1's pose is ``ego0_from_ego1``."""
+    odometry = kiss_odometry(cfg)
     empty = np.zeros(0)
     odometry.register_frame(np.asarray(pc0, np.float64), empty)
     odometry.register_frame(np.asarray(pc1, np.float64), empty)
