@@ -16,8 +16,9 @@ from icpflow.teacher.icp import PLANE_MAX_ITER, icp_point_to_plane, icp_point_to
 from icpflow.teacher.neighbours import build_grid, nn_stats, transform_cloud
 
 # Cell size (metres) of the grid answering the exact nearest-neighbour queries. Any size gives the same
-# neighbours; 0.3 m answers the ICP's 0.1 m-truncated queries 1.7x faster than 0.1 m cells and the quality's
-# untruncated ones fastest (benchmarks/bench_teacher.py, AV2 pair).
+# neighbours; on the AV2 pair's largest cluster 0.3 m answers the ICP's 0.1 m-truncated queries 1.7x faster than
+# 0.1 m cells (BENCHMARKS.md, issue 22, the teacher's fourth session); the quality's untruncated queries used 0.3 m
+# cells before.
 _GRID_CELL = 0.3
 
 
