@@ -23,7 +23,7 @@ import time
 import numpy as np
 from bench_teacher import DATA, read_av2, read_kitti
 
-from icpflow.geometry import invert
+from icpflow.geometry import pose_error, relative_transform
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.ego_motion import kiss_icp_motion, kiss_odometry, refine_motion
 
@@ -42,7 +42,7 @@ def cases() -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray | None]]:
         frames = np.load(seq01)
         poses = frames["velo_poses_world"]
         for k in range(2):
-            truth = invert(poses[k + 1]) @ poses[k]
+            truth = relative_transform(poses[k], poses[k + 1])
             found.append((f"KITTI seq 01 {k} -> {k + 1}", frames[f"points{k}"], frames[f"points{k + 1}"], truth))
     return found
 
@@ -50,9 +50,8 @@ def cases() -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray | None]]:
 def errors(estimate: np.ndarray, truth: np.ndarray | None) -> str:
     if truth is None:
         return "-"
-    delta = invert(truth) @ estimate
-    angle = np.degrees(np.arccos(np.clip((np.trace(delta[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-    return f"{100 * np.linalg.norm(delta[:3, 3]):.2f} / {angle:.3f}"
+    translation, angle = pose_error(estimate, truth)
+    return f"{100 * translation:.2f} / {angle:.3f}"
 
 
 def median_ms(function, arguments: tuple, repeats: int) -> float:

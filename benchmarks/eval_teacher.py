@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from icpflow import metrics
-from icpflow.geometry import ego_flow, invert, relative_transform
+from icpflow.geometry import ego_flow, pose_error, relative_transform
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.config import teacher_config
 
@@ -105,12 +105,11 @@ def eval_kitti(base: dict) -> None:
         tic = time.perf_counter()
         result = teacher(pc0, pc1)
         seconds = time.perf_counter() - tic
-        delta = invert(truth) @ result.ego1_from_ego0
-        angle = np.degrees(np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1, 1)))
+        translation, angle = pose_error(result.ego1_from_ego0, truth)
         static = data[f"labels{i}"].reshape(-1) != 1
         error = np.linalg.norm(result.flow - ego_flow(pc0, truth), axis=1)[static]
         print(
-            f"| {i}->{i + 1} | {np.linalg.norm(delta[:3, 3]):.4f} | {angle:.4f} | {error.mean():.4f} | "
+            f"| {i}->{i + 1} | {translation:.4f} | {angle:.4f} | {error.mean():.4f} | "
             f"{np.quantile(error, 0.95):.4f} | {seconds:.2f} |"
         )
 

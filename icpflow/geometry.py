@@ -124,3 +124,11 @@ def euler_angles(transform: np.ndarray) -> tuple[float, float, float]:
     roll = float(np.arctan2(rotation[2, 1], rotation[2, 2]))
     yaw = float(np.arctan2(rotation[1, 0], rotation[0, 0]))
     return roll, pitch, yaw
+
+
+def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """(translation metres, rotation degrees) of ``inv(truth) @ estimate`` for two (4, 4) transforms: how far an
+    estimated transform is from the true one."""
+    delta = invert(truth) @ np.asarray(estimate, dtype=np.float64)
+    angle = np.degrees(np.arccos(np.clip((np.trace(delta[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(np.linalg.norm(delta[:3, 3])), float(angle)

@@ -11,6 +11,7 @@ from icpflow.geometry import (
     invert,
     is_rigid,
     make_transform,
+    pose_error,
     relative_transform,
     residual_to_full,
     transform_points,
@@ -132,6 +133,10 @@ def test_transform_helpers():
     np.testing.assert_allclose(invert(transform) @ transform, np.eye(4), atol=1e-12)
     np.testing.assert_allclose(euler_angles(transform), (0.1, -0.2, 0.7), atol=1e-12)
     np.testing.assert_allclose(relative_transform(transform, transform), np.eye(4), atol=1e-12)
+    # an estimate 0.3 m off along the truth's own x axis and turned 2 degrees about its z axis
+    estimate = transform @ make_transform(np.radians(2.0), (0.3, 0.0, 0.0))
+    np.testing.assert_allclose(pose_error(estimate, transform), (0.3, 2.0), atol=1e-9)
+    assert pose_error(transform, transform) == pytest.approx((0.0, 0.0), abs=1e-5)
 
 
 def _sequence():
