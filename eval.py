@@ -1,7 +1,8 @@
 """Evaluate scene-flow methods against ground truth (see conf/eval.yaml and icpflow.evaluation); the student comes
 from fastflow3d.eval_method.
 
-    python eval.py [dataset=<name>] [split=val] [method=[zero,ego,icpflow,student,shards]] [checkpoint=...]
+    python eval.py [dataset=<name>] [split=val] [method=[zero,ego,icpflow,student,student+refine,shards]]
+        [checkpoint=...]
         [shards=<label out_dir>] [horizon=k | horizon=[1,2,3,4] | horizon=1..4] [tracker=true | tracker=[false,true]]
         [limit=N] [bev=N] [render=N] [out_dir=...]
 
@@ -13,7 +14,7 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from fastflow3d.eval_method import student_method
+from fastflow3d.eval_method import refined_student_method, student_method
 from icpflow.console import quiet
 from icpflow.entry import check_overrides, reported, run
 from icpflow.evaluation import run_eval
@@ -27,7 +28,7 @@ def main(cfg: DictConfig) -> None:
     quiet()
     with reported("eval"):
         check_overrides(TYPES)
-        status = run_eval(cfg, extra_methods={"student": student_method})
+        status = run_eval(cfg, extra_methods={"student": student_method, "student+refine": refined_student_method})
         if status:
             sys.exit(status)
 

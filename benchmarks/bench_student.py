@@ -29,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from studies import split_overrides
+
 HERE = Path(__file__).resolve().parent
 
 
@@ -38,7 +40,7 @@ def parse_run(text: str) -> tuple[str, Path, list[str]]:
     tree, _, extra = rest.partition(":")
     if not name or not tree:
         raise SystemExit(f"bench_student: --run {text!r}: expected NAME=TREE[:override,...]")
-    return name, Path(tree).resolve(), [item for item in extra.split(",") if item]
+    return name, Path(tree).resolve(), split_overrides(extra)
 
 
 def split_env(items: list[str]) -> tuple[list[str], dict[str, str]]:

@@ -11,6 +11,8 @@ moving average of the weights), ``gru`` (model.decoder=gru, DeFlow's point decod
 (data.train_points=16384, an inexact speed-up), ``buckets`` (loss.weighting=buckets, the speed-bucket loss the
 recipes had before the study). Runs go seed by seed (every variant with seed 0 first), so a cut-short study still
 compares every variant on the same seeds.
+A variant's overrides are split at the commas outside brackets (``corr=model.correlation_levels=[1,2]``); its own
+``trainer.max_steps`` replaces ``--steps`` (a slower variant at equal CPU minutes).
 Prints, per variant, the dynamic-foreground, static foreground and static background EPE
 and Threeway EPE (mean and standard deviation over seeds), the difference of the mean dynamic EPE to ``base`` with
 the larger of the two spreads beside it, each seed's dynamic EPE and the mean training time; runs whose scores
@@ -23,7 +25,7 @@ import argparse
 import statistics
 from pathlib import Path
 
-from studies import CATEGORIES, ROOT, trained_and_scored
+from studies import CATEGORIES, ROOT, split_overrides, trained_and_scored
 
 DEFAULT_VARIANTS = [
     "base=",
@@ -49,16 +51,19 @@ def main() -> None:
     variants = {}
     for item in args.variant or DEFAULT_VARIANTS:
         name, _, overrides = item.partition("=")
-        variants[name] = [o for o in overrides.split(",") if o]
+        variants[name] = split_overrides(overrides)
     seeds = [int(s) for s in args.seeds.split(",")]
     results = {name: [] for name in variants}
     for seed in seeds:
         for name, overrides in variants.items():
+            # a variant's own trainer.max_steps (equal CPU minutes for a slower step) replaces --steps
+            own_steps = any(o.startswith("trainer.max_steps=") for o in overrides)
+            steps = [] if own_steps else [f"trainer.max_steps={args.steps}"]
             train = [
                 f"experiment={args.experiment}",
                 f"data.train={args.train.resolve()}",
                 f"data.val={args.val.resolve()}",
-                f"trainer.max_steps={args.steps}",
+                *steps,
                 f"seed={seed}",
                 *overrides,
             ]

@@ -17,6 +17,19 @@ ROOT = Path(__file__).resolve().parents[1]
 CATEGORIES = ("dynamic_fg", "static_fg", "static_bg")
 
 
+def split_overrides(text: str) -> list[str]:
+    """Hydra overrides from ``a=1,b=[1,2],c=x``: split at the commas outside brackets."""
+    items, depth, current = [], 0, ""
+    for char in text:
+        depth += (char in "[{(") - (char in "]})")
+        if char == "," and depth == 0:
+            items.append(current)
+            current = ""
+        else:
+            current += char
+    return [item for item in [*items, current] if item]
+
+
 def run_python(arguments: list[str]) -> float:
     """Run ``python <arguments>`` in the repository root; seconds taken (raises on a non-zero exit)."""
     print("$ python " + " ".join(arguments), flush=True)

@@ -75,7 +75,8 @@ def read_transforms(path: Path, count: int) -> np.ndarray:
 
 
 def write_flow(path: Path, prediction) -> None:
-    """``.npy``: the full flow; ``.npz``: flow, residual, in_grid, ground0, ego1_from_ego0, ego_estimated. Atomic."""
+    """``.npy``: the full flow; ``.npz``: flow, residual, in_grid, ground0, ego1_from_ego0, ego_estimated (and
+    ``refined`` with ``--refine``). Atomic."""
     with atomic_path(path, make_parents=True) as tmp, open(tmp, "wb") as handle:
         if path.suffix == ".npy":
             np.save(handle, prediction.flow)
@@ -88,6 +89,7 @@ def write_flow(path: Path, prediction) -> None:
                 ground0=prediction.ground0,
                 ego1_from_ego0=prediction.ego1_from_ego0,
                 ego_estimated=np.bool_(prediction.ego_estimated),
+                **({} if prediction.refined is None else {"refined": prediction.refined}),
             )
 
 
@@ -118,6 +120,9 @@ def parse_args(argv):
         "--runtime", choices=("onnxruntime", "openvino"), help="CPU engine for the ONNX file (fastflow3d.runtime)"
     )
     parser.add_argument("--threads", type=int, help="inference threads of --runtime (default: the usable cores)")
+    parser.add_argument(
+        "--refine", action="store_true", help="refine the flow per object with the teacher's ICP (fastflow3d.refine)"
+    )
     parser.add_argument(
         "--sensor-height",
         type=sensor_height,
@@ -181,6 +186,7 @@ def infer(args) -> tuple[Path, Path | None]:
         threads=args.threads,
         sensor_height=args.sensor_height,
         preprocessing=given_preprocessing(args),
+        refine=args.refine,
     )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PredictorWarning)

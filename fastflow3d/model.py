@@ -70,26 +70,74 @@ class UpsampleSkip(nn.Module):
         return self.fuse(torch.cat([up, self.high(high)], dim=1))
 
 
-class UNet(nn.Module):
-    """Shared encoder on both pseudo-images (B, C, H, W); skips concatenate both scans; output (B, 2C, H, W)."""
+def local_correlation(features0: torch.Tensor, features1: torch.Tensor, radius: int) -> torch.Tensor:
+    """Cost volume (B, (2r + 1)^2, H, W) of two (B, C, H, W) feature maps: channel ``(dy + r) * (2r + 1) + dx + r``
+    at cell (y, x) is ``<features0[y, x], features1[y + dy, x + dx]> / sqrt(C)`` for displacements ``|dx|, |dy| <= r``
+    cells (zero beyond the border): how well the content of a pc0 cell matches the pc1 cell it would have moved to.
+    Built from shifted slices (no unfold), so it exports to ONNX as plain Pad/Slice/Mul/ReduceSum."""
+    height, width = features0.shape[-2:]
+    padded = nn.functional.pad(features1, (radius, radius, radius, radius))
+    scale = features0.shape[1] ** -0.5
+    costs = [
+        (features0 * padded[:, :, dy : dy + height, dx : dx + width]).sum(dim=1, keepdim=True)
+        for dy in range(2 * radius + 1)
+        for dx in range(2 * radius + 1)
+    ]
+    return torch.cat(costs, dim=1) * scale
 
-    def __init__(self, pillar_channels: int, stage_channels, stage_blocks, norm: str = "batch"):
+
+class UNet(nn.Module):
+    """Shared encoder on both pseudo-images (B, C, H, W); skips concatenate both scans; output (B, 2C, H, W).
+
+    ``correlation_levels``: the levels (0 = the pseudo-images, k = after encoder stage k) whose skip also carries
+    the ``local_correlation`` of the two scans' features over ``correlation_radius`` cells: an explicit
+    displacement signal (the matching that the plain concatenation leaves to the convolutions). At level k a cell
+    is ``2^k`` pillars wide, so the window covers ``+-radius * 2^k`` pillars. Empty: ZeroFlow's FastFlow3D."""
+
+    def __init__(
+        self,
+        pillar_channels: int,
+        stage_channels,
+        stage_blocks,
+        norm: str = "batch",
+        correlation_levels=(),
+        correlation_radius: int = 3,
+    ):
         super().__init__()
         widths = [pillar_channels, *stage_channels]
+        self.correlation_levels = tuple(sorted({int(level) for level in correlation_levels}))
+        self.correlation_radius = int(correlation_radius)
+        if any(level < 0 or level >= len(widths) for level in self.correlation_levels):
+            raise ValueError(
+                f"FastFlow3D: correlation_levels must lie in 0..{len(widths) - 1}, got {list(correlation_levels)}"
+            )
+        if self.correlation_levels and self.correlation_radius < 1:
+            raise ValueError(f"FastFlow3D: correlation_radius must be >= 1, got {correlation_radius}")
         self.encoder = nn.ModuleList(
             encoder_stage(c_in, c_out, n, norm) for c_in, c_out, n in zip(widths[:-1], widths[1:], stage_blocks)
         )
-        skips = [2 * w for w in widths]  # concatenated widths, finest first
+        costs = (2 * self.correlation_radius + 1) ** 2
+        # concatenated widths, finest first (both scans, plus the cost volume where there is one)
+        skips = [2 * w + (costs if level in self.correlation_levels else 0) for level, w in enumerate(widths)]
+        outputs = [2 * w for w in widths]
         self.decoder = nn.ModuleList(
-            UpsampleSkip(skips[i + 1], skips[i], skips[i]) for i in reversed(range(len(skips) - 1))
+            UpsampleSkip(outputs[i + 1] if i + 1 < len(widths) - 1 else skips[i + 1], skips[i], outputs[i])
+            for i in reversed(range(len(skips) - 1))
         )
-        self.final = nn.Conv2d(skips[0], skips[0], 3, 1, 1)
+        self.final = nn.Conv2d(outputs[0], outputs[0], 3, 1, 1)
+
+    def level(self, index: int, image0: torch.Tensor, image1: torch.Tensor) -> torch.Tensor:
+        """The skip of level ``index``: both scans' features, and their cost volume at a correlation level."""
+        parts = [image0, image1]
+        if index in self.correlation_levels:
+            parts.append(local_correlation(image0, image1, self.correlation_radius))
+        return torch.cat(parts, dim=1)
 
     def forward(self, image0: torch.Tensor, image1: torch.Tensor) -> torch.Tensor:
-        levels = [torch.cat([image0, image1], dim=1)]
-        for stage in self.encoder:
+        levels = [self.level(0, image0, image1)]
+        for index, stage in enumerate(self.encoder, start=1):
             image0, image1 = stage(image0), stage(image1)
-            levels.append(torch.cat([image0, image1], dim=1))
+            levels.append(self.level(index, image0, image1))
         x = levels[-1]
         for step, skip in zip(self.decoder, reversed(levels[:-1])):
             x = step(x, skip)
@@ -203,6 +251,9 @@ class FastFlow3D(nn.Module):
     checkpoint carries them all (checkpoints written before an argument existed get its default: ``norm="batch"``,
     ``decoder="linear"``, ZeroFlow's FastFlow3D). ``decoder``: ``linear`` (ZeroFlow's head) or ``gru``
     (``GRUDecoder`` with ``gru_channels`` hidden channels and ``gru_iterations`` refinements).
+    ``correlation_levels`` / ``correlation_radius``: the UNet levels that also carry a local cost volume of the two
+    scans (``UNet``, ``local_correlation``); empty (the default, and what older checkpoints get) is ZeroFlow's
+    network exactly.
     """
 
     def __init__(
@@ -219,6 +270,8 @@ class FastFlow3D(nn.Module):
         decoder="linear",
         gru_iterations=4,
         gru_channels=32,
+        correlation_levels=(),
+        correlation_radius=3,
     ):
         super().__init__()
         if norm not in NORMS:
@@ -232,7 +285,14 @@ class FastFlow3D(nn.Module):
         if self.grid.nx % factor or self.grid.ny % factor:
             raise ValueError(f"FastFlow3D: grid {self.grid.nx}x{self.grid.ny} not divisible by {factor}")
         self.embedder = PillarEmbedder(pillar_channels, norm)
-        self.unet = UNet(pillar_channels, tuple(stage_channels), tuple(stage_blocks), norm)
+        self.unet = UNet(
+            pillar_channels,
+            tuple(stage_channels),
+            tuple(stage_blocks),
+            norm,
+            tuple(correlation_levels),
+            int(correlation_radius),
+        )
         if decoder == "linear":
             self.head = LinearDecoder(pillar_channels)
         else:

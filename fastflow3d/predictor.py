@@ -23,6 +23,8 @@ its metadata or checkpoint): the height frame, the ground and the ego-motion set
   each scan: the masks passed in (``ground0``, ``ground1``) or, without them, those of
   ``icpflow.teacher.ground.GroundSegmenter`` with the saved settings on the lifted scans; ground pc0 points get the
   ego flow.
+* Refinement (opt-in, ``refine=True`` or a ``fastflow3d.refine.RefineConfig``): the teacher's ICP started from the
+  network's flow per bird's-eye-view component of pc0, kept where its checks accept it (``fastflow3d.refine``).
 * Plausibility: more than 85 % of pc0 called ground, or under 20 % of pc0 inside the network's grid, gives a
   one-line :class:`PredictorWarning` (a wrong frame or settings).
 
@@ -59,6 +61,7 @@ from fastflow3d.artifact import (
     sibling_metadata,
 )
 from fastflow3d.model import compensate
+from fastflow3d.refine import RefineConfig, refine_residual
 from icpflow.frames import FramePairError, check_points
 from icpflow.geometry import residual_to_full, rigid_problem
 from icpflow.preprocess import (
@@ -96,7 +99,8 @@ class Prediction:
     where the network did not predict); ``in_grid`` (N0,) bool: the network predicted the point (inside the grid and
     not left out as ground); ``ground0`` (N0,) bool: left out as ground (all False for a model that sees ground);
     ``ego1_from_ego0`` (4, 4) float64 used (given or estimated), in the scans' own frame; ``lift`` (m): how far both
-    scans were raised into the model's height frame (0: they were in it)."""
+    scans were raised into the model's height frame (0: they were in it); ``refined`` (N0,) bool: the points whose
+    flow the refinement's ICP gave (None when refinement is off)."""
 
     flow: np.ndarray
     residual: np.ndarray
@@ -105,6 +109,7 @@ class Prediction:
     ego1_from_ego0: np.ndarray
     ego_estimated: bool
     lift: float = 0.0
+    refined: np.ndarray | None = None  # (N0,) bool: flow from the refinement's ICP (None: refinement off)
 
 
 def as_points(name: str, values) -> np.ndarray:
@@ -132,11 +137,12 @@ def preprocessing_entry(given) -> dict:
 class Predictor:
     """A FastFlow3D network behind the project's conventions (see the module docstring)."""
 
-    def __init__(self, network, metadata: dict, backend: str, ego_config=None, sensor_height=None):
+    def __init__(self, network, metadata: dict, backend: str, ego_config=None, sensor_height=None, refine=None):
         """``network(pc0_compensated, pc1) -> (residual, valid)`` on float32 numpy arrays; ``metadata`` as an export
         writes it (its ``preprocessing`` says whether to remove ground, the height frame and the settings);
         ``ego_config`` the ego-motion settings (``icpflow.teacher.config.EgoMotionConfig`` or a teacher config;
-        default: those saved with the model); ``sensor_height``: None, ``"auto"`` or metres (module docstring)."""
+        default: those saved with the model); ``sensor_height``: None, ``"auto"`` or metres (module docstring);
+        ``refine``: None/False (off), True (``RefineConfig()``), a ``RefineConfig`` or a dict of its fields."""
         if not metadata:
             raise PredictorError("no model metadata: its preprocessing (ground removal, height frame) is unknown")
         # exports older than ground removal have no preprocessing entry: they were trained on every point
@@ -147,6 +153,10 @@ class Predictor:
         self.remove_ground, self.preprocessing = read_preprocessing(preprocessing)
         self.ego_config = self.preprocessing.ego_motion if ego_config is None else ego_config
         self.sensor_height = sensor_height if sensor_height in (None, "auto") else float(sensor_height)
+        try:
+            self.refine = RefineConfig.of(refine)
+        except (TypeError, ValueError) as error:
+            raise PredictorError(" ".join(str(error).split())) from None
         self._segmenter = None
 
     @classmethod
@@ -161,6 +171,7 @@ class Predictor:
         precision: str = "f32",
         sensor_height=None,
         preprocessing=None,
+        refine=None,
     ) -> Predictor:
         """From an export directory, a ``.onnx``, a ``.pt2``, a legacy ``.pt`` (TorchScript) or a ``.ckpt``.
 
@@ -171,6 +182,7 @@ class Predictor:
         OpenVINO) run the ONNX file on the CPU as ``fastflow3d.runtime`` tunes it.
         ``sensor_height``: see the module docstring. ``preprocessing`` (a ``metadata.json`` path, a metadata dict or
         its ``preprocessing`` entry) replaces the saved one; a bare exported file without its metadata needs it.
+        ``refine``: the opt-in ICP refinement (see ``__init__``).
         Raises :class:`ArtifactError` (one line) for a path that is not a readable artifact.
         """
         path = Path(path)
@@ -218,7 +230,7 @@ class Predictor:
             )
         if preprocessing is not None:
             metadata = {**metadata, "preprocessing": preprocessing_entry(preprocessing)}
-        return cls(network, metadata, kind, ego_config, sensor_height)
+        return cls(network, metadata, kind, ego_config, sensor_height, refine)
 
     def __call__(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> np.ndarray:
         """(N0, 3) float32 FULL flow of pc0 (N0, 3) towards pc1 (N1, 3), each in its own ego frame; the ego motion
@@ -241,16 +253,22 @@ class Predictor:
         ground0 = self.ground_mask("ground0", pc0_frame, ground0)
         ground1 = self.ground_mask("ground1", pc1_frame, ground1)
         residual, in_grid = np.zeros((len(pc0), 3), np.float32), np.zeros(len(pc0), bool)
+        refined = np.zeros(len(pc0), bool) if self.refine is not None else None
         keep0, keep1 = ~ground0, ~ground1
         compensated = compensate(pc0_frame, ego)
         if keep0.any() and keep1.any():  # the network needs points in both scans
             kept, valid = self.network(np.ascontiguousarray(compensated[keep0]), pc1_frame[keep1])
             in_grid[keep0] = valid
             residual[keep0] = np.where(valid[:, None], kept, 0.0)
+            if self.refine is not None:
+                rows = np.flatnonzero(in_grid)
+                residual[rows], refined[rows] = refine_residual(
+                    compensated[rows], residual[rows], pc1_frame[keep1], self.refine
+                )
         self.check_plausible(compensated, ground0)
         ego_out = ego if lift == 0 else lift_transform(ego, -lift)
         flow = residual_to_full(residual, pc0_frame, ego)  # a common lift changes no flow vector
-        return Prediction(flow, residual, in_grid, ground0, ego_out, estimated, float(lift))
+        return Prediction(flow, residual, in_grid, ground0, ego_out, estimated, float(lift), refined)
 
     def frame_lift(self, pc0: np.ndarray) -> float:
         """Metres to raise both scans by so that their ground sits where the model's frame has it (module

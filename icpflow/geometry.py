@@ -102,6 +102,19 @@ def rigid_flow(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     return ego_flow(points, transform)
 
 
+def kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(4, 4) float64 rigid transform T minimising ``sum ||T source_i - target_i||^2`` over corresponding (N, 3)
+    points (N >= 3; the closed-form SVD solution, reflections excluded)."""
+    source, target = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    mean_s, mean_t = source.mean(axis=0), target.mean(axis=0)
+    u, _, vt = np.linalg.svd((source - mean_s).T @ (target - mean_t))
+    flip = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T)) or 1.0])
+    transform = np.eye(4)
+    transform[:3, :3] = vt.T @ flip @ u.T
+    transform[:3, 3] = mean_t - transform[:3, :3] @ mean_s
+    return transform
+
+
 def make_transform(yaw: float = 0.0, translation=(0.0, 0.0, 0.0), roll: float = 0.0, pitch: float = 0.0) -> np.ndarray:
     """(4, 4) float64 rigid transform from Z-Y-X Euler angles (radians) and a translation (metres)."""
     cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)

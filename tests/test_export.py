@@ -537,15 +537,25 @@ def test_infer_cli_sensor_height(export_dir, pairs, expected, tmp_path, capsys):
         infer_main([*common, "--sensor-height", "tall"])
 
 
-def test_gru_decoder_exports_with_parity_and_the_predictor_runs_it(pairs, tmp_path):
-    gru = {**TINY, "decoder": "gru", "gru_iterations": 2, "gru_channels": 8}
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"decoder": "gru", "gru_iterations": 2, "gru_channels": 8},
+        {"correlation_levels": [0, 2], "correlation_radius": 2},
+    ],
+    ids=["gru", "correlation"],
+)
+def test_model_options_export_with_parity_and_the_predictor_runs_them(pairs, tmp_path, options):
+    variant = {**TINY, **options}
     pair = pairs[0]
     near0 = np.flatnonzero(np.abs(pair.pc0[:, :2]).max(axis=1) < 7.0)[:3000]
     near1 = np.flatnonzero(np.abs(pair.pc1[:, :2]).max(axis=1) < 7.0)[:3000]
-    checkpoint = tiny_checkpoint(tmp_path / "gru.ckpt", gru, pair, 5, near0, near1, cfg={"out_dir": str(tmp_path)})
+    cfg = {"out_dir": str(tmp_path)}
+    checkpoint = tiny_checkpoint(tmp_path / "variant.ckpt", variant, pair, 5, near0, near1, cfg=cfg)
     out_dir = export_checkpoint(checkpoint)
     metadata = json.loads((out_dir / METADATA_NAME).read_text())
-    assert metadata["model"]["decoder"] == "gru" and max(metadata["parity_max_abs_m"].values()) <= TOLERANCE
+    assert all(metadata["model"][key] == value for key, value in options.items())
+    assert max(metadata["parity_max_abs_m"].values()) <= TOLERANCE
     flow, valid = eager_full_flow(SingleSampleNet(load_student(checkpoint)[0]).eval(), pairs[1])
     for backend in ("onnx", "pt2"):
         prediction = Predictor.load(out_dir, backend=backend).predict(
@@ -559,3 +569,29 @@ def test_gru_decoder_exports_with_parity_and_the_predictor_runs_it(pairs, tmp_pa
     assert infer_main([str(out_dir), str(scan0), str(scan1), "--poses", str(poses), "--out", str(out), "--no-bev"]) == 0
     with np.load(out) as result:
         assert np.abs(result["flow"] - flow).max() <= TOLERANCE
+
+
+def test_predictor_refinement_is_opt_in_and_checked(export_dir, pairs, tmp_path):
+    pair = pairs[0]
+    plain = Predictor.load(export_dir).predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+    assert plain.refined is None
+    refined = Predictor.load(export_dir, refine=True).predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+    assert refined.refined.shape == (len(pair.pc0),) and not refined.refined[~refined.in_grid].any()
+    # the points ICP did not take keep the network's flow; the others moved rigidly per component
+    kept = ~refined.refined
+    np.testing.assert_array_equal(refined.flow[kept], plain.flow[kept])
+    with pytest.raises(PredictorError, match="unknown settings"):
+        Predictor.load(export_dir, refine={"cells": 1.0})
+    # the inference CLI: --refine writes the refined flow and its mask
+    poses = write_poses(tmp_path / "poses.txt", [pair.pose0, pair.pose1])
+    scan0, scan1 = write_scan(tmp_path / "a.npy", pair.pc0), write_scan(tmp_path / "b.npy", pair.pc1)
+    out = tmp_path / "flow.npz"
+    assert (
+        infer_main(
+            [str(export_dir), str(scan0), str(scan1), "--poses", str(poses), "--out", str(out), "--no-bev", "--refine"]
+        )
+        == 0
+    )
+    with np.load(out) as result:
+        assert np.array_equal(result["refined"], refined.refined)
+        assert np.abs(result["flow"] - refined.flow).max() <= TOLERANCE

@@ -9,7 +9,7 @@ import yaml
 from torch.export.passes import move_to_device_pass
 
 from fastflow3d.loss import flow_loss, speed_weight
-from fastflow3d.model import FastFlow3D, compensate
+from fastflow3d.model import FastFlow3D, compensate, local_correlation
 from fastflow3d.scatter import scatter_mean, scatter_sum
 from fastflow3d.voxelize import Grid, voxelize
 from icpflow.geometry import make_transform, residual_to_full, transform_points
@@ -365,12 +365,52 @@ def test_gru_decoder_follows_the_gru_equations():
 def test_checkpoints_without_decoder_are_zeroflows_head():
     from fastflow3d.checkpoint import build_student
 
-    old = {key: value for key, value in PAPER.items() if not key.startswith(("decoder", "gru_"))}
+    old = {key: value for key, value in PAPER.items() if not key.startswith(("decoder", "gru_", "correlation_"))}
     model = build_student({"_target_": "fastflow3d.model.FastFlow3D", **old, **SMALL})
-    assert isinstance(model.head, torch.nn.Sequential)
+    assert isinstance(model.head, torch.nn.Sequential) and model.unet.correlation_levels == ()
     assert {k for k in model.state_dict() if k.startswith("head.")} == {
         "head.0.weight",
         "head.0.bias",
         "head.2.weight",
         "head.2.bias",
     }
+
+
+def test_local_correlation_peaks_at_the_displacement_and_is_zero_beyond_the_border():
+    gen = torch.Generator().manual_seed(3)
+    features0 = torch.randn(2, 64, 12, 10, generator=gen)
+    # pc1's content is pc0's moved by dy = +2, dx = -1 cells: features1[y + 2, x - 1] = features0[y, x]
+    features1 = torch.roll(features0, shifts=(2, -1), dims=(2, 3))
+    radius = 3
+    cost = local_correlation(features0, features1, radius)
+    assert cost.shape == (2, (2 * radius + 1) ** 2, 12, 10)
+    expected = (2 + radius) * (2 * radius + 1) + (-1 + radius)
+    inner = cost[:, :, radius:-radius, radius:-radius]
+    assert torch.all(inner.argmax(dim=1) == expected)
+    torch.testing.assert_close(cost[:, expected, 4, 4], (features0[:, :, 4, 4] ** 2).sum(1) / 8.0)
+    # displacement (dy, dx) = (-3, -3) reads outside the map at the first row and column: zero there
+    assert torch.all(cost[:, 0, 0, :] == 0) and torch.all(cost[:, 0, :, 0] == 0)
+
+
+def test_correlation_is_an_option_and_off_is_zeroflows_network():
+    plain = FastFlow3D(**SMALL_MODEL)
+    assert plain.unet.correlation_levels == ()
+    with pytest.raises(ValueError, match="correlation_levels must lie in 0..3"):
+        FastFlow3D(**{**SMALL_MODEL, "correlation_levels": [4]})
+    with pytest.raises(ValueError, match="correlation_radius must be >= 1"):
+        FastFlow3D(**{**SMALL_MODEL, "correlation_levels": [1], "correlation_radius": 0})
+    model = FastFlow3D(**{**SMALL_MODEL, "correlation_levels": [1, 3], "correlation_radius": 2}).train()
+    shapes = {name: tuple(p.shape) for name, p in plain.state_dict().items()}
+    changed = {name for name, p in model.state_dict().items() if shapes.get(name) != tuple(p.shape)}
+    # the cost volume widens only the two levels' skips: the 1x1 convs that read them, and the bottleneck's step
+    assert changed and all(name.startswith("unet.decoder.") for name in changed)
+    pc0, b0 = random_flat(300, 200, 21)
+    pc1, b1 = random_flat(300, 200, 22)
+    residual, valid = model(pc0, b0, pc1, b1, batch_size=2)
+    flow_loss(residual, torch.randn_like(residual), b0, valid, 2).backward()
+    assert [n for n, p in model.named_parameters() if p.grad is None or not torch.any(p.grad != 0)] == []
+    model.eval()
+    with torch.no_grad():  # a sample's flow does not depend on the other sample of the batch
+        both = model(pc0, b0, pc1, b1, 2)[0]
+        alone = model(pc0[:300], b0[:300], pc1[:300], b1[:300], 1)[0]
+    torch.testing.assert_close(alone, both[:300], atol=1e-5, rtol=0)

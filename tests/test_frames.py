@@ -10,6 +10,7 @@ from icpflow.geometry import (
     full_to_residual,
     invert,
     is_rigid,
+    kabsch,
     make_transform,
     pose_error,
     relative_transform,
@@ -178,3 +179,13 @@ def test_sequence_pairs_have_exact_flow():
 def test_sequence_validation_names_the_source():
     with pytest.raises(FramePairError, match=r"^seq: 2 scans need poses"):
         FrameSequence(points=[_points(3)] * 2, poses=np.stack([np.eye(4)]), timestamps_ns=np.zeros(2), source="seq")
+
+
+def test_kabsch_recovers_a_rigid_motion_and_never_a_reflection():
+    rng = np.random.default_rng(4)
+    points = rng.normal(size=(50, 3)) * [4.0, 1.0, 0.5]
+    truth = make_transform(0.3, (1.0, -2.0, 0.2), roll=0.05, pitch=-0.02)
+    np.testing.assert_allclose(kabsch(points, transform_points(truth, points)), truth, atol=1e-9)
+    mirrored = points * [1.0, 1.0, -1.0]  # the best fit of a mirror image is still a rotation
+    fit = kabsch(points, mirrored)
+    assert is_rigid(fit) and np.linalg.det(fit[:3, :3]) > 0

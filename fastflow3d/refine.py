@@ -1,0 +1,179 @@
+"""The Predictor's opt-in refinement: the teacher's ICP started from the student's flow, per cheap object.
+
+The student's flow is right in direction and often short in length (issue 29: it predicts 56 % of a bus's motion);
+the teacher's ICP is exact where it starts close enough. This stage joins them, per pair:
+
+1. Objects: the 8-connected components of the bird's-eye-view occupancy (``RefineConfig.cell`` metres) of the
+   network's pc0 points (ego-compensated, non-ground, inside the grid). Components with fewer than ``min_points``
+   points or longer than ``max_extent`` (walls, kerbs, hedges) are left as they are.
+2. Candidates: components whose median predicted residual is at least ``min_motion`` metres per pair (the moving
+   ones; the rest keep the student's flow).
+3. Registration: the component's points are moved onto the pc1 points near them by point-to-point ICP (the
+   teacher's kernel, ``icpflow.teacher.icp``; yaw and 3D translation, ``yaw_only``) from the translation of the
+   component's mean predicted residual, with correspondences truncated at each distance of ``max_corr`` in turn
+   (coarse to fine: the student's start may be half a metre short).
+   The registration is the teacher's batch (``icpflow.teacher.registration_cpu``, numba, parallel over the
+   components), on at most ``max_points`` points of each component.
+4. Checks: the ICP motion replaces the student's flow of the component only when it passes the teacher's checks
+   (``icpflow.teacher.checks.passes``: mean error below ``max_error``, IoU ratio at least ``min_iou``, no roll or
+   pitch beyond 9 degrees), its match is better than the student's own (pc0 + predicted residual, measured the same
+   way) and its motion lies within ``max_change`` metres of the student's at the component's centroid. As in the
+   teacher (``icp.static_tolerance``), no motion replaces the ICP motion where it fits within ``static_tolerance``
+   of its error, for components the student moves at most ``static_max_motion``: a student that moves a parked
+   car a little is pulled back to zero, while a fast flat side (which also fits no motion well) keeps its motion.
+
+Frames: every array is in the ego frame of t + dt (pc0 already compensated); flows are residual (ego-compensated)
+flows in metres per pair, float32 in and out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Settings of the refinement (module docstring); ``RefineConfig()`` is the measured default."""
+
+    cell: float = 0.5  # m: bird's-eye-view occupancy cell of the objects
+    min_points: int = 10  # points of a component below which it keeps the student's flow
+    max_extent: float = 20.0  # m: longer components (bounding-box diagonal) keep the student's flow
+    min_motion: float = 0.05  # m per pair: components predicted slower keep the student's flow
+    margin: float = 1.0  # m: pc1 points within the moved component's box grown by this are ICP's targets
+    max_points: int = 500  # points of a component entering ICP and its checks (an even subsample of larger ones)
+    max_corr: tuple[float, ...] = (2.0, 1.0, 0.3, 0.1)  # m: ICP truncation, coarse to fine
+    max_iter: int = 40  # ICP iterations per truncation distance (at most)
+    max_error: float = 0.2  # m: mean nearest-neighbour distance of an accepted registration
+    min_iou: float = 0.1  # the teacher's IoU ratio (checks.passes) of an accepted registration, inliers at max_corr[-1]
+    max_change: float = 2.0  # m: largest accepted difference from the student's motion at the centroid
+    static_tolerance: float = 0.25  # no motion replaces the ICP motion where it fits within this fraction of its
+    # error (the teacher's icp.static_tolerance: scans sample a static surface differently); 0 = off
+    static_max_motion: float = 0.5  # m per pair: ... for components the student moves at most this far (a fast
+    # flat side sliding along itself also fits no motion nearly as well)
+
+    def __post_init__(self):
+        problems = [
+            name
+            for name, ok in (
+                ("cell", self.cell > 0),
+                ("min_points", self.min_points >= 3),
+                ("max_points", self.max_points >= self.min_points),
+                ("max_extent", self.max_extent > 0),
+                ("min_motion", self.min_motion >= 0),
+                ("margin", self.margin >= 0),
+                ("max_corr", len(self.max_corr) > 0 and all(d > 0 for d in self.max_corr)),
+                ("max_iter", self.max_iter >= 1),
+                ("max_error", self.max_error > 0),
+                ("min_iou", 0 <= self.min_iou <= 1),
+                ("max_change", self.max_change > 0),
+                ("static_tolerance", self.static_tolerance >= 0),
+                ("static_max_motion", self.static_max_motion >= 0),
+            )
+            if not ok
+        ]
+        if problems:
+            raise ValueError(f"refine: invalid {', '.join(problems)} in {asdict(self)}")
+
+    @classmethod
+    def of(cls, value) -> RefineConfig | None:
+        """None (off) from None/False, the default from True, or a config from a dict of its fields."""
+        if value is None or value is False:
+            return None
+        if value is True:
+            return cls()
+        if isinstance(value, cls):
+            return value
+        if isinstance(value, dict):
+            unknown = set(value) - set(cls.__dataclass_fields__)
+            if unknown:
+                raise ValueError(f"refine: unknown settings {sorted(unknown)}")
+            fields = dict(value)
+            if "max_corr" in fields:
+                fields["max_corr"] = tuple(float(d) for d in fields["max_corr"])
+            return cls(**fields)
+        raise ValueError(f"refine must be true, false or a dict of RefineConfig fields, got {value!r}")
+
+
+def components(points: np.ndarray, cell: float) -> tuple[np.ndarray, int]:
+    """((N,) int64 component of each (N, 3) point, number of components): 8-connected components of the
+    bird's-eye-view cells the points occupy."""
+    from scipy import ndimage
+
+    if not len(points):
+        return np.zeros(0, np.int64), 0
+    cells = np.floor(points[:, :2] / cell).astype(np.int64)
+    cells -= cells.min(axis=0)
+    shape = tuple(cells.max(axis=0) + 1)
+    occupied = np.zeros(shape, bool)
+    occupied[cells[:, 0], cells[:, 1]] = True
+    labels, count = ndimage.label(occupied, structure=np.ones((3, 3), bool))
+    return labels[cells[:, 0], cells[:, 1]].astype(np.int64) - 1, int(count)
+
+
+def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg: RefineConfig):
+    """((N0, 3) float32 refined residual flow, (N0,) bool: the points whose flow ICP replaced) of pc0 (N0, 3)
+    (ego-compensated) with the student's residual (N0, 3) towards pc1 (N1, 3), all in the ego frame of t + dt."""
+    from icpflow.teacher.checks import passes
+    from icpflow.teacher.config import ChecksConfig, ICPConfig
+    from icpflow.teacher.registration_cpu import register_batch_cpu
+
+    out, refined = np.array(residual, np.float32, copy=True), np.zeros(len(pc0), bool)
+    if len(pc0) < cfg.min_points or len(pc1) < cfg.min_points:
+        return out, refined
+    label, count = components(pc0, cfg.cell)
+    order = np.argsort(label, kind="stable")
+    bounds = np.searchsorted(label[order], np.arange(count + 1))
+    speed = np.linalg.norm(residual, axis=1)
+    by_x = np.argsort(pc1[:, 0], kind="stable")  # pc1 sorted along x: each candidate's targets from one slice
+    pc1_x, pc1_sorted = pc1[by_x, 0], np.asarray(pc1[by_x], np.float64)
+    groups, movings, student_moved, fixeds, starts = [], [], [], [], []
+    for k in range(count):
+        members = order[bounds[k] : bounds[k + 1]]
+        if len(members) < cfg.min_points or np.median(speed[members]) < cfg.min_motion:
+            continue
+        points = np.asarray(pc0[members], np.float64)
+        low, high = points.min(axis=0), points.max(axis=0)
+        if np.linalg.norm((high - low)[:2]) > cfg.max_extent:
+            continue
+        start = np.asarray(residual[members], np.float64).mean(axis=0)
+        low, high = low + start - cfg.margin, high + start + cfg.margin
+        window = pc1_sorted[np.searchsorted(pc1_x, low[0]) : np.searchsorted(pc1_x, high[0], side="right")]
+        target = window[np.all((window >= low) & (window <= high), axis=1)]
+        if len(target) < cfg.min_points:
+            continue
+        stride = -(-len(members) // cfg.max_points)  # every stride-th point: at most max_points in pc0, and the
+        sample = members[::stride]  # targets thinned alike (the IoU ratio compares like densities)
+        groups.append(members)
+        movings.append(np.asarray(pc0[sample], np.float64))
+        student_moved.append(movings[-1] + residual[sample])
+        fixeds.append(target[::stride])
+        starts.append(np.eye(4))
+        starts[-1][:3, 3] = start
+    if not groups:
+        return out, refined
+    transforms = np.stack(starts)
+    for index, max_corr in enumerate(cfg.max_corr):  # coarse to fine, each stage from the last one's transforms
+        stage = ICPConfig(max_corr=max_corr, max_iter=cfg.max_iter, dof="yaw")
+        last = index == len(cfg.max_corr) - 1  # the last stage also measures no motion at all (the identity)
+        transforms, errors, ious, _, still_errors, still_ious = register_batch_cpu(
+            movings, fixeds, transforms, stage, identity=last and cfg.static_tolerance > 0
+        )
+    # the teacher's rule (icp.static_tolerance): what no motion fits nearly as well stays static
+    slow = np.linalg.norm(np.stack(starts)[:, :3, 3], axis=1) <= cfg.static_max_motion
+    static = slow & (still_errors <= errors * (1.0 + cfg.static_tolerance))
+    transforms[static], errors[static], ious[static] = np.eye(4), still_errors[static], still_ious[static]
+    # the student's own flow, measured the same way (no iteration: the quality of the given motion)
+    measure = ICPConfig(max_corr=cfg.max_corr[-1], max_iter=0)
+    _, student_errors, *_ = register_batch_cpu(student_moved, fixeds, np.tile(np.eye(4), (len(groups), 1, 1)), measure)
+    centroids = np.stack([moving.mean(axis=0) for moving in movings])
+    moved_centroids = np.einsum("kij,kj->ki", transforms[:, :3, :3], centroids) + transforms[:, :3, 3]
+    change = np.linalg.norm(moved_centroids - centroids - np.stack(starts)[:, :3, 3], axis=1)
+    checks = ChecksConfig(min_iou=cfg.min_iou, max_error=cfg.max_error)
+    accepted = passes(transforms, errors, ious, np.inf, checks) & (errors < student_errors) & (change <= cfg.max_change)
+    for members, transform in zip([g for g, ok in zip(groups, accepted) if ok], transforms[accepted]):
+        points = np.asarray(pc0[members], np.float64)
+        out[members] = (points @ transform[:3, :3].T + transform[:3, 3] - points).astype(np.float32)
+        refined[members] = True
+    return out, refined

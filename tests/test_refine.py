@@ -1,0 +1,91 @@
+"""The Predictor's ICP refinement (``fastflow3d.refine``) on synthetic pairs with exact flow: it recovers motion that a
+student under-predicts, leaves what it cannot improve, and the Predictor runs it on request only."""
+
+import numpy as np
+import pytest
+
+from fastflow3d.refine import RefineConfig, components, refine_residual
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.geometry import ego_flow, transform_points
+
+
+@pytest.fixture(scope="module")
+def network_view():
+    """What the network of a pair sees, with the truth: (pc0 compensated (N, 3), pc1 (M, 3), true residual (N, 3),
+    moving (N,) bool) of the non-ground points inside +-32 m of two synthetic pairs."""
+    dataset = SyntheticDataset(split="test", num_sequences=2, frames_per_sequence=2, seed=3)
+    views = []
+    for index in range(len(dataset)):
+        pair = dataset[index]
+        keep0 = ~pair.ground0
+        compensated = transform_points(pair.ego1_from_ego0, pair.pc0)[keep0].astype(np.float32)
+        residual = (pair.flow - ego_flow(pair.pc0, pair.ego1_from_ego0))[keep0].astype(np.float32)
+        inside = np.all(np.abs(compensated[:, :2]) < 32.0, axis=1)
+        moving = np.linalg.norm(residual, axis=1) / pair.dt > 0.5
+        views.append((compensated[inside], pair.pc1[~pair.ground1], residual[inside], moving[inside]))
+    return views
+
+
+def epe(flow, truth, mask):
+    return float(np.linalg.norm(flow - truth, axis=1)[mask].mean())
+
+
+def test_components_are_eight_connected_cells():
+    points = np.array([[0.1, 0.1, 0], [0.6, 0.6, 0], [1.1, 1.1, 0.0], [3.0, 3.0, 0], [3.2, 3.1, 5.0]], np.float32)
+    label, count = components(points, 0.5)
+    assert count == 2 and len(set(label[:3])) == 1 and label[3] == label[4] != label[0]
+    assert components(np.zeros((0, 3), np.float32), 0.5)[1] == 0
+
+
+def test_refinement_recovers_the_motion_a_student_under_predicts(network_view):
+    for pc0, pc1, truth, moving in network_view:
+        student = (0.6 * truth).astype(np.float32)  # the right direction, 60 % of the motion
+        refined, replaced = refine_residual(pc0, student, pc1, RefineConfig())
+        assert refined.dtype == np.float32 and refined.shape == pc0.shape
+        # objects predicted faster than static_max_motion: nearly all registered, and far better
+        fast = moving & (np.linalg.norm(student, axis=1) > RefineConfig().static_max_motion)
+        assert fast.sum() > 1000 and replaced[fast].mean() > 0.9
+        assert epe(refined, truth, fast) < 0.4 * epe(student, truth, fast)
+        # slower ones may be judged static (the teacher's static tolerance): never much worse than the student
+        assert epe(refined, truth, moving) < epe(student, truth, moving)
+        # what the student calls static is left exactly as it is
+        assert np.array_equal(refined[~moving], student[~moving]) and not replaced[~moving].any()
+
+
+def test_refinement_keeps_a_right_student_and_pulls_back_a_wrong_one(network_view):
+    pc0, pc1, truth, moving = network_view[0]
+    refined, _ = refine_residual(pc0, truth, pc1, RefineConfig())
+    assert epe(refined, truth, moving) < 0.05  # an exact student stays (nearly) exact
+    # a student that moves static objects (0.6 m along x) is corrected, not followed: objects the refinement takes
+    # (components of at most max_extent) without a moving point
+    label, count = components(pc0, 0.5)
+    sizes = [np.ptp(pc0[label == k, :2], axis=0) for k in range(count)]
+    small = np.flatnonzero([np.linalg.norm(size) <= RefineConfig().max_extent for size in sizes])
+    static_objects = np.isin(label, small) & np.isin(label, np.unique(label[moving]), invert=True)
+    assert static_objects.sum() > 1000
+    wrong = truth.copy()
+    wrong[static_objects] += np.float32([0.6, 0.0, 0.0])
+    refined, replaced = refine_residual(pc0, wrong, pc1, RefineConfig())
+    assert replaced[static_objects].any()
+    assert epe(refined, truth, static_objects) < 0.5 * epe(wrong, truth, static_objects)
+    # moved a little (0.2 m), static objects that no motion fits nearly as well get exactly none (the teacher's
+    # static tolerance); without the tolerance ICP's small slides remain
+    wrong = truth.copy()
+    wrong[static_objects] += np.float32([0.2, 0.0, 0.0])
+    refined, replaced = refine_residual(pc0, wrong, pc1, RefineConfig())
+    zero = replaced & static_objects & np.all(refined == 0, axis=1)
+    assert zero.sum() > 0.5 * static_objects.sum()
+    refined, replaced = refine_residual(pc0, wrong, pc1, RefineConfig(static_tolerance=0.0))
+    assert not np.any(replaced & static_objects & np.all(refined == 0, axis=1))
+
+
+def test_refinement_settings_are_checked():
+    assert RefineConfig.of(None) is None and RefineConfig.of(False) is None
+    assert RefineConfig.of(True) == RefineConfig()
+    assert RefineConfig.of({"max_corr": [0.5, 0.1]}).max_corr == (0.5, 0.1)
+    with pytest.raises(ValueError, match="unknown settings"):
+        RefineConfig.of({"cells": 0.5})
+    with pytest.raises(ValueError, match="invalid cell, max_corr"):
+        RefineConfig(cell=0.0, max_corr=())
+    with pytest.raises(ValueError, match="refine must be"):
+        RefineConfig.of("yes")
