@@ -96,6 +96,13 @@ class RefineConfig:
         raise ValueError(f"refine must be true, false or a dict of RefineConfig fields, got {value!r}")
 
 
+def grid_cell(max_corr: float) -> float:
+    """Cells (m) of the neighbour grid for ICP truncated at ``max_corr``: the teacher's 0.3 m, or max_corr / 2 for
+    a longer truncation (its queries then stay within the grid search's shells instead of scanning every point;
+    the neighbours are the same at any cell size)."""
+    return max(0.3, max_corr / 2)
+
+
 def components(points: np.ndarray, cell: float) -> tuple[np.ndarray, int]:
     """((N,) int64 component of each (N, 3) point, number of components): 8-connected components of the
     bird's-eye-view cells the points occupy."""
@@ -158,7 +165,12 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
         stage = ICPConfig(max_corr=max_corr, max_iter=cfg.max_iter, dof="yaw")
         last = index == len(cfg.max_corr) - 1  # the last stage also measures no motion at all (the identity)
         transforms, errors, ious, _, still_errors, still_ious = register_batch_cpu(
-            movings, fixeds, transforms, stage, identity=last and cfg.static_tolerance > 0
+            movings,
+            fixeds,
+            transforms,
+            stage,
+            identity=last and cfg.static_tolerance > 0,
+            grid_cell=grid_cell(max_corr),
         )
     # the teacher's rule (icp.static_tolerance): what no motion fits nearly as well stays static
     slow = np.linalg.norm(np.stack(starts)[:, :3, 3], axis=1) <= cfg.static_max_motion
@@ -166,7 +178,8 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
     transforms[static], errors[static], ious[static] = np.eye(4), still_errors[static], still_ious[static]
     # the student's own flow, measured the same way (no iteration: the quality of the given motion)
     measure = ICPConfig(max_corr=cfg.max_corr[-1], max_iter=0)
-    _, student_errors, *_ = register_batch_cpu(student_moved, fixeds, np.tile(np.eye(4), (len(groups), 1, 1)), measure)
+    identities = np.tile(np.eye(4), (len(groups), 1, 1))
+    _, student_errors, *_ = register_batch_cpu(student_moved, fixeds, identities, measure, grid_cell=grid_cell(0.0))
     centroids = np.stack([moving.mean(axis=0) for moving in movings])
     moved_centroids = np.einsum("kij,kj->ki", transforms[:, :3, :3], centroids) + transforms[:, :3, 3]
     change = np.linalg.norm(moved_centroids - centroids - np.stack(starts)[:, :3, 3], axis=1)

@@ -115,11 +115,12 @@ def _register_batch(
 
 
 def register_batch_cpu(
-    movings, fixeds, starts, params: ICPConfig, fixed_normals=None, identity: bool = False
+    movings, fixeds, starts, params: ICPConfig, fixed_normals=None, identity: bool = False, grid_cell=_GRID_CELL
 ) -> tuple[np.ndarray, ...]:
     """:func:`_register_batch` on lists of clouds (point-to-plane when the fixed clouds' normals are given):
     (transforms, errors, ious, iterations, errors at the identity, IoU ratios at the identity) in the input order
-    (the last two measured only with ``identity``, else inf and 0)."""
+    (the last two measured only with ``identity``, else inf and 0). ``grid_cell`` (m): the neighbour grid's cells
+    (any size gives the same result; a truncation far beyond three cells answers faster on larger cells)."""
     order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
     mov_all, mov_off = pack([movings[k] for k in order])
     fix_all, fix_off = pack([fixeds[k] for k in order])
@@ -138,7 +139,7 @@ def register_batch_cpu(
         params.dof == "yaw",
         plane,
         float(params.max_corr),  # the IoU inlier distance is the correspondence truncation
-        _GRID_CELL,
+        float(grid_cell),
         numba.get_num_threads(),
         identity,
     )
