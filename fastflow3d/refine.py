@@ -132,32 +132,36 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
     label, count = components(pc0, cfg.cell)
     order = np.argsort(label, kind="stable")
     bounds = np.searchsorted(label[order], np.arange(count + 1))
-    speed = np.linalg.norm(residual, axis=1)
+    # per component at once (each has >= 1 point): box, mean residual; candidates by size, extent, speed
+    sorted_points, sorted_residual = np.asarray(pc0[order], np.float64), np.asarray(residual[order], np.float64)
+    lows = np.minimum.reduceat(sorted_points, bounds[:-1])
+    highs = np.maximum.reduceat(sorted_points, bounds[:-1])
+    sizes = np.diff(bounds)
+    means = np.add.reduceat(sorted_residual, bounds[:-1]) / sizes[:, None]
+    extents = np.linalg.norm((highs - lows)[:, :2], axis=1)
+    speed = np.linalg.norm(sorted_residual, axis=1)
+    chosen = [
+        k
+        for k in np.flatnonzero((sizes >= cfg.min_points) & (extents <= cfg.max_extent))
+        if np.median(speed[bounds[k] : bounds[k + 1]]) >= cfg.min_motion
+    ]
     by_x = np.argsort(pc1[:, 0], kind="stable")  # pc1 sorted along x: each candidate's targets from one slice
     pc1_x, pc1_sorted = pc1[by_x, 0], np.asarray(pc1[by_x], np.float64)
     groups, movings, student_moved, fixeds, starts = [], [], [], [], []
-    for k in range(count):
-        members = order[bounds[k] : bounds[k + 1]]
-        if len(members) < cfg.min_points or np.median(speed[members]) < cfg.min_motion:
-            continue
-        points = np.asarray(pc0[members], np.float64)
-        low, high = points.min(axis=0), points.max(axis=0)
-        if np.linalg.norm((high - low)[:2]) > cfg.max_extent:
-            continue
-        start = np.asarray(residual[members], np.float64).mean(axis=0)
-        low, high = low + start - cfg.margin, high + start + cfg.margin
+    for k in chosen:
+        low, high = lows[k] + means[k] - cfg.margin, highs[k] + means[k] + cfg.margin
         window = pc1_sorted[np.searchsorted(pc1_x, low[0]) : np.searchsorted(pc1_x, high[0], side="right")]
         target = window[np.all((window >= low) & (window <= high), axis=1)]
         if len(target) < cfg.min_points:
             continue
-        stride = -(-len(members) // cfg.max_points)  # every stride-th point: at most max_points in pc0, and the
-        sample = members[::stride]  # targets thinned alike (the IoU ratio compares like densities)
-        groups.append(members)
-        movings.append(np.asarray(pc0[sample], np.float64))
-        student_moved.append(movings[-1] + residual[sample])
+        stride = -(-sizes[k] // cfg.max_points)  # every stride-th point: at most max_points in pc0, and the
+        rows = slice(bounds[k], bounds[k + 1], stride)  # targets thinned alike (the IoU ratio compares like densities)
+        groups.append(order[bounds[k] : bounds[k + 1]])
+        movings.append(sorted_points[rows])
+        student_moved.append(sorted_points[rows] + sorted_residual[rows])
         fixeds.append(target[::stride])
         starts.append(np.eye(4))
-        starts[-1][:3, 3] = start
+        starts[-1][:3, 3] = means[k]
     if not groups:
         return out, refined
     transforms = np.stack(starts)
