@@ -11,8 +11,7 @@ the teacher's ICP is exact where it starts close enough. This stage joins them, 
 3. Registration: the component's points are moved onto the pc1 points near them by point-to-point ICP (the
    teacher's kernel, ``icpflow.teacher.icp``; yaw and 3D translation, ``yaw_only``) from the translation of the
    component's mean predicted residual, with correspondences truncated at each distance of ``max_corr`` in turn
-   (coarse to fine: the student's start may be half a metre short).
-   The registration is the teacher's batch (``icpflow.teacher.registration_cpu``, numba, parallel over the
+   (coarse to fine: the student's start may be a metre short). The registration is the teacher's batch (``icpflow.teacher.registration_cpu``, numba, parallel over the
    components), on at most ``max_points`` points of each component.
 4. Checks: the ICP motion replaces the student's flow of the component only when it passes the teacher's checks
    (``icpflow.teacher.checks.passes``: mean error below ``max_error``, IoU ratio at least ``min_iou``, no roll or
@@ -20,7 +19,8 @@ the teacher's ICP is exact where it starts close enough. This stage joins them, 
    way) and its motion lies within ``max_change`` metres of the student's at the component's centroid. As in the
    teacher (``icp.static_tolerance``), no motion replaces the ICP motion where it fits within ``static_tolerance``
    of its error, for components the student moves at most ``static_max_motion``: a student that moves a parked
-   car a little is pulled back to zero, while a fast flat side (which also fits no motion well) keeps its motion.
+   car a little is pulled back to zero, while a fast bus side (which slides along itself, so that no motion fits it
+   nearly as well too) keeps its motion.
 
 Frames: every array is in the ego frame of t + dt (pc0 already compensated); flows are residual (ego-compensated)
 flows in metres per pair, float32 in and out.
