@@ -11,8 +11,9 @@ the teacher's ICP is exact where it starts close enough. This stage joins them, 
 3. Registration: the component's points are moved onto the pc1 points near them by point-to-point ICP (the
    teacher's kernel, ``icpflow.teacher.icp``; yaw and 3D translation, ``yaw_only``) from the translation of the
    component's mean predicted residual, with correspondences truncated at each distance of ``max_corr`` in turn
-   (coarse to fine: the student's start may be a metre short). The registration is the teacher's batch (``icpflow.teacher.registration_cpu``, numba, parallel over the
-   components), on at most ``max_points`` points of each component.
+   (coarse to fine: the student's start may be a metre short). The registration is the teacher's batch
+   (``icpflow.teacher.registration_cpu``, numba, parallel over the components), on at most ``max_points`` points of
+   each component.
 4. Checks: the ICP motion replaces the student's flow of the component only when it passes the teacher's checks
    (``icpflow.teacher.checks.passes``: mean error below ``max_error``, IoU ratio at least ``min_iou``, no roll or
    pitch beyond 9 degrees), its match is better than the student's own (pc0 + predicted residual, measured the same

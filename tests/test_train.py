@@ -74,10 +74,14 @@ def test_every_config_composes(group, option, tmp_path):
 
 
 def test_model_configs_build_the_issue_networks():
-    default = build_student(OmegaConf.to_container(_compose("model=fastflow3d").model))
+    # the paper and zeroflow recipes train ZeroFlow's networks exactly (the CPU recipes add a cost volume)
+    default = build_student(OmegaConf.to_container(_compose("experiment=paper").model))
+    assert OmegaConf.to_container(_compose("experiment=zeroflow").model) == OmegaConf.to_container(
+        _compose("experiment=paper").model
+    )
     assert (default.grid.nx, default.grid.ny) == (512, 512)
     assert sum(p.numel() for p in default.parameters()) == 6_815_619
-    xl = _compose("model=fastflow3d_xl").model
+    xl = _compose("experiment=paper", "model=fastflow3d_xl").model
     assert xl.cell == 0.1 and xl.pillar_channels == 64 and len(xl.stage_channels) == 4
     assert Grid(tuple(xl.x_range), tuple(xl.y_range), tuple(xl.z_range), xl.cell).nx == 1024
     with pytest.raises(ValueError, match="_target_"):
@@ -90,7 +94,7 @@ def test_xl_config_is_zeroflows_and_runs_forward_and_backward():
     channels with 3 / 5 / 5 / 5 extra convs, decoders (2048, 1024, 1024) ... (256, 128, 128), a 128-channel output and
     a head on 4 * 64 + 3 features. The network is built on a +-3.2 m crop (64 x 64; the weights do not depend on
     the grid) and runs one batch of two samples forward and backward."""
-    xl = OmegaConf.to_container(_compose("model=fastflow3d_xl").model)
+    xl = OmegaConf.to_container(_compose("experiment=paper", "model=fastflow3d_xl").model)
     assert xl["x_range"] == xl["y_range"] == [-51.2, 51.2] and xl["z_range"] == [-3.0, 3.0] and xl["cell"] == 0.1
     model = build_student({**xl, "x_range": [-3.2, 3.2], "y_range": [-3.2, 3.2]})
     assert model.embedder.linear.out_features == 64
