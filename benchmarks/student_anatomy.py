@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.geometry import ego_flow, kabsch, transform_points
+from icpflow.geometry import ego_flow, kabsch, rigid_flow
 from icpflow.metrics import PairTruth
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,8 +85,7 @@ def rigid_oracle(points: np.ndarray, flow: np.ndarray) -> np.ndarray:
     """(N, 3) flow of the rigid motion that best maps ``points`` onto ``points + flow`` (least squares)."""
     if len(points) < 3:
         return np.broadcast_to(flow.mean(axis=0), flow.shape)
-    transform = kabsch(points, points + flow)
-    return transform_points(transform, points) - points
+    return rigid_flow(points, kabsch(points, points + flow))
 
 
 class Collector:

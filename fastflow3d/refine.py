@@ -33,6 +33,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from icpflow.geometry import rigid_flow
+
 
 @dataclass(frozen=True)
 class RefineConfig:
@@ -97,13 +99,6 @@ class RefineConfig:
         raise ValueError(f"refine must be true, false or a dict of RefineConfig fields, got {value!r}")
 
 
-def grid_cell(max_corr: float) -> float:
-    """Cells (m) of the neighbour grid for ICP truncated at ``max_corr``: the teacher's 0.3 m, or max_corr / 2 for
-    a longer truncation (its queries then stay within the grid search's shells instead of scanning every point;
-    the neighbours are the same at any cell size)."""
-    return max(0.3, max_corr / 2)
-
-
 def components(points: np.ndarray, cell: float) -> tuple[np.ndarray, int]:
     """((N,) int64 component of each (N, 3) point, number of components): 8-connected components of the
     bird's-eye-view cells the points occupy."""
@@ -148,7 +143,7 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
     ]
     by_x = np.argsort(pc1[:, 0], kind="stable")  # pc1 sorted along x: each candidate's targets from one slice
     pc1_x, pc1_sorted = pc1[by_x, 0], np.asarray(pc1[by_x], np.float64)
-    groups, movings, student_moved, fixeds, starts = [], [], [], [], []
+    groups, movings, student_moved, fixeds, kept = [], [], [], [], []
     for k in chosen:
         low, high = lows[k] + means[k] - cfg.margin, highs[k] + means[k] + cfg.margin
         window = pc1_sorted[np.searchsorted(pc1_x, low[0]) : np.searchsorted(pc1_x, high[0], side="right")]
@@ -161,11 +156,12 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
         movings.append(sorted_points[rows])
         student_moved.append(sorted_points[rows] + sorted_residual[rows])
         fixeds.append(target[::stride])
-        starts.append(np.eye(4))
-        starts[-1][:3, 3] = means[k]
+        kept.append(k)
     if not groups:
         return out, refined
-    transforms = np.stack(starts)
+    starts = means[kept]  # (K, 3): each candidate's mean predicted residual, ICP's initial translation
+    transforms = np.tile(np.eye(4), (len(groups), 1, 1))
+    transforms[:, :3, 3] = starts
     for index, max_corr in enumerate(cfg.max_corr):  # coarse to fine, each stage from the last one's transforms
         stage = ICPConfig(max_corr=max_corr, max_iter=cfg.max_iter, dof="yaw")
         last = index == len(cfg.max_corr) - 1  # the last stage also measures no motion at all (the identity)
@@ -175,23 +171,21 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
             transforms,
             stage,
             identity=last and cfg.static_tolerance > 0,
-            grid_cell=grid_cell(max_corr),
         )
     # the teacher's rule (icp.static_tolerance): what no motion fits nearly as well stays static
-    slow = np.linalg.norm(np.stack(starts)[:, :3, 3], axis=1) <= cfg.static_max_motion
+    slow = np.linalg.norm(starts, axis=1) <= cfg.static_max_motion
     static = slow & (still_errors <= errors * (1.0 + cfg.static_tolerance))
     transforms[static], errors[static], ious[static] = np.eye(4), still_errors[static], still_ious[static]
     # the student's own flow, measured the same way (no iteration: the quality of the given motion)
     measure = ICPConfig(max_corr=cfg.max_corr[-1], max_iter=0)
     identities = np.tile(np.eye(4), (len(groups), 1, 1))
-    _, student_errors, *_ = register_batch_cpu(student_moved, fixeds, identities, measure, grid_cell=grid_cell(0.0))
+    _, student_errors, *_ = register_batch_cpu(student_moved, fixeds, identities, measure)
     centroids = np.stack([moving.mean(axis=0) for moving in movings])
     moved_centroids = np.einsum("kij,kj->ki", transforms[:, :3, :3], centroids) + transforms[:, :3, 3]
-    change = np.linalg.norm(moved_centroids - centroids - np.stack(starts)[:, :3, 3], axis=1)
+    change = np.linalg.norm(moved_centroids - centroids - starts, axis=1)
     checks = ChecksConfig(min_iou=cfg.min_iou, max_error=cfg.max_error)
     accepted = passes(transforms, errors, ious, np.inf, checks) & (errors < student_errors) & (change <= cfg.max_change)
     for members, transform in zip([g for g, ok in zip(groups, accepted) if ok], transforms[accepted]):
-        points = np.asarray(pc0[members], np.float64)
-        out[members] = (points @ transform[:3, :3].T + transform[:3, 3] - points).astype(np.float32)
+        out[members] = rigid_flow(np.asarray(pc0[members], np.float64), transform)
         refined[members] = True
     return out, refined

@@ -1,8 +1,8 @@
 """Step 6's batch registration on the CPU (numba, parallel over pairs): register each packed pair with
 ``icpflow.teacher.icp`` and measure its match quality (see ``icpflow.teacher.registration``).
 
-Nearest neighbours are exact, from one sorted voxel grid of ``_GRID_CELL`` cells per fixed cluster
-(``icpflow.teacher.neighbours``) that serves both the ICP correspondences and the quality.
+Nearest neighbours are exact, from one sorted voxel grid per fixed cluster (``icpflow.teacher.neighbours``; cells of
+:func:`grid_cell`, 0.3 m at the teacher's truncation) that serves both the ICP correspondences and the quality.
 """
 
 from __future__ import annotations
@@ -20,6 +20,14 @@ from icpflow.teacher.neighbours import build_grid, nn_stats, transform_cloud
 # 0.1 m cells (BENCHMARKS.md, issue 22, the teacher's fourth session); the quality's untruncated queries used 0.3 m
 # cells before.
 _GRID_CELL = 0.3
+
+
+def grid_cell(max_corr: float) -> float:
+    """Cells (m) of the neighbour grid for ICP truncated at ``max_corr``: ``_GRID_CELL``, or ``max_corr / 2`` for
+    a truncation beyond twice it (coarse-to-fine ICP, ``fastflow3d.refine``), so that a query with nothing within
+    reach stops within the grid search's shells instead of scanning every point. The neighbours are the same at any
+    cell size; the teacher's 0.1 m truncation keeps 0.3 m cells."""
+    return max(_GRID_CELL, float(max_corr) / 2)
 
 
 @numba.njit(cache=True)
@@ -115,12 +123,11 @@ def _register_batch(
 
 
 def register_batch_cpu(
-    movings, fixeds, starts, params: ICPConfig, fixed_normals=None, identity: bool = False, grid_cell=_GRID_CELL
+    movings, fixeds, starts, params: ICPConfig, fixed_normals=None, identity: bool = False
 ) -> tuple[np.ndarray, ...]:
     """:func:`_register_batch` on lists of clouds (point-to-plane when the fixed clouds' normals are given):
     (transforms, errors, ious, iterations, errors at the identity, IoU ratios at the identity) in the input order
-    (the last two measured only with ``identity``, else inf and 0). ``grid_cell`` (m): the neighbour grid's cells
-    (any size gives the same result; a truncation far beyond three cells answers faster on larger cells)."""
+    (the last two measured only with ``identity``, else inf and 0)."""
     order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
     mov_all, mov_off = pack([movings[k] for k in order])
     fix_all, fix_off = pack([fixeds[k] for k in order])
@@ -139,7 +146,7 @@ def register_batch_cpu(
         params.dof == "yaw",
         plane,
         float(params.max_corr),  # the IoU inlier distance is the correspondence truncation
-        float(grid_cell),
+        grid_cell(params.max_corr),
         numba.get_num_threads(),
         identity,
     )
