@@ -92,11 +92,27 @@ class RefineConfig:
             unknown = set(value) - set(cls.__dataclass_fields__)
             if unknown:
                 raise ValueError(f"refine: unknown settings {sorted(unknown)}")
-            fields = dict(value)
-            if "max_corr" in fields:
-                fields["max_corr"] = tuple(float(d) for d in fields["max_corr"])
-            return cls(**fields)
+            return cls(
+                **{name: _typed(name, given, cls.__dataclass_fields__[name].type) for name, given in value.items()}
+            )
         raise ValueError(f"refine must be true, false or a dict of RefineConfig fields, got {value!r}")
+
+
+def _typed(name: str, value, kind: str):
+    """``value`` of a ``RefineConfig`` field as its type (``kind``: the annotation, ``float``, ``int`` or a tuple of
+    floats); ValueError naming the field otherwise (bools and fractional counts are refused)."""
+    if kind.startswith("tuple"):
+        items = list(value) if isinstance(value, (list, tuple)) else None
+        if items is None or not all(_is_number(item) for item in items):
+            raise ValueError(f"refine: {name} must be a list of metres, got {value!r}")
+        return tuple(float(item) for item in items)
+    if not _is_number(value) or (kind == "int" and float(value) != int(value)):
+        raise ValueError(f"refine: {name} must be {'an integer' if kind == 'int' else 'a number'}, got {value!r}")
+    return int(value) if kind == "int" else float(value)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def components(points: np.ndarray, cell: float) -> tuple[np.ndarray, int]:

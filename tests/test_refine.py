@@ -89,3 +89,31 @@ def test_refinement_settings_are_checked():
         RefineConfig(cell=0.0, max_corr=())
     with pytest.raises(ValueError, match="refine must be"):
         RefineConfig.of("yes")
+    # a wrong type names its field, never a bare conversion error
+    for given, message in [
+        ({"max_corr": "abc"}, "max_corr must be a list of metres"),
+        ({"max_corr": 0.5}, "max_corr must be a list of metres"),
+        ({"cell": "x"}, "cell must be a number"),
+        ({"min_points": 12.5}, "min_points must be an integer"),
+        ({"max_iter": True}, "max_iter must be an integer"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            RefineConfig.of(given)
+    assert RefineConfig.of({"min_points": 12.0, "cell": 1}) == RefineConfig(min_points=12, cell=1.0)
+
+
+def test_refinement_of_degenerate_scans():
+    xy = np.stack(np.meshgrid(np.arange(-20.0, 20.0, 0.25), np.arange(-20.0, 20.0, 0.25)), -1).reshape(-1, 2)
+    flat = np.column_stack([xy, np.zeros(len(xy))]).astype(np.float32)  # one 40 m component
+    for pc0, pc1 in [
+        (np.zeros((1, 3), np.float32), np.zeros((1, 3), np.float32)),  # one point
+        (flat, flat + np.float32([0.3, 0.0, 0.0])),  # one component longer than max_extent
+        (np.zeros((0, 3), np.float32), flat),  # nothing in pc0
+    ]:
+        residual = np.full(pc0.shape, 0.3, np.float32)
+        refined, replaced = refine_residual(pc0, residual, pc1, RefineConfig())
+        assert np.array_equal(refined, residual) and not replaced.any()
+    # 500 identical points in both scans: whatever the student says, they did not move
+    same = np.ones((500, 3), np.float32)
+    refined, replaced = refine_residual(same, np.full((500, 3), 0.3, np.float32), same, RefineConfig())
+    assert replaced.all() and np.abs(refined).max() < 1e-6
