@@ -1,6 +1,7 @@
 """Wall time and peak memory of the ICP-Flow teacher per frame pair, with a per-stage breakdown.
 
-    .venv/bin/python benchmarks/bench_teacher.py [--repeats 5] [--threads 2] [--kernels-only]
+    .venv/bin/python benchmarks/bench_teacher.py [--repeats 5] [--threads 2] [--kernels-only] [--set F=V ...]
+        [--against F=V ...]
 
 Rows (medians over ``repeats`` runs after one warm-up run):
 * ``av2``: the Argoverse 2 pair in ../shared/data/av2 (2 x ~99k points), ego motion given (``ego_motion.npz``),
@@ -11,6 +12,9 @@ Rows (medians over ``repeats`` runs after one warm-up run):
 * ``kernels``: the per-cluster kernels alone on P synthetic cluster pairs of ~300 points (car-sized box surfaces
   moved by up to 2 m and 0.3 rad): histogram initialisation and CPU ICP with checks.
 Peak RSS is the process's maximum resident set size so far (``resource.getrusage``), so it is cumulative over rows.
+``--against``: a second teacher (the same preset and ``--set``, then these overrides) timed side by side on the
+av2 and kitti rows, the two alternating run by run; its rows are named ``case (against)`` and a last table gives
+each case's time ratio (this teacher / the other).
 """
 
 from __future__ import annotations
@@ -63,24 +67,31 @@ def read_kitti() -> tuple[np.ndarray, np.ndarray, None, dict] | None:
     return pc0, pc1, None, {}
 
 
-def bench_teacher(name, data, cfg, repeats) -> dict:
+def bench_teacher(name, data, configs: dict, repeats) -> list[dict]:
+    """One row per teacher of ``configs`` (row name -> ICPFlowConfig) on one pair, their runs alternating."""
     from icpflow.teacher.pipeline import ICPFlow
 
-    teacher = ICPFlow(cfg)
+    teachers = {row: ICPFlow(cfg) for row, cfg in configs.items()}
     pc0, pc1, ego, extra = data
-    teacher(pc0, pc1, ego, **extra)  # warm-up: numba caches, Patchwork++ and KISS-ICP objects
-    walls, stages, candidates, matches = [], {s: [] for s in STAGES}, 0, 0
+    for teacher in teachers.values():
+        teacher(pc0, pc1, ego, **extra)  # warm-up: numba caches, Patchwork++ and KISS-ICP objects
+    walls = {row: [] for row in teachers}
+    stages = {row: {s: [] for s in STAGES} for row in teachers}
+    results = {}
     for _ in range(repeats):
-        tic = time.perf_counter()
-        result = teacher(pc0, pc1, ego, **extra)
-        walls.append(time.perf_counter() - tic)
-        for s in STAGES:
-            stages[s].append(result.timings.get(s, 0.0))
-        candidates, matches = result.n_candidates, len(result.pairs)
-    row = {"case": name, "points": f"{len(pc0)}+{len(pc1)}", "total": statistics.median(walls)}
-    row.update({s: statistics.median(v) for s, v in stages.items()})
-    row.update(candidates=candidates, matches=matches, rss=peak_rss_mb())
-    return row
+        for row, teacher in teachers.items():
+            tic = time.perf_counter()
+            results[row] = teacher(pc0, pc1, ego, **extra)
+            walls[row].append(time.perf_counter() - tic)
+            for s in STAGES:
+                stages[row][s].append(results[row].timings.get(s, 0.0))
+    rows = []
+    for row in teachers:
+        out = {"case": row, "points": f"{len(pc0)}+{len(pc1)}", "total": statistics.median(walls[row])}
+        out.update({s: statistics.median(v) for s, v in stages[row].items()})
+        out.update(candidates=results[row].n_candidates, matches=len(results[row].pairs), rss=peak_rss_mb())
+        rows.append(out)
+    return rows
 
 
 def synthetic_pairs(count: int, seed: int = 0):
@@ -140,6 +151,13 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=200, help="cluster pairs in the kernels-only row")
     parser.add_argument("--kernels-only", action="store_true")
     parser.add_argument(
+        "--against",
+        nargs="*",
+        default=None,
+        metavar="FIELD=VALUE",
+        help="a second teacher: the same config with these overrides, timed side by side",
+    )
+    parser.add_argument(
         "--set",
         nargs="*",
         default=[],
@@ -148,7 +166,10 @@ def main() -> None:
     )
     args = parser.parse_args()
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
-    cfg = ICPFlowConfig.preset("av2", **{k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in args.set)})
+    def overrides(items):
+        return {k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in items)}
+
+    cfg = ICPFlowConfig.preset("av2", **overrides(args.set))
     rows = [bench_kernels(args.pairs, cfg, args.repeats)]
     if not args.kernels_only:
         for name, reader in (("av2", read_av2), ("kitti", read_kitti)):
@@ -156,9 +177,18 @@ def main() -> None:
             if data is None:
                 print(f"skipped {name}: no data under {DATA}")
                 continue
-            rows.append(bench_teacher(name, data, cfg, args.repeats))
+            configs = {name: cfg}
+            if args.against is not None:
+                configs[f"{name} (against)"] = cfg.replace(**overrides(args.against))
+            rows += bench_teacher(name, data, configs, args.repeats)
     print(f"numba threads {numba.get_num_threads()}, median of {args.repeats} after a warm-up; seconds")
     print_table(rows)
+    if args.against is not None:
+        totals = {r["case"]: r["total"] for r in rows}
+        print(f"\nTime ratio, this teacher / the one with {' '.join(args.against)}")
+        print("| case | ratio |\n|---|---|")
+        for case in [c for c in totals if f"{c} (against)" in totals]:
+            print(f"| {case} | {totals[case] / totals[f'{case} (against)']:.3f} |")
 
 
 if __name__ == "__main__":

@@ -181,7 +181,7 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
     for index, max_corr in enumerate(cfg.max_corr):  # coarse to fine, each stage from the last one's transforms
         stage = ICPConfig(max_corr=max_corr, max_iter=cfg.max_iter, dof="yaw")
         last = index == len(cfg.max_corr) - 1  # the last stage also measures no motion at all (the identity)
-        transforms, errors, ious, _, still_errors, still_ious = register_batch_cpu(
+        transforms, errors, ious, _, still_errors, still_ious, *_ = register_batch_cpu(
             movings,
             fixeds,
             transforms,

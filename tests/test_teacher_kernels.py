@@ -234,7 +234,7 @@ def test_yaw_only_icp_keeps_objects_upright():
 
 def test_settings_come_from_the_config():
     cfg = ICPFlowConfig.preset("av2", histogram={"max_points": 123, "top_k": 2}, icp={"max_points": 456, "dof": "yaw"})
-    assert cfg.histogram == HistogramConfig(max_points=123, top_k=2)
+    assert cfg.histogram == HistogramConfig(max_points=123, top_k=2, axis_min_extent=3.0)
     assert cfg.icp == ICPConfig(max_points=456, dof="yaw", static_tolerance=0.25)
     src = _box_surface(200)
     translation, score = initial_translation(src, src + np.float32([0.5, 0.0, 0.0]), 2.0, cfg.histogram, cfg.seed)
@@ -324,7 +324,7 @@ def test_static_pairs_keep_the_identity_when_a_slide_fits_barely_better():
     transforms = np.stack([make_transform(translation=(0.1, 0.0, 0.0)), motion])
     result = register_clusters(clouds, transforms, dataclasses.replace(ICP, max_iter=0))  # quality only
     slid = result.mean_error.copy()
-    _prefer_static(result, clouds, 0.25, ICP)
+    _prefer_static(result, clouds, dataclasses.replace(ICP, static_tolerance=0.25))
     np.testing.assert_array_equal(result.transforms[0], np.eye(4))
     assert result.mean_error[0] <= 1.25 * slid[0]  # the identity's own error replaced the slide's
     np.testing.assert_array_equal(result.transforms[1], motion)

@@ -159,19 +159,86 @@ def _scores(src_t, dst_t, candidates):
 
 
 @numba.njit(cache=True)
-def _initial_translation(src, dst, window, bin_size, z_bins, z_range, nms_kernel, top_k):
+def main_axis(points):
+    """(unit (2,) main horizontal axis of (N >= 1, 3) float64 points, their length along it in metres)."""
+    n = points.shape[0]
+    mx, my = points[:, 0].mean(), points[:, 1].mean()
+    sxx = sxy = syy = 0.0
+    for i in range(n):
+        dx, dy = points[i, 0] - mx, points[i, 1] - my
+        sxx += dx * dx
+        sxy += dx * dy
+        syy += dy * dy
+    angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the larger eigenvalue of the 2x2 covariance
+    axis = np.array([np.cos(angle), np.sin(angle)])
+    low, high = np.inf, -np.inf
+    for i in range(n):
+        along = points[i, 0] * axis[0] + points[i, 1] * axis[1]
+        low, high = min(low, along), max(high, along)
+    return axis, high - low
+
+
+@numba.njit(cache=True)
+def _axis_search(src, dst, start, score, window, axis_step, axis_points):
+    """The line search along the source cluster's main horizontal axis from ``start`` (its ``score``): candidates
+    every ``axis_step`` metres across the window, scored on every k-th point (at most ``axis_points`` per
+    cluster), then the best one refined in quarter steps on every point. Returns the best translation of all and its
+    score (``start`` when nothing scores lower)."""
+    axis, _ = main_axis(src)
+    n_steps = int(window / axis_step)
+    line = np.zeros((2 * n_steps + 1, 3))
+    for s in range(-n_steps, n_steps + 1):
+        line[s + n_steps, 0] = start[0] + s * axis_step * axis[0]
+        line[s + n_steps, 1] = start[1] + s * axis_step * axis[1]
+        line[s + n_steps, 2] = start[2]
+    src_step = max(1, src.shape[0] // axis_points)
+    dst_step = max(1, dst.shape[0] // axis_points)
+    coarse = _scores(np.ascontiguousarray(src[::src_step].T), np.ascontiguousarray(dst[::dst_step].T), line)
+    centre = line[np.argmin(coarse)]
+    fine = np.zeros((9, 3))
+    for q in range(9):
+        fine[q, 0] = centre[0] + (q - 4) * 0.25 * axis_step * axis[0]
+        fine[q, 1] = centre[1] + (q - 4) * 0.25 * axis_step * axis[1]
+        fine[q, 2] = centre[2]
+    scores = _scores(np.ascontiguousarray(src.T), np.ascontiguousarray(dst.T), fine)
+    best = np.argmin(scores)
+    if scores[best] < score:
+        return fine[best], scores[best]
+    return start, score
+
+
+@numba.njit(cache=True)
+def _initial_translation(
+    src, dst, window, bin_size, z_bins, z_range, nms_kernel, top_k, axis_min_extent, axis_step, axis_points
+):
     """Best candidate of one pair: ((3,) translation, score)."""
     peaks, k = _vote_peaks(src, dst, window, bin_size, z_bins, z_range, nms_kernel, top_k)
     candidates = np.zeros((k + 1, 3))  # the last row is the zero translation
     candidates[:k] = peaks[:k]
     scores = _scores(np.ascontiguousarray(src.T), np.ascontiguousarray(dst.T), candidates)
     c = np.argmin(scores)  # first minimum: ties go to the higher-voted peak
+    moving = candidates[c, 0] ** 2 + candidates[c, 1] ** 2 >= axis_step**2  # the vote's best is not (near) zero
+    if axis_min_extent > 0 and moving and src.shape[0] > 1 and main_axis(src)[1] >= axis_min_extent:
+        return _axis_search(src, dst, candidates[c], scores[c], window, axis_step, axis_points)
     return candidates[c], scores[c]
 
 
 @numba.njit(cache=True, parallel=True)
 def _initial_translations(
-    src_all, src_off, dst_all, dst_off, windows, bin_size, z_bins, z_range, nms_kernel, top_k, n_workers
+    src_all,
+    src_off,
+    dst_all,
+    dst_off,
+    windows,
+    bin_size,
+    z_bins,
+    z_range,
+    nms_kernel,
+    top_k,
+    axis_min_extent,
+    axis_step,
+    axis_points,
+    n_workers,
 ):
     """:func:`_initial_translation` for P packed pairs: ((P, 3) translations, (P,) scores). Worker w takes pairs
     w, w + n_workers, ...: with pairs sorted by decreasing cost this balances the load, which numba's contiguous
@@ -185,7 +252,17 @@ def _initial_translations(
             dst = dst_all[dst_off[p] : dst_off[p + 1]]
             if src.shape[0] > 0 and dst.shape[0] > 0:
                 best[p], score[p] = _initial_translation(
-                    src, dst, windows[p], bin_size, z_bins, z_range, nms_kernel, top_k
+                    src,
+                    dst,
+                    windows[p],
+                    bin_size,
+                    z_bins,
+                    z_range,
+                    nms_kernel,
+                    top_k,
+                    axis_min_extent,
+                    axis_step,
+                    axis_points,
                 )
     return best, score
 
@@ -220,6 +297,9 @@ def initial_translations(
         float(params.z_range),
         int(params.nms_kernel),
         int(params.top_k),
+        float(params.axis_min_extent),
+        float(params.axis_step),
+        int(params.axis_points),
         numba.get_num_threads(),
     )
     translations, scores = np.empty_like(best), np.empty_like(score)

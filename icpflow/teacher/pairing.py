@@ -24,13 +24,16 @@ from icpflow.teacher.config import PairingConfig
 @dataclass
 class ClusterStats:
     """Per-label statistics of one scan for labels 0 .. L-1: ``count`` (L,), ``centroid`` (L, 3), ``extent`` (L, 3)
-    sorted bounding-box side lengths (ascending), ``order``/``starts`` to slice each label's points."""
+    sorted bounding-box side lengths (ascending), ``order``/``starts`` to slice each label's points, ``lower``/
+    ``upper`` (L, 3) the axis-aligned bounding box's corners (+inf / -inf for a label with no point)."""
 
     count: np.ndarray
     centroid: np.ndarray
     extent: np.ndarray
     order: np.ndarray
     starts: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
 
     def points(self, points: np.ndarray, label: int) -> np.ndarray:
         """(n, 3) points of ``label``."""
@@ -55,7 +58,7 @@ def cluster_stats(points: np.ndarray, labels: np.ndarray, n_labels: int) -> Clus
         upper[present] = np.maximum.reduceat(sorted_points, begins, axis=0)
     centroid[present] /= count[present, None]
     extent = np.where(present[:, None], upper - lower, 0.0)
-    return ClusterStats(count, centroid, np.sort(extent, axis=1), order, starts)
+    return ClusterStats(count, centroid, np.sort(extent, axis=1), order, starts, lower, upper)
 
 
 def plausible(

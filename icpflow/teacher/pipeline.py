@@ -23,7 +23,7 @@ import numpy as np
 
 from icpflow.frames import check_points
 from icpflow.geometry import rigid_problem, transform_points
-from icpflow.teacher import association, checks, deskew, histogram, registration
+from icpflow.teacher import association, checks, deskew, histogram, merging, registration
 from icpflow.teacher.clustering import cluster_points
 from icpflow.teacher.config import ICPConfig, ICPFlowConfig
 from icpflow.teacher.ego_motion import estimate_ego_motion
@@ -31,7 +31,7 @@ from icpflow.teacher.flow import absorb, match_confidence, point_flow
 from icpflow.teacher.ground import GroundSegmenter
 from icpflow.teacher.pairing import cluster_stats, stage1_pairs, stage2_pairs
 
-STAGES = ("ego_motion", "ground", "clustering", "pairing", "histogram", "icp", "deskew", "flow")
+STAGES = ("ego_motion", "ground", "clustering", "pairing", "histogram", "icp", "merging", "deskew", "flow")
 
 
 @dataclass
@@ -44,7 +44,10 @@ class ICPFlowResult:
     ``errors``/``iou_ratios``/``match_confidence`` (M,); ``stage`` (M,) int8 (1 same label, 2 cross label);
     ``ego1_from_ego0`` (4, 4) used; ``ground0``/``ground1`` masks used; ``valid0``/``valid1`` finite rows;
     ``dropped0``/``dropped1`` counts of non-finite rows; ``n_candidates`` pairs registered; ``n_deskewed`` matches
-    refined by the de-skew step; ``timings`` seconds per stage.
+    refined by the de-skew step; ``timings`` seconds per stage; ``candidates`` (only when the call asks for them,
+    else None) every registered candidate pair of both stages, for diagnosis: ``src``/``dst`` (C,) cluster ids,
+    ``stage`` (C,), ``init`` (C, 3) the histogram's (or centroid) start translation, ``transforms`` (C, 4, 4),
+    ``errors``/``iou_ratios`` (C,), ``passed`` (C,) bool (the checks), ``chosen`` (C,) bool (the association).
     """
 
     flow: np.ndarray
@@ -67,6 +70,7 @@ class ICPFlowResult:
     n_candidates: int
     n_deskewed: int = 0
     timings: dict = field(default_factory=dict)
+    candidates: dict | None = None
 
 
 def _as_times(name: str, value, count: int) -> np.ndarray | None:
@@ -91,21 +95,24 @@ def _as_mask(name: str, value, count: int) -> np.ndarray | None:
     return array
 
 
-def _prefer_static(result, clouds, tolerance: float, params: ICPConfig, seed: int = 0) -> None:
-    """Pairs whose mean error at the identity is at most ``(1 + tolerance)`` times their registered error keep the
-    identity (no motion), with its error and IoU ratio (``result`` is updated in place). Scans sample a static
-    surface differently (scan lines move with the ego), so a small slide along walls often fits slightly better
-    than no motion at all; a real motion fits far better than the identity. The identity's quality is the one
+def _prefer_static(result, clouds, params: ICPConfig, seed: int = 0) -> None:
+    """Pairs whose error at the identity is at most ``(1 + params.static_tolerance)`` times their registered error
+    keep the identity (no motion), with its error and IoU ratio (``result`` is updated in place). Scans sample a
+    static surface differently (scan lines move with the ego), so a small slide along walls often fits slightly
+    better than no motion at all; a real motion fits far better than the identity. The errors compared are the
+    mean errors (the smaller of the two directions). The identity's quality is the one
     ``result`` holds (``register_clusters(identity=True)``), else measured here by a registration with no
     iteration."""
     identity = np.tile(np.eye(4), (len(clouds), 1, 1))
     if result.identity_error is None:
         still = registration.register_clusters(clouds, identity, dataclasses.replace(params, max_iter=0), seed)
         result.identity_error, result.identity_iou = still.mean_error, still.iou_ratio
-    static = result.identity_error <= result.mean_error * (1.0 + tolerance)
+        result.identity_symmetric_error = still.symmetric_error
+    static = result.identity_error <= result.mean_error * (1.0 + params.static_tolerance)
     result.transforms[static] = identity[static]
     result.mean_error[static] = result.identity_error[static]
     result.iou_ratio[static] = result.identity_iou[static]
+    result.symmetric_error[static] = result.identity_symmetric_error[static]
 
 
 class ICPFlow:
@@ -129,12 +136,14 @@ class ICPFlow:
         *,
         gap: int = 1,
         dt: float | None = None,
+        candidates: bool = False,
     ) -> ICPFlowResult:
         """Flow of pc0 (N0, 3) towards pc1 (N1, 3); ``gap`` k: frames between the scans (window scales with k).
 
         ``time0`` (N0,) / ``time1`` (N1,): optional capture time of each point in seconds after its scan's
         timestamp, and ``dt`` the seconds between the two timestamps; with ``cfg.deskew.enabled`` they drive the
         rolling-shutter refinement (``deskew``), which then needs all three. Without them nothing is de-skewed.
+        ``candidates``: also return every registered candidate pair (``ICPFlowResult.candidates``).
         """
         cfg = self.cfg
         timings = dict.fromkeys(STAGES, 0.0)
@@ -186,7 +195,26 @@ class ICPFlow:
         timings["clustering"] = time.perf_counter() - tic
 
         window = cfg.pairing.window(np.linalg.norm(ego[:3, 3]), int(gap))
-        matches, src_stats, dst_stats = self._match(src, dst, src_labels, dst_labels, window, timings)
+        matches, tried, src_stats, dst_stats = self._match(src, dst, src_labels, dst_labels, window, timings)
+        if cfg.merging.distance > 0:
+            tic = time.perf_counter()
+            _, src_stats, dst_stats = merging.merge_split_clusters(
+                src,
+                dst,
+                src_labels,
+                dst_labels,
+                src_stats,
+                dst_stats,
+                matches,
+                lambda clouds, centroids, max_points: self._register_clouds(
+                    clouds, centroids, window, dict.fromkeys(STAGES, 0.0), max_points
+                ),
+                cfg.merging,
+                cfg.icp,
+                cfg.clustering.min_cluster_size,
+                cfg.seed,
+            )
+            timings["merging"] = time.perf_counter() - tic
 
         tic = time.perf_counter()
         n_deskewed = 0
@@ -247,12 +275,13 @@ class ICPFlow:
             dropped1=int((~valid1).sum()),
             n_deskewed=n_deskewed,
             timings=timings,
+            candidates=tried if candidates else None,
             **matches,
         )
 
     def _match(self, src, dst, src_labels, dst_labels, window, timings) -> tuple:
-        """Steps 4 to 8 over both stages: the chosen matches as arrays (see ``ICPFlowResult``) and the two
-        scans' ``ClusterStats``."""
+        """Steps 4 to 8 over both stages: the chosen matches as arrays, every candidate tried (see
+        ``ICPFlowResult``) and the two scans' ``ClusterStats``."""
         cfg = self.cfg
         tic = time.perf_counter()
         n_labels = int(max(src_labels.max(initial=-1), dst_labels.max(initial=-1))) + 1
@@ -273,29 +302,58 @@ class ICPFlow:
         timings["pairing"] += time.perf_counter() - tic
         second = self._register(src, dst, src_stats, dst_stats, s2, d2, window, timings)
 
-        out = {key: np.concatenate([first[key], second[key]]) for key in first if key != "n_candidates"}
+        out = {key: np.concatenate([first[key], second[key]]) for key in first if key not in ("n_candidates", "tried")}
         out["stage"] = np.concatenate(
             [np.full(len(first["errors"]), 1, np.int8), np.full(len(second["errors"]), 2, np.int8)]
         )
         out["n_candidates"] = first["n_candidates"] + second["n_candidates"]
-        return out, src_stats, dst_stats
+        tried = {key: np.concatenate([first["tried"][key], second["tried"][key]]) for key in first["tried"]}
+        tried["stage"] = np.repeat(np.array([1, 2], np.int8), [first["n_candidates"], second["n_candidates"]])
+        return out, tried, src_stats, dst_stats
 
     def _register(self, src, dst, src_stats, dst_stats, src_ids, dst_ids, window, timings) -> dict:
         """Initialise, register, check and associate candidate pairs; the chosen ones as arrays."""
         cfg = self.cfg
         n = len(src_ids)
-        empty = {
-            "pairs": np.zeros((0, 2), np.int32),
-            "transforms": np.zeros((0, 4, 4)),
-            "errors": np.zeros(0),
-            "iou_ratios": np.zeros(0),
-            "match_confidence": np.zeros(0, np.float32),
-            "n_candidates": n,
-        }
-        if n == 0:
-            return empty
-        tic = time.perf_counter()
         clouds = [(src_stats.points(src, s), dst_stats.points(dst, d)) for s, d in zip(src_ids, dst_ids)]
+        tried = self._register_clouds(clouds, src_stats.centroid[src_ids], window, timings)
+        tic = time.perf_counter()
+        chosen = association.associate(src_ids, dst_ids, tried["errors"], tried["passed"], method=cfg.association.method)
+        timings["icp"] += time.perf_counter() - tic
+        pick = np.flatnonzero(chosen)
+        return {
+            "pairs": np.stack([src_ids[pick], dst_ids[pick]], axis=1).astype(np.int32).reshape(-1, 2),
+            "transforms": tried["transforms"][pick],
+            "errors": tried["errors"][pick],
+            "iou_ratios": tried["iou_ratios"][pick],
+            "match_confidence": tried["match_confidence"][pick],
+            "n_candidates": n,
+            "tried": {
+                "src": np.asarray(src_ids, np.int64),
+                "dst": np.asarray(dst_ids, np.int64),
+                "chosen": chosen,
+                **{key: tried[key] for key in ("init", "transforms", "errors", "iou_ratios", "passed")},
+            },
+        }
+
+    def _register_clouds(self, clouds, src_centroids, window, timings, max_points: int | None = None) -> dict:
+        """Steps 5 to 7 for P candidate pairs ``clouds`` ((src (Ns, 3), dst (Nd, 3)), pc1's frame) with their
+        source centroids (P, 3), ICP on at most ``max_points`` per cluster if given (else ``icp.max_points``): ``init`` (P, 3) start translations, ``transforms`` (P, 4, 4), ``errors``,
+        ``symmetric_errors`` (``registration.RegistrationResult``), ``iou_ratios``, ``match_confidence`` (P,),
+        ``passed`` (P,) bool."""
+        cfg = self.cfg
+        n = len(clouds)
+        if n == 0:
+            return {
+                "init": np.zeros((0, 3)),
+                "transforms": np.zeros((0, 4, 4)),
+                "errors": np.zeros(0),
+                "symmetric_errors": np.zeros(0),
+                "iou_ratios": np.zeros(0),
+                "match_confidence": np.zeros(0, np.float32),
+                "passed": np.zeros(0, bool),
+            }
+        tic = time.perf_counter()
         if cfg.histogram.init == "histogram":
             translations, _ = histogram.initial_translations(clouds, np.full(n, window), cfg.histogram, cfg.seed)
         else:
@@ -305,27 +363,27 @@ class ICPFlow:
         timings["histogram"] += time.perf_counter() - tic
 
         tic = time.perf_counter()
-        result = registration.register_clusters(clouds, inits, cfg.icp, cfg.seed, identity=cfg.icp.static_tolerance > 0)
-        if cfg.icp.static_tolerance > 0:
-            _prefer_static(result, clouds, cfg.icp.static_tolerance, cfg.icp, cfg.seed)
+        icp = cfg.icp if max_points is None else dataclasses.replace(cfg.icp, max_points=min(cfg.icp.max_points, max_points))
+        result = registration.register_clusters(clouds, inits, icp, cfg.seed, identity=icp.static_tolerance > 0)
+        if icp.static_tolerance > 0:
+            _prefer_static(result, clouds, icp, cfg.seed)
         ok = checks.passes(
             result.transforms,
             result.mean_error,
             result.iou_ratio,
             np.full(n, window),
             cfg.checks,
-            src_centroids=src_stats.centroid[src_ids],
+            src_centroids=src_centroids,
         )
-        chosen = association.associate(src_ids, dst_ids, result.mean_error, ok, method=cfg.association.method)
         timings["icp"] += time.perf_counter() - tic
-        pick = np.flatnonzero(chosen)
+        errors = result.mean_error.astype(np.float64)
+        ious = result.iou_ratio.astype(np.float64)
         return {
-            "pairs": np.stack([src_ids[pick], dst_ids[pick]], axis=1).astype(np.int32),
-            "transforms": result.transforms[pick],
-            "errors": result.mean_error[pick].astype(np.float64),
-            "iou_ratios": result.iou_ratio[pick].astype(np.float64),
-            "match_confidence": match_confidence(
-                result.mean_error[pick], result.iou_ratio[pick], cfg.flow, cfg.checks.max_error
-            ),
-            "n_candidates": n,
+            "init": translations,
+            "transforms": result.transforms,
+            "errors": errors,
+            "symmetric_errors": result.symmetric_error.astype(np.float64),
+            "iou_ratios": ious,
+            "match_confidence": match_confidence(errors, ious, cfg.flow, cfg.checks.max_error),
+            "passed": ok,
         }

@@ -26,6 +26,7 @@ All points share one frame; clusters (N, 3); transforms (4, 4) float64, src -> d
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,16 +42,19 @@ from icpflow.teacher.registration_torch import register_batch_torch
 @dataclass
 class RegistrationResult:
     """Per-pair ICP output: ``transforms`` (P, 4, 4) float64 src -> dst, ``mean_error`` (P,) metres,
-    ``iou_ratio`` (P,) in [0, 1], ``iterations`` (P,) ICP iterations run; ``identity_error``/``identity_iou``
-    (P,) the same quality at the identity (no motion) when asked for (``register_clusters(identity=True)``),
-    else None."""
+    ``iou_ratio`` (P,) in [0, 1], ``iterations`` (P,) ICP iterations run; ``symmetric_error`` (P,) the mean of
+    the two directed mean distances (``mean_error`` is the smaller one); ``identity_error``/``identity_iou``/
+    ``identity_symmetric_error`` (P,) the same at the identity (no motion) when asked for
+    (``register_clusters(identity=True)``), else None."""
 
     transforms: np.ndarray
     mean_error: np.ndarray
     iou_ratio: np.ndarray
     iterations: np.ndarray
+    symmetric_error: np.ndarray | None = None
     identity_error: np.ndarray | None = None
     identity_iou: np.ndarray | None = None
+    identity_symmetric_error: np.ndarray | None = None
 
 
 def register_plane(
@@ -62,11 +66,11 @@ def register_plane(
     if len(inits) != len(pairs):
         raise ValueError(f"register_plane: {len(pairs)} pairs but {len(inits)} initial transforms")
     if not pairs:
-        return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
+        return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0))
     movings = [subsample(np.asarray(a, np.float64).reshape(-1, 3), int(params.max_points), seed) for a, _ in pairs]
     fixeds = [subsample(np.asarray(b, np.float64).reshape(-1, 3), int(params.max_points), seed) for _, b in pairs]
     out = register_batch_cpu(movings, fixeds, inits, params, [normals(b) for b in fixeds])
-    return RegistrationResult(*out[:4])
+    return RegistrationResult(*out[:4], symmetric_error=out[6])
 
 
 def register_clusters(
@@ -89,7 +93,7 @@ def register_clusters(
         raise ValueError(f"register_clusters: {len(pairs)} pairs but {len(inits)} initial transforms")
     n_pairs = len(pairs)
     if n_pairs == 0:
-        return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64))
+        return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0))
     movings, fixeds, starts = [], [], np.empty_like(inits)
     swapped = np.zeros(n_pairs, dtype=bool)
     for p, (src, dst) in enumerate(pairs):
@@ -99,17 +103,23 @@ def register_clusters(
         movings.append(dst if swapped[p] else src)
         fixeds.append(src if swapped[p] else dst)
         starts[p] = invert(inits[p]) if swapped[p] else inits[p]
-    identity_error = identity_iou = None
+    identity_error = identity_iou = identity_symmetric = None
     if params.backend == "cpu":
-        out = register_batch_cpu(movings, fixeds, starts, params, identity=identity)
-        transforms, errors, ious, iters = out[:4]
-        if identity:
-            identity_error, identity_iou = out[4:]
+        transforms, errors, ious, iters, still_error, still_iou, symmetric, still_symmetric = register_batch_cpu(
+            movings, fixeds, starts, params, identity=identity
+        )
     else:
-        transforms, errors, ious, iters = register_batch_torch(movings, fixeds, starts, params)
+        transforms, errors, ious, iters, symmetric = register_batch_torch(movings, fixeds, starts, params)
         if identity:
-            still = register_batch_cpu(movings, fixeds, np.tile(np.eye(4), (n_pairs, 1, 1)), params, identity=True)
-            identity_error, identity_iou = still[4:]
+            # the identity's quality is measured before ICP starts: no iteration needed
+            measure = dataclasses.replace(params, max_iter=0)
+            _, _, _, _, still_error, still_iou, _, still_symmetric = register_batch_cpu(
+                movings, fixeds, np.tile(np.eye(4), (n_pairs, 1, 1)), measure, identity=True
+            )
+    if identity:
+        identity_error, identity_iou, identity_symmetric = still_error, still_iou, still_symmetric
     for p in np.flatnonzero(swapped):
         transforms[p] = invert(transforms[p])
-    return RegistrationResult(transforms, errors, ious, iters, identity_error, identity_iou)
+    return RegistrationResult(
+        transforms, errors, ious, iters, symmetric, identity_error, identity_iou, identity_symmetric
+    )

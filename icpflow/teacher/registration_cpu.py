@@ -36,16 +36,18 @@ def _register_one(
 ):
     """Register moving (M, 3) onto fixed (N, 3) from ``init``, point-to-point (keeping ``init`` when ICP did not
     lower the forward mean distance) or, with ``plane``, point-to-plane along ``fixed_normals`` (N, 3); returns
-    (transform, mean error, IoU ratio, iterations, mean error at the identity, IoU ratio at the identity), error
-    and IoU ratio as in the module docstring (the smaller of the two directions each); the last two only with
-    ``identity`` (else inf and 0)."""
+    (transform, mean error, IoU ratio, iterations, mean error at the identity, IoU ratio at the identity,
+    symmetric error, symmetric error at the identity), error and IoU ratio as in the module docstring (the smaller
+    of the two directions each), the symmetric error the mean of the two directed mean distances; the identity's
+    only with ``identity`` (else inf and 0)."""
     fixed_grid = build_grid(fixed, grid_cell)
-    err_id, iou_id = np.inf, 0.0
+    err_id, iou_id, sym_id = np.inf, 0.0, np.inf
     if identity:  # the same quality at no motion (what a separate registration with max_iter=0 measures)
         err_id_fwd, inl_id_fwd = nn_stats(moving, fixed, fixed_grid, grid_cell, inlier_d2)
         err_id_bwd, inl_id_bwd = nn_stats(fixed, moving, build_grid(moving, grid_cell), grid_cell, inlier_d2)
         n_id = moving.shape[0] + fixed.shape[0]
         err_id = min(err_id_fwd, err_id_bwd)
+        sym_id = 0.5 * (err_id_fwd + err_id_bwd)
         iou_id = min(inl_id_fwd / (n_id - inl_id_fwd), inl_id_bwd / (n_id - inl_id_bwd))
     if plane:
         transform, n_iter = icp_point_to_plane(
@@ -65,7 +67,7 @@ def _register_one(
     err_bwd, inl_bwd = nn_stats(fixed, moved, build_grid(moved, grid_cell), grid_cell, inlier_d2)
     n_all = moving.shape[0] + fixed.shape[0]
     iou = min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
-    return transform, min(err_fwd, err_bwd), iou, n_iter, err_id, iou_id
+    return transform, min(err_fwd, err_bwd), iou, n_iter, err_id, iou_id, 0.5 * (err_fwd + err_bwd), sym_id
 
 
 @numba.njit(cache=True, parallel=True)
@@ -87,7 +89,8 @@ def _register_batch(
     identity,
 ):
     """:func:`_register_one` for P packed pairs (``nrm_all`` packed like ``fix_all`` with ``plane``, else unused);
-    returns (transforms, errors, IoU ratios, iterations, errors at the identity, IoU ratios at the identity).
+    returns (transforms, errors, IoU ratios, iterations, errors at the identity, IoU ratios at the identity,
+    symmetric errors, symmetric errors at the identity).
     Worker w takes pairs w, w + n_workers, ...: with the pairs sorted by decreasing size this balances the load,
     which numba's contiguous split of a prange does not."""
     n_pairs = inits.shape[0]
@@ -97,6 +100,8 @@ def _register_batch(
     iters = np.zeros(n_pairs, dtype=np.int64)
     errors_id = np.full(n_pairs, np.inf)
     ious_id = np.zeros(n_pairs)
+    syms = np.full(n_pairs, np.inf)
+    syms_id = np.full(n_pairs, np.inf)
     inlier_d2 = inlier_dist * inlier_dist
     for w in numba.prange(n_workers):
         for p in range(w, n_pairs, n_workers):
@@ -105,7 +110,16 @@ def _register_batch(
             fixed_normals = nrm_all[fix_off[p] : fix_off[p + 1]] if plane else nrm_all
             transforms[p] = inits[p]
             if moving.shape[0] > 0 and fixed.shape[0] > 0:
-                transforms[p], errors[p], ious[p], iters[p], errors_id[p], ious_id[p] = _register_one(
+                (
+                    transforms[p],
+                    errors[p],
+                    ious[p],
+                    iters[p],
+                    errors_id[p],
+                    ious_id[p],
+                    syms[p],
+                    syms_id[p],
+                ) = _register_one(
                     moving,
                     fixed,
                     fixed_normals,
@@ -119,15 +133,16 @@ def _register_batch(
                     grid_cell,
                     identity,
                 )
-    return transforms, errors, ious, iters, errors_id, ious_id
+    return transforms, errors, ious, iters, errors_id, ious_id, syms, syms_id
 
 
 def register_batch_cpu(
     movings, fixeds, starts, params: ICPConfig, fixed_normals=None, identity: bool = False
 ) -> tuple[np.ndarray, ...]:
     """:func:`_register_batch` on lists of clouds (point-to-plane when the fixed clouds' normals are given):
-    (transforms, errors, ious, iterations, errors at the identity, IoU ratios at the identity) in the input order
-    (the last two measured only with ``identity``, else inf and 0)."""
+    (transforms, errors, ious, iterations, errors at the identity, IoU ratios at the identity, symmetric errors,
+    symmetric errors at the identity) in the input order (the identity's measured only with ``identity``, else inf
+    and 0)."""
     order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
     mov_all, mov_off = pack([movings[k] for k in order])
     fix_all, fix_off = pack([fixeds[k] for k in order])

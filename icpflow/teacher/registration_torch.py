@@ -9,7 +9,9 @@ from icpflow.teacher.config import ICPConfig
 
 
 def register_batch_torch(movings, fixeds, inits, params: ICPConfig, device=None):
-    """Padded batched ICP in torch: same algorithm and outputs as the cpu backend (float64 throughout)."""
+    """Padded batched ICP in torch: same algorithm as the cpu backend (float64 throughout); returns (transforms,
+    errors, IoU ratios, iterations, symmetric errors) as ``register_batch_cpu``'s first four and its symmetric
+    errors."""
     import torch
 
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
@@ -91,6 +93,13 @@ def register_batch_torch(movings, fixeds, inits, params: ICPConfig, device=None)
     n_all = (n_m + n_f).to(torch.float64)
     iou = torch.minimum(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
     error = torch.where(valid, torch.minimum(err_fwd, err_bwd), torch.full_like(err_fwd, float("inf")))
+    symmetric = torch.where(valid, 0.5 * (err_fwd + err_bwd), torch.full_like(err_fwd, float("inf")))
     iou = torch.where(valid, iou, torch.zeros_like(iou))
     transform = torch.where(valid[:, None, None], transform, init)
-    return (transform.cpu().numpy(), error.cpu().numpy(), iou.cpu().numpy(), iterations.cpu().numpy())
+    return (
+        transform.cpu().numpy(),
+        error.cpu().numpy(),
+        iou.cpu().numpy(),
+        iterations.cpu().numpy(),
+        symmetric.cpu().numpy(),
+    )
