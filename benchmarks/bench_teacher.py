@@ -166,6 +166,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+
     def overrides(items):
         return {k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in items)}
 

@@ -36,6 +36,7 @@ import ast
 import time
 from collections import Counter
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -122,27 +123,35 @@ def diagnose(pair, result, dynamic: np.ndarray) -> list[dict]:
         n = int(members.sum())
         main = counts.most_common(1)[0][0] if counts else -1
         record["clusters"] = sum(1 for c in counts.values() if c >= 0.15 * n)
-        record["cause"] = _first_cause(
-            record, n, counts, main, result, pair, obj, non_ground, dst, pc1_tree, tried, candidates,
-            truth, centroid, true_shift, axis,
+        scene = SimpleNamespace(result=result, non_ground=non_ground, pc1_tree=pc1_tree, tried=tried)
+        moving = SimpleNamespace(
+            n=n, counts=counts, main=main, mask=obj, moved=dst, truth=truth, centroid=centroid, shift=true_shift
         )
+        record["cause"] = _first_cause(record, moving, scene, axis)
         records.append(record)
     return records
 
 
-def _first_cause(record, n, counts, main, result, pair, obj, non_ground, dst, pc1_tree, tried, candidates, truth, centroid, true_shift, axis) -> str:
+def _first_cause(record: dict, obj: SimpleNamespace, scene: SimpleNamespace, axis: np.ndarray) -> str:
+    """The first step that went wrong for one moving object (``CAUSES``); fills the record's start error, along /
+    across error and yaw error where its main cluster has a match to the right partner. ``obj``: the object's
+    dynamic points (``n``, label ``counts``, ``main`` label, pc0 ``mask`` of all its points, ``moved`` points at
+    pc0 + true flow, true motion ``truth``, ``centroid``, true centroid ``shift``); ``scene``: the teacher's
+    ``result``, pc0's ``non_ground`` mask, ``pc1_tree`` (a cKDTree of pc1), ``tried`` ((src, dst) -> candidate row)."""
+    result, candidates = scene.result, scene.result.candidates
+    n, counts, main, true_shift, centroid = obj.n, obj.counts, obj.main, obj.shift, obj.centroid
     if sum(counts.values()) < 0.5 * n:
         return "noise"
     if record["clusters"] >= 2:
         return "split"
-    in_main = (result.labels0 == main) & non_ground
-    if (in_main & ~obj).sum() >= 0.2 * in_main.sum():
+    in_main = (result.labels0 == main) & scene.non_ground
+    if (in_main & ~obj.mask).sum() >= 0.2 * in_main.sum():
         return "merged"
-    distance, nearest = pc1_tree.query(dst, distance_upper_bound=0.3)
+    distance, nearest = scene.pc1_tree.query(obj.moved, distance_upper_bound=0.3)
     hit = nearest[np.isfinite(distance)]
     dst_counts = share_of(result.labels1[hit]) if len(hit) else Counter()
     partner = dst_counts.most_common(1)[0][0] if dst_counts else -1
-    k_true = tried.get((main, partner))
+    k_true = scene.tried.get((main, partner))
     rows = np.flatnonzero(result.pairs[:, 0] == main)
     if len(rows) == 0:
         if k_true is None:
@@ -160,9 +169,12 @@ def _first_cause(record, n, counts, main, result, pair, obj, non_ground, dst, pc
     miss = moved - true_shift
     along = abs(float(miss[:2] @ axis))
     across = float(np.linalg.norm(miss - np.r_[axis * (miss[:2] @ axis), 0.0]))
-    yaw_error = abs(np.degrees(euler_angles(transform)[2] - euler_angles(truth)[2]))
+    yaw_error = abs(np.degrees(euler_angles(transform)[2] - euler_angles(obj.truth)[2]))
     record["start_error"], record["along"], record["across"], record["yaw_error"] = (
-        float(start_error), along, across, float(yaw_error),
+        float(start_error),
+        along,
+        across,
+        float(yaw_error),
     )
     if record["epe"] <= 0.2:
         return "ok"
@@ -180,10 +192,15 @@ def report(records: list[dict], long_from: float, listed: int) -> str:
     points = np.array([r["points"] for r in records], float)
     summed = np.array([r["summed"] for r in records])
     speed = np.array([r["speed"] for r in records])
-    lines = [f"{len(records)} moving objects, {int(points.sum())} dynamic points, dynamic EPE "
-             f"{summed.sum() / points.sum():.3f} m", ""]
-    lines.append("| extent | objects | share of moving points | share of summed EPE | teacher EPE (m) | median speed "
-                 "(m/s) | dynamic EPE without them |")
+    lines = [
+        f"{len(records)} moving objects, {int(points.sum())} dynamic points, dynamic EPE "
+        f"{summed.sum() / points.sum():.3f} m",
+        "",
+    ]
+    lines.append(
+        "| extent | objects | share of moving points | share of summed EPE | teacher EPE (m) | median speed "
+        "(m/s) | dynamic EPE without them |"
+    )
     lines.append("|---|---|---|---|---|---|---|")
     for low, high in zip(EXTENT_BINS[:-1], EXTENT_BINS[1:]):
         pick = (extent >= low) & (extent < high)
@@ -211,14 +228,21 @@ def report(records: list[dict], long_from: float, listed: int) -> str:
                 )
     if listed:
         lines += ["", f"The {listed} worst objects (summed EPE)", ""]
-        lines.append("| object | extent (m) | speed (m/s) | points | EPE (m) | clusters | cause | start error | "
-                     "along / across (m) | yaw error (deg) |")
+        lines.append(
+            "| object | extent (m) | speed (m/s) | points | EPE (m) | clusters | cause | start error | "
+            "along / across (m) | yaw error (deg) |"
+        )
         lines.append("|---|---|---|---|---|---|---|---|---|---|")
         for r in sorted(records, key=lambda r: -r["summed"])[:listed]:
-            fit = (f"{r['start_error']:.2f} | {r['along']:.2f} / {r['across']:.2f} | {r['yaw_error']:.2f}"
-                   if "along" in r else "- | - | -")
-            lines.append(f"| {r['id']} | {r['extent']:.1f} | {r['speed']:.1f} | {r['points']} | {r['epe']:.3f} | "
-                         f"{r['clusters']} | {r['cause']} | {fit} |")
+            fit = (
+                f"{r['start_error']:.2f} | {r['along']:.2f} / {r['across']:.2f} | {r['yaw_error']:.2f}"
+                if "along" in r
+                else "- | - | -"
+            )
+            lines.append(
+                f"| {r['id']} | {r['extent']:.1f} | {r['speed']:.1f} | {r['points']} | {r['epe']:.3f} | "
+                f"{r['clusters']} | {r['cause']} | {fit} |"
+            )
     return "\n".join(lines)
 
 
@@ -228,8 +252,13 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--set", action="append", default=[], help="an eval.py override (repeatable)")
-    parser.add_argument("--teacher", action="append", default=[], metavar="FIELD=VALUE",
-                        help="an ICPFlowConfig override over the dataset's teacher (repeatable)")
+    parser.add_argument(
+        "--teacher",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="an ICPFlowConfig override over the dataset's teacher (repeatable)",
+    )
     parser.add_argument("--objects", type=float, default=8.0, help="extent (m) from which objects count as long")
     parser.add_argument("--list", type=int, default=20, help="worst objects to list")
     args = parser.parse_args()
@@ -243,13 +272,16 @@ def main() -> None:
         if pair.instance is None or pair.flow is None:
             raise SystemExit(f"{pair.source}: the anatomy needs ground-truth flow and instance ids")
         tic = time.perf_counter()
-        result = teacher(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1, gap=1, dt=pair.dt,
-                         candidates=True)
+        result = teacher(
+            pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1, gap=1, dt=pair.dt, candidates=True
+        )
         seconds.append(time.perf_counter() - tic)
         dynamic = PairTruth.of_pair(pair).paper(pair.dt, cfg.crop).masks["dynamic_fg"]
         records += diagnose(pair, result, dynamic)
-    print(f"eval.py {' '.join(overrides)}: {len(dataset)} pairs; teacher overrides {fields or 'none'}; "
-          f"median {np.median(seconds):.2f} s/pair")
+    print(
+        f"eval.py {' '.join(overrides)}: {len(dataset)} pairs; teacher overrides {fields or 'none'}; "
+        f"median {np.median(seconds):.2f} s/pair"
+    )
     print(report(records, args.objects, args.list))
 
 

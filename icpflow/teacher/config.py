@@ -220,7 +220,7 @@ class MergingConfig(_Checked):
     max_extent: float = setting(25.0, "positive")  # m: longest merged source cluster (along its main axis)
     gain: float = setting(0.1, "fraction")  # the merged error must be below (1 - gain) x the parts' error
     rounds: int = setting(2, "count")  # merge rounds (a cluster cut in three needs two)
-    max_points: int = setting(2000, "count")  # points per merged cluster entering its registration (<= icp's)
+    test_points: int = setting(2000, "count")  # points per cluster in the merge test's registration (<= icp's)
 
 
 #: the per-step blocks of ``ICPFlowConfig``: field name -> dataclass

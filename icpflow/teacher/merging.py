@@ -5,18 +5,19 @@ space, so one label holds the rear of the object in pc0 and its middle in pc1, t
 registers well on its own: one slides onto the other scan's part (a false static match) and the other fails the
 checks, and the whole vehicle gets a wrong flow. The reference has no such step.
 
-Candidates: two labels are adjacent when points of the two (either scan) fall in the same or neighbouring cells of
-``merging.distance`` metres; an adjacent pair is a candidate when at least one of them is unmatched or matched
-with a motion (a match at the identity on both sides is left alone: static structure), and the union of their
+Candidates: two labels are adjacent when their bounding boxes over both scans come within ``merging.distance``
+metres and points of the two (either scan) fall in the same or neighbouring cells of that size; an adjacent pair is
+a candidate when at least one of them is unmatched (with at least ``clustering.min_cluster_size`` source points) or
+matched with a motion (a match at the identity on both sides is left alone: static structure), and the union of their
 source points is at most ``merging.max_extent`` long along its main horizontal axis. The union of both labels'
 points in both scans (plus the pc1 clusters they were matched to) is registered like any candidate pair (the
 pipeline's histogram, ICP, static preference and checks). It is kept when it passes and its symmetric error (the
 mean of both directions' mean nearest-neighbour distances: the smaller one alone cannot see a part of one scan that
 nothing covers) is below ``(1 - merging.gain)`` times that of the parts as they stand, measured the same way on the
-same points (each part moved by its own match, an unmatched part not moved). Kept merges are applied greedily, largest gain first, each
-label merged once per round, for ``merging.rounds`` rounds (a vehicle cut in three needs two). The test registers
-at most ``merging.max_points`` points per cluster; the kept merges are registered again on all of
-``icp.max_points`` (that registration replaces the test's where it passes the checks).
+same points (each part moved by its own match, an unmatched part not moved). Kept merges are applied greedily,
+largest gain first, each label merged once per round, for ``merging.rounds`` rounds (a vehicle cut in three needs
+two). The test registers at most ``merging.test_points`` points per cluster; the kept merges are registered again on
+all of ``icp.max_points`` (that registration replaces the test's where it passes the checks).
 
 Points: source (Ns, 3) (pc0 ego-compensated into pc1's frame) and destination (Nd, 3), one frame; labels (N,)
 int32 fused ids, -1 for none. Matches: the pipeline's arrays (``pairs`` (M, 2) src/dst label, ``transforms`` (M, 4,
@@ -121,7 +122,7 @@ def merge_split_clusters(
     if cfg.distance <= 0:
         return 0, src_stats, dst_stats
     merged = 0
-    measure = dataclasses.replace(icp, max_iter=0, max_points=min(icp.max_points, cfg.max_points))
+    measure = dataclasses.replace(icp, max_iter=0, max_points=min(icp.max_points, cfg.test_points))
     n_labels = len(src_stats.count)
     for _ in range(cfg.rounds):
         moving = {int(s): t for (s, _), t in zip(matches["pairs"], matches["transforms"])}
@@ -150,7 +151,7 @@ def merge_split_clusters(
             centroids.append(source.mean(axis=0))
         if not candidates:
             break
-        result = register(clouds, np.array(centroids), cfg.max_points)
+        result = register(clouds, np.array(centroids), cfg.test_points)
         parts = registration.register_clusters(parts_clouds, np.tile(np.eye(4), (len(candidates), 1, 1)), measure, seed)
         merged_error, parts_error = result["symmetric_errors"], parts.symmetric_error
         gain = parts_error - merged_error
@@ -163,7 +164,7 @@ def merge_split_clusters(
                 chosen.append(k)
         if not chosen:
             break
-        # the kept merges registered again on all of icp.max_points (the test above used cfg.max_points)
+        # the kept merges registered again on all of icp.max_points (the test above used cfg.test_points)
         full = register([clouds[k] for k in chosen], np.array([centroids[k] for k in chosen]), None)
         for row, k in enumerate(chosen):
             if full["passed"][row]:

@@ -3,7 +3,8 @@
 Steps (one module each): ego motion (``ego_motion``), ground removal and crop (``ground``), one clustering of the
 fused non-ground points (``clustering``), candidate pairs in two stages (``pairing``), histogram or centroid
 initialisation (``histogram``), ICP (``registration``), checks (``checks``), association (``association``),
-optional rolling-shutter refinement of moving matches (``deskew``, with ``cfg.deskew.enabled`` and per-point times
+optional recombination of split clusters (``merging``, with ``cfg.merging.distance`` > 0), optional rolling-shutter
+refinement of moving matches (``deskew``, with ``cfg.deskew.enabled`` and per-point times
 ``time0``/``time1``), flow and confidence (``flow``). Frames: pc0 in the ego frame of t, pc1 in the ego frame of
 t + dt; clustering and registration happen in pc1's frame after ego compensation of pc0.
 
@@ -41,7 +42,8 @@ class ICPFlowResult:
     ``flow`` (N0, 3) float32 full flow; ``confidence`` (N0,) float32 in [0, 1]; ``labels0``/``labels1`` (N0,)/(N1,)
     int32 fused cluster ids (-1: noise, ground, cropped or dropped); ``pairs`` (M, 2) int32 matched (src, dst)
     cluster ids; ``transforms`` (M, 4, 4) float64 cluster motions in pc1's frame after ego compensation;
-    ``errors``/``iou_ratios``/``match_confidence`` (M,); ``stage`` (M,) int8 (1 same label, 2 cross label);
+    ``errors``/``iou_ratios``/``match_confidence`` (M,); ``stage`` (M,) int8 (1 same label, 2 cross label, 3 merged
+    by ``merging``);
     ``ego1_from_ego0`` (4, 4) used; ``ground0``/``ground1`` masks used; ``valid0``/``valid1`` finite rows;
     ``dropped0``/``dropped1`` counts of non-finite rows; ``n_candidates`` pairs registered; ``n_deskewed`` matches
     refined by the de-skew step; ``timings`` seconds per stage; ``candidates`` (only when the call asks for them,
@@ -318,7 +320,9 @@ class ICPFlow:
         clouds = [(src_stats.points(src, s), dst_stats.points(dst, d)) for s, d in zip(src_ids, dst_ids)]
         tried = self._register_clouds(clouds, src_stats.centroid[src_ids], window, timings)
         tic = time.perf_counter()
-        chosen = association.associate(src_ids, dst_ids, tried["errors"], tried["passed"], method=cfg.association.method)
+        chosen = association.associate(
+            src_ids, dst_ids, tried["errors"], tried["passed"], method=cfg.association.method
+        )
         timings["icp"] += time.perf_counter() - tic
         pick = np.flatnonzero(chosen)
         return {
@@ -338,7 +342,8 @@ class ICPFlow:
 
     def _register_clouds(self, clouds, src_centroids, window, timings, max_points: int | None = None) -> dict:
         """Steps 5 to 7 for P candidate pairs ``clouds`` ((src (Ns, 3), dst (Nd, 3)), pc1's frame) with their
-        source centroids (P, 3), ICP on at most ``max_points`` per cluster if given (else ``icp.max_points``): ``init`` (P, 3) start translations, ``transforms`` (P, 4, 4), ``errors``,
+        source centroids (P, 3), ICP on at most ``max_points`` per cluster if given (else ``icp.max_points``):
+        ``init`` (P, 3) start translations, ``transforms`` (P, 4, 4), ``errors``,
         ``symmetric_errors`` (``registration.RegistrationResult``), ``iou_ratios``, ``match_confidence`` (P,),
         ``passed`` (P,) bool."""
         cfg = self.cfg
@@ -363,7 +368,11 @@ class ICPFlow:
         timings["histogram"] += time.perf_counter() - tic
 
         tic = time.perf_counter()
-        icp = cfg.icp if max_points is None else dataclasses.replace(cfg.icp, max_points=min(cfg.icp.max_points, max_points))
+        icp = (
+            cfg.icp
+            if max_points is None
+            else dataclasses.replace(cfg.icp, max_points=min(cfg.icp.max_points, max_points))
+        )
         result = registration.register_clusters(clouds, inits, icp, cfg.seed, identity=icp.static_tolerance > 0)
         if icp.static_tolerance > 0:
             _prefer_static(result, clouds, icp, cfg.seed)

@@ -66,7 +66,9 @@ def register_plane(
     if len(inits) != len(pairs):
         raise ValueError(f"register_plane: {len(pairs)} pairs but {len(inits)} initial transforms")
     if not pairs:
-        return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0))
+        return RegistrationResult(
+            np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0)
+        )
     movings = [subsample(np.asarray(a, np.float64).reshape(-1, 3), int(params.max_points), seed) for a, _ in pairs]
     fixeds = [subsample(np.asarray(b, np.float64).reshape(-1, 3), int(params.max_points), seed) for _, b in pairs]
     out = register_batch_cpu(movings, fixeds, inits, params, [normals(b) for b in fixeds])
@@ -93,7 +95,9 @@ def register_clusters(
         raise ValueError(f"register_clusters: {len(pairs)} pairs but {len(inits)} initial transforms")
     n_pairs = len(pairs)
     if n_pairs == 0:
-        return RegistrationResult(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0))
+        return RegistrationResult(
+            np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int64), np.zeros(0)
+        )
     movings, fixeds, starts = [], [], np.empty_like(inits)
     swapped = np.zeros(n_pairs, dtype=bool)
     for p, (src, dst) in enumerate(pairs):
