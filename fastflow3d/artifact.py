@@ -28,6 +28,8 @@ import importlib.util
 import io
 import json
 import os
+import re
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -197,11 +199,21 @@ def sibling_metadata(path: Path, kind: str) -> dict:
 
 
 def listed_file(export_dir: Path, metadata: dict, kind: str) -> Path:
-    """The file of format ``kind`` listed in an export directory's metadata, checked against its recorded hash."""
+    """The file of format ``kind`` listed in an export directory's metadata, checked against its recorded hash.
+    The entry must name a file directly inside ``export_dir`` (no folder, no ``..``, not absolute): a metadata file
+    from elsewhere cannot point the loader at another file."""
     entry = metadata["files"].get(kind)
     if not entry:
         raise ArtifactError(f"{export_dir}: the export has no {kind} file (has {', '.join(metadata['files'])})")
-    file = export_dir / entry["path"]
+    meta_path = export_dir / METADATA_NAME
+    if not isinstance(entry, dict) or not isinstance(entry.get("path"), str):
+        raise ArtifactError(f"{meta_path}: files.{kind} must be an object with a 'path' string, got {entry!r:.80}")
+    name = entry["path"]
+    if Path(name).name != name or name in ("", ".", ".."):
+        raise ArtifactError(
+            f"{meta_path}: files.{kind} path {name!r} leaves the export folder; only a file name is allowed"
+        )
+    file = export_dir / name
     if not file.is_file():
         raise ArtifactError(f"{file}: file listed in {METADATA_NAME} is missing")
     if sha256_file(file) != entry.get("sha256"):
@@ -302,19 +314,78 @@ class TorchNetwork:
         return residual.cpu().numpy(), valid.cpu().numpy()
 
 
-def choose_format(files: dict) -> str:
-    """ONNX when the export has it and onnxruntime is installed (or there is nothing else), else ``pt2``, else the
-    legacy TorchScript."""
-    others = [kind for kind in ("pt2", *LEGACY_FORMATS) if kind in files]
+TORCHSCRIPT_WARNING = (
+    "a TorchScript file runs code when it is loaded: load it only from a source you trust "
+    "(backend='torchscript', fastflow3d-infer --backend torchscript)"
+)
+
+
+def choose_format(files: dict, where: Path) -> str:
+    """ONNX when the export has it and onnxruntime is installed (or there is nothing else), else ``pt2``. Never
+    the legacy TorchScript: an export with only that is refused (one line) unless the caller names the backend."""
+    others = [kind for kind in ("pt2",) if kind in files]
     if "onnx" in files and (not others or importlib.util.find_spec("onnxruntime") is not None):
         return "onnx"
-    return others[0] if others else "onnx"
+    if others:
+        return others[0]
+    if any(kind in files for kind in LEGACY_FORMATS):
+        raise ArtifactError(f"{where}: the export holds only TorchScript; {TORCHSCRIPT_WARNING}")
+    return "onnx"
+
+
+# What a ``torch.export.save`` archive of a FastFlow3D network holds (``<archive>/...``): version and layout
+# markers, the programs as JSON, the weights as raw tensors with their JSON config, the constants' JSON config and
+# the sample inputs. Anything else (compiled AOTInductor libraries, custom or pickled objects) is refused.
+_PT2_MEMBERS = re.compile(
+    r"[^/]+/(byteorder|archive_format|archive_version|\.data/version|\.data/serialization_id|models/[\w.-]+\.json"
+    r"|data/weights/(weight_\d+|[\w.-]+_weights_config\.json)|data/constants/[\w.-]+_constants_config\.json"
+    r"|data/sample_inputs/[\w.-]+\.pt)"
+)
+
+
+def check_pt2(path: Path) -> None:
+    """Refuse (one-line ``ArtifactError``) a ``.pt2`` archive that ``torch.export.load`` would unpickle or execute.
+
+    ``torch.export.load`` reads a weight or constant marked ``use_pickle`` with ``torch.load(weights_only=False)``,
+    custom objects with the pickler, sample inputs with a fallback to ``weights_only=False``, and AOTInductor
+    libraries as shared objects; the sha256 in ``metadata.json`` proves nothing, since whoever crafted the archive
+    wrote it too. So: every member must be one an exported program holds (``_PT2_MEMBERS``), no weight or constant
+    may be pickled (constants: none at all but plain tensors), and the sample inputs must load with
+    ``weights_only=True``."""
+    try:
+        archive = zipfile.ZipFile(path)
+    except (OSError, zipfile.BadZipFile) as error:
+        raise ArtifactError(f"{path}: cannot load pt2: not a torch.export archive ({error})") from None
+    with archive:
+        for name in archive.namelist():
+            if not _PT2_MEMBERS.fullmatch(name):
+                raise ArtifactError(f"{path}: refused: member {name!r} is not part of an exported program")
+            if name.endswith("_config.json"):
+                try:
+                    entries = json.loads(archive.read(name)).get("config", {})
+                except (ValueError, AttributeError):
+                    raise ArtifactError(f"{path}: refused: {name} is not a torch.export config") from None
+                if not isinstance(entries, dict):
+                    raise ArtifactError(f"{path}: refused: {name} is not a torch.export config")
+                for key, entry in entries.items():
+                    plain = isinstance(entry, dict) and entry.get("use_pickle") is False and "tensor_meta" in entry
+                    if not plain:
+                        raise ArtifactError(f"{path}: refused: {key!r} in {name} is stored pickled (it could run code)")
+            elif "/data/sample_inputs/" in name:
+                try:
+                    torch.load(io.BytesIO(archive.read(name)), map_location="cpu", weights_only=True)
+                except Exception:  # torch's own fallback would unpickle it in full
+                    raise ArtifactError(f"{path}: refused: {name} is not plain tensors (it could run code)") from None
 
 
 def load_network(path: Path, kind: str, device: str = "cpu"):
-    """The runnable network (numpy in, numpy out) of one exported file of format ``kind``."""
+    """The runnable network (numpy in, numpy out) of one exported file of format ``kind``: the one place model
+    files are loaded. ``.pt2`` archives pass :func:`check_pt2` first; ``torchscript`` (legacy ``.pt``) can run
+    code when loaded and is only read when the caller asked for it by name (see ``choose_format``)."""
     if kind == "onnx":
         return OnnxRuntimeNetwork(path)
+    if kind == "pt2":
+        check_pt2(path)
     try:
         if kind == "pt2":
             program = torch.export.load(str(path))

@@ -164,11 +164,24 @@ def default_export_dir(checkpoint: Path, cfg: dict) -> Path:
     """Where the run that wrote ``checkpoint`` exports: its config's ``export.dir`` taken relative to its
     ``checkpoint_dir`` from the checkpoint's folder (``<run>/checkpoints/x.ckpt`` -> ``<run>/export``, wherever the
     run now lives); for a checkpoint without those settings, ``<run>/export`` when its folder is named
-    ``checkpoints``, else ``<checkpoint's folder>/export``."""
+    ``checkpoints``, else ``<checkpoint's folder>/export``. The run folder is ``<run>`` (the checkpoint's folder's
+    parent when that folder is named ``checkpoints``, else the checkpoint's folder): stored settings that lead
+    outside it are refused (``ExportError``, one line; a checkpoint from elsewhere cannot choose where its export
+    replaces a folder), ``out_dir=`` is then the way to say where."""
+    run = checkpoint.parent.parent if checkpoint.parent.name == "checkpoints" else checkpoint.parent
     checkpoint_dir, export_dir = cfg.get("checkpoint_dir"), (cfg.get("export") or {}).get("dir")
-    if checkpoint_dir and export_dir:
-        return Path(os.path.normpath(checkpoint.parent / os.path.relpath(export_dir, checkpoint_dir)))
-    return (checkpoint.parent.parent if checkpoint.parent.name == "checkpoints" else checkpoint.parent) / "export"
+    if not (checkpoint_dir and export_dir):
+        return run / "export"
+    if not (isinstance(checkpoint_dir, str) and isinstance(export_dir, str)):
+        raise ExportError(f"{checkpoint}: its stored checkpoint_dir / export.dir are not paths; give out_dir=")
+    target = Path(os.path.normpath(checkpoint.parent / os.path.relpath(export_dir, checkpoint_dir)))
+    inside = os.path.commonpath([os.path.abspath(target), os.path.abspath(run)]) == os.path.abspath(run)
+    if not inside or os.path.abspath(target) == os.path.abspath(run):
+        raise ExportError(
+            f"{checkpoint}: its stored export.dir ({export_dir}) leads to {target}, outside its run folder {run}; "
+            "give out_dir= to export there"
+        )
+    return target
 
 
 def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None, formats=FORMATS) -> Path:

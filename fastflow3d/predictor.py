@@ -48,6 +48,7 @@ from fastflow3d.artifact import (
     LEGACY_FORMATS,
     METADATA_NAME,
     SUFFIX_FORMATS,
+    TORCHSCRIPT_WARNING,
     ArtifactError,
     SingleSampleNet,
     TorchNetwork,
@@ -199,7 +200,7 @@ class Predictor:
             network, kind = runtime_network(file, runtime, threads, precision), runtime
         elif path.is_dir():
             metadata = read_metadata(path / METADATA_NAME)
-            kind = backend or choose_format(metadata["files"])
+            kind = backend or choose_format(metadata["files"], path)
             if kind not in FORMATS + LEGACY_FORMATS:
                 raise PredictorError(f"{path}: unknown backend {kind!r}; use one of {', '.join(FORMATS)}")
             network = _network(listed_file(path, metadata, kind), kind, device)
@@ -211,6 +212,8 @@ class Predictor:
                 raise PredictorError(f"{path}: file not found")
             if backend is not None and backend != kind:
                 raise PredictorError(f"{path}: a {path.suffix} file cannot run with backend {backend!r}")
+            if kind in LEGACY_FORMATS and backend is None:
+                raise PredictorError(f"{path}: refused: {TORCHSCRIPT_WARNING}")
             if kind == "checkpoint":
                 from fastflow3d.checkpoint import load_student
 
@@ -220,6 +223,8 @@ class Predictor:
             else:
                 metadata = sibling_metadata(path, kind)
                 network = _network(path, kind, device)
+        if kind in LEGACY_FORMATS:  # asked for by name (else refused above)
+            warnings.warn(f"{path}: {TORCHSCRIPT_WARNING}", UserWarning, stacklevel=2)
         if not metadata and preprocessing is None:
             raise PredictorError(
                 f"{path}: no {METADATA_NAME} beside it describes this file, so its preprocessing (ground "

@@ -160,9 +160,10 @@ def test_checkpoint_and_single_files_load(export_dir, checkpoint, expected, pair
         assert np.abs(predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0) - flow).max() <= TOLERANCE
 
 
-def test_older_torchscript_exports_still_load(export_dir, eager, expected, pairs, tmp_path):
+def test_older_torchscript_exports_load_only_when_asked_for(export_dir, eager, expected, pairs, tmp_path):
     """An export directory of an older version (``fastflow3d.pt``, TorchScript, listed as ``torchscript``) runs as
-    before, by directory and as a bare file."""
+    before, by directory and as a bare file, when the caller names the backend (with a warning that TorchScript
+    runs code); without it, it is refused in one line (a TorchScript file can run any code when loaded)."""
     legacy = tmp_path / "legacy"
     legacy.mkdir()
     example = tuple(torch.from_numpy(cloud[:500]) for cloud in (pairs[0].pc0, pairs[0].pc1))
@@ -173,7 +174,13 @@ def test_older_torchscript_exports_still_load(export_dir, eager, expected, pairs
     metadata["files"] = {"torchscript": {"path": "fastflow3d.pt", "sha256": sha256_file(legacy / "fastflow3d.pt")}}
     (legacy / METADATA_NAME).write_text(json.dumps(metadata))
     pair, (flow, _) = pairs[2], expected[2]
-    for predictor in (Predictor.load(legacy), Predictor.load(legacy / "fastflow3d.pt")):
+    for path in (legacy, legacy / "fastflow3d.pt"):
+        with pytest.raises(ArtifactError, match="runs code when it is loaded") as caught:
+            Predictor.load(path)
+        assert "\n" not in str(caught.value) and str(path) in str(caught.value)
+    for path in (legacy, legacy / "fastflow3d.pt"):
+        with pytest.warns(UserWarning, match="runs code when it is loaded"):
+            predictor = Predictor.load(path, backend="torchscript")
         assert predictor.backend == "torchscript" and predictor.metadata["model"] == TINY
         assert np.abs(predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0) - flow).max() <= TOLERANCE
 

@@ -206,3 +206,15 @@ def test_reader_refuses_an_index_that_is_not_a_labelling_index(written):
     (root / "index.json").write_text(json.dumps({"shards": [{"file": "shard_000000.h5", "samples": [{"index": 0}]}]}))
     with pytest.raises(ValueError, match=r"index.json: not a labelling index \(KeyError: 'sample_id'\)$"):
         ShardDataset(root)
+
+
+@pytest.mark.parametrize("name", ["../elsewhere/shard_000000.h5", "/tmp/shard_000000.h5", "sub/shard_000000.h5", ".."])
+def test_an_index_cannot_list_shards_outside_its_folder(written, tmp_path, name):
+    """A label folder from elsewhere whose index.json lists a shard by a path is refused before anything is read
+    (a training run would otherwise read files anywhere)."""
+    root, _ = written
+    index = json.loads((root / "index.json").read_text())
+    index["shards"][0]["file"] = name
+    (root / "index.json").write_text(json.dumps(index))
+    with pytest.raises(ValueError, match=r"index.json: shard .* is not a file of this folder \(no paths allowed\)$"):
+        ShardDataset(root)

@@ -38,6 +38,9 @@ class ShardDataset:
             self.sample_ids = [sample["sample_id"] for shard in shards for sample in shard["samples"]]
         except (ValueError, KeyError, TypeError) as error:
             raise ValueError(f"{index_path}: not a labelling index ({type(error).__name__}: {error})") from None
+        for name, _ in self.shard_sizes:  # shards live in the label folder: an index cannot send reads elsewhere
+            if not isinstance(name, str) or Path(name).name != name or name in ("", ".", ".."):
+                raise ValueError(f"{index_path}: shard {name!r} is not a file of this folder (no paths allowed)")
         self._files: dict[str, h5py.File] = {}
         self._pid = os.getpid()
 
