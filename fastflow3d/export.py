@@ -86,6 +86,8 @@ def measure_parity(net: SingleSampleNet, runner) -> float:
         residual, got_valid = runner(pc0.numpy(), pc1.numpy())
         if np.shape(residual) != tuple(expected.shape) or not np.array_equal(got_valid, valid.numpy()):
             raise ExportError(f"export disagrees with eager on N0={n0}, N1={n1}: shape or validity mask differs")
+        if not (np.isfinite(residual).all() and torch.isfinite(expected).all()):  # max(0.0, nan) would be 0.0
+            raise ExportError(f"export gives non-finite flow on N0={n0}, N1={n1} (NaN or Inf weights?)")
         worst = max(worst, float(np.abs(residual - expected.numpy()).max(initial=0.0)))
     return worst
 

@@ -39,6 +39,10 @@ from icpflow.geometry import residual_to_full
 LOSSES = ("distillation", "supervised")
 
 
+class NonFiniteLoss(RuntimeError):
+    """The training loss became NaN or Inf; the message (one line) names the step and the batch's sample ids."""
+
+
 class StudentModule(L.LightningModule):
     """FastFlow3D as ``self.model``; ``cfg`` is the full resolved training config (plain dict), saved in checkpoints."""
 
@@ -93,6 +97,11 @@ class StudentModule(L.LightningModule):
     def training_step(self, batch: dict, batch_index: int) -> torch.Tensor:
         pred, valid = self(batch)
         loss = self.loss(pred, valid, batch)
+        if not torch.isfinite(loss):  # stop at once: a NaN step poisons the weights and every checkpoint after it
+            raise NonFiniteLoss(
+                f"non-finite training loss ({loss.item()}) at step {self.global_step} on samples "
+                f"{', '.join(map(str, batch['sample_id']))}; no checkpoint is written from it"
+            )
         self.log("train/loss", loss, batch_size=batch["batch_size"], prog_bar=True)
         return loss
 

@@ -263,6 +263,12 @@ class Predictor:
         compensated = compensate(pc0_frame, ego)
         if keep0.any() and keep1.any():  # the network needs points in both scans
             kept, valid = self.network(np.ascontiguousarray(compensated[keep0]), pc1_frame[keep1])
+            if not np.isfinite(kept[valid]).all():
+                raise PredictorError(
+                    f"{self.backend} model: the network returned non-finite flow for "
+                    f"{int((~np.isfinite(kept[valid])).any(axis=1).sum())} point(s) (NaN or Inf weights?); "
+                    "nothing is returned"
+                )
             in_grid[keep0] = valid
             residual[keep0] = np.where(valid[:, None], kept, 0.0)
             if self.refine is not None:

@@ -23,7 +23,7 @@ from fastflow3d.callbacks import AtomicCheckpointIO, LastCheckpoint, ModelSize, 
 from fastflow3d.checkpoint import CheckpointError, read_checkpoint
 from fastflow3d.data import DataError, ShardDataModule, StudentDataset, labeller_preprocessing
 from fastflow3d.export import export_checkpoint
-from fastflow3d.module import StudentModule
+from fastflow3d.module import NonFiniteLoss, StudentModule
 from icpflow.entry import Stop, os_error_line, signal_words, stop_on_signals
 from icpflow.shards.verify import ShardError
 
@@ -238,6 +238,8 @@ def fit(cfg: DictConfig) -> L.Trainer:
             trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
         except TrainingStopped:
             raise
+        except NonFiniteLoss as error:
+            raise TrainError(f"{error}; {kept_checkpoint(cfg)}") from None
         except Stop as stop:  # outside the training loop (set-up, sanity check), or a second signal: at once
             raise Stop(stop.signum, f"{signal_words(stop.signum)}; {kept_checkpoint(cfg)}") from None
         except OSError as error:

@@ -218,3 +218,17 @@ def test_an_index_cannot_list_shards_outside_its_folder(written, tmp_path, name)
     (root / "index.json").write_text(json.dumps(index))
     with pytest.raises(ValueError, match=r"index.json: shard .* is not a file of this folder \(no paths allowed\)$"):
         ShardDataset(root)
+
+
+@pytest.mark.parametrize("key", ["flow", "confidence", "pc0", "gt_flow"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_verification_refuses_non_finite_values(tmp_path, key, bad):
+    """A shard holding NaN or Inf (1 % of one array) is refused in one line naming the array; training reads no
+    such label (issue 31: non-finite values are stopped at every door)."""
+    sample = _sample(3, 200, 150, True)
+    sample[key] = sample[key].copy()
+    sample[key][: max(1, len(sample[key]) // 100)] = bad
+    path = tmp_path / "shard_000000.h5"
+    write_shard(path, [sample], "", "h")
+    with pytest.raises(ShardError, match=rf"{group_name(0)}/{key} holds \d+ non-finite value\(s\) \(NaN or Inf\)$"):
+        verify_shard(path, "h", 1)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 
+import numpy as np
+
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.frames import FramePairError
 from icpflow.teacher.tracker import SampleFlow, teacher_on_sample
@@ -68,6 +70,26 @@ def shard_rows(dataset, index: int, pair, labels: SampleFlow) -> dict:
     }
 
 
+class NonFiniteLabels(ValueError):
+    """The teacher's labels of a sample hold NaN or Inf: the sample fails, nothing non-finite is written."""
+
+
+def check_finite_labels(labels: SampleFlow) -> None:
+    """Raise :class:`NonFiniteLabels` (one line naming the arrays) unless flow, confidence and ego motion are
+    finite: a shard never holds a non-finite pseudo-label (``verify_shard`` refuses one too)."""
+    bad = [
+        f"{name} ({int((~np.isfinite(value)).sum())} values)"
+        for name, value in (
+            ("flow", labels.flow),
+            ("confidence", labels.confidence),
+            ("ego1_from_ego0", labels.ego1_from_ego0),
+        )
+        if not np.isfinite(value).all()
+    ]
+    if bad:
+        raise NonFiniteLabels(f"the teacher's labels are not finite: {', '.join(bad)}")
+
+
 def failure_record(dataset, index: int, pair, error: Exception) -> dict:
     """``{"index", "sample_id", "file", "reason"}`` of a sample whose reader or teacher raised ``error``: the pair's
     id, or the reader's ``sample_id(index)`` when the pair could not be read; the file the error names, else the id."""
@@ -90,6 +112,7 @@ def label_sample(job, index: int, threads: int) -> dict:
         with thread_limit(threads, torch_too=job.teacher_cfg.icp.backend == "torch"):
             pair = job.dataset.pair(index, horizon=job.horizon)
             labels = teacher_on_sample(teacher, job.dataset, index, pair, job.horizon, job.tracker)
+        check_finite_labels(labels)
         outcome = {"sample": shard_rows(job.dataset, index, pair, labels)}
     except Exception as error:  # any reader or teacher failure skips this sample only
         stop = interrupt_behind(error)

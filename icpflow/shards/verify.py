@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import h5py
+import numpy as np
 
 from icpflow.shards.schema import CLOUD, FILE_ATTRS, OPTIONAL, REQUIRED, SAMPLE_ATTRS, SCHEMA_VERSION, group_name
 
@@ -24,7 +25,10 @@ def _check_array(path, name, key, data, spec, counts):
         expected = (n,) if trail is None else (n, trail)
     if data.shape != expected:
         raise ShardError(f"{path}: {name}/{key} has shape {data.shape}, expected {expected}")
-    data[()]  # reads every chunk: a truncated or corrupt file fails here
+    values = data[()]  # reads every chunk: a truncated or corrupt file fails here
+    if np.issubdtype(values.dtype, np.floating) and not np.isfinite(values).all():
+        bad = int((~np.isfinite(values)).sum())
+        raise ShardError(f"{path}: {name}/{key} holds {bad} non-finite value(s) (NaN or Inf)")
 
 
 def verify_shard(path: Path, config_hash: str | None = None, num_samples: int | None = None) -> int:
