@@ -10,7 +10,9 @@ ground and ego-motion settings) that the Predictor uses on raw scans.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 from pathlib import Path
 
 import lightning as L
@@ -24,6 +26,7 @@ from fastflow3d.checkpoint import CheckpointError, read_checkpoint
 from fastflow3d.data import DataError, ShardDataModule, StudentDataset, labeller_preprocessing
 from fastflow3d.export import export_checkpoint
 from fastflow3d.module import NonFiniteLoss, StudentModule
+from icpflow.atomic import FolderInUse, folder_lock
 from icpflow.entry import Stop, os_error_line, signal_words, stop_on_signals
 from icpflow.shards.verify import ShardError
 
@@ -131,6 +134,7 @@ def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
             f"ckpt_path={value}: {path} holds another network: {what}; resume with the model settings it was "
             "trained with, or leave ckpt_path unset to start afresh"
         )
+    check_resume_settings(cfg, checkpoint, value, path)
     return str(path)
 
 
@@ -213,6 +217,93 @@ def kept_checkpoint(cfg: DictConfig) -> str:
     return f"{last} (step {step}) is kept; to resume, rerun the same command with ckpt_path=last"
 
 
+def _launching_process() -> bool:
+    """Whether this is the process a user started (not a rank a DDP launcher or SLURM started beside it)."""
+    ranks = (os.environ.get(name, "0") for name in ("LOCAL_RANK", "NODE_RANK", "SLURM_PROCID", "RANK"))
+    return all(rank in ("", "0") for rank in ranks)
+
+
+@contextlib.contextmanager
+def run_folder(cfg: DictConfig):
+    """One run per ``out_dir``: its lock (``icpflow.atomic.folder_lock``) for the whole run, taken by the launching
+    process only; a second run into the folder is refused in one line naming the holder's pid."""
+    with contextlib.ExitStack() as stack:
+        if _launching_process():
+            try:
+                stack.enter_context(folder_lock(cfg.out_dir, "train.py"))
+            except FolderInUse as error:
+                raise TrainError(str(error)) from None
+            except OSError as error:
+                raise TrainError(os_error_line(error)) from None
+        yield
+
+
+def check_fresh_start(cfg: DictConfig) -> None:
+    """A run without ``ckpt_path`` into a folder that holds ``last.ckpt`` would overwrite another run's checkpoints:
+    refused in one line, unless ``overwrite=true`` (then the folder's checkpoints are removed first, said in the
+    log)."""
+    if cfg.get("ckpt_path"):
+        return
+    folder = Path(cfg.checkpoint_dir)
+    last = folder / "last.ckpt"
+    if not last.is_file():
+        return
+    if not cfg.get("overwrite"):
+        raise TrainError(
+            f"{folder} holds another run's checkpoints ({last.name}); resume it with ckpt_path=last, start afresh "
+            "with overwrite=true (its checkpoints are removed), or give another out_dir"
+        )
+    old = sorted(folder.glob("*.ckpt"))
+    for path in old:
+        path.unlink()
+    log.warning("overwrite=true: removed %d checkpoint(s) of the previous run in %s", len(old), folder)
+
+
+#: data settings that may differ on a resume (where the files are, how they are read)
+RESUME_FREE_DATA = ("train", "val", "workers")
+
+
+def _differences(saved: dict, ours: dict, prefix: str, skip=()) -> list[str]:
+    """``prefix.key=<saved> (this run: <ours>)`` for each key whose value differs (nested dicts flattened)."""
+    out = []
+    for key in sorted(set(saved) | set(ours)):
+        if key in skip:
+            continue
+        a, b = saved.get(key), ours.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _differences(a, b, f"{prefix}.{key}")
+        elif a != b:
+            out.append(f"{prefix}.{key}={a} (this run: {b})")
+    return out
+
+
+def check_resume_settings(cfg: DictConfig, checkpoint: dict, value: str, path: Path) -> None:
+    """A resume with other model or data settings than the checkpoint's is refused, one line naming each
+    difference; differing optimiser or schedule settings are not applied (the checkpoint's optimiser and schedule
+    state continue): said in the log, naming them."""
+    hparams = checkpoint.get("hyper_parameters")
+    saved = (hparams.get("cfg") or {}) if isinstance(hparams, dict) else {}
+    if not isinstance(saved, dict) or not saved:
+        return
+    ours = OmegaConf.to_container(cfg, resolve=True)
+    ours.setdefault("data", {})["preprocessing"] = inference_preprocessing(cfg)
+    differ = _differences(saved.get("model") or {}, ours.get("model") or {}, "model")
+    differ += _differences(saved.get("data") or {}, ours.get("data") or {}, "data", RESUME_FREE_DATA)
+    if differ:
+        raise TrainError(
+            f"ckpt_path={value}: {path} was trained with other settings: {'; '.join(differ)}; resume with its "
+            "settings, or leave ckpt_path unset to start afresh"
+        )
+    kept = _differences(saved.get("optim") or {}, ours.get("optim") or {}, "optim")
+    kept += _differences(saved.get("scheduler") or {}, ours.get("scheduler") or {}, "scheduler")
+    if kept:
+        log.warning(
+            "resuming %s: the optimiser and schedule state continue from the checkpoint; not applied: %s",
+            path.name,
+            "; ".join(kept),
+        )
+
+
 def fit(cfg: DictConfig) -> L.Trainer:
     """Train the student as ``cfg`` says, then export its best checkpoint; returns the Trainer after ``fit``.
 
@@ -221,7 +312,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
     the training loop after saving ``last.ckpt`` at the current step (``fastflow3d.callbacks.LastCheckpoint``),
     elsewhere at once; its message says what was kept and how to resume.
     """
-    with stop_on_signals():
+    with stop_on_signals(), run_folder(cfg):
         check_data(cfg)
         formats = export_formats(cfg)
         plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
@@ -229,6 +320,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
         module = StudentModule(plain)
         ckpt_path = resolve_ckpt_path(cfg, module)
+        check_fresh_start(cfg)
         if cfg.compile:
             module.model.compile(dynamic=True)
         data = plain["data"]

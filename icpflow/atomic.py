@@ -5,7 +5,8 @@ goes through :func:`atomic_path`: the writer fills a temporary file in the targe
 renamed over the target and the folder fsynced. On any exception the temporary file is removed and the target is
 left as it was; an ``OSError`` (a full disk, no permission, an I/O error) becomes one :class:`WriteError` naming the
 target and the cause. A result made of several files (an export) goes through :func:`atomic_directory`: built in a
-temporary folder, then swapped in whole.
+temporary folder, then swapped in whole. A folder that one run at a time may write (a training run's ``out_dir``) is
+held with :func:`folder_lock`.
 """
 
 from __future__ import annotations
@@ -116,3 +117,63 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
         raise WriteError(f"{path}: cannot write ({error.strerror or error})") from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+class FolderInUse(RuntimeError):
+    """Another live process holds a folder's lock (:func:`folder_lock`). The message is one line naming it."""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, another user's
+        return True
+    return True
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | os.PathLike, what: str) -> Iterator[Path]:
+    """Hold ``<folder>/.lock`` for the block: one run writes a folder at a time. The lock file holds the pid and
+    host of its holder; a second holder on this host is refused with :class:`FolderInUse` naming the pid while
+    that process lives, and a lock left by a dead process (a kill -9, a crash) is taken over. ``what`` names the
+    holder in the message (``train.py``). The lock file is removed when the block ends, if it is still ours.
+    On another host's lock nothing can be checked: it is refused, naming the host (remove the file if that run is
+    gone)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / ".lock"
+    mine = f"{os.getpid()} {os.uname().nodename}\n"
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                pid_text, host = (path.read_text().split() + ["", ""])[:2]
+                pid = int(pid_text)
+            except (OSError, ValueError):
+                pid, host = -1, ""
+            if host and host != os.uname().nodename:
+                raise FolderInUse(
+                    f"{folder}: in use by {what} on host {host} (pid {pid}; lock {path}); remove the lock if that run "
+                    "is gone, or give another folder"
+                ) from None
+            if pid > 0 and _alive(pid):
+                raise FolderInUse(
+                    f"{folder}: in use by {what} pid {pid} (lock {path}); wait for it to finish or give another folder"
+                ) from None
+            with contextlib.suppress(FileNotFoundError):  # a dead holder's lock: taken over
+                path.unlink()
+            continue
+        with os.fdopen(fd, "w") as handle:
+            handle.write(mine)
+        break
+    else:
+        raise FolderInUse(f"{folder}: could not take the lock {path} (another run took it at the same time)")
+    try:
+        yield path
+    finally:
+        with contextlib.suppress(OSError):
+            if path.read_text() == mine:
+                path.unlink()

@@ -1,0 +1,88 @@
+"""One run per folder (issue 31, point 3): ``out_dir``'s lock, no silent overwrite of another run's checkpoints,
+and a resume that names every setting it does not take."""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+
+import pytest
+
+from fastflow3d.training import TrainError, fit
+from icpflow.atomic import FolderInUse, folder_lock
+from icpflow.datasets.synthetic import SyntheticDataset
+
+from helpers.shards import write_pseudo_labels
+from helpers.training import train_cfg
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory):
+    dataset = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=3, seed=0)
+    return write_pseudo_labels(tmp_path_factory.mktemp("shards"), [dataset[0], dataset[1]])
+
+
+def _cfg(tmp_path, shards, *overrides):
+    return train_cfg(tmp_path, shards, shards, "trainer.max_steps=2", "trainer.val_check_interval=2", *overrides)
+
+
+def _dead_pid() -> int:
+    process = subprocess.Popen(["true"])
+    process.wait()
+    return process.pid
+
+
+def test_the_lock_refuses_a_live_holder_and_takes_over_a_dead_ones(tmp_path):
+    host = os.uname().nodename
+    (tmp_path / ".lock").write_text(f"{os.getppid()} {host}\n")
+    with pytest.raises(FolderInUse, match=rf"in use by train.py pid {os.getppid()} \(lock .*\.lock\); wait"):
+        with folder_lock(tmp_path, "train.py"):
+            pass
+    (tmp_path / ".lock").write_text(f"{_dead_pid()} {host}\n")
+    with folder_lock(tmp_path, "train.py") as lock:
+        assert lock.read_text() == f"{os.getpid()} {host}\n"
+    assert not (tmp_path / ".lock").exists()
+    (tmp_path / ".lock").write_text("123 another-host\n")
+    with pytest.raises(FolderInUse, match="in use by train.py on host another-host"):
+        with folder_lock(tmp_path, "train.py"):
+            pass
+
+
+def test_a_second_run_into_a_held_folder_is_refused_in_one_line(shards, tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / ".lock").write_text(f"{os.getppid()} {os.uname().nodename}\n")
+    with pytest.raises(TrainError, match=rf"run: in use by train.py pid {os.getppid()}") as caught:
+        fit(_cfg(tmp_path, shards))
+    assert "\n" not in str(caught.value) and not (run / "checkpoints").exists()
+
+
+def test_another_runs_checkpoints_are_never_overwritten_silently(shards, tmp_path, caplog):
+    fit(_cfg(tmp_path, shards))
+    checkpoints = tmp_path / "run" / "checkpoints"
+    before = {path.name: path.stat().st_mtime_ns for path in checkpoints.glob("*.ckpt")}
+    assert "last.ckpt" in before and not (tmp_path / "run" / ".lock").exists()
+    with pytest.raises(
+        TrainError, match="holds another run's checkpoints \\(last.ckpt\\); resume it with ckpt_path=last"
+    ):
+        fit(_cfg(tmp_path, shards))
+    assert {path.name: path.stat().st_mtime_ns for path in checkpoints.glob("*.ckpt")} == before
+    with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
+        fit(_cfg(tmp_path, shards, "overwrite=true"))
+    assert "overwrite=true: removed" in caplog.text
+    assert (checkpoints / "last.ckpt").stat().st_mtime_ns != before["last.ckpt"]
+
+
+def test_a_resume_names_every_setting_it_does_not_take(shards, tmp_path, caplog):
+    fit(_cfg(tmp_path, shards))
+    for override, words in (
+        ("model.cell=0.5", r"model.cell=1.0 \(this run: 0.5\)"),
+        ("data.batch_size=3", r"data.batch_size=\d+ \(this run: 3\)"),
+    ):
+        with pytest.raises(TrainError, match=rf"ckpt_path=last: .* was trained with other settings: {words}") as caught:
+            fit(_cfg(tmp_path, shards, "ckpt_path=last", "trainer.max_steps=4", override))
+        assert "\n" not in str(caught.value)
+    with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
+        fit(_cfg(tmp_path, shards, "ckpt_path=last", "trainer.max_steps=4", "optim.lr=0.5"))
+    assert "not applied: optim.lr=" in caplog.text and "(this run: 0.5)" in caplog.text
