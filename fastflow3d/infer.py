@@ -89,6 +89,7 @@ def write_flow(path: Path, prediction) -> None:
                 ground0=prediction.ground0,
                 ego1_from_ego0=prediction.ego1_from_ego0,
                 ego_estimated=np.bool_(prediction.ego_estimated),
+                ego_assumed=np.bool_(prediction.ego_assumed),
                 **({} if prediction.refined is None else {"refined": prediction.refined}),
             )
 
@@ -222,7 +223,9 @@ def infer(args) -> tuple[Path, Path | None]:
             ground0=prediction.ground0 if predictor.remove_ground else None,
             source=str(args.scan0),
         )
-        source = "estimated" if prediction.ego_estimated else "given"
+        source = (
+            "estimated" if prediction.ego_estimated else "assumed (identity)" if prediction.ego_assumed else "given"
+        )
         plot_bev(
             pair,
             bev,

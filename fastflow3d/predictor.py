@@ -72,6 +72,7 @@ from icpflow.preprocess import (
     lift_points,
     lift_transform,
 )
+from icpflow.teacher.ego_motion import MIN_EGO_POINTS
 
 
 def _network(file: Path, kind: str, device: str):
@@ -101,7 +102,9 @@ class Prediction:
     not left out as ground); ``ground0`` (N0,) bool: left out as ground (all False for a model that sees ground);
     ``ego1_from_ego0`` (4, 4) float64 used (given or estimated), in the scans' own frame; ``lift`` (m): how far both
     scans were raised into the model's height frame (0: they were in it); ``refined`` (N0,) bool: the points whose
-    flow the refinement's ICP gave (None when refinement is off)."""
+    flow the refinement's ICP gave (None when refinement is off); ``ego_estimated``: the ego motion was estimated
+    from the scans; ``ego_assumed``: none was given and the scans had too few points to estimate one
+    (``MIN_EGO_POINTS``), so the identity was used (``ego_estimated`` is then False)."""
 
     flow: np.ndarray
     residual: np.ndarray
@@ -111,6 +114,7 @@ class Prediction:
     ego_estimated: bool
     lift: float = 0.0
     refined: np.ndarray | None = None  # (N0,) bool: flow from the refinement's ICP (None: refinement off)
+    ego_assumed: bool = False  # no transform given and too few points to estimate one: the identity was used
 
 
 def as_points(name: str, values) -> np.ndarray:
@@ -151,6 +155,9 @@ class Predictor:
         if not (sensor_height is None or sensor_height == "auto" or _is_number(sensor_height)):
             raise PredictorError(f"sensor_height={sensor_height!r} must be None, 'auto' or metres above the ground")
         self.network, self.metadata, self.backend = network, metadata, backend
+        #: how many more given ego motions to compare with the identity and their inverse (:meth:`check_given_ego`):
+        #: a wrong convention is the same on every pair, so the first few calls are checked (0: none)
+        self.ego_checks_left = 3
         self.remove_ground, self.preprocessing = read_preprocessing(preprocessing)
         self.ego_config = self.preprocessing.ego_motion if ego_config is None else ego_config
         self.sensor_height = sensor_height if sensor_height in (None, "auto") else float(sensor_height)
@@ -247,8 +254,16 @@ class Predictor:
         pc0, pc1 = as_points("pc0", pc0), as_points("pc1", pc1)
         lift = self.frame_lift(pc0)
         pc0_frame, pc1_frame = lift_points(pc0, lift), lift_points(pc1, lift)
-        estimated = ego1_from_ego0 is None
-        if estimated:
+        estimated, assumed = ego1_from_ego0 is None, False
+        if estimated and min(len(pc0), len(pc1)) < MIN_EGO_POINTS:
+            warnings.warn(
+                f"Predictor: too few points to estimate the ego motion (pc0 {len(pc0)}, pc1 {len(pc1)}; at least "
+                f"{MIN_EGO_POINTS} each): the identity is assumed (Prediction.ego_assumed)",
+                PredictorWarning,
+                stacklevel=2,
+            )
+            ego, estimated, assumed = np.eye(4), False, True
+        elif estimated:
             ego = self.estimate_ego_motion(pc0_frame, pc1_frame)
         else:
             ego = lift_transform(np.asarray(ego1_from_ego0, dtype=np.float64), lift)
@@ -257,6 +272,9 @@ class Predictor:
             raise PredictorError(f"{'estimated ' if estimated else ''}ego1_from_ego0 {problem}")
         ground0 = self.ground_mask("ground0", pc0_frame, ground0)
         ground1 = self.ground_mask("ground1", pc1_frame, ground1)
+        if ego1_from_ego0 is not None and self.ego_checks_left > 0:
+            self.ego_checks_left -= 1
+            self.check_given_ego(pc0_frame[~ground0], pc1_frame[~ground1], ego)
         residual, in_grid = np.zeros((len(pc0), 3), np.float32), np.zeros(len(pc0), bool)
         refined = np.zeros(len(pc0), bool) if self.refine is not None else None
         keep0, keep1 = ~ground0, ~ground1
@@ -279,7 +297,7 @@ class Predictor:
         self.check_plausible(compensated, ground0)
         ego_out = ego if lift == 0 else lift_transform(ego, -lift)
         flow = residual_to_full(residual, pc0_frame, ego)  # a common lift changes no flow vector
-        return Prediction(flow, residual, in_grid, ground0, ego_out, estimated, float(lift), refined)
+        return Prediction(flow, residual, in_grid, ground0, ego_out, estimated, float(lift), refined, assumed)
 
     def frame_lift(self, pc0: np.ndarray) -> float:
         """Metres to raise both scans by so that their ground sits where the model's frame has it (module
@@ -343,6 +361,33 @@ class Predictor:
         if mask.dtype != bool or mask.shape != (len(points),):
             raise PredictorError(f"{name} must be a bool ({len(points)},) mask, got {mask.dtype} {mask.shape}")
         return mask
+
+    def check_given_ego(self, pc0: np.ndarray, pc1: np.ndarray, ego: np.ndarray) -> None:
+        """Warn when a given ``ego`` (pc0's frame -> pc1's) fits the scans clearly worse than the identity or its
+        inverse: the mean distance (clipped at 2 m) of up to 2,000 pc0 points, moved by each transform, to their
+        nearest of up to 20,000 pc1 points (non-ground points when the model removes ground; about 6 ms on a KITTI
+        scan, on the first ``ego_checks_left`` calls only; a warning ends the checks). An inverted transform, or
+        one of another frame, makes static structure disagree by twice the ego motion."""
+        from scipy.spatial import cKDTree
+
+        if len(pc0) < MIN_EGO_POINTS or len(pc1) < MIN_EGO_POINTS:
+            return
+        source = pc0[:: max(1, len(pc0) // 2000)].astype(np.float64)
+        tree = cKDTree(pc1[:: max(1, len(pc1) // 20000)])
+        fits = {}
+        for name, transform in (("given", ego), ("the identity", np.eye(4)), ("its inverse", np.linalg.inv(ego))):
+            moved = source @ transform[:3, :3].T + transform[:3, 3]
+            fits[name] = float(np.minimum(tree.query(moved)[0], 2.0).mean())
+        best = min(("the identity", "its inverse"), key=fits.get)
+        if fits["given"] > 1.5 * fits[best] and fits["given"] - fits[best] > 0.05:
+            self.ego_checks_left = 0
+            warnings.warn(
+                f"Predictor: the given ego1_from_ego0 fits the scans worse than {best} (mean distance "
+                f"{fits['given']:.2f} m against {fits[best]:.2f} m): is it inverted, or of another frame? It must "
+                "map pc0's ego frame into pc1's",
+                PredictorWarning,
+                stacklevel=3,
+            )
 
     def estimate_ego_motion(self, pc0: np.ndarray, pc1: np.ndarray) -> np.ndarray:
         """(4, 4) float64 ``ego1_from_ego0`` from the two scans (KISS-ICP + refinement, the teacher's step 1)."""

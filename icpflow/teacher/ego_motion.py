@@ -74,9 +74,14 @@ def refine_motion(pc0: np.ndarray, pc1: np.ndarray, ego1_from_ego0: np.ndarray, 
     return transform if result.fitness > 0.3 else ego1_from_ego0
 
 
+#: fewer points than this in either scan: no estimate (the identity)
+MIN_EGO_POINTS = 100
+
+
 def estimate_ego_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:
-    """(4, 4) float64 ``ego1_from_ego0`` of (N0, 3) and (N1, 3) scans; identity if either has < 100 points."""
-    if len(pc0) < 100 or len(pc1) < 100:
+    """(4, 4) float64 ``ego1_from_ego0`` of (N0, 3) and (N1, 3) scans; identity if either has fewer than
+    ``MIN_EGO_POINTS`` points."""
+    if len(pc0) < MIN_EGO_POINTS or len(pc1) < MIN_EGO_POINTS:
         return np.eye(4)
     transform = kiss_icp_motion(pc0, pc1, cfg)
     if ego_settings(cfg).refine_voxel > 0:

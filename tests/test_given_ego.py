@@ -1,0 +1,53 @@
+"""A given ego motion is checked cheaply, and one that cannot be estimated is said to be assumed (issue 31,
+point 4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fastflow3d.export import export_model
+from fastflow3d.model import FastFlow3D
+from fastflow3d.predictor import Predictor, PredictorWarning
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.geometry import invert
+
+from students import tiny_model  # tests/ is on sys.path (pytest prepend import mode)
+
+CONFIG = tiny_model(25.6, 0.8)
+
+
+@pytest.fixture(scope="module")
+def predictor(tmp_path_factory):
+    torch.manual_seed(0)
+    out = tmp_path_factory.mktemp("export") / "export"
+    export_model(FastFlow3D(**{k: v for k, v in CONFIG.items() if k != "_target_"}), out, ("pt2",), model_config=CONFIG)
+    return out
+
+
+@pytest.fixture(scope="module")
+def pair():
+    dataset = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=2, seed=4)
+    pair = dataset[0]
+    assert np.linalg.norm(pair.ego1_from_ego0[:3, 3]) > 0.5  # the ego moves: an inverted transform is far off
+    return pair
+
+
+def test_the_true_ego_motion_passes_and_its_inverse_is_flagged(predictor, pair, recwarn):
+    model = Predictor.load(predictor)
+    model(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+    assert not [w for w in recwarn if issubclass(w.category, PredictorWarning)]
+    with pytest.warns(PredictorWarning, match="the given ego1_from_ego0 fits the scans worse than its inverse"):
+        model(pair.pc0, pair.pc1, invert(pair.ego1_from_ego0))
+    recwarn.clear()
+    model(pair.pc0, pair.pc1, invert(pair.ego1_from_ego0))  # a warning ends the checks: said once
+    assert not [w for w in recwarn if issubclass(w.category, PredictorWarning)] and model.ego_checks_left == 0
+
+
+def test_too_few_points_is_said_and_marked_assumed(predictor, pair):
+    model = Predictor.load(predictor)
+    with pytest.warns(PredictorWarning, match=r"too few points to estimate the ego motion \(pc0 50, pc1 60"):
+        prediction = model.predict(pair.pc0[:50], pair.pc1[:60])
+    assert prediction.ego_assumed and not prediction.ego_estimated
+    np.testing.assert_array_equal(prediction.ego1_from_ego0, np.eye(4))
