@@ -193,7 +193,9 @@ def sibling_metadata(path: Path, kind: str) -> dict:
         metadata = read_metadata(meta_path)
     except ArtifactError:
         return {}
-    entry = metadata["files"].get(kind) or {}
+    entry = metadata["files"].get(kind)
+    if not isinstance(entry, dict):
+        return {}
     same = entry.get("path") == path.name and entry.get("sha256") == sha256_file(path)
     return metadata if same else {}
 

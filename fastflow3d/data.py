@@ -180,9 +180,14 @@ def labeller_preprocessing(shard_dir) -> Preprocessing | None:
     labeller config) or, for shards of older versions, the block that its ``teacher`` fields give; None when the
     shard has neither."""
     shards = StudentDataset(shard_dir).shards
-    with h5py.File(shards.root / shards.entries[0][0], "r") as handle:
+    first = shards.root / shards.entries[0][0]
+    with h5py.File(first, "r") as handle:
         text = handle.attrs.get("config")
-    content = yaml.safe_load(text) if isinstance(text, str) else None
+    try:
+        content = yaml.safe_load(text) if isinstance(text, str) else None
+    except yaml.YAMLError as error:  # e.g. a python/object tag: safe_load refuses it, never runs it
+        problem = " ".join(str(error).split())[:160]
+        raise DataError(f"{first}: its labeller config is not plain YAML ({type(error).__name__}: {problem})") from None
     content = content if isinstance(content, dict) else {}
     block = content.get("preprocessing", content.get("teacher"))
     return Preprocessing.from_dict(block) if isinstance(block, dict) else None

@@ -158,6 +158,7 @@ class Predictor:
         #: how many more given ego motions to compare with the identity and their inverse (:meth:`check_given_ego`):
         #: a wrong convention is the same on every pair, so the first few calls are checked (0: none)
         self.ego_checks_left = 3
+        self._said: set[str] = set()  # kinds of warnings given (``_warn_once``)
         self.remove_ground, self.preprocessing = read_preprocessing(preprocessing)
         self.ego_config = self.preprocessing.ego_motion if ego_config is None else ego_config
         self.sensor_height = sensor_height if sensor_height in (None, "auto") else float(sensor_height)
@@ -308,25 +309,30 @@ class Predictor:
         ground = estimate_ground_height(pc0)
         if ground is None:
             if self.sensor_height == "auto":
-                warnings.warn(
+                self._warn_once(
+                    "no ground",
                     "Predictor: sensor_height='auto' found no ground in pc0 (too few points within 30 m); the scans "
                     "are used as they are",
-                    PredictorWarning,
-                    stacklevel=3,
                 )
             return 0.0
         if self.sensor_height == "auto":
             return target - ground
         if abs(ground - target) <= FRAME_TOLERANCE:
             return 0.0
-        warnings.warn(
+        self._warn_once(
+            "lift",
             f"Predictor: the ground of pc0 lies at z = {ground:.2f} m but the model's frame has it at z = "
             f"{target:.2f} m; both scans lifted by {target - ground:+.2f} m (pass sensor_height=<metres of the "
-            f"origin above the ground>, e.g. 1.73 for KITTI's velodyne frame, or 'auto' to say so)",
-            PredictorWarning,
-            stacklevel=3,
+            f"origin above the ground>, e.g. 1.73 for KITTI's velodyne frame, or 'auto' to say so; said once, every "
+            "pair is lifted by its own ground)",
         )
         return target - ground
+
+    def _warn_once(self, kind: str, message: str) -> None:
+        """A ``PredictorWarning`` of this ``kind`` once per Predictor (an evaluation or a stream says it once)."""
+        if kind not in self._said:
+            self._said.add(kind)
+            warnings.warn(message, PredictorWarning, stacklevel=4)
 
     def check_plausible(self, compensated: np.ndarray, ground0: np.ndarray) -> None:
         """One-line warning when pc0's ground fraction or its share inside the network's grid is implausible."""
@@ -339,11 +345,10 @@ class Predictor:
             inside &= (compensated[:, axis] >= low) & (compensated[:, axis] < high)
         reason = implausible(float(ground0.mean()), float(inside.mean()))
         if reason:
-            warnings.warn(
+            self._warn_once(
+                "implausible",
                 f"Predictor: implausible preprocessing of pc0: {reason}; is the height frame right "
-                "(sensor_height=...) and are the scans in metres?",
-                PredictorWarning,
-                stacklevel=3,
+                "(sensor_height=...) and are the scans in metres? (said once)",
             )
 
     def ground_mask(self, name: str, points: np.ndarray, given) -> np.ndarray:

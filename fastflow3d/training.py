@@ -41,6 +41,13 @@ def check_data(cfg: DictConfig) -> None:
     """Both shard directories hold samples (else one line saying how to create them), every shard they list is
     complete and valid (else one line naming it: the checks ``label.py`` makes before it skips a shard);
     supervised needs gt."""
+    for key in ("train", "val"):
+        if not isinstance(cfg.data[key], str) or not cfg.data[key]:
+            raise TrainError(
+                f"data.{key}={cfg.data[key]} must be one label folder (a path), got {type(cfg.data[key]).__name__}"
+            )
+    if Path(cfg.data.train).resolve() == Path(cfg.data.val).resolve():
+        log.warning("data.val is data.train (%s): validation scores the training samples", cfg.data.train)
     for key, split in (("train", "train"), ("val", "val")):
         path = cfg.data[key]
         try:

@@ -51,3 +51,16 @@ def test_too_few_points_is_said_and_marked_assumed(predictor, pair):
         prediction = model.predict(pair.pc0[:50], pair.pc1[:60])
     assert prediction.ego_assumed and not prediction.ego_estimated
     np.testing.assert_array_equal(prediction.ego1_from_ego0, np.eye(4))
+
+
+def test_the_height_frame_warning_is_said_once_per_predictor(predictor, pair):
+    import warnings
+
+    model = Predictor.load(predictor)
+    lowered0, lowered1 = pair.pc0 - np.float32([0, 0, 1.7]), pair.pc1 - np.float32([0, 0, 1.7])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(3):
+            model(lowered0, lowered1, pair.ego1_from_ego0)
+    said = [w for w in caught if issubclass(w.category, PredictorWarning) and "lifted by" in str(w.message)]
+    assert len(said) == 1 and "said once" in str(said[0].message)

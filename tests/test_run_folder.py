@@ -86,3 +86,35 @@ def test_a_resume_names_every_setting_it_does_not_take(shards, tmp_path, caplog)
     with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
         fit(_cfg(tmp_path, shards, "ckpt_path=last", "trainer.max_steps=4", "optim.lr=0.5"))
     assert "not applied: optim.lr=" in caplog.text and "(this run: 0.5)" in caplog.text
+
+
+@pytest.mark.parametrize(
+    "value, words", [("[a,b]", "must be one label folder \\(a path\\), got ListConfig"), ("3", "got int")]
+)
+def test_a_data_folder_that_is_not_a_path_is_one_line(shards, tmp_path, value, words):
+    with pytest.raises(TrainError, match=rf"data.train=.* {words}") as caught:
+        fit(_cfg(tmp_path, shards, f"data.train={value}"))
+    assert "\n" not in str(caught.value)
+
+
+def test_validation_on_the_training_folder_is_said(shards, tmp_path, caplog):
+    with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
+        fit(_cfg(tmp_path, shards, "trainer.fast_dev_run=true"))
+    assert "data.val is data.train" in caplog.text
+
+
+def test_a_labeller_config_with_a_python_tag_is_one_line_naming_the_shard(shards, tmp_path):
+    import shutil
+
+    import h5py
+
+    from fastflow3d.data import DataError, labeller_preprocessing
+
+    copy = tmp_path / "labels"
+    shutil.copytree(shards, copy)
+    shard = sorted(copy.glob("shard_*.h5"))[0]
+    with h5py.File(shard, "r+") as handle:
+        handle.attrs["config"] = "teacher: !!python/object/apply:os.system ['touch pwned']\n"
+    with pytest.raises(DataError, match=rf"{shard}: its labeller config is not plain YAML \(ConstructorError"):
+        labeller_preprocessing(copy)
+    assert not (tmp_path / "pwned").exists() and not os.path.exists("pwned")
