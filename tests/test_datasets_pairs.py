@@ -88,9 +88,14 @@ def test_missing_key(tmp_path):
     assert "missing key(s) pc1" in _error(tmp_path)
 
 
-def test_unknown_key(tmp_path):
-    write(tmp_path, scene_flow=np.zeros((120, 3)))
-    assert "unknown key(s) scene_flow" in _error(tmp_path)
+def test_unknown_keys_are_never_read_and_said_once(tmp_path):
+    """Only the keys read matter: an extra key (a misspelt field, or an object array that would need unpickling) is
+    named in one warning and ignored, never loaded."""
+    write(tmp_path, scene_flow=np.zeros((120, 3)), meta=np.array([{"a": 1}], dtype=object))
+    dataset = NpzPairsDataset(tmp_path)
+    with pytest.warns(UserWarning, match=r"pair_000.npz: key\(s\) meta, scene_flow are no pair field and are ignored"):
+        pair = dataset.pair(0)
+    assert pair.pc0.shape == PC0.shape and pair.flow is None
 
 
 def test_wrong_shape(tmp_path):

@@ -17,6 +17,7 @@ any other problem (missing key, wrong shape, NaN rows, empty scan, damaged file)
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +42,7 @@ class NpzPairsDataset(IndexedDataset):
         self.split = split
         folder = self.root / split if split and (self.root / split).is_dir() else self.root
         self._index_files(sorted(folder.glob("*.npz")))
+        self._said_unknown = False
         if not self.files:
             raise fail(folder, "no .npz pair files")
 
@@ -51,10 +53,16 @@ class NpzPairsDataset(IndexedDataset):
         if horizon != 1:
             raise IndexError(f"{self.name}: a pair file holds horizon 1 only, got {horizon}")
         path = self.files[index]
-        data = load_npz(path, ("pc0", "pc1"))
-        unknown = sorted(set(data) - set(KNOWN))
-        if unknown:
-            raise fail(path, f"unknown key(s) {', '.join(unknown)}; known: {', '.join(KNOWN)}")
+        data = load_npz(path, ("pc0", "pc1"), optional=KNOWN)  # other keys are never read (nor unpickled)
+        with np.load(path, allow_pickle=False) as archive:  # their names only
+            unknown = sorted(set(archive.files) - set(KNOWN))
+        if unknown and not self._said_unknown:  # a misspelt field would be lost silently otherwise; said once
+            self._said_unknown = True
+            warnings.warn(
+                f"{path}: key(s) {', '.join(unknown)} are no pair field and are ignored (known: {', '.join(KNOWN)})",
+                UserWarning,
+                stacklevel=2,
+            )
         fields = {}
         for name in ("pc0", "pc1"):
             fields[name] = check_points(data[name], path, name, allow_empty=False)
