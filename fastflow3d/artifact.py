@@ -181,6 +181,12 @@ def read_metadata(path: Path) -> dict:
         raise ArtifactError(f"{path}: cannot read export metadata: {' '.join(str(error).split())}") from None
     if not isinstance(metadata, dict) or not isinstance(metadata.get("files"), dict):
         raise ArtifactError(f"{path}: not FastFlow3D export metadata (no 'files' entry)")
+    version = metadata.get("metadata_version", 1)
+    if not isinstance(version, int) or isinstance(version, bool) or version > METADATA_VERSION:
+        raise ArtifactError(
+            f"{path}: metadata_version {version!r} is not one this version reads (<= {METADATA_VERSION}); "
+            "a newer icpflow wrote it: upgrade icpflow"
+        )
     return metadata
 
 

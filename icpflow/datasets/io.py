@@ -120,8 +120,7 @@ def read_scan(path: Path, bin_columns: int | None = None) -> np.ndarray:
     if suffix in (".ply", ".pcd"):
         if not path.is_file():
             raise fail(path, "file not found")
-        if suffix == ".ply":
-            check_ply_complete(path)
+        (check_ply_complete if suffix == ".ply" else check_pcd_complete)(path)
         import open3d as o3d  # imported here: only these two formats need it
 
         cloud = o3d.io.read_point_cloud(str(path), format="auto")
@@ -168,6 +167,39 @@ def check_ply_complete(path: Path) -> None:
         available, needed = len(body), count * sum(PLY_SIZES[entry[1]] for entry in properties)
     if available < needed:
         raise fail(path, f"truncated: header declares {count} vertices, the file holds less")
+
+
+def check_pcd_complete(path: Path) -> None:
+    """Raise if a PCD file holds fewer points than its header declares (``POINTS``, else ``WIDTH x HEIGHT``).
+
+    open3d reads a truncated PCD without an error (the points present), as it does a PLY (:func:`check_ply_complete`).
+    ``DATA binary_compressed`` is left to open3d (its sizes are in the compressed block)."""
+    data = path.read_bytes()
+    at = data.find(b"\nDATA ")
+    if not data.lstrip().startswith((b"#", b"VERSION", b"FIELDS")) or at < 0:
+        raise fail(path, "not a PCD file (no header ending in a 'DATA' line)")
+    line_end = data.find(b"\n", at + 1)
+    header = data[: at + 1].decode("ascii", errors="replace").splitlines()
+    kind = data[at + 6 : line_end if line_end >= 0 else len(data)].decode("ascii", errors="replace").strip()
+    body = data[line_end + 1 :] if line_end >= 0 else b""
+    fields = {line.split()[0]: line.split()[1:] for line in header if line.strip() and not line.startswith("#")}
+    try:
+        if "POINTS" in fields:
+            count = int(fields["POINTS"][0])
+        else:
+            count = int(fields["WIDTH"][0]) * int(fields["HEIGHT"][0])
+        sizes = [int(v) for v in fields["SIZE"]]
+        counts = [int(v) for v in fields.get("COUNT", ["1"] * len(sizes))]
+    except (KeyError, IndexError, ValueError):
+        raise fail(path, "PCD header lacks POINTS (or WIDTH and HEIGHT) and SIZE") from None
+    if kind == "ascii":
+        available, needed = len([line for line in body.splitlines() if line.strip()]), count
+    elif kind == "binary":
+        available, needed = len(body), count * sum(size * n for size, n in zip(sizes, counts))
+    else:
+        return
+    if available < needed:
+        raise fail(path, f"truncated: header declares {count} points, the file holds less")
 
 
 def read_pose_lines(path: Path) -> np.ndarray:
