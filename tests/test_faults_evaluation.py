@@ -21,7 +21,7 @@ from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.evaluation import method_summary, read_metrics, run_eval
 
 from helpers.disk import fail_fsync_after
-from helpers.labelling import running_in_group
+from helpers.labelling import default_sigint, running_in_group
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = [
@@ -85,6 +85,7 @@ def test_a_stopped_eval_keeps_the_pairs_scored_and_leaves_no_process(tmp_path, s
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,  # its own process group: everything it starts is found by the group id
+        preexec_fn=default_sigint,  # Ctrl-C as a terminal delivers it, even when pytest runs as a background job
     )
     deadline = time.monotonic() + 600  # generous: a loaded machine
     while not marker.exists():
