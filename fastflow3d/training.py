@@ -46,8 +46,10 @@ def check_data(cfg: DictConfig) -> None:
             raise TrainError(
                 f"data.{key}={cfg.data[key]} must be one label folder (a path), got {type(cfg.data[key]).__name__}"
             )
-    if Path(cfg.data.train).resolve() == Path(cfg.data.val).resolve():
+    same = Path(cfg.data.train).resolve() == Path(cfg.data.val).resolve()
+    if same:
         log.warning("data.val is data.train (%s): validation scores the training samples", cfg.data.train)
+    ids = {}
     for key, split in (("train", "train"), ("val", "val")):
         path = cfg.data[key]
         try:
@@ -71,6 +73,15 @@ def check_data(cfg: DictConfig) -> None:
             ) from None
         if key == "train" and cfg.loss.name == "supervised" and "gt" not in dataset[0]:
             raise TrainError(f"loss.name=supervised needs ground truth, but data.train={path} has none")
+        ids[key] = set(dataset.shards.sample_ids)
+    shared = ids["train"] & ids["val"]
+    if shared and not same:
+        log.warning(
+            "data.val shares %d of its %d sample ids with data.train (e.g. %s): validation scores samples trained on",
+            len(shared),
+            len(ids["val"]),
+            sorted(shared)[0],
+        )
 
 
 def inference_preprocessing(cfg: DictConfig) -> dict:

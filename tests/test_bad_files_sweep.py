@@ -240,3 +240,39 @@ def test_a_broken_shard_given_to_train(labels, tmp_path, form):
         fit(train_cfg(tmp_path, folder, folder, "trainer.max_steps=1"))
     _one_line_naming(str(caught.value), shard)
     assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+@pytest.mark.parametrize("form", ["empty", "truncated", "garbage", "a pickle", "not a training checkpoint"])
+def test_a_broken_checkpoint_given_to_export_and_the_predictor(pair, tmp_path, form):
+    """export.py (``export_checkpoint``) and ``Predictor.load`` (eval.py's student) on a damaged or foreign
+    ``.ckpt``: one line naming it, nothing written beside it, a pickle never run."""
+    import pickle
+
+    import torch
+
+    from fastflow3d.checkpoint import CheckpointError
+    from fastflow3d.export import ExportError
+
+    run = tmp_path / "run" / "checkpoints"
+    run.mkdir(parents=True)
+    good = tiny_checkpoint(run / "good.ckpt", tiny_model(25.6, 0.8), pair, steps=1)
+    broken = run / "broken.ckpt"
+    target = tmp_path / "pwned"
+    if form == "a pickle":
+
+        class Payload:
+            def __reduce__(self):
+                return (open, (str(target), "w"))
+
+        torch.save({"state_dict": Payload()}, broken, pickle_protocol=pickle.HIGHEST_PROTOCOL)
+    elif form == "not a training checkpoint":
+        torch.save({"weights": torch.zeros(3)}, broken)
+    else:
+        broken.write_bytes(_broken_bytes(good.read_bytes(), form))
+    before = set(tmp_path.rglob("*"))
+    for load in (lambda: export_checkpoint(broken, formats=("pt2",)), lambda: Predictor.load(broken)):
+        with pytest.raises((CheckpointError, ExportError, ArtifactError)) as caught:
+            load()
+        _one_line_naming(str(caught.value), broken)
+    _nothing_written(tmp_path, before)
+    assert not target.exists()

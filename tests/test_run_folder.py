@@ -118,3 +118,13 @@ def test_a_labeller_config_with_a_python_tag_is_one_line_naming_the_shard(shards
     with pytest.raises(DataError, match=rf"{shard}: its labeller config is not plain YAML \(ConstructorError"):
         labeller_preprocessing(copy)
     assert not (tmp_path / "pwned").exists() and not os.path.exists("pwned")
+
+
+def test_validation_samples_that_are_training_samples_are_said(shards, tmp_path, caplog):
+    import shutil
+
+    copy = tmp_path / "val"
+    shutil.copytree(shards, copy)
+    with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
+        fit(train_cfg(tmp_path, shards, copy, "trainer.fast_dev_run=true"))
+    assert "data.val shares 2 of its 2 sample ids with data.train" in caplog.text
