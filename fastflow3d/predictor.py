@@ -323,8 +323,9 @@ class Predictor:
             "lift",
             f"Predictor: the ground of pc0 lies at z = {ground:.2f} m but the model's frame has it at z = "
             f"{target:.2f} m; both scans lifted by {target - ground:+.2f} m (pass sensor_height=<metres of the "
-            f"origin above the ground>, e.g. 1.73 for KITTI's velodyne frame, or 'auto' to say so; said once, every "
-            "pair is lifted by its own ground)",
+            f"origin above the ground>, e.g. 1.73 for KITTI's velodyne frame, or 'auto' to say so: Predictor.load "
+            "and eval.py sensor_height=..., fastflow3d-infer --sensor-height; said once, every pair is lifted by "
+            "its own ground)",
         )
         return target - ground
 

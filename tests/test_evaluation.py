@@ -444,3 +444,11 @@ def test_eval_script_runs(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "synthetic val: 1 pairs" in done.stdout
     assert (tmp_path / "metrics.json").is_file()
+
+
+@pytest.mark.parametrize("value, expected", [("null", None), ("auto", "auto"), ("1.73", 1.73)])
+def test_the_students_height_frame_is_an_eval_option(tmp_path, dataset, value, expected):
+    """eval.py sensor_height=... reaches the student's Predictor (the advice its height-frame warning gives)."""
+    checkpoint = tiny_student_checkpoint(tmp_path / "student.ckpt", dataset[0])
+    method = student_method(_cfg(tmp_path / "eval", f"checkpoint={checkpoint}", f"sensor_height={value}"))
+    assert method.predictor.sensor_height == expected
