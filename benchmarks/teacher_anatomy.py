@@ -43,6 +43,7 @@ from scipy.spatial import cKDTree
 
 from icpflow.geometry import euler_angles, kabsch, transform_points
 from icpflow.metrics import PairTruth
+from icpflow.teacher.histogram import main_axis
 
 ROOT = Path(__file__).resolve().parents[1]
 EXTENT_BINS = (0.0, 2.0, 5.0, 8.0, 20.0)  # m
@@ -74,16 +75,6 @@ def open_split(overrides: list[str]):
     return open_dataset(cfg, 1), cfg
 
 
-def main_axis(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """(unit (2,) main horizontal axis, length along it in m) of (N, 3) points."""
-    xy = points[:, :2] - points[:, :2].mean(axis=0)
-    if len(xy) < 2:
-        return np.array([1.0, 0.0]), 0.0
-    axis = np.linalg.eigh(xy.T @ xy)[1][:, -1]
-    along = xy @ axis
-    return axis, float(along.max() - along.min())
-
-
 def share_of(labels: np.ndarray) -> Counter:
     """Counts of each label >= 0 in ``labels``."""
     return Counter(int(v) for v in labels[labels >= 0])
@@ -104,7 +95,7 @@ def diagnose(pair, result, dynamic: np.ndarray) -> list[dict]:
         if members.sum() < MIN_OBJECT_POINTS:
             continue
         obj = pair.instance == instance
-        axis, extent = main_axis(pair.pc0[obj])
+        axis, extent = main_axis(pair.pc0[obj].astype(np.float64))
         src = transform_points(ego, pair.pc0[members].astype(np.float64))
         dst = pair.pc0[members].astype(np.float64) + pair.flow[members]
         truth = kabsch(src, dst)

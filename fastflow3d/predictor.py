@@ -64,7 +64,7 @@ from fastflow3d.artifact import (
 from fastflow3d.model import compensate
 from fastflow3d.refine import RefineConfig, refine_residual
 from icpflow.frames import FramePairError, check_points
-from icpflow.geometry import residual_to_full, rigid_problem
+from icpflow.geometry import residual_to_full, rigid_problem, transform_points
 from icpflow.preprocess import (
     FRAME_TOLERANCE,
     estimate_ground_height,
@@ -382,8 +382,7 @@ class Predictor:
         tree = cKDTree(pc1[:: max(1, len(pc1) // 20000)])
         fits = {}
         for name, transform in (("given", ego), ("the identity", np.eye(4)), ("its inverse", np.linalg.inv(ego))):
-            moved = source @ transform[:3, :3].T + transform[:3, 3]
-            fits[name] = float(np.minimum(tree.query(moved)[0], 2.0).mean())
+            fits[name] = float(np.minimum(tree.query(transform_points(transform, source))[0], 2.0).mean())
         best = min(("the identity", "its inverse"), key=fits.get)
         if fits["given"] > 1.5 * fits[best] and fits["given"] - fits[best] > 0.05:
             self.ego_checks_left = 0

@@ -152,7 +152,7 @@ def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
             f"ckpt_path={value}: {path} holds another network: {what}; resume with the model settings it was "
             "trained with, or leave ckpt_path unset to start afresh"
         )
-    check_resume_settings(cfg, checkpoint, value, path)
+    check_resume_settings(module.cfg, checkpoint, value, path)
     return str(path)
 
 
@@ -295,16 +295,15 @@ def _differences(saved: dict, ours: dict, prefix: str, skip=()) -> list[str]:
     return out
 
 
-def check_resume_settings(cfg: DictConfig, checkpoint: dict, value: str, path: Path) -> None:
+def check_resume_settings(ours: dict, checkpoint: dict, value: str, path: Path) -> None:
     """A resume with other model or data settings than the checkpoint's is refused, one line naming each
     difference; differing optimiser or schedule settings are not applied (the checkpoint's optimiser and schedule
-    state continue): said in the log, naming them."""
+    state continue): said in the log, naming them. ``ours``: this run's resolved config as the module holds it
+    (its ``data.preprocessing`` included), compared with the one the checkpoint stores."""
     hparams = checkpoint.get("hyper_parameters")
     saved = (hparams.get("cfg") or {}) if isinstance(hparams, dict) else {}
     if not isinstance(saved, dict) or not saved:
         return
-    ours = OmegaConf.to_container(cfg, resolve=True)
-    ours.setdefault("data", {})["preprocessing"] = inference_preprocessing(cfg)
     differ = _differences(saved.get("model") or {}, ours.get("model") or {}, "model")
     differ += _differences(saved.get("data") or {}, ours.get("data") or {}, "data", RESUME_FREE_DATA)
     if differ:

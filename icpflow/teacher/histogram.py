@@ -188,7 +188,7 @@ def main_axis(points):
 
 
 @numba.njit(cache=True)
-def _axis_search(src, dst, start, score, window, axis_step, axis_points):
+def _axis_search(src, dst, axis, start, score, window, axis_step, axis_points):
     """The line search along the source cluster's main horizontal axis from ``start`` (its ``score``): candidates
     every ``axis_step`` metres across the window, scored on every k-th point (at most ``axis_points`` per
     cluster), then the best one refined in quarter steps on every point. Returns the best translation of all and its
@@ -227,8 +227,10 @@ def _initial_translation(
     scores = _scores(np.ascontiguousarray(src.T), np.ascontiguousarray(dst.T), candidates)
     c = np.argmin(scores)  # first minimum: ties go to the higher-voted peak
     moving = candidates[c, 0] ** 2 + candidates[c, 1] ** 2 >= axis_step**2  # the vote's best is not (near) zero
-    if axis_min_extent > 0 and moving and src.shape[0] > 1 and main_axis(src)[1] >= axis_min_extent:
-        return _axis_search(src, dst, candidates[c], scores[c], window, axis_step, axis_points)
+    if axis_min_extent > 0 and moving and src.shape[0] > 1:
+        axis, extent = main_axis(src)
+        if extent >= axis_min_extent:
+            return _axis_search(src, dst, axis, candidates[c], scores[c], window, axis_step, axis_points)
     return candidates[c], scores[c]
 
 

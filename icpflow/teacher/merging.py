@@ -31,6 +31,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from icpflow.geometry import transform_points
 from icpflow.teacher import registration
 from icpflow.teacher.config import ICPConfig, MergingConfig
 from icpflow.teacher.histogram import main_axis
@@ -93,9 +94,7 @@ def _moved_parts(src: np.ndarray, src_stats: ClusterStats, parts: list[int], tra
     """Source points of the labels ``parts``, each moved by its match's transform (the identity if none)."""
     out = []
     for label in parts:
-        points = src_stats.points(src, label)
-        t = transform_of.get(label, np.eye(4))
-        out.append(points @ t[:3, :3].T + t[:3, 3])
+        out.append(transform_points(transform_of.get(label, np.eye(4)), src_stats.points(src, label)))
     return np.concatenate(out)
 
 
