@@ -8,6 +8,8 @@ A run's console is a progress bar, the lines that say what a long step does, and
   to stderr with ``tqdm.write``, so a warning never lands inside a progress bar. ``conf/hydra/default.yaml`` makes it
   the console handler of every Hydra entry point (Hydra's default prints timestamps to stdout). Worker processes,
   which cannot reach the main process's bar, use :func:`worker_logging` (a line of their own).
+- :func:`captured_output`: what C and C++ libraries write straight to file descriptors 1 and 2 (Patchwork++'s
+  constructor, open3d's renderer), caught for the duration, one redirection at a time in the process.
 - :func:`quiet`: filters exactly the messages in ``NOISE`` (library advertisements, lines about hardware that is
   absent, a deprecation inside Lightning that its users cannot act on), each matched on its own text; every other
   warning and log line shows as before. Called first by ``label.py``, ``train.py``, ``eval.py``, ``export.py`` and
@@ -16,10 +18,15 @@ A run's console is a progress bar, the lines that say what a long step does, and
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import re
 import sys
+import tempfile
+import threading
 import warnings
+from collections.abc import Iterator
 
 from tqdm import tqdm
 
@@ -125,3 +132,36 @@ def quiet() -> None:
         for handler in logging.getLogger(name).handlers:
             if not any(isinstance(f, NoiseFilter) for f in handler.filters):
                 handler.addFilter(NoiseFilter())
+
+
+#: file descriptors 1 and 2 belong to the whole process: one redirection at a time (two threads each saving and
+#: restoring them unguarded lose stdout for good)
+_REDIRECTION = threading.RLock()
+
+
+@contextlib.contextmanager
+def captured_output(fds: tuple[int, ...] = (1,)) -> Iterator[list[str]]:
+    """Point the file descriptors ``fds`` (1 stdout, 2 stderr) at a temporary file for the duration; the yielded list
+    holds what was written there, as lines, once the block ends. Held under one process-wide lock; where a descriptor
+    cannot be duplicated (no real stdout in some embedded runners) nothing is redirected and the list stays empty."""
+    lines: list[str] = []
+    with _REDIRECTION, tempfile.TemporaryFile() as capture:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        try:
+            saved = [os.dup(fd) for fd in fds]
+        except OSError:
+            yield lines
+            return
+        for fd in fds:
+            os.dup2(capture.fileno(), fd)
+        try:
+            yield lines
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            for fd, copy in zip(fds, saved):
+                os.dup2(copy, fd)
+                os.close(copy)
+            capture.seek(0)
+            lines.extend(capture.read().decode(errors="replace").splitlines())

@@ -14,7 +14,6 @@ import os
 import re
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -25,6 +24,7 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import hsv_to_rgb, to_rgb, to_rgba_array  # noqa: E402
 
 from icpflow.atomic import atomic_path  # noqa: E402
+from icpflow.console import captured_output  # noqa: E402
 from icpflow.frames import FramePair  # noqa: E402
 from icpflow.geometry import full_to_residual, transform_points  # noqa: E402
 
@@ -116,28 +116,16 @@ RENDERER_BANNER = re.compile(
 
 @contextlib.contextmanager
 def _renderer_output():
-    """Capture what C++ libraries write to file descriptors 1 and 2 for the duration, then pass on to stderr every
+    """Catch what C++ libraries write to file descriptors 1 and 2 for the duration, then pass on to stderr every
     line that is not ``RENDERER_BANNER`` (so stdout keeps eval.py's tables, and real warnings still show)."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = os.dup(1), os.dup(2)
-    with tempfile.TemporaryFile() as capture:
-        os.dup2(capture.fileno(), 1)
-        os.dup2(capture.fileno(), 2)
-        try:
+    lines: list[str] = []
+    try:
+        with captured_output((1, 2)) as lines:
             yield
-        finally:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            os.close(saved[0])
-            os.close(saved[1])
-            capture.seek(0)
-            lines = capture.read().decode(errors="replace").splitlines()
-            kept = [line for line in lines if line.strip() and not RENDERER_BANNER.match(line)]
-            if kept:
-                print("\n".join(kept), file=sys.stderr, flush=True)
+    finally:
+        kept = [line for line in lines if line.strip() and not RENDERER_BANNER.match(line)]
+        if kept:
+            print("\n".join(kept), file=sys.stderr, flush=True)
 
 
 _PROBE = "from open3d.visualization import rendering; rendering.OffscreenRenderer(16, 16).render_to_image()"

@@ -13,13 +13,15 @@ Per pair, every entity in the ego frame of t + dt (pc1's frame, as the BEV pictu
   get the ego flow), yellow: each a toggle in the viewer's entity tree;
 - ``info``: the sample id, dt and the methods, as text.
 
-Written under a temporary name and renamed when closed (``icpflow.atomic``): a run that fails leaves no half file.
-``rerun`` is imported on first use; without it :class:`ViewerUnavailable` says how to install it.
+The recording is kept in memory and written when closed, by Python under a temporary name then renamed
+(``icpflow.atomic``): a run that fails leaves no half file, and a place that cannot hold the file (read-only, full)
+is one ``WriteError`` naming ``path`` (rerun's own file sink, when its disk fills, logs from its writer thread and may
+leave ``flush`` waiting for ever). ``rerun`` is imported on first use, with its Rust log lines off (``RUST_LOG=off``
+unless the user set ``RUST_LOG``); without it :class:`ViewerUnavailable` says how to install it.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
 from pathlib import Path
 
@@ -42,6 +44,7 @@ class ViewerUnavailable(RuntimeError):
 
 def import_rerun():
     """The ``rerun`` module, or :class:`ViewerUnavailable` naming the extra that installs it."""
+    os.environ.setdefault("RUST_LOG", "off")  # read when the Rust side starts; errors come back as exceptions
     try:
         import rerun
     except ImportError:
@@ -74,10 +77,8 @@ class PairRecording:
         rr = import_rerun()
         self.rr, self.path = rr, Path(path)
         self.max_speed, self.min_speed, self.radius = float(max_speed), float(min_speed), float(radius)
-        self._files = contextlib.ExitStack()
-        temporary = self._files.enter_context(atomic_path(self.path, make_parents=True))
         self.stream = rr.RecordingStream(application)
-        self.stream.save(temporary)
+        self._memory = self.stream.memory_recording()
         self.pairs = 0
 
     def log_pair(
@@ -126,16 +127,18 @@ class PairRecording:
         self.pairs += 1
 
     def close(self) -> Path:
-        """Finish the file and put it in place; returns its path."""
+        """Write the file and put it in place; returns its path (``WriteError`` naming it where the place is full or
+        read-only; nothing is left there then)."""
         self.stream.flush()
+        data = self._memory.drain_as_bytes()
         self.stream.disconnect()
-        self._files.close()
+        with atomic_path(self.path, make_parents=True) as temporary:
+            temporary.write_bytes(data)
         return self.path
 
     def abort(self) -> None:
-        """Drop the file (nothing is left at ``path``)."""
+        """Drop the recording (nothing is written at ``path``)."""
         self.stream.disconnect()
-        self._files.__exit__(RuntimeError, RuntimeError("recording aborted"), None)
 
     def __enter__(self) -> PairRecording:
         return self

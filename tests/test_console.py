@@ -123,3 +123,29 @@ def test_worker_warnings_take_a_line_of_their_own():
         record = logging.LogRecord("icpflow.frames", logging.WARNING, __file__, 1, "x has float16", None, None)
         handler.handle(record)
         assert stream.getvalue() == f"{start}frames: warning: x has float16\n"
+
+
+def test_native_output_redirections_from_two_threads_keep_stdout(capfd):
+    """Issue 31.5: file descriptor 1 is the process's; two threads each silencing it (the ground step, a picture)
+    must not leave it pointing at a temporary file (one redirection at a time)."""
+    import threading
+
+    from icpflow.console import captured_output
+
+    caught = []
+
+    def silence(mark: bytes):
+        for _ in range(200):
+            with captured_output((1,)) as lines:
+                os.write(1, mark)
+            caught.append(lines)
+
+    threads = [threading.Thread(target=silence, args=(f"{i}\n".encode(),)) for i in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    os.write(1, b"still here\n")
+    out, _ = capfd.readouterr()
+    assert out == "still here\n"
+    assert len(caught) == 400 and all(len(lines) == 1 for lines in caught)

@@ -81,26 +81,6 @@ def _state(checkpoint: Path) -> dict:
     return next(value for key, value in callbacks.items() if key.startswith("ModelCheckpoint"))
 
 
-@pytest.fixture
-def mount_tmpfs(tmp_path):
-    """``mount_tmpfs(folder, size, read_only=False)``: a real small filesystem at ``folder`` (unmounted after the
-    test); skips where this user may not mount one."""
-    mounted = []
-
-    def mount(folder: Path, size: str, read_only: bool = False) -> Path:
-        folder.mkdir(parents=True, exist_ok=True)
-        options = f"size={size}" + (",ro" if read_only else "")
-        result = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True)
-        if result.returncode != 0:
-            pytest.skip(f"cannot mount a tmpfs here (needs root): {result.stderr.decode().strip()}")
-        mounted.append(folder)
-        return folder
-
-    yield mount
-    for folder in reversed(mounted):
-        subprocess.run(["umount", "-l", str(folder)], capture_output=True)
-
-
 # ------------------------------------------------------------------------------------- 1. resume: one true best
 
 

@@ -139,3 +139,23 @@ def test_infer_rerun_on_kitti_scans(pairs, tmp_path):
         np.testing.assert_allclose(entities["pc0"][0]["positions"], moved, atol=1e-4)
         np.testing.assert_allclose(entities["flow/fastflow3d/moved"][0]["positions"], pc0 + result["flow"], atol=1e-5)
         np.testing.assert_allclose(entities["masks/in_grid"][0]["positions"], moved[result["in_grid"]], atol=1e-4)
+
+
+@pytest.mark.parametrize("place", ["full", "read-only"])
+def test_a_recording_on_a_full_or_read_only_place_is_one_line_naming_it(pairs, tmp_path, mount_tmpfs, place):
+    """Issue 31.5: ``fastflow3d-infer --rerun`` where the file cannot be written: one line naming the file asked for
+    (not rerun's temporary name), none of rerun's own log lines, exit 2, nothing left there. A process of its own:
+    rerun's Rust logging is set when rerun is first imported, which this test module has already done."""
+    import subprocess
+
+    checkpoint = tiny_checkpoint(tmp_path / "tiny.ckpt", TINY, pairs[0], 1)
+    disk = mount_tmpfs(tmp_path / "disk", "64k", read_only=place == "read-only")
+    recording = disk / "pair.rrd"
+    scans = [str(KITTI / "000000.bin"), str(KITTI / "000001.bin"), "--sensor-height", "1.73"]
+    command = [sys.executable, "-m", "fastflow3d.infer", str(checkpoint), *scans, "--no-bev", "--rerun", str(recording)]
+    result = subprocess.run(command + ["--out", str(tmp_path / "f.npz")], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith(f"infer: {recording}: cannot write ("), result.stderr
+    assert result.stderr.count("\n") == 1 and ".tmp-" not in result.stderr, result.stderr
+    assert ("No space left" if place == "full" else "Read-only") in result.stderr, result.stderr
+    assert list(disk.iterdir()) == []

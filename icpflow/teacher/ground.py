@@ -9,29 +9,10 @@ shifted so that the ground sits at -sensor_height), ``zthreshold`` (ground if ``
 
 from __future__ import annotations
 
-import contextlib
-import os
-
 import numpy as np
 
+from icpflow.console import captured_output
 from icpflow.preprocess import Preprocessing
-
-
-@contextlib.contextmanager
-def _quiet_stdout():
-    """Silence C-level stdout (Patchwork++'s constructor prints a line even when not verbose)."""
-    try:
-        fd = os.dup(1)
-    except OSError:  # no real stdout (some embedded runners): nothing to silence
-        yield
-        return
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), 1)
-            yield
-    finally:
-        os.dup2(fd, 1)
-        os.close(fd)
 
 
 class GroundSegmenter:
@@ -82,7 +63,7 @@ class GroundSegmenter:
         cloud[:, 2] += self.settings.patchwork_z_offset
         import pypatchworkpp
 
-        with _quiet_stdout():
+        with captured_output((1,)):  # Patchwork++'s constructor prints even when not verbose
             patchwork = pypatchworkpp.patchworkpp(self._params)
         patchwork.estimateGround(cloud)
         ground[np.asarray(patchwork.getGroundIndices(), dtype=np.int64)] = True
