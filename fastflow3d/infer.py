@@ -42,7 +42,7 @@ from icpflow.console import quiet
 from icpflow.datasets.io import SCAN_SUFFIXES, fail, load_npz, read_poses, read_scan
 from icpflow.entry import os_error_line
 from icpflow.frames import FramePair, check_points
-from icpflow.geometry import relative_transform, rigid_problem
+from icpflow.geometry import relative_transform
 
 NPZ_KEYS = ("points", "pc")
 
@@ -63,14 +63,11 @@ def read_raw_scan(path: Path, bin_columns: int | None = None) -> np.ndarray:
 
 
 def read_transforms(path: Path, count: int) -> np.ndarray:
-    """Exactly ``count`` rigid (4, 4) float64 transforms from text (12 or 16 values a line) or ``.npy``."""
+    """Exactly ``count`` rigid (4, 4) float64 transforms from text (12 or 16 values a line) or ``.npy``
+    (``read_poses``, which checks each one rigid)."""
     transforms = read_poses(path)
     if len(transforms) != count:
         raise fail(path, f"holds {len(transforms)} transform(s), expected {count}")
-    for number, transform in enumerate(transforms, start=1):
-        problem = rigid_problem(transform)
-        if problem:
-            raise fail(path, f"transform {number} {problem}")
     return transforms
 
 

@@ -4,7 +4,9 @@ entry point's exit status, and nothing written.
 
 Files and readers covered here: an export's ``metadata.json`` and ``fastflow3d.pt2`` (``Predictor.load`` and
 ``fastflow3d-infer``, which ``eval.py method=[student]`` shares), scans in every format ``fastflow3d-infer`` reads,
-ego-motion files, and a label folder's ``index.json`` and shards (``train.py``). Forms: empty, truncated, garbage,
+ego-motion files, a scan folder's scans and poses file and a folder of ``.npz`` pairs (``label.py``: a broken sample
+fails alone and the others are labelled; a broken poses file stops the run before anything is written), and a label
+folder's ``index.json`` and shards (``train.py``). Forms: empty, truncated, garbage,
 wrong types, a newer format version, a path outside its folder, degenerate content (one point, all identical)."""
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_dir
 
 from fastflow3d.artifact import METADATA_NAME, ArtifactError, sha256_file
 from fastflow3d.export import export_checkpoint
@@ -22,7 +25,9 @@ from fastflow3d.infer import main as infer_main
 from fastflow3d.predictor import Predictor
 from fastflow3d.training import TrainError, fit
 from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.labelling.cli import label
 
+from helpers.labelling import REPO, read_samples
 from helpers.shards import write_pseudo_labels
 from helpers.training import train_cfg
 from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
@@ -276,3 +281,236 @@ def test_a_broken_checkpoint_given_to_export_and_the_predictor(pair, tmp_path, f
         _one_line_naming(str(caught.value), broken)
     _nothing_written(tmp_path, before)
     assert not target.exists()
+
+
+# ------------------------------------------------------------------------------------------- label.py's inputs
+#: the sensor's height over the synthetic world's ground: scans of a folder are in the sensor's frame
+SENSOR_HEIGHT = 1.9
+
+
+def _label(out: Path, dataset: str, root: Path, capfd, *overrides) -> tuple[int, str]:
+    """``label.py dataset=<dataset> dataset.root=<root>`` in this process: (exit status, stderr)."""
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose(
+            "label", [f"dataset={dataset}", f"dataset.root={root}", f"out_dir={out}", "workers=1", *overrides]
+        )
+    status = label(cfg, progress=False)
+    err = capfd.readouterr().err
+    assert "Traceback" not in err, err
+    return status, err
+
+
+@pytest.fixture(scope="module")
+def scans():
+    """Four consecutive synthetic scans in the sensor's frame (16 beams, 2 degrees: the teacher is quick)."""
+    world = SyntheticDataset(split="test", beams=16, azimuth_resolution_deg=2.0, num_sequences=1, frames_per_sequence=4)
+    clouds = [world.pair(i).pc0 for i in range(3)] + [world.pair(2).pc1]
+    return [cloud + np.float32([0, 0, SENSOR_HEIGHT]) for cloud in clouds]
+
+
+def _scan_folder(folder: Path, scans, suffix: str) -> Path:
+    folder.mkdir()
+    for index, points in enumerate(scans):
+        _scan_file(folder, suffix, points).rename(folder / f"{index:06d}{suffix}")
+    np.savetxt(folder / "poses.txt", np.tile(np.eye(4)[:3].reshape(1, -1), (len(scans), 1)))
+    return folder
+
+
+def _break_scan(path: Path, form: str, pair) -> None:
+    """Replace the scan at ``path`` by its ``form`` (the forms of SCAN_FORMS)."""
+    if form in ("empty", "truncated", "garbage"):
+        path.write_bytes(_broken_bytes(path.read_bytes(), form))
+    elif form in ("one point", "all identical"):
+        points = pair.pc0[:1] if form == "one point" else np.repeat(pair.pc0[:1], 500, axis=0)
+        _scan_file(path.parent / "x", path.suffix, points).rename(path) if (path.parent / "x").mkdir() is None else None
+    elif form == "transposed":
+        np.save(path, pair.pc0.T.copy())
+    else:  # not numbers
+        np.save(path, np.array([["a", "b", "c"]] * 10))
+
+
+@pytest.mark.parametrize(
+    "suffix, form",
+    [(suffix, form) for suffix in (".bin", ".npy", ".pcd", ".ply") for form in ("empty", "truncated", "garbage")]
+    + [(".npy", form) for form in ("one point", "all identical", "transposed", "not numbers")],
+)
+def test_a_broken_scan_in_a_scan_folder_given_to_label(scans, pair, tmp_path, capfd, suffix, form):
+    """The third of four scans broken: the two pairs that need it fail, each with one line naming it (exit 1,
+    failures.jsonl); the first pair is labelled all the same (nothing lost). Degenerate content may label."""
+    folder = _scan_folder(tmp_path / "scans", scans, suffix)
+    broken = folder / f"000002{suffix}"
+    _break_scan(broken, form, pair)
+    out = tmp_path / "labels"
+    status, err = _label(out, "sequence", folder, capfd, f"dataset.reader.sensor_height={SENSOR_HEIGHT}")
+    samples = {sample["sample_id"] for sample in read_samples(out)}
+    assert "000000" in samples, err  # the pair that does not need the broken scan
+    if form in ("one point", "all identical") and status == 0:
+        return
+    assert status == 1, err
+    failed = [line for line in err.splitlines() if line.strip().startswith("failed ")]
+    assert len(failed) == 2 and all(str(broken) in line for line in failed), err
+    assert all(line.count(str(broken)) >= 1 and "\n" not in line for line in failed)
+    records = [json.loads(line) for line in (out / "failures.jsonl").read_text().splitlines()]
+    assert sorted(record["sample_id"] for record in records) == ["000001", "000002"]
+
+
+@pytest.mark.parametrize(
+    "form", ["empty", "truncated", "garbage", "one number", "too few poses", "not rigid", "npy of strings"]
+)
+def test_a_broken_poses_file_given_to_label(scans, tmp_path, capfd, form):
+    """A poses file that cannot give every scan its pose stops label.py before any work: exit 2, one line naming
+    the file, nothing written."""
+    folder = _scan_folder(tmp_path / "scans", scans, ".npy")
+    poses = folder / "poses.txt"
+    text = poses.read_text()
+    if form == "npy of strings":
+        poses.unlink()
+        poses = folder / "poses.npy"
+        np.save(poses, np.array([["a"] * 4] * 4))
+    else:
+        lines = text.splitlines()
+        poses.write_text(
+            {
+                "empty": "",
+                "truncated": text[: len(text) // 2 - 7],
+                "garbage": "\x00\xff poses? \x13\n" * 4,
+                "one number": "1.0\n",
+                "too few poses": "\n".join(lines[:2]) + "\n",
+                "not rigid": "\n".join(["2 0 0 0 0 2 0 0 0 0 2 0"] * len(lines)) + "\n",
+            }[form]
+        )
+    out = tmp_path / "labels"
+    status, err = _label(
+        out,
+        "sequence",
+        folder,
+        capfd,
+        f"dataset.reader.sensor_height={SENSOR_HEIGHT}",
+        f"dataset.reader.poses_file={poses}",
+    )
+    assert status == 2, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("label: ") and poses.name in lines[0], err
+    assert not out.exists() or not any(out.iterdir())
+
+
+PAIR_FORMS = ["empty", "truncated", "garbage", "one point", "flow of other length", "strings", "flow not finite"]
+
+
+@pytest.mark.parametrize("form", PAIR_FORMS)
+def test_a_broken_pair_file_given_to_label(pair, tmp_path, capfd, form):
+    """A folder of ``.npz`` pairs (dataset=pairs) with one broken: it fails alone with one line naming it; the
+    good pair is labelled (exit 1). A pair of one point may label."""
+    folder = tmp_path / "pairs" / "train"
+    folder.mkdir(parents=True)
+    arrays = {"pc0": pair.pc0, "pc1": pair.pc1, "pose0": np.eye(4), "pose1": pair.ego1_from_ego0}
+    np.savez(folder / "a.npz", **arrays)
+    broken = folder / "b.npz"
+    if form in ("empty", "truncated", "garbage"):
+        broken.write_bytes(_broken_bytes((folder / "a.npz").read_bytes(), form))
+    else:
+        changed = {
+            "one point": {"pc0": pair.pc0[:1]},
+            "flow of other length": {"flow": np.zeros((3, 3), np.float32)},
+            "strings": {"pc1": np.array([["a", "b", "c"]] * 5)},
+            "flow not finite": {"flow": np.full(pair.pc0.shape, np.nan, np.float32)},
+        }[form]
+        np.savez(broken, **{**arrays, **changed})
+    out = tmp_path / "labels"
+    status, err = _label(out, "pairs", tmp_path / "pairs", capfd)
+    samples = {sample["sample_id"] for sample in read_samples(out)}
+    assert "a" in samples, err
+    if form == "one point" and status == 0:
+        return
+    assert status == 1, err
+    failed = [line for line in err.splitlines() if line.strip().startswith("failed ")]
+    assert len(failed) == 1 and broken.name in failed[0], err
+
+
+# ----------------------------------------------------------------------------------- eval.py's and resumes' inputs
+EVAL_SMALL = ["dataset.reader.num_sequences=1", "dataset.reader.frames_per_sequence=2", "dataset.reader.beams=32"]
+
+
+def _eval(out: Path, capfd, *overrides) -> tuple[int, str]:
+    """eval.py's body (``run_eval`` inside ``reported``, as eval.py runs it) on a small synthetic split."""
+    from fastflow3d.eval_method import student_method
+    from icpflow.entry import reported
+    from icpflow.evaluation import run_eval
+
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose("eval", [*EVAL_SMALL, "bev=0", f"out_dir={out}", *overrides])
+    with pytest.raises(SystemExit) as stopped, reported("eval"):
+        status = run_eval(cfg, progress=False, extra_methods={"student": student_method})
+        raise SystemExit(status)
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "unexpected" not in err, err
+    return stopped.value.code, err
+
+
+@pytest.mark.parametrize("form", ["metadata garbage", "pt2 truncated", "path outside", "newer version"])
+def test_a_broken_export_given_to_eval(export_dir, tmp_path, capfd, form):
+    """``eval.py method=[student] checkpoint=<export>``: exit 2, one line naming the file, no metrics written."""
+    broken = tmp_path / "export"
+    shutil.copytree(export_dir, broken)
+    metadata = json.loads((broken / METADATA_NAME).read_text())
+    if form == "metadata garbage":
+        named = broken / METADATA_NAME
+        named.write_bytes(_broken_bytes(named.read_bytes(), "garbage"))
+    elif form == "pt2 truncated":
+        named = broken / "fastflow3d.pt2"
+        named.write_bytes(_broken_bytes(named.read_bytes(), "truncated"))
+        metadata["files"]["pt2"]["sha256"] = sha256_file(named)
+        (broken / METADATA_NAME).write_text(json.dumps(metadata))
+    else:
+        named = broken / METADATA_NAME
+        (broken / METADATA_NAME).write_text(json.dumps(_metadata_form(metadata, form)))
+    out = tmp_path / "scores"
+    status, err = _eval(out, capfd, "method=[student]", f"checkpoint={broken}")
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert status == 2 and len(lines) == 1 and lines[0].startswith("eval: "), err
+    assert named.name in lines[0] or str(broken) in lines[0], err
+    assert not list(out.rglob("metrics*.json"))
+
+
+@pytest.mark.parametrize("form", ["index garbage", "shard truncated", "shard outside"])
+def test_a_broken_label_folder_given_to_eval(labels, tmp_path, capfd, form):
+    """``eval.py method=[shards] shards=<label folder>``: exit 2, one line naming the folder or shard, no metrics."""
+    folder = tmp_path / "labels"
+    shutil.copytree(labels, folder)
+    if form == "index garbage":
+        named = folder / "index.json"
+        named.write_bytes(_broken_bytes(named.read_bytes(), "garbage"))
+    elif form == "shard truncated":
+        named = sorted(folder.glob("shard_*.h5"))[0]
+        named.write_bytes(_broken_bytes(named.read_bytes(), "truncated"))
+    else:
+        named = folder / "index.json"
+        index = json.loads(named.read_text())
+        named.write_text(json.dumps({**index, "shards": [{**index["shards"][0], "file": "/etc/passwd"}]}))
+    out = tmp_path / "scores"
+    status, err = _eval(out, capfd, "method=[shards]", f"shards={folder}")
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert status == 2 and len(lines) == 1, err
+    assert str(folder) in lines[0], err
+    assert not list(out.rglob("metrics*.json"))
+
+
+@pytest.mark.parametrize("form", ["empty", "truncated", "garbage", "not a training checkpoint"])
+def test_a_broken_checkpoint_to_resume_from_loses_nothing(labels, tmp_path, form):
+    """``train.py ckpt_path=<file>`` with a damaged or foreign checkpoint: one line naming it, and the run folder's
+    existing checkpoints are left exactly as they were (nothing lost)."""
+    import torch
+
+    fit(train_cfg(tmp_path, labels, labels, "trainer.max_steps=1"))
+    checkpoints = tmp_path / "run" / "checkpoints"
+    before = {path: path.read_bytes() for path in checkpoints.iterdir()}
+    assert (checkpoints / "last.ckpt") in before
+    broken = tmp_path / "broken.ckpt"
+    if form == "not a training checkpoint":
+        torch.save({"weights": torch.zeros(3)}, broken)
+    else:
+        broken.write_bytes(_broken_bytes((checkpoints / "last.ckpt").read_bytes(), form))
+    with pytest.raises(TrainError) as caught:
+        fit(train_cfg(tmp_path, labels, labels, "trainer.max_steps=2", f"ckpt_path={broken}"))
+    _one_line_naming(str(caught.value), broken)
+    assert {path: path.read_bytes() for path in checkpoints.iterdir()} == before

@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 
 from icpflow.frames import FramePairError, check_points
+from icpflow.geometry import rigid_problem
 
 SCAN_SUFFIXES = (".bin", ".npy", ".ply", ".pcd")
 
@@ -52,6 +53,22 @@ def load_npz(path: Path, required: tuple[str, ...], optional: tuple[str, ...] | 
     if missing:
         raise fail(path, f"missing key(s) {', '.join(missing)}; has {', '.join(sorted(arrays)) or 'none'}")
     return arrays
+
+
+def load_npy(path: Path) -> np.ndarray:
+    """The array of a ``.npy`` file; never unpickles (an object array is refused). A missing, foreign (no NumPy
+    header), truncated or damaged file raises one line naming it."""
+    try:
+        with open(path, "rb") as handle:
+            start = handle.read(6)
+    except FileNotFoundError:
+        raise fail(path, "file not found") from None
+    if start != b"\x93NUMPY":
+        raise fail(path, "not a .npy file (no NumPy header)" if start else "empty file")
+    try:
+        return np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as error:
+        raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
 
 
 def read_feather(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
@@ -110,13 +127,7 @@ def read_scan(path: Path, bin_columns: int | None = None) -> np.ndarray:
     if suffix == ".bin":
         return read_bin(path, bin_columns)
     if suffix == ".npy":
-        try:
-            values = np.load(path, allow_pickle=False)
-        except FileNotFoundError:
-            raise fail(path, "file not found") from None
-        except (OSError, ValueError, EOFError) as error:
-            raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
-        return check_points(values, path, "scan", allow_empty=False)
+        return check_points(load_npy(path), path, "scan", allow_empty=False)
     if suffix in (".ply", ".pcd"):
         if not path.is_file():
             raise fail(path, "file not found")
@@ -224,20 +235,22 @@ def read_pose_lines(path: Path) -> np.ndarray:
 
 def read_poses(path: Path) -> np.ndarray:
     """(T, 4, 4) float64 transforms (e.g. world-from-sensor poses) from a text file (see :func:`read_pose_lines`)
-    or a ``.npy`` of shape (T, 4, 4) or one (4, 4)."""
+    or a ``.npy`` of shape (T, 4, 4) or one (4, 4); each one checked rigid."""
     if path.suffix.lower() == ".npy":
-        try:
-            poses = np.load(path, allow_pickle=False)
-        except FileNotFoundError:
-            raise fail(path, "file not found") from None
-        except (OSError, ValueError, EOFError) as error:
-            raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
+        poses = load_npy(path)
         if poses.shape == (4, 4):
             poses = poses[None]
         if poses.ndim != 3 or poses.shape[1:] != (4, 4) or not np.issubdtype(poses.dtype, np.number):
             raise fail(path, f"poses must have shape (T, 4, 4), got {poses.dtype} {poses.shape}")
-        return poses.astype(np.float64)
-    try:
-        return read_pose_lines(path)
-    except UnicodeDecodeError:
-        raise fail(path, "not a text file of poses (use .npy for binary)") from None
+        poses = poses.astype(np.float64)
+    else:
+        try:
+            poses = read_pose_lines(path)
+        except UnicodeDecodeError:
+            raise fail(path, "not a text file of poses (use .npy for binary)") from None
+    for index, pose in enumerate(poses):
+        problem = rigid_problem(pose)
+        if problem:
+            where = "" if path.suffix.lower() == ".npy" else f" (line {index + 1})"
+            raise fail(path, f"transform {index + 1}{where} {problem}")
+    return poses

@@ -61,6 +61,7 @@ class ScanSequenceDataset(PairDataset):
             poses_file = "poses.txt"
         self.poses_file = None if poses_file is None else self.root / poses_file
         self._poses: np.ndarray | None = None
+        self.poses()  # read and checked now: a broken poses file stops a run before any work, not every sample
         self._lift: float | None = None
 
     def __getstate__(self) -> dict:
