@@ -30,7 +30,7 @@ def main() -> None:
     module = StudentModule(plain).train()
     options = plain["data"]
     if hasattr(data_module.ShardDataModule, "from_config"):
-        datamodule = data_module.ShardDataModule.from_config(options, module.model.grid)
+        datamodule = data_module.ShardDataModule.from_config(options, module.contract)
     else:
         datamodule = data_module.ShardDataModule(
             options["train"], options["val"], options["batch_size"], 0, options["augment"]

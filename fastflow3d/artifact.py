@@ -14,8 +14,8 @@ The network of every format is :class:`SingleSampleNet`:
 * outputs ``residual`` (N0, 3) float32, the ego-compensated (residual) flow of every pc0 point inside the grid
   (0 outside), and ``valid`` (N0,) bool, True for points inside the grid.
 
-``metadata.json`` (:func:`network_metadata`) holds the grid, model settings, preprocessing (ground removal and the
-typed block of ``icpflow.preprocess``: the height frame, the ground and ego-motion settings), conventions,
+``metadata.json`` (:func:`network_metadata`) holds the grid, model settings, the input contract (``input``:
+``fastflow3d.contract``, the height frame, ground removal and its settings, the ego-motion settings), conventions,
 versions, the source checkpoint's hash, and (``files``) the name and hash of each exported file with the parity
 measured at export. ``fastflow3d.export`` writes artifacts,
 ``fastflow3d.predictor`` runs them.
@@ -38,9 +38,9 @@ from torch import nn
 from torch.export.passes import move_to_device_pass
 
 import icpflow
+from fastflow3d.contract import InputContract
 from fastflow3d.model import FastFlow3D
 from icpflow.atomic import atomic_path, write_text_atomic
-from icpflow.preprocess import Preprocessing, PreprocessingError
 
 FORMATS = ("onnx", "pt2")  # what an export writes
 LEGACY_FORMATS = ("torchscript",)  # read only: exports of older versions
@@ -48,7 +48,13 @@ FILE_NAMES = {"onnx": "fastflow3d.onnx", "pt2": "fastflow3d.pt2"}
 LEGACY_FILE_NAMES = ("fastflow3d.pt",)
 SUFFIX_FORMATS = {".onnx": "onnx", ".pt2": "pt2", ".pt": "torchscript"}
 METADATA_NAME = "metadata.json"
-METADATA_VERSION = 1
+METADATA_VERSION = 2  # 2: the input contract as ``input``; 1: ``preprocessing`` (read by fastflow3d.contract.upgrade)
+INPUT_NOTE = (
+    "inputs are in the height frame (ground near frame.ground_z; a scan in another frame is lifted first); with "
+    "remove_ground, the network gets the non-ground points of each scan (ground masks by "
+    "icpflow.teacher.ground.GroundSegmenter with these settings, or given) inside the grid; ground pc0 points get "
+    "the ego flow (fastflow3d.contract)"
+)
 INPUT_NAMES = ("pc0_compensated", "pc1")
 OUTPUT_NAMES = ("residual", "valid")
 FLOW_CONVENTION = (
@@ -106,40 +112,12 @@ def grid_metadata(model: FastFlow3D) -> dict:
     }
 
 
-def preprocessing_metadata(cfg: dict) -> dict:
-    """What runs before the network, from a training config: ``remove_ground`` (the network was trained on, and
-    takes, non-ground points only) and the typed block of ``icpflow.preprocess.Preprocessing`` (``version``,
-    ``frame``: where the ground sits in the frame the network saw, ``ground``, ``ego_motion``), from the config's
-    ``data.preprocessing`` or, in checkpoints of older versions, its ``data.teacher`` fields. A config without
-    ``data`` (a checkpoint from before ground removal) means all points and default settings."""
-    data = cfg.get("data") or {}
-    block = data["preprocessing"] if data.get("preprocessing") is not None else data.get("teacher")
-    return {
-        "remove_ground": bool(data.get("remove_ground", False)),
-        **Preprocessing.from_dict(block).to_dict(),
-        "note": "inputs are in the height frame (ground near frame.ground_z; a scan in another frame is lifted "
-        "first); with remove_ground, the network gets the non-ground points of each scan (ground masks by "
-        "icpflow.teacher.ground.GroundSegmenter with these settings, or given); ground pc0 points get the ego flow",
-    }
-
-
-def read_preprocessing(preprocessing: dict) -> tuple[bool, Preprocessing]:
-    """``(remove_ground, Preprocessing)`` of a metadata ``preprocessing`` entry, this version's or an older one
-    (``{"remove_ground", "teacher": ICPFlowConfig fields or None}``). Raises ArtifactError (one line)."""
-    if not isinstance(preprocessing, dict):
-        raise ArtifactError(f"metadata: preprocessing must be a mapping, got {type(preprocessing).__name__}")
-    block = preprocessing if "version" in preprocessing else preprocessing.get("teacher")
-    try:
-        return bool(preprocessing.get("remove_ground", False)), Preprocessing.from_dict(block)
-    except (PreprocessingError, ValueError) as error:
-        raise ArtifactError(f"metadata: preprocessing: {' '.join(str(error).split())}") from None
-
-
 def network_metadata(
-    model: FastFlow3D, model_config: dict | None = None, checkpoint=None, preprocessing: dict | None = None
+    model: FastFlow3D, model_config: dict | None = None, checkpoint=None, contract: InputContract | None = None
 ) -> dict:
-    """Metadata shared by exports and checkpoints: grid, model settings, preprocessing (see
-    :func:`preprocessing_metadata`), conventions, versions, source hash."""
+    """Metadata shared by exports and checkpoints: grid, model settings, the input contract (``input``, the stored
+    form of ``fastflow3d.contract.InputContract``; default: every point, the synthetic frame, the model's grid),
+    conventions, versions, source hash."""
     source = None
     if checkpoint is not None:
         source = {"path": str(Path(checkpoint).resolve()), "sha256": sha256_file(checkpoint)}
@@ -148,7 +126,8 @@ def network_metadata(
         "network": "FastFlow3D (single sample)",
         "grid": grid_metadata(model),
         "model": model_config,
-        "preprocessing": preprocessing or preprocessing_metadata({}),
+        "input": (contract or InputContract(remove_ground=False, grid=model.grid)).to_dict(),
+        "input_note": INPUT_NOTE,
         "inputs": [
             {"name": INPUT_NAMES[0], "shape": ["N0", 3], "dtype": "float32"},
             {"name": INPUT_NAMES[1], "shape": ["N1", 3], "dtype": "float32"},

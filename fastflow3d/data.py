@@ -18,7 +18,8 @@ per-point tensors are concatenated (P0 rows, or P1 for ``pc1`` and ``ground1``),
 ``batch_size`` an int.
 
 Training samples are cropped to what the network sees (``NetworkCrop``, in the DataLoader workers): the pc0 / pc1
-rows inside the model's grid and, with ``data.remove_ground``, off the ground; the batch then says
+rows of the input contract (``fastflow3d.contract``: inside the grid and, with ground removal, off the ground); the
+batch then says
 ``network_points=True`` and the module runs the network on it as it is. The loss is the same as on the whole
 scans (points outside the grid or on the ground never count), and the main process neither copies nor masks them.
 ``NetworkCrop.max_points`` (``data.train_points``) then keeps at most that many random points per scan: an inexact
@@ -42,10 +43,11 @@ from threadpoolctl import threadpool_limits
 from torch.utils.data import DataLoader, Dataset
 
 from fastflow3d.augment import Augmentation
+from fastflow3d.contract import ContractError, InputContract, upgrade
 from fastflow3d.model import compensate
-from fastflow3d.voxelize import Grid, pillar_ids
+from fastflow3d.voxelize import Grid
+from icpflow.entry import one_line
 from icpflow.geometry import full_to_residual
-from icpflow.preprocess import Preprocessing
 from icpflow.shards.reader import ShardDataset
 
 GT_KEYS = ("gt", "gt_valid", "gt_classes")
@@ -59,12 +61,11 @@ class DataError(ValueError):
 
 @dataclass(frozen=True)
 class NetworkCrop:
-    """The rows of a sample the network sees in training: inside ``grid`` (``fastflow3d.voxelize.pillar_ids``, the
-    model's own test) and, with ``remove_ground``, off the ground; then at most ``max_points`` random rows per scan
-    (None = all)."""
+    """The rows of a sample the network sees in training: those of the input ``contract``
+    (``fastflow3d.contract.InputContract.network_mask``: inside the grid and, with ground removal, off the ground);
+    then at most ``max_points`` random rows per scan (None = all)."""
 
-    grid: Grid
-    remove_ground: bool
+    contract: InputContract
     max_points: int | None = None
 
     def __post_init__(self):
@@ -73,10 +74,7 @@ class NetworkCrop:
 
     def rows(self, points: torch.Tensor, ground: torch.Tensor) -> torch.Tensor:
         """Sorted row indices (K,) int64 of one scan's kept points (N, 3) with ground mask (N,)."""
-        _, keep = pillar_ids(points, torch.zeros(len(points), dtype=torch.int64), self.grid, 1)
-        if self.remove_ground:
-            keep &= ~ground
-        rows = torch.nonzero(keep)[:, 0]
+        rows = torch.nonzero(self.contract.network_mask(points, ground))[:, 0]
         if self.max_points is not None and len(rows) > self.max_points:
             rows = rows[torch.randperm(len(rows))[: self.max_points]].sort().values
         return rows
@@ -174,11 +172,12 @@ def split_samples(batch: dict, key: str = "batch0") -> list[slice]:
     return [slice(end - count, end) for count, end in zip(counts, ends)]
 
 
-def labeller_preprocessing(shard_dir) -> Preprocessing | None:
-    """The preprocessing (height frame, ground and ego-motion settings, ``icpflow.preprocess``) of the teacher that
-    labelled ``shard_dir``: the ``preprocessing`` block of its first shard's ``config`` attribute (``label.py``'s
-    labeller config) or, for shards of older versions, the block that its ``teacher`` fields give; None when the
-    shard has neither."""
+def labeller_contract(shard_dir, remove_ground: bool, grid: Grid) -> InputContract:
+    """The input contract of a student trained on ``shard_dir`` with ``remove_ground`` on ``grid``: the teacher's
+    part (height frame, ground and ego-motion settings) from the labeller config of its first shard (``label.py``'s
+    YAML: its ``preprocessing`` block, or the ``teacher`` fields of older versions), read by
+    ``fastflow3d.contract.upgrade``. Shards whose labeller config holds neither are refused (DataError): nothing
+    would say the height frame the student learns in."""
     shards = StudentDataset(shard_dir).shards
     first = shards.root / shards.entries[0][0]
     with h5py.File(first, "r") as handle:
@@ -186,11 +185,19 @@ def labeller_preprocessing(shard_dir) -> Preprocessing | None:
     try:
         content = yaml.safe_load(text) if isinstance(text, str) else None
     except yaml.YAMLError as error:  # e.g. a python/object tag: safe_load refuses it, never runs it
-        problem = " ".join(str(error).split())[:160]
+        problem = one_line(error)[:160]
         raise DataError(f"{first}: its labeller config is not plain YAML ({type(error).__name__}: {problem})") from None
     content = content if isinstance(content, dict) else {}
     block = content.get("preprocessing", content.get("teacher"))
-    return Preprocessing.from_dict(block) if isinstance(block, dict) else None
+    if not isinstance(block, dict):
+        raise DataError(
+            f"{first}: its labeller config holds no teacher settings (height frame, ground): not written by "
+            "label.py? label the data with label.py"
+        )
+    try:
+        return upgrade(block, remove_ground=remove_ground, grid=grid)
+    except ContractError as error:
+        raise DataError(f"{first}: its labeller config: {one_line(error)}") from None
 
 
 class ShardDataModule(L.LightningDataModule):
@@ -217,10 +224,10 @@ class ShardDataModule(L.LightningDataModule):
         self.train_set = self.val_set = None
 
     @classmethod
-    def from_config(cls, data: dict, grid: Grid) -> ShardDataModule:
+    def from_config(cls, data: dict, contract: InputContract) -> ShardDataModule:
         """The data module of a training config's ``data`` block (plain dict, ``conf/data/shards.yaml``) for a
-        model on ``grid``: training samples cropped to the network's points (``remove_ground``, ``train_points``)."""
-        crop = NetworkCrop(grid, bool(data["remove_ground"]), data.get("train_points"))
+        student with input ``contract``: training samples cropped to the network's points (``train_points``)."""
+        crop = NetworkCrop(contract, data.get("train_points"))
         return cls(
             data["train"],
             data["val"],

@@ -30,13 +30,13 @@ from fastflow3d.artifact import (
     load_network,
     network_metadata,
     onnx_opset,
-    preprocessing_metadata,
     sha256_file,
     write_metadata,
 )
+from fastflow3d.contract import ContractError, InputContract, upgrade
 from fastflow3d.model import FastFlow3D
 from icpflow.atomic import atomic_directory
-from icpflow.entry import Stop, os_error_line, signal_words, stop_on_signals
+from icpflow.entry import Stop, one_line, os_error_line, signal_words, stop_on_signals
 
 PARITY_TOLERANCE = 1e-4  # metres, max abs difference between an export and eager
 
@@ -99,7 +99,7 @@ def export_model(
     *,
     model_config: dict | None = None,
     checkpoint=None,
-    preprocessing: dict | None = None,
+    contract: InputContract | None = None,
     tolerance: float = PARITY_TOLERANCE,
 ) -> dict:
     """Export ``model`` (eval mode is set) in ``formats`` to ``out_dir``; returns the metadata written.
@@ -117,7 +117,7 @@ def export_model(
     check_replaceable(out_dir)
     net = SingleSampleNet(model.eval()).eval()
     example = check_inputs(model, *CHECK_SIZES[0])
-    metadata = network_metadata(model, model_config, checkpoint, preprocessing)
+    metadata = network_metadata(model, model_config, checkpoint, contract)
     metadata["files"], metadata["parity_max_abs_m"] = {}, {}
     with atomic_directory(out_dir) as build:  # built aside, swapped in whole: a failure leaves out_dir as it was
         for name in formats:
@@ -195,6 +195,10 @@ def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike 
     if not checkpoint.is_file():
         raise ExportError(f"{checkpoint}: checkpoint not found")
     model, cfg = load_student(checkpoint, map_location="cpu")
+    try:
+        contract = upgrade(cfg, grid=model.grid)
+    except ContractError as error:
+        raise ExportError(f"{checkpoint}: {one_line(error)}") from None
     out_dir = default_export_dir(checkpoint, cfg) if out_dir is None else Path(out_dir)
     export_model(
         model,
@@ -202,7 +206,7 @@ def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike 
         formats,
         model_config=dict(cfg.get("model") or {}),
         checkpoint=checkpoint,
-        preprocessing=preprocessing_metadata(cfg),
+        contract=contract,
     )
     return out_dir
 

@@ -5,11 +5,11 @@ Config keys read (``conf/train.yaml``): ``model`` (FastFlow3D, see ``fastflow3d.
 ``distillation`` on the teacher's pseudo-labels, or ``supervised`` on ground truth with ``background_weight``;
 ``weighting`` and ``bucket_edges``, see ``fastflow3d.loss``), ``optim`` and ``scheduler`` (Hydra ``_partial_``
 targets, ``conf/optim``, ``conf/scheduler``; the schedule is counted in optimiser steps), ``metrics`` (``crop``,
-``bev_every``), ``data.remove_ground`` and ``out_dir``.
+``bev_every``), ``input`` (the input contract, ``fastflow3d.contract``) and ``out_dir``.
 
-With ``data.remove_ground`` (ZeroFlow's setting) the network sees only the non-ground points of pc0 and pc1 (the
-shards' ``ground0`` / ``ground1``); ground pc0 points get residual 0 (full flow = ego flow) and are left out of the
-loss, which covers the non-ground pc0 points inside the grid.
+The network sees the rows of the input contract: with ground removal (ZeroFlow's setting) only the non-ground points
+of pc0 and pc1 (the shards' ``ground0`` / ``ground1``) inside the grid; other pc0 points get residual 0 (full flow =
+ego flow) and are left out of the loss.
 
 Validation scores the full flow of every pc0 point (network residual + ego flow; pc0 points outside the grid or, with
 ground removal, on the ground get the ego flow) with ``icpflow.metrics.frame_pair_stats`` (ground excluded there):
@@ -30,6 +30,7 @@ import torch
 from hydra.utils import instantiate
 
 from fastflow3d.checkpoint import build_student
+from fastflow3d.contract import upgrade
 from fastflow3d.data import split_samples
 from fastflow3d.loss import flow_loss
 from icpflow import metrics
@@ -53,19 +54,23 @@ class StudentModule(L.LightningModule):
         self.save_hyperparameters({"cfg": cfg})
         self.cfg = cfg
         self.model = build_student(cfg["model"])
+        #: what the network sees (``fastflow3d.contract``), from the config's ``input`` (or an older stored form)
+        self.contract = upgrade(cfg, grid=self.model.grid)
         self.validations = 0
         self.scores = metrics.MetricAccumulator()
         self.against = None
 
     def forward(self, batch: dict):
-        """(residual (P0, 3), valid (P0,)) of a collated batch; valid = the network predicted the point (inside the
-        grid and, with ``data.remove_ground``, not ground); residual is 0 elsewhere. A batch already cut to the
-        network's points (``network_points``, ``fastflow3d.data.NetworkCrop``) goes to the network as it is."""
-        if batch.get("network_points") or not self.cfg["data"]["remove_ground"]:
+        """(residual (P0, 3), valid (P0,)) of a collated batch; valid = the network predicted the point (its rows in
+        the input contract: inside the grid and, with ground removal, not ground); residual is 0 elsewhere. A batch
+        already cut to those rows (``network_points``, ``fastflow3d.data.NetworkCrop``) goes to the network as it
+        is."""
+        if batch.get("network_points"):
             return self.model(
                 batch["pc0_compensated"], batch["batch0"], batch["pc1"], batch["batch1"], batch["batch_size"]
             )
-        keep0, keep1 = ~batch["ground0"], ~batch["ground1"]
+        keep0 = self.contract.network_mask(batch["pc0_compensated"], batch["ground0"])
+        keep1 = self.contract.network_mask(batch["pc1"], batch["ground1"])
         kept, kept_valid = self.model(
             batch["pc0_compensated"][keep0],
             batch["batch0"][keep0],

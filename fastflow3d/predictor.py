@@ -56,22 +56,15 @@ from fastflow3d.artifact import (
     listed_file,
     load_network,
     network_metadata,
-    preprocessing_metadata,
     read_metadata,
-    read_preprocessing,
     sibling_metadata,
 )
-from fastflow3d.model import compensate
+from fastflow3d.contract import ContractError, InputContract, read_grid, upgrade
 from fastflow3d.refine import RefineConfig, refine_residual
+from icpflow.entry import one_line
 from icpflow.frames import FramePairError, check_points
 from icpflow.geometry import residual_to_full, rigid_problem, transform_points
-from icpflow.preprocess import (
-    FRAME_TOLERANCE,
-    estimate_ground_height,
-    implausible,
-    lift_points,
-    lift_transform,
-)
+from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, implausible, lift_transform
 from icpflow.teacher.ego_motion import MIN_EGO_POINTS
 
 
@@ -126,40 +119,59 @@ def as_points(name: str, values) -> np.ndarray:
         raise PredictorError(str(error)) from None
 
 
-def preprocessing_entry(given) -> dict:
-    """A metadata ``preprocessing`` entry from what a user passes for a bare file: such a dict, a whole metadata
-    dict, or the path of a JSON file holding either."""
+def checkpoint_contract(path: Path, cfg: dict, grid) -> InputContract:
+    """The input contract a checkpoint's saved config stores (any version), one line naming it if unreadable."""
+    try:
+        return upgrade(cfg, grid=grid)
+    except ContractError as error:
+        raise PredictorError(f"{path}: {one_line(error)}") from None
+
+
+def given_contract(given, grid) -> InputContract:
+    """The input contract a user passes for a bare exported file (``Predictor.load(preprocessing=...)``): a
+    ``metadata.json`` path or dict, its ``input`` / ``preprocessing`` entry, or ``{"remove_ground": ...}``; the
+    model's ``grid`` (a Grid, or None when unknown) where the given form has none."""
     if isinstance(given, (str, os.PathLike)):
         try:
             given = json.loads(Path(given).read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-            raise PredictorError(f"{given}: cannot read preprocessing: {' '.join(str(error).split())}") from None
+            raise PredictorError(f"{given}: cannot read preprocessing: {one_line(error)}") from None
     if not isinstance(given, dict):
         raise PredictorError(f"preprocessing must be a dict or a JSON file, got {type(given).__name__}")
-    return given.get("preprocessing", given) if "files" in given or "grid" in given else given
+    try:
+        contract = upgrade(given)
+    except ContractError as error:
+        raise PredictorError(f"preprocessing: {one_line(error)}") from None
+    return contract if contract.grid is not None else contract.replace(grid=grid)
 
 
 class Predictor:
     """A FastFlow3D network behind the project's conventions (see the module docstring)."""
 
-    def __init__(self, network, metadata: dict, backend: str, ego_config=None, sensor_height=None, refine=None):
-        """``network(pc0_compensated, pc1) -> (residual, valid)`` on float32 numpy arrays; ``metadata`` as an export
-        writes it (its ``preprocessing`` says whether to remove ground, the height frame and the settings);
-        ``ego_config`` the ego-motion settings (``icpflow.teacher.config.EgoMotionConfig`` or a teacher config;
-        default: those saved with the model); ``sensor_height``: None, ``"auto"`` or metres (module docstring);
-        ``refine``: None/False (off), True (``RefineConfig()``), a ``RefineConfig`` or a dict of its fields."""
-        if not metadata:
-            raise PredictorError("no model metadata: its preprocessing (ground removal, height frame) is unknown")
-        # exports older than ground removal have no preprocessing entry: they were trained on every point
-        preprocessing = metadata.get("preprocessing", {"remove_ground": False})
+    def __init__(
+        self,
+        network,
+        contract: InputContract,
+        backend: str,
+        ego_config=None,
+        sensor_height=None,
+        refine=None,
+        metadata=None,
+    ):
+        """``network(pc0_compensated, pc1) -> (residual, valid)`` on float32 numpy arrays; ``contract`` what the
+        network sees (``fastflow3d.contract``: the height frame, ground removal and its settings, the ego-motion
+        settings, the grid); ``ego_config`` the ego-motion settings (``icpflow.teacher.config.EgoMotionConfig`` or a
+        teacher config; default: the contract's); ``sensor_height``: None, ``"auto"`` or metres (module docstring);
+        ``refine``: None/False (off), True (``RefineConfig()``), a ``RefineConfig`` or a dict of its fields;
+        ``metadata``: the model's metadata (for those who ask: ``Predictor.metadata``)."""
         if not (sensor_height is None or sensor_height == "auto" or _is_number(sensor_height)):
             raise PredictorError(f"sensor_height={sensor_height!r} must be None, 'auto' or metres above the ground")
-        self.network, self.metadata, self.backend = network, metadata, backend
+        self.network, self.contract, self.backend, self.metadata = network, contract, backend, metadata or {}
         #: how many more given ego motions to compare with the identity and their inverse (:meth:`check_given_ego`):
         #: a wrong convention is the same on every pair, so the first few calls are checked (0: none)
         self.ego_checks_left = 3
         self._said: set[str] = set()  # kinds of warnings given (``_warn_once``)
-        self.remove_ground, self.preprocessing = read_preprocessing(preprocessing)
+        self.remove_ground, self.preprocessing = contract.remove_ground, contract.preprocessing
         self.ego_config = self.preprocessing.ego_motion if ego_config is None else ego_config
         self.sensor_height = sensor_height if sensor_height in (None, "auto") else float(sensor_height)
         try:
@@ -226,7 +238,8 @@ class Predictor:
                 from fastflow3d.checkpoint import load_student
 
                 model, cfg = load_student(path, map_location=device)
-                metadata = network_metadata(model, dict(cfg.get("model") or {}), path, preprocessing_metadata(cfg))
+                contract = checkpoint_contract(path, cfg, model.grid)
+                metadata = network_metadata(model, dict(cfg.get("model") or {}), path, contract)
                 network, kind = TorchNetwork(SingleSampleNet(model).eval(), device), "eager"
             else:
                 metadata = sibling_metadata(path, kind)
@@ -242,8 +255,14 @@ class Predictor:
                 "it on every point"
             )
         if preprocessing is not None:
-            metadata = {**metadata, "preprocessing": preprocessing_entry(preprocessing)}
-        return cls(network, metadata, kind, ego_config, sensor_height, refine)
+            grid = metadata.get("grid") if isinstance(metadata, dict) else None
+            contract = given_contract(preprocessing, read_grid(grid, path) if isinstance(grid, dict) else None)
+        else:
+            try:
+                contract = upgrade(metadata)
+            except ContractError as error:
+                raise PredictorError(f"{path}: metadata: {one_line(error)}") from None
+        return cls(network, contract, kind, ego_config, sensor_height, refine, metadata)
 
     def __call__(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> np.ndarray:
         """(N0, 3) float32 FULL flow of pc0 (N0, 3) towards pc1 (N1, 3), each in its own ego frame; the ego motion
@@ -254,7 +273,7 @@ class Predictor:
         """Full flow with the residual, masks and ego motion behind it (see :class:`Prediction`)."""
         pc0, pc1 = as_points("pc0", pc0), as_points("pc1", pc1)
         lift = self.frame_lift(pc0)
-        pc0_frame, pc1_frame = lift_points(pc0, lift), lift_points(pc1, lift)
+        lifted = self.contract.lifted(pc0, pc1, lift)
         estimated, assumed = ego1_from_ego0 is None, False
         if estimated and min(len(pc0), len(pc1)) < MIN_EGO_POINTS:
             warnings.warn(
@@ -265,40 +284,37 @@ class Predictor:
             )
             ego, estimated, assumed = np.eye(4), False, True
         elif estimated:
-            ego = self.estimate_ego_motion(pc0_frame, pc1_frame)
+            ego = lift_transform(self.estimate_ego_motion(*lifted), -lift)
         else:
-            ego = lift_transform(np.asarray(ego1_from_ego0, dtype=np.float64), lift)
+            ego = np.asarray(ego1_from_ego0, dtype=np.float64)
         problem = rigid_problem(ego)
         if problem:
             raise PredictorError(f"{'estimated ' if estimated else ''}ego1_from_ego0 {problem}")
-        ground0 = self.ground_mask("ground0", pc0_frame, ground0)
-        ground1 = self.ground_mask("ground1", pc1_frame, ground1)
+        ground0 = self.ground_mask("ground0", lifted[0], ground0)
+        ground1 = self.ground_mask("ground1", lifted[1], ground1)
+        pair = self.contract.prepare(pc0, pc1, ego, ground0, ground1, lift)
         if ego1_from_ego0 is not None and self.ego_checks_left > 0:
             self.ego_checks_left -= 1
-            self.check_given_ego(pc0_frame[~ground0], pc1_frame[~ground1], ego)
+            self.check_given_ego(pair.pc0[~pair.ground0], pair.pc1[~pair.ground1], pair.ego1_from_ego0)
         residual, in_grid = np.zeros((len(pc0), 3), np.float32), np.zeros(len(pc0), bool)
         refined = np.zeros(len(pc0), bool) if self.refine is not None else None
-        keep0, keep1 = ~ground0, ~ground1
-        compensated = compensate(pc0_frame, ego)
-        if keep0.any() and keep1.any():  # the network needs points in both scans
-            kept, valid = self.network(np.ascontiguousarray(compensated[keep0]), pc1_frame[keep1])
+        if len(pair.rows0) and len(pair.rows1):  # the network needs points in both scans
+            kept, valid = self.network(pair.network0, pair.network1)
             if not np.isfinite(kept[valid]).all():
                 raise PredictorError(
                     f"{self.backend} model: the network returned non-finite flow for "
                     f"{int((~np.isfinite(kept[valid])).any(axis=1).sum())} point(s) (NaN or Inf weights?); "
                     "nothing is returned"
                 )
-            in_grid[keep0] = valid
-            residual[keep0] = np.where(valid[:, None], kept, 0.0)
+            residual, in_grid = self.contract.restore(pair, kept, valid)
             if self.refine is not None:
                 rows = np.flatnonzero(in_grid)
                 residual[rows], refined[rows] = refine_residual(
-                    compensated[rows], residual[rows], pc1_frame[keep1], self.refine
+                    pair.compensated[rows], residual[rows], pair.pc1[~pair.ground1], self.refine
                 )
-        self.check_plausible(compensated, ground0)
-        ego_out = ego if lift == 0 else lift_transform(ego, -lift)
-        flow = residual_to_full(residual, pc0_frame, ego)  # a common lift changes no flow vector
-        return Prediction(flow, residual, in_grid, ground0, ego_out, estimated, float(lift), refined, assumed)
+        self.check_plausible(pair.compensated, pair.ground0)
+        flow = residual_to_full(residual, pair.pc0, pair.ego1_from_ego0)  # a common lift changes no flow vector
+        return Prediction(flow, residual, in_grid, pair.ground0, ego, estimated, float(lift), refined, assumed)
 
     def frame_lift(self, pc0: np.ndarray) -> float:
         """Metres to raise both scans by so that their ground sits where the model's frame has it (module
@@ -337,13 +353,9 @@ class Predictor:
 
     def check_plausible(self, compensated: np.ndarray, ground0: np.ndarray) -> None:
         """One-line warning when pc0's ground fraction or its share inside the network's grid is implausible."""
-        grid = self.metadata.get("grid")
-        if not grid or not len(compensated):
+        if self.contract.grid is None or not len(compensated):
             return
-        inside = np.ones(len(compensated), bool)
-        for axis, key in enumerate(("x_range", "y_range", "z_range")):
-            low, high = grid[key]
-            inside &= (compensated[:, axis] >= low) & (compensated[:, axis] < high)
+        inside = self.contract.network_mask(compensated)  # inside the grid, ground or not
         reason = implausible(float(ground0.mean()), float(inside.mean()))
         if reason:
             self._warn_once(

@@ -4,8 +4,8 @@ ending with the export of the best checkpoint.
 Everything a run writes lands under ``out_dir``: ``checkpoints/`` (best on validation dynamic EPE and
 ``last.ckpt``), ``tensorboard/``, ``bev/``, ``export/`` and ``hydra/``. ``ckpt_path=last`` resumes from
 ``<checkpoint_dir>/last.ckpt`` (optimiser, schedule and step count included); any other value is a checkpoint file.
-The saved config's ``data.preprocessing`` holds the typed preprocessing block (``icpflow.preprocess``: height frame,
-ground and ego-motion settings) that the Predictor uses on raw scans.
+The saved config's ``input`` holds the input contract (``fastflow3d.contract``: the height frame, ground removal and
+its settings, the ego-motion settings, the grid) that the Predictor uses on raw scans.
 """
 
 from __future__ import annotations
@@ -23,11 +23,12 @@ from omegaconf import DictConfig, OmegaConf
 from fastflow3d.artifact import FORMATS
 from fastflow3d.callbacks import AtomicCheckpointIO, LastCheckpoint, ModelSize, TrainingStopped, progress_bar
 from fastflow3d.checkpoint import CheckpointError, read_checkpoint
-from fastflow3d.data import DataError, ShardDataModule, StudentDataset, labeller_preprocessing
+from fastflow3d.contract import ContractError, InputContract, read_grid
+from fastflow3d.data import DataError, ShardDataModule, StudentDataset, labeller_contract
 from fastflow3d.export import export_checkpoint
 from fastflow3d.module import NonFiniteLoss, StudentModule
 from icpflow.atomic import FolderInUse, folder_lock
-from icpflow.entry import Stop, os_error_line, signal_words, stop_on_signals
+from icpflow.entry import Stop, one_line, os_error_line, signal_words, stop_on_signals
 from icpflow.shards.verify import ShardError
 
 log = logging.getLogger(__name__)
@@ -84,38 +85,17 @@ def check_data(cfg: DictConfig) -> None:
         )
 
 
-def inference_preprocessing(cfg: DictConfig) -> dict:
-    """The preprocessing block saved with the model (``icpflow.preprocess.Preprocessing.to_dict()``): from
-    ``data.teacher`` (an optional ``preset``, then the ICPFlowConfig blocks ``ground`` and ``ego_motion``; their
-    older flat names with a warning) or, when it is null, the block of the teacher that labelled ``data.train``."""
-    from icpflow.preprocess import BLOCKS, TEACHER_NAMES, Preprocessing, PreprocessingError
-    from icpflow.teacher.config import ICPFlowConfig
-
-    given = cfg.data.get("teacher")
-    if given is None:
-        block = labeller_preprocessing(cfg.data.train)
-        if block is None:
-            raise TrainError(
-                f"data.teacher is null and the shards of data.train={cfg.data.train} carry no teacher "
-                "config; set it, e.g. data.teacher={preset:waymo}"
-            )
-        return block.to_dict()
-    if not OmegaConf.is_dict(given):
-        raise TrainError(f"data.teacher must be null or a dict of preset and ICPFlowConfig fields, got {given!r}")
-    values = OmegaConf.to_container(given, resolve=True)
-    dotted = {f"{block}.{name}" for block, name in TEACHER_NAMES.values()}
-    unknown = sorted(set(values) - {"preset", *BLOCKS, *TEACHER_NAMES, *dotted})
-    if unknown:
-        raise TrainError(
-            f"data.teacher: {', '.join(unknown)} not used at inference; give preset and/or the blocks "
-            f"{' and '.join(BLOCKS)}"
-        )
-    preset = values.pop("preset", None)
+def training_contract(cfg: DictConfig) -> InputContract:
+    """The input contract saved with the model (``fastflow3d.contract``): the height frame, ground and ego-motion
+    settings of the teacher that labelled ``data.train`` (its shards' labeller config), ``data.remove_ground`` and
+    the grid of ``model``."""
     try:
-        teacher = ICPFlowConfig.preset(preset, **values) if preset else ICPFlowConfig.from_dict(values)
-        return Preprocessing.from_teacher(teacher).to_dict()
-    except (ValueError, PreprocessingError) as error:
-        raise TrainError(f"data.teacher: {error}") from None
+        grid = read_grid(OmegaConf.to_container(cfg.model, resolve=True), "model")
+        return labeller_contract(cfg.data.train, bool(cfg.data.remove_ground), grid)
+    except ContractError as error:
+        raise TrainError(one_line(error)) from None
+    except DataError as error:
+        raise TrainError(f"data.train: {error}") from None
 
 
 def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
@@ -299,13 +279,15 @@ def check_resume_settings(ours: dict, checkpoint: dict, value: str, path: Path) 
     """A resume with other model or data settings than the checkpoint's is refused, one line naming each
     difference; differing optimiser or schedule settings are not applied (the checkpoint's optimiser and schedule
     state continue): said in the log, naming them. ``ours``: this run's resolved config as the module holds it
-    (its ``data.preprocessing`` included), compared with the one the checkpoint stores."""
+    (its ``input`` included), compared with the one the checkpoint stores."""
     hparams = checkpoint.get("hyper_parameters")
     saved = (hparams.get("cfg") or {}) if isinstance(hparams, dict) else {}
     if not isinstance(saved, dict) or not saved:
         return
     differ = _differences(saved.get("model") or {}, ours.get("model") or {}, "model")
     differ += _differences(saved.get("data") or {}, ours.get("data") or {}, "data", RESUME_FREE_DATA)
+    if "input" in saved:  # checkpoints of older versions stored it under data (compared above)
+        differ += _differences(saved["input"] or {}, ours.get("input") or {}, "input")
     if differ:
         raise TrainError(
             f"ckpt_path={value}: {path} was trained with other settings: {'; '.join(differ)}; resume with its "
@@ -333,7 +315,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
         check_data(cfg)
         formats = export_formats(cfg)
         plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-        plain["data"]["preprocessing"] = inference_preprocessing(cfg)
+        plain["input"] = training_contract(cfg).to_dict()
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
         module = StudentModule(plain)
         ckpt_path = resolve_ckpt_path(cfg, module)
@@ -341,7 +323,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
         if cfg.compile:
             module.model.compile(dynamic=True)
         data = plain["data"]
-        datamodule = ShardDataModule.from_config(data, module.model.grid)
+        datamodule = ShardDataModule.from_config(data, module.contract)
         trainer = build_trainer(cfg)
         try:
             trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)

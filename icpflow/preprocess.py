@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from icpflow.synthetic.lidar import SENSOR_HEIGHT
 from icpflow.teacher.config import EgoMotionConfig, GroundConfig
 
 VERSION = 1
@@ -102,10 +103,10 @@ class Preprocessing:
     """The height frame, ground settings and ego-motion settings of a teacher, as a student needs them at inference.
     ``ground`` and ``ego_motion`` are the teacher's own blocks (``icpflow.teacher.config``); ``ground``'s
     ``patchwork_z_offset`` follows from the frame (``-(sensor_height + frame.ground_z)``, set here).
-    ``Preprocessing()`` is the synthetic world's (ground at z = 0, a 1.9 m sensor)."""
+    ``Preprocessing()`` is the synthetic world's (ground at z = 0, its sensor ``SENSOR_HEIGHT`` above)."""
 
     frame: HeightFrame = field(default_factory=HeightFrame)
-    ground: GroundConfig = field(default_factory=lambda: GroundConfig(sensor_height=1.9))
+    ground: GroundConfig = field(default_factory=lambda: GroundConfig(sensor_height=SENSOR_HEIGHT))
     ego_motion: EgoMotionConfig = field(default_factory=EgoMotionConfig)
 
     def __post_init__(self):

@@ -16,10 +16,12 @@ import torch
 
 from fastflow3d.artifact import FILE_NAMES, METADATA_NAME, ArtifactError, SingleSampleNet, sha256_file
 from fastflow3d.checkpoint import load_student
+from fastflow3d.contract import ContractError, upgrade
 from fastflow3d.export import export_checkpoint, run_export
 from fastflow3d.infer import main as infer_main
 from fastflow3d.model import compensate
 from fastflow3d.predictor import Predictor, PredictorError, PredictorWarning
+from fastflow3d.voxelize import Grid
 from icpflow import __version__
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, residual_to_full
@@ -122,9 +124,10 @@ def test_metadata_describes_the_export(export_dir, checkpoint):
     assert [entry["name"] for entry in metadata["outputs"]] == ["residual", "valid"]
     assert "ego1_from_ego0 * pc0 - pc0" in metadata["flow_convention"]
     # a checkpoint whose config has no data block (trained on every point, default teacher settings)
-    preprocessing = metadata["preprocessing"]
-    assert preprocessing["remove_ground"] is False and preprocessing["version"] == 1
-    assert Preprocessing.from_dict(preprocessing).frame.ground_z == 0.0  # trained in the synthetic frame
+    contract = upgrade(metadata)
+    assert metadata["input"]["version"] == 2 and metadata["input"]["remove_ground"] is False
+    assert contract.preprocessing.frame.ground_z == 0.0  # trained in the synthetic frame
+    assert contract.grid == Grid((-6.4, 6.4), (-6.4, 6.4), (-3.0, 3.0), 0.2)
     for name in ("onnx", "pt2"):
         entry = metadata["files"][name]
         assert entry["path"] == FILE_NAMES[name] and entry["sha256"] == sha256_file(export_dir / entry["path"])
@@ -230,9 +233,9 @@ def ground_export(ground_checkpoint):
 def test_ground_removal_model_sees_non_ground_points_only(ground_checkpoint, ground_export, eager, pairs, tmp_path):
     path, teacher = ground_checkpoint
     export_dir = ground_export
-    preprocessing = json.loads((export_dir / METADATA_NAME).read_text())["preprocessing"]
-    assert preprocessing["remove_ground"] is True and preprocessing["ground"]["sensor_height"] == 1.9
-    assert preprocessing["frame"] == {"ground_z": 0.0} and preprocessing["version"] == 1
+    stored = json.loads((export_dir / METADATA_NAME).read_text())["input"]
+    assert stored["remove_ground"] is True and stored["ground"]["sensor_height"] == 1.9
+    assert stored["frame"] == {"ground_z": 0.0} and stored["version"] == 2
     pair = pairs[0]
     ground0, ground1 = GroundSegmenter(teacher)(pair.pc0), GroundSegmenter(teacher)(pair.pc1)
     assert 0.2 < ground0.mean() < 0.9 and 0.2 < ground1.mean() < 0.9
@@ -471,6 +474,8 @@ def test_older_export_metadata_still_loads(ground_checkpoint, ground_export, pai
     for name in (METADATA_NAME, FILE_NAMES["pt2"]):
         (current / name).write_bytes((ground_export / name).read_bytes())
     metadata = json.loads((current / METADATA_NAME).read_text())
+    del metadata["input"], metadata["input_note"]
+    metadata["metadata_version"] = 1
     metadata["preprocessing"] = {
         "remove_ground": True,
         "teacher": dict(LEGACY_TEACHER),
@@ -479,11 +484,12 @@ def test_older_export_metadata_still_loads(ground_checkpoint, ground_export, pai
     (current / METADATA_NAME).write_text(json.dumps(metadata))
     old = Predictor.load(current)
     assert old.remove_ground and old.preprocessing == Preprocessing.from_teacher(teacher)
+    assert old.contract.grid == upgrade(json.loads((ground_export / METADATA_NAME).read_text())).grid
     # exports older than ground removal had no preprocessing entry: every point, the synthetic frame
-    oldest = Predictor(old.network, {key: value for key, value in metadata.items() if key != "preprocessing"}, "pt2")
+    oldest = upgrade({key: value for key, value in metadata.items() if key != "preprocessing"})
     assert not oldest.remove_ground and oldest.preprocessing.frame.ground_z == 0.0
-    with pytest.raises(PredictorError, match="no model metadata"):
-        Predictor(old.network, {}, "pt2")
+    with pytest.raises(ContractError, match="says nothing about ground removal"):
+        upgrade({})
     assert old.preprocessing.frame.ground_z == 0.0 and old.preprocessing.patchwork_z_offset == -1.9
     pair = pairs[0]
     new = Predictor.load(path).predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)

@@ -108,7 +108,8 @@ def test_a_labeller_config_with_a_python_tag_is_one_line_naming_the_shard(shards
 
     import h5py
 
-    from fastflow3d.data import DataError, labeller_preprocessing
+    from fastflow3d.data import DataError, labeller_contract
+    from fastflow3d.voxelize import Grid
 
     copy = tmp_path / "labels"
     shutil.copytree(shards, copy)
@@ -116,7 +117,7 @@ def test_a_labeller_config_with_a_python_tag_is_one_line_naming_the_shard(shards
     with h5py.File(shard, "r+") as handle:
         handle.attrs["config"] = "teacher: !!python/object/apply:os.system ['touch pwned']\n"
     with pytest.raises(DataError, match=rf"{shard}: its labeller config is not plain YAML \(ConstructorError"):
-        labeller_preprocessing(copy)
+        labeller_contract(copy, True, Grid())
     assert not (tmp_path / "pwned").exists() and not os.path.exists("pwned")
 
 

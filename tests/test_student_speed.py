@@ -7,6 +7,7 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
+from fastflow3d.contract import InputContract
 from fastflow3d.data import NetworkCrop, init_worker
 from fastflow3d.loss import flow_loss
 from fastflow3d.model import FastFlow3D
@@ -106,7 +107,7 @@ def test_training_on_the_network_points_only_is_the_same_step():
         return residual, torch.zeros_like(keep0).index_put((keep0,), kept_valid)
 
     whole = loss_and_gradients(model, masked, pc0, batch0, pc1, batch1, target)
-    crop = NetworkCrop(model.grid, remove_ground=True)
+    crop = NetworkCrop(InputContract(remove_ground=True, grid=model.grid))
     rows0 = torch.cat([crop.rows(pc0[batch0 == b], ground0[batch0 == b]) + int((batch0 < b).sum()) for b in (0, 1)])
     rows1 = torch.cat([crop.rows(pc1[batch1 == b], ground1[batch1 == b]) + int((batch1 < b).sum()) for b in (0, 1)])
     assert len(rows0) < keep0.sum() and len(rows1) < keep1.sum()  # the crop drops out-of-grid points too
@@ -123,10 +124,10 @@ def test_network_crop_rows_and_point_cap():
     grid = Grid((-4.0, 4.0), (-4.0, 4.0), (-1.0, 1.0), 1.0)
     points = torch.tensor([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 0.0, 2.0], [1.0, 1.0, 0.5], [-3.9, 3.9, -1.0]])
     ground = torch.tensor([False, False, False, True, False])
-    assert NetworkCrop(grid, remove_ground=True).rows(points, ground).tolist() == [0, 4]
-    assert NetworkCrop(grid, remove_ground=False).rows(points, ground).tolist() == [0, 3, 4]
+    assert NetworkCrop(InputContract(remove_ground=True, grid=grid)).rows(points, ground).tolist() == [0, 4]
+    assert NetworkCrop(InputContract(remove_ground=False, grid=grid)).rows(points, ground).tolist() == [0, 3, 4]
     many = torch.rand(1000, 3) * 6 - 3
-    capped = NetworkCrop(grid, remove_ground=False, max_points=100).rows(many, torch.zeros(1000, dtype=torch.bool))
+    capped = NetworkCrop(InputContract(remove_ground=False, grid=grid), max_points=100).rows(many, torch.zeros(1000, dtype=torch.bool))
     assert len(capped) == 100 and torch.all(capped[1:] > capped[:-1])
     sample = {
         "pc0": points,
@@ -136,7 +137,7 @@ def test_network_crop_rows_and_point_cap():
         "pc1": points[:2],
         "ground1": ground[:2],
     }
-    out = NetworkCrop(grid, remove_ground=True)(sample)
+    out = NetworkCrop(InputContract(remove_ground=True, grid=grid))(sample)
     assert out["network_points"] and torch.equal(out["pseudo"], points[[0, 4]] * 2) and len(out["pc1"]) == 1
 
 

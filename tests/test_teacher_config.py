@@ -382,7 +382,8 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
     ground and ego settings from it, and the whole teacher rebuilds from it without a warning."""
     import h5py
 
-    from fastflow3d.data import labeller_preprocessing
+    from fastflow3d.data import labeller_contract
+    from fastflow3d.voxelize import Grid
     from icpflow.preprocess import Preprocessing
     from icpflow.shards.schema import shard_name
     from icpflow.shards.writer import write_index, write_shard
@@ -404,7 +405,7 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
     write_shard(tmp_path / shard_name(0), [sample], config, "oldhash")
     entry = {"file": shard_name(0), "samples": [{"sample_id": "s0", "index": 0, "n0": n, "n1": n}]}
     write_index(tmp_path / "index.json", {"config_hash": "oldhash", "shards": [entry]})
-    assert labeller_preprocessing(tmp_path) == Preprocessing.from_teacher(teacher)
+    assert labeller_contract(tmp_path, True, Grid()).preprocessing == Preprocessing.from_teacher(teacher)
     with h5py.File(tmp_path / shard_name(0), "r") as handle:
         stored = yaml.safe_load(handle.attrs["config"])["teacher"]
     rebuilt = _quiet(lambda: ICPFlowConfig.from_dict(stored, warn=False))
@@ -420,18 +421,17 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
 
 def test_older_checkpoints_and_exports_still_load():
     """Checkpoints (``data.teacher``) and exports (``preprocessing.teacher``) of the previous releases carry the
-    flat ground and ego-motion fields: an export loads silently, a training config's ``data.teacher`` with the old
-    names gives the same block with one deprecation line per name."""
-    from fastflow3d.predictor import Predictor
-    from fastflow3d.training import inference_preprocessing
+    flat ground and ego-motion fields: both read silently as the same input contract (``fastflow3d.contract``)."""
+    from fastflow3d.contract import upgrade
     from icpflow.preprocess import Preprocessing
 
     old = {key: {**OLD_DEFAULTS, **OLD_PRESETS["av2"]}[key] for key in PREPROCESSING}
     expected = Preprocessing.from_teacher(ICPFlowConfig.from_dict(old, warn=False))
-    metadata = {"preprocessing": {"remove_ground": True, "teacher": dict(old)}}
-    predictor = _quiet(lambda: Predictor(network=None, metadata=metadata, backend="onnx"))
-    assert predictor.preprocessing == expected and predictor.preprocessing.patchwork_z_offset == -1.4
-    checkpoint = OmegaConf.create({"data": {"teacher": dict(old), "train": "unused"}})
-    with pytest.warns(FutureWarning) as caught:
-        assert inference_preprocessing(checkpoint) == expected.to_dict()
-    assert len(caught) == len(PREPROCESSING)
+    grid = {"x_range": [-8.0, 8.0], "y_range": [-8.0, 8.0], "z_range": [-3.0, 3.0], "cell": 0.5}
+    metadata = {"metadata_version": 1, "grid": grid, "preprocessing": {"remove_ground": True, "teacher": dict(old)}}
+    checkpoint = {"model": grid, "data": {"teacher": dict(old), "train": "unused", "remove_ground": True}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        from_export, from_checkpoint = upgrade(metadata), upgrade(checkpoint)
+    assert from_export == from_checkpoint and from_export.preprocessing == expected
+    assert from_export.preprocessing.patchwork_z_offset == -1.4 and from_export.grid.cell == 0.5

@@ -26,7 +26,6 @@ from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, transform_points
 from icpflow.preprocess import Preprocessing
 from icpflow.shards.writer import write_index
-from icpflow.teacher.config import ICPFlowConfig
 
 from helpers.shards import TEACHER, write_pseudo_labels
 from helpers.training import CONF, TINY
@@ -247,29 +246,18 @@ def test_ground_removal_network_sees_non_ground_points_only(shards):
 
 
 def test_teacher_settings_saved_with_the_model(shards, pairs, tmp_path):
-    """The typed preprocessing block comes from the shards (here shards of an older version: only the teacher's
-    fields, the synthetic frame) or from data.teacher, and is refused when it names a field inference does not use."""
-    from fastflow3d.training import inference_preprocessing
+    """The input contract saved with the model takes the teacher's part from the shards (here shards of an older
+    version: only the teacher's fields, the synthetic frame), ground removal and the grid from the run; shards
+    without a labeller config are refused in one line (nothing would say the height frame)."""
+    from fastflow3d.training import training_contract
 
-    expected = Preprocessing.from_teacher(TEACHER).to_dict()
-    assert expected["frame"] == {"ground_z": 0.0} and expected["ground"]["sensor_height"] == 1.9
-    assert inference_preprocessing(_cfg(tmp_path, shards["gt"], shards["gt"])) == expected  # from the shards
+    contract = training_contract(_cfg(tmp_path, shards["gt"], shards["gt"]))
+    assert contract.preprocessing == Preprocessing.from_teacher(TEACHER)
+    assert contract.preprocessing.frame.ground_z == 0.0 and contract.preprocessing.ground.sensor_height == 1.9
+    assert contract.remove_ground and contract.grid.cell == 1.0
     bare = write_pseudo_labels(tmp_path / "bare", pairs[:1], config="test: true\n")
-    given = inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={preset:av2,ground:{sensor_height:1.5}}"))
-    av2 = ICPFlowConfig.preset("av2", ground={"sensor_height": 1.5})
-    block = Preprocessing.from_dict(given)
-    assert (block.ground, block.ego_motion) == (av2.ground, av2.ego_motion) and av2.ground.patchwork_z_offset == -1.4
-    with pytest.warns(FutureWarning, match="'sensor_height' is deprecated, use 'ground.sensor_height'"):  # old name
-        assert inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={preset:av2,sensor_height:1.5}")) == (
-            given
-        )
-    assert given["frame"]["ground_z"] == pytest.approx(-0.1)  # Patchwork++ at -1.5 after a -1.4 m shift
-    with pytest.raises(TrainError, match=r"data.train=.*bare carry no teacher config; set it"):
+    with pytest.raises(TrainError, match=r"data.train: .*bare/shard_000000.h5: its labeller config holds no teacher"):
         fit(_cfg(tmp_path, bare, bare))
-    with pytest.raises(TrainError, match="data.teacher: min_cluster_size not used at inference"):
-        inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={min_cluster_size:3}"))
-    with pytest.raises(TrainError, match="data.teacher: GroundConfig: method='sometimes' must be one of"):
-        inference_preprocessing(_cfg(tmp_path, bare, bare, "data.teacher={ground:{method:sometimes}}"))
 
 
 def test_missing_or_empty_shard_dir_is_one_line(tmp_path):
@@ -337,8 +325,8 @@ def test_short_run_validates_at_its_last_step_and_exports_the_best_checkpoint(sh
     metadata = json.loads((export / METADATA_NAME).read_text())
     assert metadata["source_checkpoint"]["path"] == str(best[0].resolve())
     assert set(metadata["files"]) == set(formats) and max(metadata["parity_max_abs_m"].values()) <= 1e-4
-    assert metadata["preprocessing"]["remove_ground"] is True
-    assert {key: metadata["preprocessing"][key] for key in ("frame", "ground", "ego_motion")} == {
+    assert metadata["input"]["remove_ground"] is True
+    assert {key: metadata["input"][key] for key in ("frame", "ground", "ego_motion")} == {
         key: value
         for key, value in Preprocessing.from_teacher(TEACHER).to_dict().items()
         if key not in ("version", "frame_description")
@@ -466,7 +454,8 @@ def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
     expected = OmegaConf.to_container(
         _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=5", "ckpt_path=last", *common), resolve=True
     )
-    expected["data"]["preprocessing"] = Preprocessing.from_teacher(TEACHER).to_dict()  # from the shards
+    expected["input"] = second.lightning_module.contract.to_dict()  # the teacher's part from the shards
+    assert second.lightning_module.contract.preprocessing == Preprocessing.from_teacher(TEACHER)
     assert not model.training and cfg == expected
     assert cfg["model"]["cell"] == 1.0 and cfg["model"]["stage_channels"] == [16, 32, 64]
     batch = collate([StudentDataset(shards["gt"])[0]])

@@ -20,6 +20,7 @@ import numpy as np
 from icpflow.datasets.base import PairDataset
 from icpflow.frames import FramePair, FrameSequence
 from icpflow.synthetic import AV2_META_CLASSES, Lidar, build_scene, sequence
+from icpflow.synthetic.lidar import SENSOR_HEIGHT
 
 SPLIT_OFFSETS = {"train": 0, "val": 1, "test": 2}
 SPLIT_STRIDE = 1_000_000
@@ -43,7 +44,7 @@ class SyntheticDataset(PairDataset):
         max_range: float = 75.0,
         range_noise: float = 0.02,
         dropout: float = 0.03,
-        sensor_height: float = 1.9,
+        sensor_height: float = SENSOR_HEIGHT,
         density: float = 1.0,
         max_horizon: int = 1,
         elevation_deg: tuple[float, float] | None = None,

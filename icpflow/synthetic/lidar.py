@@ -26,6 +26,10 @@ ELEVATIONS = {64: (-17.6, 2.4), 32: (-30.0, 10.0)}
 EPS = 1e-6
 
 
+#: metres of the synthetic world's sensor above the ego origin, which lies on the ground (written here only)
+SENSOR_HEIGHT = 1.9
+
+
 @dataclass(frozen=True)
 class Lidar:
     """Sensor settings (metres, degrees); see the module docstring."""
@@ -36,7 +40,7 @@ class Lidar:
     max_range: float = 75.0
     range_noise: float = 0.02
     dropout: float = 0.03
-    height: float = 1.9
+    height: float = SENSOR_HEIGHT
     ground_samples: int = 8
     ground_bisections: int = 16
 
