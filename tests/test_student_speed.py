@@ -127,7 +127,8 @@ def test_network_crop_rows_and_point_cap():
     assert NetworkCrop(InputContract(remove_ground=True, grid=grid)).rows(points, ground).tolist() == [0, 4]
     assert NetworkCrop(InputContract(remove_ground=False, grid=grid)).rows(points, ground).tolist() == [0, 3, 4]
     many = torch.rand(1000, 3) * 6 - 3
-    capped = NetworkCrop(InputContract(remove_ground=False, grid=grid), max_points=100).rows(many, torch.zeros(1000, dtype=torch.bool))
+    crop = NetworkCrop(InputContract(remove_ground=False, grid=grid), max_points=100)
+    capped = crop.rows(many, torch.zeros(1000, dtype=torch.bool))
     assert len(capped) == 100 and torch.all(capped[1:] > capped[:-1])
     sample = {
         "pc0": points,
