@@ -62,7 +62,9 @@ def _metadata_form(metadata: dict, form: str):
         "newer version": {**metadata, "metadata_version": 99},
         "version not a number": {**metadata, "metadata_version": "2"},
         "path outside": {**metadata, "files": {"pt2": {**metadata["files"]["pt2"], "path": "../fastflow3d.pt2"}}},
-        "preprocessing not a dict": {**metadata, "preprocessing": "yes"},
+        "input not a dict": {**metadata, "input": "yes"},
+        "input of a newer version": {**metadata, "input": {**metadata["input"], "version": 9}},
+        "input grid wrong": {**metadata, "input": {**metadata["input"], "grid": {"cell": -1}}},
     }
     return forms[form]
 
@@ -103,7 +105,9 @@ def test_a_damaged_export_file(export_dir, tmp_path, name, form):
         "newer version",
         "version not a number",
         "path outside",
-        "preprocessing not a dict",
+        "input not a dict",
+        "input of a newer version",
+        "input grid wrong",
     ],
 )
 def test_export_metadata_of_wrong_types_or_versions(export_dir, tmp_path, form):
