@@ -40,6 +40,7 @@ from torch.export.passes import move_to_device_pass
 import icpflow
 from fastflow3d.model import FastFlow3D
 from icpflow.atomic import atomic_path, write_text_atomic
+from icpflow.entry import one_line
 from icpflow.preprocess import Preprocessing, PreprocessingError
 
 FORMATS = ("onnx", "pt2")  # what an export writes
@@ -132,7 +133,7 @@ def read_preprocessing(preprocessing: dict) -> tuple[bool, Preprocessing]:
     try:
         return bool(preprocessing.get("remove_ground", False)), Preprocessing.from_dict(block)
     except (PreprocessingError, ValueError) as error:
-        raise ArtifactError(f"metadata: preprocessing: {' '.join(str(error).split())}") from None
+        raise ArtifactError(f"metadata: preprocessing: {one_line(error)}") from None
 
 
 def network_metadata(
@@ -178,7 +179,7 @@ def read_metadata(path: Path) -> dict:
     except FileNotFoundError:
         raise ArtifactError(f"{path.parent}: no {METADATA_NAME} (not an export directory; see export.py)") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ArtifactError(f"{path}: cannot read export metadata: {' '.join(str(error).split())}") from None
+        raise ArtifactError(f"{path}: cannot read export metadata: {one_line(error)}") from None
     if not isinstance(metadata, dict) or not isinstance(metadata.get("files"), dict):
         raise ArtifactError(f"{path}: not FastFlow3D export metadata (no 'files' entry)")
     version = metadata.get("metadata_version", 1)
@@ -297,7 +298,7 @@ class OnnxRuntimeNetwork:
         try:
             self.session = onnxruntime.InferenceSession(str(path), options, providers=list(providers))
         except Exception as error:  # onnxruntime raises its own exception types for damaged or foreign files
-            raise ArtifactError(f"{path}: cannot load ONNX model: {' '.join(str(error).split())}") from None
+            raise ArtifactError(f"{path}: cannot load ONNX model: {one_line(error)}") from None
         names = tuple(entry.name for entry in self.session.get_inputs())
         if names != INPUT_NAMES:
             raise ArtifactError(f"{path}: ONNX inputs are {names}, expected {INPUT_NAMES} (not a FastFlow3D export)")
@@ -403,5 +404,5 @@ def load_network(path: Path, kind: str, device: str = "cpu"):
         else:  # legacy TorchScript exports (torch.jit is deprecated; read while older exports are in use)
             module = torch.jit.load(str(path), map_location=device).eval()
     except Exception as error:  # damaged or foreign files raise many types (RuntimeError, zipfile, pickle errors)
-        raise ArtifactError(f"{path}: cannot load {kind}: {' '.join(str(error).split())[:300]}") from None
+        raise ArtifactError(f"{path}: cannot load {kind}: {one_line(error)[:300]}") from None
     return TorchNetwork(module, device)

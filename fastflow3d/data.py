@@ -44,6 +44,7 @@ from torch.utils.data import DataLoader, Dataset
 from fastflow3d.augment import Augmentation
 from fastflow3d.model import compensate
 from fastflow3d.voxelize import Grid, pillar_ids
+from icpflow.entry import one_line
 from icpflow.geometry import full_to_residual
 from icpflow.preprocess import Preprocessing
 from icpflow.shards.reader import ShardDataset
@@ -186,7 +187,7 @@ def labeller_preprocessing(shard_dir) -> Preprocessing | None:
     try:
         content = yaml.safe_load(text) if isinstance(text, str) else None
     except yaml.YAMLError as error:  # e.g. a python/object tag: safe_load refuses it, never runs it
-        problem = " ".join(str(error).split())[:160]
+        problem = one_line(error)[:160]
         raise DataError(f"{first}: its labeller config is not plain YAML ({type(error).__name__}: {problem})") from None
     content = content if isinstance(content, dict) else {}
     block = content.get("preprocessing", content.get("teacher"))

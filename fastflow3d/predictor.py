@@ -63,6 +63,7 @@ from fastflow3d.artifact import (
 )
 from fastflow3d.model import compensate
 from fastflow3d.refine import RefineConfig, refine_residual
+from icpflow.entry import one_line
 from icpflow.frames import FramePairError, check_points
 from icpflow.geometry import residual_to_full, rigid_problem, transform_points
 from icpflow.preprocess import (
@@ -133,7 +134,7 @@ def preprocessing_entry(given) -> dict:
         try:
             given = json.loads(Path(given).read_text())
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-            raise PredictorError(f"{given}: cannot read preprocessing: {' '.join(str(error).split())}") from None
+            raise PredictorError(f"{given}: cannot read preprocessing: {one_line(error)}") from None
     if not isinstance(given, dict):
         raise PredictorError(f"preprocessing must be a dict or a JSON file, got {type(given).__name__}")
     return given.get("preprocessing", given) if "files" in given or "grid" in given else given
@@ -165,7 +166,7 @@ class Predictor:
         try:
             self.refine = RefineConfig.of(refine)
         except (TypeError, ValueError) as error:
-            raise PredictorError(" ".join(str(error).split())) from None
+            raise PredictorError(one_line(error)) from None
         self._segmenter = None
 
     @classmethod
@@ -401,9 +402,7 @@ class Predictor:
         try:
             return estimate_ego_motion(pc0, pc1, self.ego_config)
         except (RuntimeError, ValueError, MemoryError) as error:
-            raise PredictorError(
-                f"ego-motion estimation failed ({type(error).__name__}: {' '.join(str(error).split())})"
-            ) from None
+            raise PredictorError(f"ego-motion estimation failed ({type(error).__name__}: {one_line(error)})") from None
 
 
 def _is_number(value) -> bool:

@@ -27,7 +27,7 @@ from fastflow3d.data import DataError, ShardDataModule, StudentDataset, labeller
 from fastflow3d.export import export_checkpoint
 from fastflow3d.module import NonFiniteLoss, StudentModule
 from icpflow.atomic import FolderInUse, folder_lock
-from icpflow.entry import Stop, os_error_line, signal_words, stop_on_signals
+from icpflow.entry import Stop, one_line, os_error_line, signal_words, stop_on_signals
 from icpflow.shards.verify import ShardError
 
 log = logging.getLogger(__name__)
@@ -61,7 +61,7 @@ def check_data(cfg: DictConfig) -> None:
             ) from None
         except ValueError as error:  # a damaged index.json
             raise TrainError(
-                f"data.{key}: {' '.join(str(error).split())}; rerun the label.py command that wrote it "
+                f"data.{key}: {one_line(error)}; rerun the label.py command that wrote it "
                 f"(same out_dir={path}): it rebuilds the index"
             ) from None
         try:
@@ -210,7 +210,7 @@ def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -
     try:
         out_dir = export_checkpoint(source, cfg.export.dir, formats)
     except (ValueError, RuntimeError, OSError) as error:
-        cause = os_error_line(error) if isinstance(error, OSError) else " ".join(str(error).split())
+        cause = os_error_line(error) if isinstance(error, OSError) else one_line(error)
         raise TrainError(
             f"training finished but exporting {source} failed: {cause} "
             f"(retry with `python export.py checkpoint={source}`)"
