@@ -1,9 +1,9 @@
 """icpflow.entry, the one way every entry point stops and reports (issue 32): a signal routed by ``on_signals`` (a
 forked child ignores it; an inherited ignored SIGINT stays ignored; the previous handlers come back), ``Stop``'s
-line and exit status, ``exit_status`` (the report of ``reported`` as a return value), ``one_line``; and a ``Stop``
-raised inside label.py's and eval.py's bodies: 143 / 130 with their own lines, in this process. The scripts under
-real signals: test_faults.py (label.py, SIGTERM), test_label.py (label.py, Ctrl-C), test_faults_evaluation.py
-(eval.py, both), test_faults_training.py (train.py, both)."""
+line and exit status, ``exit_status`` (the report of ``reported`` as a return value), ``one_line``, fastflow3d-infer
+stopped; and a ``Stop`` raised inside label.py's and eval.py's bodies: 143 / 130 with their own lines, in this
+process. The scripts under real signals: test_faults.py (label.py, SIGTERM), test_label.py (label.py, Ctrl-C),
+test_faults_evaluation.py (eval.py, both), test_faults_training.py (train.py, both)."""
 
 import errno
 import os
@@ -121,6 +121,17 @@ def test_exit_status_is_the_report_of_every_entry_point(monkeypatch, capsys):
     for body, expected, status, line in cases:
         assert exit_status("prog", body, *expected) == status
         assert capsys.readouterr().err == line + "\n"
+
+
+@pytest.mark.parametrize(("signum", "status", "words"), CASES)
+def test_fastflow3d_infer_stops_with_one_line_as_every_entry_point(
+    handlers, monkeypatch, capsys, signum, status, words
+):
+    from fastflow3d import infer
+
+    monkeypatch.setattr(infer, "infer", lambda args: _signal_self(signum))
+    assert infer.main(["model", "scan0.npy", "scan1.npy"]) == status
+    assert capsys.readouterr().err == f"infer: {words}\n"
 
 
 def test_one_line():
