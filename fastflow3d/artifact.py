@@ -41,6 +41,7 @@ import icpflow
 from fastflow3d.contract import InputContract
 from fastflow3d.model import FastFlow3D
 from icpflow.atomic import atomic_path, write_text_atomic
+from icpflow.entry import one_line
 
 FORMATS = ("onnx", "pt2")  # what an export writes
 LEGACY_FORMATS = ("torchscript",)  # read only: exports of older versions
@@ -157,7 +158,7 @@ def read_metadata(path: Path) -> dict:
     except FileNotFoundError:
         raise ArtifactError(f"{path.parent}: no {METADATA_NAME} (not an export directory; see export.py)") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise ArtifactError(f"{path}: cannot read export metadata: {' '.join(str(error).split())}") from None
+        raise ArtifactError(f"{path}: cannot read export metadata: {one_line(error)}") from None
     if not isinstance(metadata, dict) or not isinstance(metadata.get("files"), dict):
         raise ArtifactError(f"{path}: not FastFlow3D export metadata (no 'files' entry)")
     version = metadata.get("metadata_version", 1)
@@ -276,7 +277,7 @@ class OnnxRuntimeNetwork:
         try:
             self.session = onnxruntime.InferenceSession(str(path), options, providers=list(providers))
         except Exception as error:  # onnxruntime raises its own exception types for damaged or foreign files
-            raise ArtifactError(f"{path}: cannot load ONNX model: {' '.join(str(error).split())}") from None
+            raise ArtifactError(f"{path}: cannot load ONNX model: {one_line(error)}") from None
         names = tuple(entry.name for entry in self.session.get_inputs())
         if names != INPUT_NAMES:
             raise ArtifactError(f"{path}: ONNX inputs are {names}, expected {INPUT_NAMES} (not a FastFlow3D export)")
@@ -382,5 +383,5 @@ def load_network(path: Path, kind: str, device: str = "cpu"):
         else:  # legacy TorchScript exports (torch.jit is deprecated; read while older exports are in use)
             module = torch.jit.load(str(path), map_location=device).eval()
     except Exception as error:  # damaged or foreign files raise many types (RuntimeError, zipfile, pickle errors)
-        raise ArtifactError(f"{path}: cannot load {kind}: {' '.join(str(error).split())[:300]}") from None
+        raise ArtifactError(f"{path}: cannot load {kind}: {one_line(error)[:300]}") from None
     return TorchNetwork(module, device)

@@ -1,12 +1,12 @@
 """Lightning callbacks and checkpoint writing of the training stage: ``last.ckpt`` kept current (and a clean stop on
-SIGTERM/SIGINT), one best checkpoint after a resume, atomic checkpoint files, and a final validation."""
+SIGTERM/SIGINT, through ``icpflow.entry.on_signals``), one best checkpoint after a resume (through ModelCheckpoint's
+public ``state_dict`` / ``load_state_dict``), atomic checkpoint files, and a final validation."""
 
 from __future__ import annotations
 
 import io
 import logging
 import signal
-import threading
 from pathlib import Path
 
 import lightning as L
@@ -15,7 +15,7 @@ from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import Checkpoint, ModelCheckpoint
 
 from icpflow.atomic import atomic_path
-from icpflow.entry import Stop, signal_words
+from icpflow.entry import Stop, on_signals, signal_words
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +37,10 @@ class TrainingStopped(Stop):
     """A signal stopped the training loop; ``last.ckpt`` holds the state it stopped at (the message says so)."""
 
 
+def _nothing() -> None:
+    pass
+
+
 class LastCheckpoint(Checkpoint):
     """Keep ``<dirpath>/last.ckpt`` at the latest state: after every validation and when training ends; stop cleanly
     on SIGTERM or SIGINT.
@@ -48,7 +52,8 @@ class LastCheckpoint(Checkpoint):
 
     Signals: from the start of the training loop to its end, a SIGTERM (a scheduler's pre-emption, ``scancel``) or
     a SIGINT (Ctrl-C) lets the current step (or validation) finish; then ``last.ckpt`` is saved at that step and
-    :class:`TrainingStopped` is raised (every rank stops at the same step). A second signal stops at once.
+    :class:`TrainingStopped` is raised (every rank stops at the same step). A second signal stops at once
+    (``icpflow.entry.Stop``). The handlers are installed by ``icpflow.entry.on_signals``, as every entry point's.
     On a resume (``ckpt_path``), best checkpoints in the folder that the restored state does not know (written by a
     run killed between the two saves, or by older versions) are weighed by the score they hold: the best ``save_top_k``
     are kept, the others removed.
@@ -58,7 +63,7 @@ class LastCheckpoint(Checkpoint):
         self.path = Path(dirpath) / "last.ckpt"
         self.saved_step = -1
         self.signum: int | None = None
-        self._previous: dict = {}
+        self._restore = _nothing  # puts back the handlers on_train_start replaced (icpflow.entry.on_signals)
 
     # -------------------------------------------------------------------------------------------- last.ckpt
 
@@ -82,7 +87,7 @@ class LastCheckpoint(Checkpoint):
 
     # -------------------------------------------------------------------------------------------- signals
 
-    def _note(self, signum, frame) -> None:
+    def _note(self, signum: int) -> None:
         if self.signum is not None:  # asked twice: stop now
             raise Stop(signum)
         self.signum = signum
@@ -91,13 +96,12 @@ class LastCheckpoint(Checkpoint):
         if trainer.ckpt_path:
             keep_best_after_resume(trainer)
         self.signum = None
-        if threading.current_thread() is threading.main_thread():
-            self._previous = {sig: signal.signal(sig, self._note) for sig in (signal.SIGTERM, signal.SIGINT)}
+        self._restore_handlers()
+        self._restore = on_signals(self._note)
 
     def _restore_handlers(self) -> None:
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-        self._previous = {}
+        restore, self._restore = self._restore, _nothing
+        restore()
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
         self._restore_handlers()
@@ -132,20 +136,21 @@ def _stored_score(path: Path, state_key: str) -> float | None:
 def keep_best_after_resume(trainer: L.Trainer) -> None:
     """After a resume: every ModelCheckpoint with a monitor keeps its best ``save_top_k`` of the checkpoints it
     knows (restored state) and of the files in its folder that match its file name but that state does not know;
-    the others are removed (rank 0) and its state says which are kept."""
+    the others are removed (rank 0) and its state says which are kept (:func:`set_best_checkpoints`)."""
     for callback in trainer.checkpoint_callbacks:
         if not isinstance(callback, ModelCheckpoint) or not callback.monitor or callback.save_top_k < 1:
             continue
         prefix = (callback.filename or "").split("{")[0]
         if not prefix or not callback.dirpath or not Path(callback.dirpath).is_dir():
             continue
-        known = {str(path): float(score) for path, score in callback.best_k_models.items() if Path(path).is_file()}
+        best = callback.state_dict()["best_k_models"]
+        known = {str(path): float(score) for path, score in best.items() if Path(path).is_file()}
         for path in sorted(Path(callback.dirpath).glob(f"{prefix}*{callback.FILE_EXTENSION}")):
             if str(path) not in known and path.name != "last.ckpt":
                 score = _stored_score(path, callback.state_key)
                 if score is not None:
                     known[str(path)] = score
-        if len(known) == len(callback.best_k_models) and set(known) == set(callback.best_k_models):
+        if len(known) == len(best) and set(known) == set(best):
             continue
         ranked = sorted(known.items(), key=lambda item: item[1], reverse=callback.mode == "max")
         kept, dropped = ranked[: callback.save_top_k], ranked[callback.save_top_k :]
@@ -160,10 +165,24 @@ def keep_best_after_resume(trainer: L.Trainer) -> None:
                     callback.monitor,
                 )
         trainer.strategy.barrier("keep_best_after_resume")
-        callback.best_k_models = {path: torch.tensor(score) for path, score in kept}
-        if kept:
-            callback.best_model_path, callback.best_model_score = kept[0][0], torch.tensor(kept[0][1])
-            callback.kth_best_model_path, callback.kth_value = kept[-1][0], torch.tensor(kept[-1][1])
+        set_best_checkpoints(callback, kept)
+
+
+#: the keys of ModelCheckpoint's state (``state_dict()``, stored in every checkpoint) that name its best files
+BEST_STATE_KEYS = ("best_k_models", "best_model_path", "best_model_score", "kth_best_model_path", "kth_value")
+
+
+def set_best_checkpoints(callback: ModelCheckpoint, kept: list[tuple[str, float]]) -> None:
+    """Make ``callback`` know exactly the best checkpoints ``kept`` (``(path, score)``, best first), through its
+    public ``state_dict()`` / ``load_state_dict()`` (the state Lightning saves in and restores from a checkpoint):
+    the keys :data:`BEST_STATE_KEYS`. Lightning keeps these keys for old checkpoints to load;
+    ``tests/test_faults_training.py`` fails if a Lightning version stops restoring them. With nothing kept, only
+    ``best_k_models`` changes (the best path and score stay as restored)."""
+    state = {**callback.state_dict(), "best_k_models": {path: torch.tensor(score) for path, score in kept}}
+    if kept:
+        state["best_model_path"], state["best_model_score"] = kept[0][0], torch.tensor(kept[0][1])
+        state["kth_best_model_path"], state["kth_value"] = kept[-1][0], torch.tensor(kept[-1][1])
+    callback.load_state_dict(state)
 
 
 class ValidateAtEnd(L.Callback):

@@ -36,7 +36,7 @@ from fastflow3d.artifact import (
 from fastflow3d.contract import ContractError, InputContract, upgrade
 from fastflow3d.model import FastFlow3D
 from icpflow.atomic import atomic_directory
-from icpflow.entry import Stop, one_line, os_error_line, signal_words, stop_on_signals
+from icpflow.entry import Stop, exit_status, one_line, os_error_line, signal_words, stop_on_signals
 
 PARITY_TOLERANCE = 1e-4  # metres, max abs difference between an export and eager
 
@@ -217,32 +217,36 @@ def parse_formats(value: str) -> tuple[str, ...]:
     return FORMATS if names == ["all"] else tuple(names)
 
 
+#: errors whose message is the line ``export.py`` prints (``icpflow.entry.reported``)
+EXPECTED = (ValueError, RuntimeError)
+
+
 def run_export(cfg) -> int:
     """``export.py``: export ``cfg.checkpoint`` in ``cfg.format`` to ``cfg.out_dir``; print what was written.
 
-    Returns the exit status: 0 exported, 2 could not export (one line on stderr: the file, the cause, the fix).
-    SIGTERM and SIGINT raise ``icpflow.entry.Stop`` saying that the existing export is unchanged.
+    Returns the exit status (``icpflow.entry.exit_status``, the report every entry point makes): 0 exported, 2 could
+    not export (one line on stderr: the file, the cause, the fix), 143 / 130 on SIGTERM / SIGINT (the line says that
+    the existing export is unchanged).
     """
+    return exit_status("export", lambda: _run_export(cfg), *EXPECTED)
+
+
+def _run_export(cfg) -> None:
     from omegaconf import OmegaConf
 
     if OmegaConf.is_missing(cfg, "checkpoint") or not cfg.checkpoint:
-        print("export: pass checkpoint=<path to a training .ckpt>", file=sys.stderr)
-        return 2
+        raise ExportError("pass checkpoint=<path to a training .ckpt>")
+    formats = parse_formats(cfg.format)
+    if Path(cfg.checkpoint).is_file() and formats and set(formats) <= set(FORMATS):  # a long step: say so
+        print(f"export: exporting {cfg.checkpoint}, then checking parity (about 20 s) ...", file=sys.stderr)
     try:
-        formats = parse_formats(cfg.format)
-        if Path(cfg.checkpoint).is_file() and formats and set(formats) <= set(FORMATS):  # a long step: say so
-            print(f"export: exporting {cfg.checkpoint}, then checking parity (about 20 s) ...", file=sys.stderr)
         with stop_on_signals():
             out_dir = export_checkpoint(cfg.checkpoint, cfg.out_dir, formats)
     except Stop as stop:
         where = cfg.out_dir or "the export folder"
         raise Stop(stop.signum, f"{signal_words(stop.signum)}; nothing exported, {where} is as it was") from None
     except OSError as error:
-        print(f"export: {os_error_line(error)}; the export there is as it was", file=sys.stderr)
-        return 2
-    except (ValueError, RuntimeError) as error:
-        print(f"export: {' '.join(str(error).split())}", file=sys.stderr)
-        return 2
+        raise ExportError(f"{os_error_line(error)}; the export there is as it was") from None
     metadata = json.loads((out_dir / METADATA_NAME).read_text())
     for name, entry in metadata["files"].items():
         print(
@@ -250,4 +254,3 @@ def run_export(cfg) -> int:
             f"{metadata['parity_max_abs_m'][name]:.2e} m)"
         )
     print(f"export: metadata -> {out_dir / METADATA_NAME}")
-    return 0

@@ -22,9 +22,9 @@ saved with the model; ground points of scan0 move with the ego motion. A bare ``
 Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow`` is in
 scan1's frame), ``residual`` (ego-compensated), ``in_grid`` (the network predicted the point), ``ground0``
 (left out as ground), ``ego1_from_ego0``, ``ego_estimated``; a ``.npy`` output holds the flow alone. Errors are one
-line on stderr, exit status 2; a scan none of whose points the network sees (outside its grid), a frame converted
-without being told, or an implausible preprocessing (over 85 % ground, under 20 % of scan0 in the grid) gets a
-one-line warning.
+line on stderr, exit status 2 (130 / 143 when Ctrl-C / SIGTERM stops it: ``icpflow.entry``); a scan none of whose
+points the network sees (outside its grid), a frame converted without being told, or an implausible preprocessing
+(over 85 % ground, under 20 % of scan0 in the grid) gets a one-line warning.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from fastflow3d.artifact import FORMATS, LEGACY_FORMATS
 from icpflow.atomic import atomic_path
 from icpflow.console import quiet
 from icpflow.datasets.io import SCAN_SUFFIXES, fail, load_npz, read_poses, read_scan
-from icpflow.entry import os_error_line
+from icpflow.entry import exit_status, stop_on_signals
 from icpflow.frames import FramePair, check_points
 from icpflow.geometry import relative_transform
 
@@ -234,20 +234,18 @@ def infer(args) -> tuple[Path, Path | None]:
 
 
 def main(argv=None) -> int:
-    """Command-line entry; returns the exit status (0 written, 2 error)."""
+    """Command-line entry; returns the exit status (0 written; 2 an error, one line on stderr; 130 / 143 stopped by
+    Ctrl-C / SIGTERM) as ``icpflow.entry`` reports it for every entry point. A bad option exits (argparse)."""
     quiet()
     args = parse_args(argv)
-    try:
+    return exit_status("infer", lambda: _main(args), ValueError, RuntimeError)
+
+
+def _main(args) -> None:
+    with stop_on_signals():  # the flow file is written atomically: a stop leaves none or the whole file
         out, bev = infer(args)
-    except OSError as error:  # a write error names the file asked for (icpflow.atomic), with the fix
-        print(f"infer: {os_error_line(error)}", file=sys.stderr)
-        return 2
-    except (ValueError, RuntimeError) as error:
-        print(f"infer: {' '.join(str(error).split())}", file=sys.stderr)
-        return 2
     rerun = f", 3D -> {args.rerun}" if args.rerun else ""
     print(f"infer: flow -> {out}" + (f", BEV -> {bev}" if bev else "") + rerun)
-    return 0
 
 
 if __name__ == "__main__":

@@ -177,7 +177,7 @@ class Predictor:
         try:
             self.refine = RefineConfig.of(refine)
         except (TypeError, ValueError) as error:
-            raise PredictorError(" ".join(str(error).split())) from None
+            raise PredictorError(one_line(error)) from None
         self._segmenter = None
 
     @classmethod
@@ -413,9 +413,7 @@ class Predictor:
         try:
             return estimate_ego_motion(pc0, pc1, self.ego_config)
         except (RuntimeError, ValueError, MemoryError) as error:
-            raise PredictorError(
-                f"ego-motion estimation failed ({type(error).__name__}: {' '.join(str(error).split())})"
-            ) from None
+            raise PredictorError(f"ego-motion estimation failed ({type(error).__name__}: {one_line(error)})") from None
 
 
 def _is_number(value) -> bool:

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from fastflow3d.artifact import INPUT_NAMES, OUTPUT_NAMES, ArtifactError, OnnxRuntimeNetwork
+from icpflow.entry import one_line
 
 RUNTIMES = ("onnxruntime", "openvino")
 PRECISIONS = ("f32", "bf16")
@@ -79,7 +80,7 @@ class OpenVinoNetwork:
         try:
             self.compiled = core.compile_model(core.read_model(str(path)), "CPU", config)
         except Exception as error:  # OpenVINO raises its own exception types for damaged or foreign files
-            raise ArtifactError(f"{path}: OpenVINO cannot compile it: {' '.join(str(error).split())[:300]}") from None
+            raise ArtifactError(f"{path}: OpenVINO cannot compile it: {one_line(error)[:300]}") from None
         names = tuple(port.get_any_name() for port in self.compiled.inputs)
         if names != INPUT_NAMES:
             raise ArtifactError(f"{path}: ONNX inputs are {names}, expected {INPUT_NAMES} (not a FastFlow3D export)")

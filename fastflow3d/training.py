@@ -62,7 +62,7 @@ def check_data(cfg: DictConfig) -> None:
             ) from None
         except ValueError as error:  # a damaged index.json
             raise TrainError(
-                f"data.{key}: {' '.join(str(error).split())}; rerun the label.py command that wrote it "
+                f"data.{key}: {one_line(error)}; rerun the label.py command that wrote it "
                 f"(same out_dir={path}): it rebuilds the index"
             ) from None
         try:
@@ -190,7 +190,7 @@ def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -
     try:
         out_dir = export_checkpoint(source, cfg.export.dir, formats)
     except (ValueError, RuntimeError, OSError) as error:
-        cause = os_error_line(error) if isinstance(error, OSError) else " ".join(str(error).split())
+        cause = os_error_line(error) if isinstance(error, OSError) else one_line(error)
         raise TrainError(
             f"training finished but exporting {source} failed: {cause} "
             f"(retry with `python export.py checkpoint={source}`)"

@@ -1,17 +1,21 @@
-"""What every entry point (``label.py``, ``train.py``, ``export.py``, ``eval.py``) does with an error or a signal:
-one line on stderr, ``<prog>: <option or file>: <cause>; <fix>``, and an exit status; the traceback only with
-``HYDRA_FULL_ERROR=1``.
+"""What every entry point (``label.py``, ``train.py``, ``export.py``, ``eval.py``, ``fastflow3d-infer``) does with an
+error or a signal: one line on stderr, ``<prog>: <option or file>: <cause>; <fix>``, and an exit status; the
+traceback only with ``HYDRA_FULL_ERROR=1``.
 
 Exit statuses: 0 done; 1 partial results (each script says when); 2 bad input or a fault (a wrong option or type, an
 unreadable file, a full or read-only disk); 128 + N stopped by signal N (130 Ctrl-C / SIGINT, 143 SIGTERM).
 
 * :func:`reported` (around the body of the ``@hydra.main`` function) and :func:`run` (around the call of that
   function, for Hydra's own errors: a bad override, an output folder it cannot create) turn whatever escapes into
-  that line and status.
+  that line and status; :func:`exit_status` is :func:`reported` for a command that returns its status
+  (``fastflow3d-infer``, ``run_export``).
 * :func:`check_overrides` (first thing inside the ``@hydra.main`` function): a command-line value of the wrong type
   (``data.batch_size=abc``) is a one-line :class:`OptionError` naming the option, before any work.
-* :class:`Stop` is a signal turned into an exception (:func:`stop_on_signals`); it carries the line that says what
-  was kept and how to go on.
+* One way to stop: :func:`on_signals` is the only place that installs handlers for :data:`STOP_SIGNALS` (the entry
+  points through :func:`stop_on_signals`, training's ``fastflow3d.callbacks.LastCheckpoint`` to note a signal and
+  stop after the current step). :class:`Stop` is a signal turned into an exception; it carries the line that says
+  what was kept and how to go on, and its exit status (:func:`stop_signum` also reads a bare ``KeyboardInterrupt``).
+* :func:`one_line` is the one way to fold a message (an exception's text) onto one line.
 """
 
 from __future__ import annotations
@@ -44,6 +48,10 @@ class OptionError(ValueError):
     """An option's value cannot be used (wrong type). The message is one line naming the option and the fix."""
 
 
+#: the signals that stop a run: Ctrl-C (SIGINT) and a scheduler's or supervisor's SIGTERM
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 class Stop(BaseException):
     """A signal asked the run to stop (a BaseException, so that no ``except Exception`` swallows it).
 
@@ -66,37 +74,63 @@ def signal_words(signum: int) -> str:
     return f"{verb} ({name})"
 
 
-def stop_handler(owner: int) -> Callable:
-    """A signal handler that raises :class:`Stop` in process ``owner``; a process forked from it (a DataLoader
-    worker, which Ctrl-C or a scheduler signals with it) ignores the signal: the owner stops it when it stops."""
+def stop_signum(interrupt: BaseException) -> int:
+    """The signal that stopped a run: a :class:`Stop`'s, SIGINT for a bare ``KeyboardInterrupt`` (Ctrl-C where no
+    handler of :func:`on_signals` was installed: outside the main thread, or before it)."""
+    return interrupt.signum if isinstance(interrupt, Stop) else int(signal.SIGINT)
 
-    def handle(signum, frame) -> None:
+
+def on_signals(handle: Callable[[int], None], signums=STOP_SIGNALS) -> Callable[[], None]:
+    """Route each signal of ``signums`` that reaches this process to ``handle(signum)`` (which raises :class:`Stop`,
+    or notes the signal to stop later); returns the function that puts the previous handlers back.
+
+    The one place where entry points and the training callback install signal handlers. A process forked from this
+    one (a DataLoader or a library's worker, which Ctrl-C or a scheduler signals with it) ignores these signals: its
+    owner ends it when it stops. A SIGINT ignored when this is called (a background job of a shell script) stays
+    ignored, as Python leaves it. Outside the main thread nothing is installed (signals reach the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    owner = os.getpid()
+
+    def route(signum, frame) -> None:
         if os.getpid() == owner:
-            raise Stop(signum)
+            handle(signum)
 
-    return handle
+    previous = {}
+    for signum in signums:
+        if signum == signal.SIGINT and signal.getsignal(signum) is signal.SIG_IGN:
+            continue
+        previous[signum] = signal.signal(signum, route)
+
+    def restore() -> None:
+        while previous:
+            signum, handler = previous.popitem()
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)  # None: installed outside Python
+
+    return restore
+
+
+def raise_stop(signum: int) -> None:
+    """The handler of :func:`stop_on_signals`: stop now."""
+    raise Stop(signum)
 
 
 @contextlib.contextmanager
-def stop_on_signals(signums=(signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
-    """Within the block, the signals raise :class:`Stop` in this process (so ``finally`` blocks and atomic writers
-    clean up); the previous handlers come back after it. Outside the main thread it does nothing."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    handler = stop_handler(os.getpid())
-    previous = {signum: signal.signal(signum, handler) for signum in signums}
+def stop_on_signals(signums=STOP_SIGNALS) -> Iterator[None]:
+    """Within the block, the signals raise :class:`Stop` in this process (so ``finally`` blocks, atomic writers and
+    worker pools clean up), as :func:`on_signals` routes them; the previous handlers come back after it."""
+    restore = on_signals(raise_stop, signums)
     try:
         yield
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
+        restore()
 
 
 # ---------------------------------------------------------------------------------------------------- messages
 
 
-def one_line(text: str) -> str:
+def one_line(text: object) -> str:
+    """``text`` (a message, an exception) on one line: its runs of white space, newlines included, as one space."""
     return " ".join(str(text).split())
 
 
@@ -179,6 +213,18 @@ def run(prog: str, hydra_main: Callable[[], object]) -> None:
         if not asked:
             os.environ.pop(FULL_ERROR, None)
             os.environ.pop(MARKER, None)
+
+
+def exit_status(prog: str, body: Callable[[], int | None], *expected: type[BaseException]) -> int:
+    """``body()`` inside :func:`reported` for a command that returns its exit status instead of exiting (the
+    ``fastflow3d-infer`` console script, ``fastflow3d.export.run_export``; tests call them): ``body``'s status (None:
+    0), or the status of the line :func:`reported` printed."""
+    try:
+        with reported(prog, *expected):
+            return int(body() or 0)
+    except SystemExit as stopped:
+        code = stopped.code
+        return code if isinstance(code, int) else 0 if code is None else 1
 
 
 # ---------------------------------------------------------------------------------------------------- option types

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from icpflow.entry import one_line
 from icpflow.synthetic.lidar import SENSOR_HEIGHT
 from icpflow.teacher.config import EgoMotionConfig, GroundConfig
 
@@ -93,7 +94,7 @@ def _settings(kind, values: dict, where: str):
     try:
         return kind(**values)
     except TypeError as error:
-        raise PreprocessingError(f"{where}: {' '.join(str(error).split())}") from None
+        raise PreprocessingError(f"{where}: {one_line(error)}") from None
     except ValueError as error:
         raise PreprocessingError(str(error)) from None
 
@@ -160,7 +161,7 @@ class Preprocessing:
         try:
             frame = HeightFrame(**values.get("frame", {}))
         except TypeError as error:
-            raise PreprocessingError(f"preprocessing: {' '.join(str(error).split())}") from None
+            raise PreprocessingError(f"preprocessing: {one_line(error)}") from None
         ground = {key: value for key, value in values.get("ground", {}).items() if key != "patchwork_z_offset"}
         ground = _settings(GroundConfig, ground, "preprocessing")
         ego_motion = _settings(EgoMotionConfig, values.get("ego_motion", {}), "preprocessing")

@@ -114,6 +114,31 @@ def test_last_checkpoint_knows_the_best_and_a_resume_keeps_only_the_truly_best(s
     assert metadata["source_checkpoint"]["path"] == str(truly_best.resolve())
 
 
+def test_the_best_files_are_set_through_lightnings_public_checkpoint_state(tmp_path):
+    """Issue 32: the resume's bookkeeping (fastflow3d.callbacks.set_best_checkpoints) sets a ModelCheckpoint's best
+    files through its public state_dict / load_state_dict, the keys BEST_STATE_KEYS; this fails if a Lightning
+    version renames them or stops restoring them."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from fastflow3d.callbacks import BEST_STATE_KEYS, set_best_checkpoints
+
+    def checkpoint_callback():
+        return ModelCheckpoint(dirpath=tmp_path, filename="best-{step}", monitor="val/epe", save_top_k=2)
+
+    callback = checkpoint_callback()
+    assert set(BEST_STATE_KEYS) <= set(callback.state_dict())
+    a, b = str(tmp_path / "best-step=2.ckpt"), str(tmp_path / "best-step=4.ckpt")
+    set_best_checkpoints(callback, [(a, 0.1), (b, 0.2)])
+    restored = checkpoint_callback()
+    restored.load_state_dict(callback.state_dict())  # what a resume from this state sees
+    for state in (callback, restored):
+        assert {path: round(float(score), 6) for path, score in state.best_k_models.items()} == {a: 0.1, b: 0.2}
+        assert (state.best_model_path, round(float(state.best_model_score), 6)) == (a, 0.1)
+        assert (state.kth_best_model_path, round(float(state.kth_value), 6)) == (b, 0.2)
+    set_best_checkpoints(callback, [])
+    assert callback.best_k_models == {} and callback.best_model_path == a
+
+
 # ------------------------------------------------------------------------------------------- 2. SIGTERM, SIGINT
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from icpflow.entry import one_line
 from icpflow.frames import FramePairError, check_points
 from icpflow.geometry import rigid_problem
 
@@ -25,7 +26,7 @@ def natural_key(path: Path) -> list:
 
 def fail(path, message: str) -> FramePairError:
     """A one-line error naming ``path``."""
-    return FramePairError(f"{path}: {' '.join(str(message).split())}")
+    return FramePairError(f"{path}: {one_line(message)}")
 
 
 def load_npz(path: Path, required: tuple[str, ...], optional: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:

@@ -17,10 +17,10 @@ import signal
 import sys
 import tempfile
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 from icpflow.atomic import WriteError, write_text_atomic
+from icpflow.entry import Stop, one_line, stop_on_signals, stop_signum
 from icpflow.evaluation.methods import EvaluationError, MethodFactory, build_methods, parse_horizons
 from icpflow.evaluation.report import check_writable, format_table, metrics_json, table_rows, write_results
 from icpflow.evaluation.run import Evaluation, PairHook, PairPredictions, signals_held
@@ -33,32 +33,17 @@ RELATIVE_TO = ("residual", "full")
 SHOWN_FAILURES = 10
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM reached the process: the run stops as on Ctrl-C (a KeyboardInterrupt, so no sample's ``except
-    Exception`` swallows it)."""
-
-
-@contextmanager
-def sigterm_stops():
-    """Turn SIGTERM into :class:`Terminated` for the block (the previous handler comes back after it)."""
-
-    def stop(signum, frame):
-        raise Terminated()
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 def end_child_processes() -> None:
     """End the helper processes a library started for this run (a multiprocessing or joblib pool), which would
-    otherwise outlive it with their resource trackers."""
+    otherwise outlive it with their resource trackers: SIGTERM, then SIGKILL for one still there after 5 s (a
+    process forked from this one ignores SIGTERM, ``icpflow.entry.on_signals``)."""
     for child in multiprocessing.active_children():
         child.terminate()
     for child in multiprocessing.active_children():
         child.join(timeout=5)
+        if child.is_alive():
+            child.kill()
+            child.join(timeout=5)
 
 
 def check_options(cfg) -> dict:
@@ -152,19 +137,20 @@ def run_eval(
     ``extra_methods``: methods of other packages by name, each ``factory(cfg) -> method`` (``eval.py`` gives
     ``student``); ``hooks``: more per-pair hooks. Returns the exit status (see the module docstring).
     """
-    with sigterm_stops():
+    with stop_on_signals():  # SIGTERM and Ctrl-C raise icpflow.entry.Stop
         try:
             return _run_eval(cfg, progress, extra_methods, hooks)
-        except KeyboardInterrupt as stop:  # before the scoring began: nothing to keep
+        except (Stop, KeyboardInterrupt) as stop:  # before the scoring began: nothing to keep
             end_child_processes()
             what, status = _stopped(stop)
             print(f"eval: {what} before any pair was scored; nothing written", file=sys.stderr)
             return status
 
 
-def _stopped(stop: KeyboardInterrupt) -> tuple[str, int]:
-    """What stopped the run, and its exit status."""
-    return ("terminated (SIGTERM)", 143) if isinstance(stop, Terminated) else ("interrupted (Ctrl-C)", 130)
+def _stopped(stop: BaseException) -> tuple[str, int]:
+    """What stopped the run (a :class:`Stop` or a bare KeyboardInterrupt), and its exit status."""
+    signum = stop_signum(stop)
+    return ("terminated (SIGTERM)" if signum == signal.SIGTERM else "interrupted (Ctrl-C)"), 128 + signum
 
 
 def _run_eval(cfg, progress, extra_methods, hooks) -> int:
@@ -200,7 +186,7 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
         print(f"eval: {error}; nothing was scored: choose a writable out_dir=... with free space", file=sys.stderr)
         return 2
     except (EvaluationError, ValueError, RuntimeError, OSError) as error:
-        print(f"eval: {' '.join(str(error).split())}", file=sys.stderr)
+        print(f"eval: {one_line(error)}", file=sys.stderr)
         return 2
     metric_options = MetricOptions(
         crop=options["crop"],
@@ -218,7 +204,7 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
     with recording or contextlib.nullcontext():
         try:
             evaluation.run(range(limit), all_hooks, progress)
-        except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated): keep what was scored
+        except (Stop, KeyboardInterrupt) as stop:  # SIGTERM or Ctrl-C: keep what was scored
             stopped, status = _stopped(stop)
             end_child_processes()
     if recording is not None:
@@ -266,5 +252,5 @@ def _save_elsewhere(result, weighting: str, extra: dict) -> str:
     try:
         write_text_atomic(path, metrics_json(result, weighting, extra))
     except WriteError as error:
-        return f"nor in {path.parent} ({' '.join(str(error).split())}); the table above holds the scores"
+        return f"nor in {path.parent} ({one_line(error)}); the table above holds the scores"
     return f"the scores were saved to {path} instead; free space or choose another out_dir=... and rerun"

@@ -12,8 +12,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from icpflow.atomic import WriteError
 from icpflow.datasets.from_config import dataset_root, open_dataset
+from icpflow.entry import Stop, one_line, stop_on_signals, stop_signum
 from icpflow.labelling.executors import available_cores
-from icpflow.labelling.job import LabelError, LabelJob, Terminated, raise_terminated
+from icpflow.labelling.job import LabelError, LabelJob
 from icpflow.labelling.plan import plan_shards
 from icpflow.labelling.run import run_labelling
 from icpflow.preprocess import Preprocessing
@@ -66,42 +67,48 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
     (e.g. a full disk); 130: interrupted (Ctrl-C), 143: terminated (SIGTERM), both keeping the complete shards
     and a consistent index.json. Every error is one line on stderr.
     """
-    previous = signal.signal(signal.SIGTERM, raise_terminated)
-    try:
-        compression = check_options(cfg)
-        teacher = teacher_config(cfg)
-        horizon = int(cfg.horizon)
-        if horizon > teacher.pairing.max_frame_gap:
-            raise LabelError(
-                f"horizon={horizon} exceeds the teacher's max_frame_gap {teacher.pairing.max_frame_gap} "
-                f"(icpflow.pairing.max_frame_gap=...)"
+    with stop_on_signals():  # SIGTERM and Ctrl-C raise Stop here: the executors end their workers as it unwinds
+        try:
+            compression = check_options(cfg)
+            teacher = teacher_config(cfg)
+            horizon = int(cfg.horizon)
+            if horizon > teacher.pairing.max_frame_gap:
+                raise LabelError(
+                    f"horizon={horizon} exceeds the teacher's max_frame_gap {teacher.pairing.max_frame_gap} "
+                    f"(icpflow.pairing.max_frame_gap=...)"
+                )
+            dataset = open_dataset(cfg, horizon)
+            workers = int(cfg.workers) if cfg.workers else available_cores()
+            job = LabelJob(
+                dataset,
+                teacher,
+                Path(cfg.out_dir),
+                labeller_yaml(cfg, teacher),
+                horizon,
+                bool(cfg.tracker),
+                compression,
             )
-        dataset = open_dataset(cfg, horizon)
-        workers = int(cfg.workers) if cfg.workers else available_cores()
-        job = LabelJob(
-            dataset, teacher, Path(cfg.out_dir), labeller_yaml(cfg, teacher), horizon, bool(cfg.tracker), compression
-        )
-        plan = plan_shards(len(dataset), int(cfg.shard_size), cfg.limit, int(cfg.shard_index), int(cfg.num_shards))
-        ensure_compiled("label")  # once per environment, here rather than in every worker's first sample
-        summary = run_labelling(job, plan, workers, cfg.runner, cfg.ray.address, bool(cfg.overwrite), progress)
-    except WriteError as error:  # disk full, no permission: the file and the cause
-        print(
-            f"label: {error}; complete shards are kept in {cfg.out_dir}, fix this and rerun the same command to resume",
-            file=sys.stderr,
-        )
-        return 2
-    except (LabelError, ValueError, OSError) as error:  # OSError: out_dir not creatable, unreadable input
-        print(f"label: {' '.join(str(error).split())}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM (Terminated)
-        what = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
-        print(
-            f"label: {what}; complete shards are kept in {cfg.out_dir}, rerun the same command to resume",
-            file=sys.stderr,
-        )
-        return 143 if isinstance(stop, Terminated) else 130
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+            plan = plan_shards(len(dataset), int(cfg.shard_size), cfg.limit, int(cfg.shard_index), int(cfg.num_shards))
+            ensure_compiled("label")  # once per environment, here rather than in every worker's first sample
+            summary = run_labelling(job, plan, workers, cfg.runner, cfg.ray.address, bool(cfg.overwrite), progress)
+        except WriteError as error:  # disk full, no permission: the file and the cause
+            print(
+                f"label: {error}; complete shards are kept in {cfg.out_dir}, fix this and rerun the same command to "
+                "resume",
+                file=sys.stderr,
+            )
+            return 2
+        except (LabelError, ValueError, OSError) as error:  # OSError: out_dir not creatable, unreadable input
+            print(f"label: {one_line(error)}", file=sys.stderr)
+            return 2
+        except (Stop, KeyboardInterrupt) as stop:  # SIGTERM or Ctrl-C
+            signum = stop_signum(stop)
+            what = "terminated (SIGTERM)" if signum == signal.SIGTERM else "interrupted"
+            print(
+                f"label: {what}; complete shards are kept in {cfg.out_dir}, rerun the same command to resume",
+                file=sys.stderr,
+            )
+            return 128 + signum
     print(summary_line(summary, job.out_dir))
     failures = summary["failures"]
     for failure in failures[:SHOWN_FAILURES]:

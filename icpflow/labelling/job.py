@@ -1,4 +1,5 @@
-"""What a labelling run is given (:class:`LabelJob`) and how it stops (:class:`LabelError`, :class:`Terminated`)."""
+"""What a labelling run is given (:class:`LabelJob`) and how it fails (:class:`LabelError`); how it stops on a signal
+is ``icpflow.entry.Stop`` (``icpflow.labelling.cli``)."""
 
 from __future__ import annotations
 
@@ -15,16 +16,6 @@ def config_hash(config_yaml: str) -> str:
 class LabelError(RuntimeError):
     """A labelling run cannot start or go on (config mismatch, bad option, a worker died outside a sample).
     The message is one line."""
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM reached the main process: the run stops as on Ctrl-C (a KeyboardInterrupt, so no sample's
-    ``except Exception`` swallows it)."""
-
-
-def raise_terminated(signum, frame) -> None:
-    """SIGTERM handler of the main process (see :class:`Terminated`)."""
-    raise Terminated()
 
 
 @dataclass

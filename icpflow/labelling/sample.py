@@ -9,6 +9,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from icpflow.datasets.base import sample_id_or_index
+from icpflow.entry import Stop
 from icpflow.frames import FramePairError
 from icpflow.teacher.tracker import SampleFlow, teacher_on_sample
 
@@ -122,13 +123,13 @@ def label_sample(job, index: int, threads: int) -> dict:
     return {"index": index, "seconds": time.perf_counter() - start, **outcome}
 
 
-def interrupt_behind(error: BaseException) -> KeyboardInterrupt | None:
-    """The KeyboardInterrupt (Ctrl-C, or ``Terminated`` on SIGTERM) that ``error`` was raised over, if any: a signal
-    that arrives while a numba kernel runs surfaces as ``SystemError(... returned a result with an exception set)``
-    whose cause is the interrupt; it must stop the run, not fail the sample."""
+def interrupt_behind(error: BaseException) -> BaseException | None:
+    """The stop (``icpflow.entry.Stop`` on SIGTERM or Ctrl-C, or a bare KeyboardInterrupt) that ``error`` was raised
+    over, if any: a signal that arrives while a numba kernel runs surfaces as ``SystemError(... returned a result
+    with an exception set)`` whose cause is the stop; it must stop the run, not fail the sample."""
     seen = set()
     while error is not None and id(error) not in seen:
-        if isinstance(error, KeyboardInterrupt):
+        if isinstance(error, (Stop, KeyboardInterrupt)):
             return error
         seen.add(id(error))
         error = error.__cause__ or error.__context__

@@ -1,0 +1,195 @@
+"""icpflow.entry, the one way every entry point stops and reports (issue 32): a signal routed by ``on_signals`` (a
+forked child ignores it; an inherited ignored SIGINT stays ignored; the previous handlers come back), ``Stop``'s
+line and exit status, ``exit_status`` (the report of ``reported`` as a return value), ``one_line``, fastflow3d-infer
+stopped; and a ``Stop`` raised inside label.py's and eval.py's bodies: 143 / 130 with their own lines, in this
+process. The scripts under real signals: test_faults.py (label.py, SIGTERM), test_label.py (label.py, Ctrl-C),
+test_faults_evaluation.py (eval.py, both), test_faults_training.py (train.py, both)."""
+
+import errno
+import os
+import signal
+import time
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from icpflow.baselines import ego_only_flow
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.entry import STOP_SIGNALS, Stop, exit_status, on_signals, one_line, stop_on_signals, stop_signum
+from icpflow.evaluation import run_eval
+from icpflow.labelling.sample import interrupt_behind
+
+from helpers.labelling import REPO, label_cfg
+
+CASES = [(signal.SIGINT, 130, "interrupted (SIGINT)"), (signal.SIGTERM, 143, "terminated (SIGTERM)")]
+
+
+@pytest.fixture
+def handlers():
+    """This process's handlers of the stop signals, put back after the test; Ctrl-C at Python's default even where
+    pytest runs as a background job (SIGINT ignored)."""
+    before = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    for signum, handler in before.items():
+        signal.signal(signum, handler)
+
+
+def _signal_self(signum: int) -> None:
+    """Send ``signum`` to this process and give its Python handler the moment to run."""
+    os.kill(os.getpid(), signum)
+    for _ in range(100):
+        time.sleep(0.01)
+
+
+@pytest.mark.parametrize(("signum", "status", "words"), CASES)
+def test_a_signal_in_the_block_is_a_stop_and_the_handlers_come_back(handlers, signum, status, words):
+    before = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+    with pytest.raises(Stop) as stopped, stop_on_signals():
+        _signal_self(signum)
+    assert (stopped.value.status, str(stopped.value), stop_signum(stopped.value)) == (status, words, signum)
+    assert {s: signal.getsignal(s) for s in STOP_SIGNALS} == before
+    assert stop_signum(KeyboardInterrupt()) == signal.SIGINT  # Ctrl-C where no handler of ours ran
+
+
+def test_a_handler_may_note_the_signal_instead(handlers):
+    """LastCheckpoint's way: the first signal is noted, the training step goes on."""
+    noted = []
+    restore = on_signals(noted.append)
+    try:
+        _signal_self(signal.SIGTERM)
+    finally:
+        restore()
+    assert noted == [signal.SIGTERM]
+    restore()  # twice: nothing more to put back
+
+
+def test_a_forked_child_ignores_the_stop_signals(handlers):
+    """A DataLoader or library worker forked from the run: its owner ends it, Ctrl-C to the group does not."""
+    with stop_on_signals():
+        pid = os.fork()
+        if pid == 0:  # the child: survives both signals
+            code = 1
+            try:
+                _signal_self(signal.SIGINT)
+                _signal_self(signal.SIGTERM)
+                code = 0
+            finally:
+                os._exit(code)
+        _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0
+
+
+def test_an_ignored_sigint_stays_ignored(handlers):
+    """A background job of a shell script starts with SIGINT ignored: Python leaves it so, and so does the run."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with stop_on_signals():
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        _signal_self(signal.SIGINT)
+        with pytest.raises(Stop):
+            _signal_self(signal.SIGTERM)
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+
+
+def test_exit_status_is_the_report_of_every_entry_point(monkeypatch, capsys):
+    monkeypatch.delenv("HYDRA_FULL_ERROR", raising=False)
+
+    def raising(error):
+        def body():
+            raise error
+
+        return body
+
+    assert exit_status("prog", lambda: None) == 0 and exit_status("prog", lambda: 1) == 1
+    cases = [
+        (raising(ValueError("bad\n   value")), (ValueError,), 2, "prog: bad value"),
+        (
+            raising(FileNotFoundError(errno.ENOENT, "No such file", "x.npy")),
+            (),
+            2,
+            "prog: x.npy: No such file; check the path",
+        ),
+        (raising(Stop(signal.SIGTERM, "terminated (SIGTERM); kept")), (), 143, "prog: terminated (SIGTERM); kept"),
+        (raising(KeyboardInterrupt()), (), 130, "prog: interrupted (SIGINT)"),
+        (
+            raising(TypeError("oops")),
+            (),
+            2,
+            "prog: unexpected TypeError: oops (set HYDRA_FULL_ERROR=1 for the traceback)",
+        ),
+    ]
+    for body, expected, status, line in cases:
+        assert exit_status("prog", body, *expected) == status
+        assert capsys.readouterr().err == line + "\n"
+
+
+@pytest.mark.parametrize(("signum", "status", "words"), CASES)
+def test_fastflow3d_infer_stops_with_one_line_as_every_entry_point(
+    handlers, monkeypatch, capsys, signum, status, words
+):
+    from fastflow3d import infer
+
+    monkeypatch.setattr(infer, "infer", lambda args: _signal_self(signum))
+    assert infer.main(["model", "scan0.npy", "scan1.npy"]) == status
+    assert capsys.readouterr().err == f"infer: {words}\n"
+
+
+def test_one_line():
+    assert one_line("a\n  b\tc ") == "a b c" and one_line(ValueError("x\ny")) == "x y"
+
+
+# ----------------------------------------------------------------------------- Stop inside label.py and eval.py
+
+
+class SignalOnRead(SyntheticDataset):
+    """The small synthetic world whose first pair, when read, sends ``signum`` to this process."""
+
+    def __init__(self, signum, **kwargs):
+        super().__init__(**kwargs)
+        self.signum = signum
+
+    def pair(self, index, horizon=1):
+        _signal_self(self.signum)
+        return super().pair(index, horizon)
+
+
+@pytest.mark.parametrize(
+    ("signum", "status", "what"), [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated (SIGTERM)")]
+)
+def test_a_signal_during_labelling_keeps_the_shards_and_exits_128_plus_it(
+    handlers, tmp_path, monkeypatch, capsys, signum, status, what
+):
+    from icpflow.labelling import cli
+
+    monkeypatch.setattr(cli, "ensure_compiled", lambda prog: None)  # the teacher never runs here
+    cfg = label_cfg(tmp_path, f"dataset.reader._target_={__name__}.SignalOnRead", f"+dataset.reader.signum={signum}")
+    before = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+    assert cli.label(cfg, progress=False) == status
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"label: {what}; complete shards are kept in {tmp_path}, rerun the same command to resume"
+    )
+    assert {s: signal.getsignal(s) for s in STOP_SIGNALS} == before  # the handlers came back
+    wrapped = SystemError("a numba kernel returned a result with an exception set")
+    wrapped.__cause__ = Stop(signum)
+    assert interrupt_behind(wrapped) is wrapped.__cause__  # a stop inside a kernel stops the run
+
+
+@pytest.mark.parametrize(
+    ("signum", "status", "what"),
+    [(signal.SIGINT, 130, "interrupted (Ctrl-C)"), (signal.SIGTERM, 143, "terminated (SIGTERM)")],
+)
+def test_a_signal_during_evaluation_keeps_a_partial_result_and_exits_128_plus_it(
+    handlers, tmp_path, capsys, signum, status, what
+):
+    def signalling(pair, index):
+        _signal_self(signum)
+        return ego_only_flow(pair)
+
+    small = ["dataset.reader.num_sequences=1", "dataset.reader.frames_per_sequence=3", "dataset.reader.beams=32"]
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose("eval", [*small, "method=[signalling]", "bev=0", f"out_dir={tmp_path}"])
+    assert run_eval(cfg, progress=False, extra_methods={"signalling": lambda cfg: signalling}) == status
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f'eval: {what}; the 0 pairs scored are kept in {tmp_path / "metrics.json"} ("complete": false); '
+        "rerun the same command for all pairs"
+    )
