@@ -27,7 +27,17 @@ def main() -> None:
         cfg = compose("train", [f"data.train={train}", f"data.val={val}", *overrides])
     plain = OmegaConf.to_container(cfg, resolve=True)
     torch.manual_seed(0)
-    module = StudentModule(plain).train()
+    from fastflow3d import training
+
+    if hasattr(training, "build_module"):  # a tree with the input contract: the module as train.py builds it
+        from fastflow3d.contract import InputContract, read_grid
+
+        contract = InputContract(
+            remove_ground=bool(plain["data"]["remove_ground"]), grid=read_grid(plain["model"], "m")
+        )
+        module = training.build_module(cfg, contract, plain).train()
+    else:
+        module = StudentModule(plain).train()
     options = plain["data"]
     if hasattr(data_module.ShardDataModule, "from_config"):
         datamodule = data_module.ShardDataModule.from_config(options, module.contract)

@@ -1,11 +1,11 @@
 """The student's LightningModule: FastFlow3D trained on pseudo-labels (or ground truth), validated with the paper's
 metrics.
 
-Config keys read (``conf/train.yaml``): ``model`` (FastFlow3D, see ``fastflow3d.checkpoint``), ``loss`` (``name``:
-``distillation`` on the teacher's pseudo-labels, or ``supervised`` on ground truth with ``background_weight``;
-``weighting`` and ``bucket_edges``, see ``fastflow3d.loss``), ``optim`` and ``scheduler`` (Hydra ``_partial_``
-targets, ``conf/optim``, ``conf/scheduler``; the schedule is counted in optimiser steps), ``metrics`` (``crop``,
-``bev_every``), ``input`` (the input contract, ``fastflow3d.contract``) and ``out_dir``.
+Its arguments (:class:`StudentModule`) come from ``conf/train.yaml``'s ``module`` node: the network, the loss
+(``name``: ``distillation`` on the teacher's pseudo-labels, or ``supervised`` on ground truth with
+``background_weight``; ``weighting`` and ``bucket_edges``, see ``fastflow3d.loss``), the optimiser and schedule
+(Hydra ``_partial_`` targets, ``conf/optim``, ``conf/scheduler``; counted in optimiser steps), ``metrics``
+(``crop``, ``bev_every``), the input contract (``fastflow3d.contract``) and ``out_dir``.
 
 The network sees the rows of the input contract: with ground removal (ZeroFlow's setting) only the non-ground points
 of pc0 and pc1 (the shards' ``ground0`` / ``ground1``) inside the grid; other pc0 points get residual 0 (full flow =
@@ -22,18 +22,18 @@ image every ``bev_every`` validations (also written to ``<out_dir>/bev/``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import lightning as L
 import numpy as np
 import torch
-from hydra.utils import instantiate
 
-from fastflow3d.checkpoint import build_student
-from fastflow3d.contract import upgrade
+from fastflow3d.contract import InputContract
 from fastflow3d.data import split_samples
 from fastflow3d.loss import flow_loss
-from icpflow import metrics
+from fastflow3d.model import FastFlow3D
+from icpflow import metrics as metrics_module
 from icpflow.frames import FramePair
 from icpflow.geometry import residual_to_full
 
@@ -45,19 +45,36 @@ class NonFiniteLoss(RuntimeError):
 
 
 class StudentModule(L.LightningModule):
-    """FastFlow3D as ``self.model``; ``cfg`` is the full resolved training config (plain dict), saved in checkpoints."""
+    """FastFlow3D as ``self.model``, trained as its explicit arguments say; instantiated from ``conf/train.yaml``'s
+    ``module`` node (``fastflow3d.training.build_module``), as in lightning-hydra-template.
 
-    def __init__(self, cfg: dict):
+    ``model``: the network (``fastflow3d.checkpoint.build_student`` of ``conf/model``); ``loss``: ``name``,
+    ``weighting``, ``bucket_edges``, ``background_weight`` (``fastflow3d.loss``); ``optimiser``: ``optimiser(params)``
+    and ``scheduler``: ``scheduler(optimiser, total_steps=...)``, Hydra ``_partial_`` targets (``conf/optim``,
+    ``conf/scheduler``); ``contract``: the input contract (``fastflow3d.contract``); ``metrics``: ``crop`` and
+    ``bev_every``; ``out_dir``: where BEV images go (``<out_dir>/bev``). ``fastflow3d.training.build_module`` also saves the whole
+    resolved training config as ``hparams.cfg`` (export, evaluation and resume need only a checkpoint); it is never
+    read here."""
+
+    def __init__(
+        self,
+        model: FastFlow3D,
+        loss: dict,
+        optimiser: Callable,
+        scheduler: Callable,
+        contract: InputContract,
+        metrics: dict,
+        out_dir: str,
+    ):
         super().__init__()
-        if cfg["loss"]["name"] not in LOSSES:
-            raise ValueError(f"loss.name must be one of {', '.join(LOSSES)}, got {cfg['loss']['name']!r}")
-        self.save_hyperparameters({"cfg": cfg})
-        self.cfg = cfg
-        self.model = build_student(cfg["model"])
-        #: what the network sees (``fastflow3d.contract``), from the config's ``input`` (or an older stored form)
-        self.contract = upgrade(cfg, grid=self.model.grid)
+        self.loss_options = dict(loss)
+        if self.loss_options["name"] not in LOSSES:
+            raise ValueError(f"loss.name must be one of {', '.join(LOSSES)}, got {self.loss_options['name']!r}")
+        self.model, self.contract = model, contract
+        self.make_optimiser, self.make_schedule = optimiser, scheduler
+        self.metric_options, self.out_dir = dict(metrics), Path(out_dir)
         self.validations = 0
-        self.scores = metrics.MetricAccumulator()
+        self.scores = metrics_module.MetricAccumulator()
         self.against = None
 
     def forward(self, batch: dict):
@@ -86,7 +103,7 @@ class StudentModule(L.LightningModule):
         """The configured loss of residual predictions (P0, 3) on the points the network predicted (``valid``):
         against the pseudo-labels (``distillation``) or the ground truth (``supervised``, background points
         weighted by ``background_weight``), weighted as ``loss.weighting`` says (``fastflow3d.loss``)."""
-        options, size = self.cfg["loss"], batch["batch_size"]
+        options, size = self.loss_options, batch["batch_size"]
         dt = batch["dt"].float()[batch["batch0"]]  # speeds in float32, also under bf16 autocast
         weighting = {"weighting": options["weighting"], "dt": dt, "bucket_edges": options["bucket_edges"]}
         if options["name"] == "supervised":
@@ -113,7 +130,7 @@ class StudentModule(L.LightningModule):
     # ------------------------------------------------------------------------------------------------ validation
 
     def on_validation_epoch_start(self) -> None:
-        self.scores = metrics.MetricAccumulator()
+        self.scores = metrics_module.MetricAccumulator()
         self.against = None
 
     def validation_step(self, batch: dict, batch_index: int) -> None:
@@ -129,7 +146,7 @@ class StudentModule(L.LightningModule):
         for b, (rows0, rows1, sample_id) in enumerate(pairs):
             pair = self._pair(host, b, rows0, rows1, sample_id)
             predicted = residual_to_full(residual[rows0], pair.pc0, pair.ego1_from_ego0)
-            self.scores.add(metrics.frame_pair_stats(pair, predicted, crop=self.cfg["metrics"]["crop"]))
+            self.scores.add(metrics_module.frame_pair_stats(pair, predicted, crop=self.metric_options["crop"]))
             if batch_index == 0 and b == 0 and self._draw_now():
                 self._draw(pair, predicted)
 
@@ -154,7 +171,7 @@ class StudentModule(L.LightningModule):
         )
 
     def _draw_now(self) -> bool:
-        every = int(self.cfg["metrics"]["bev_every"])
+        every = int(self.metric_options["bev_every"])
         return (
             every > 0 and not self.trainer.sanity_checking and self.validations % every == 0 and self.global_rank == 0
         )
@@ -163,7 +180,7 @@ class StudentModule(L.LightningModule):
         """BEV image of the first validation sample: PNG under out_dir/bev and, with TensorBoard, an image."""
         from icpflow.viz import plot_bev
 
-        path = Path(self.cfg["out_dir"]) / "bev" / f"val_step{self.global_step:07d}.png"
+        path = self.out_dir / "bev" / f"val_step{self.global_step:07d}.png"
         plot_bev(pair, path, predicted, title=f"student at step {self.global_step} vs {self.against}")
         experiment = getattr(self.logger, "experiment", None)
         if hasattr(experiment, "add_image"):
@@ -173,12 +190,12 @@ class StudentModule(L.LightningModule):
             experiment.add_image("val/bev", image, self.global_step, dataformats="HWC")
 
     def on_validation_epoch_end(self) -> None:
-        sums = torch.tensor(np.stack([self.scores.sums[c] for c in metrics.CATEGORIES]), device=self.device)
+        sums = torch.tensor(np.stack([self.scores.sums[c] for c in metrics_module.CATEGORIES]), device=self.device)
         sums = self.trainer.strategy.reduce(sums, reduce_op="sum")
-        self.scores.sums = dict(zip(metrics.CATEGORIES, sums.cpu().double().numpy()))
+        self.scores.sums = dict(zip(metrics_module.CATEGORIES, sums.cpu().double().numpy()))
         table = self.scores.table()["point_weighted"]
-        for category in metrics.CATEGORIES:
-            for column in metrics.COLUMNS:
+        for category in metrics_module.CATEGORIES:
+            for column in metrics_module.COLUMNS:
                 self.log(f"val/{category}/{column}", float(table[category][column]), sync_dist=True)
         self.log("val/against_gt", float(self.against == "gt"), sync_dist=True)
         experiment = getattr(self.logger, "experiment", None)
@@ -190,9 +207,8 @@ class StudentModule(L.LightningModule):
     # ------------------------------------------------------------------------------------------------ optimiser
 
     def configure_optimizers(self):
-        """``optim`` and ``scheduler`` are Hydra ``_partial_`` targets: ``optim(params)`` and
-        ``scheduler(optimiser, total_steps=...)`` (``fastflow3d.schedules``), stepped every optimiser step."""
-        optimiser = instantiate(self.cfg["optim"])(self.parameters())
-        total_steps = int(self.trainer.estimated_stepping_batches)
-        schedule = instantiate(self.cfg["scheduler"])(optimiser, total_steps=total_steps)
+        """The optimiser and its schedule (``fastflow3d.schedules``) from the partials given, stepped every
+        optimiser step."""
+        optimiser = self.make_optimiser(self.parameters())
+        schedule = self.make_schedule(optimiser, total_steps=int(self.trainer.estimated_stepping_batches))
         return {"optimizer": optimiser, "lr_scheduler": {"scheduler": schedule, "interval": "step"}}

@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from fastflow3d.artifact import FORMATS
 from fastflow3d.callbacks import AtomicCheckpointIO, LastCheckpoint, ModelSize, TrainingStopped, progress_bar
-from fastflow3d.checkpoint import CheckpointError, read_checkpoint
+from fastflow3d.checkpoint import CheckpointError, build_student, read_checkpoint
 from fastflow3d.contract import ContractError, InputContract, read_grid
 from fastflow3d.data import DataError, ShardDataModule, StudentDataset, labeller_contract
 from fastflow3d.export import export_checkpoint
@@ -98,6 +98,24 @@ def training_contract(cfg: DictConfig) -> InputContract:
         raise TrainError(f"data.train: {error}") from None
 
 
+def build_module(cfg: DictConfig, contract: InputContract, config: dict) -> StudentModule:
+    """The LightningModule of ``cfg.module`` (``conf/train.yaml``) with the network of ``cfg.model`` and
+    ``contract``; the whole resolved ``config`` is saved in its checkpoints (``hparams.cfg``; given here, after
+    instantiation: Hydra would instantiate the ``_target_``s inside it, and convert the contract into a dict)."""
+    from hydra.errors import InstantiationException
+
+    try:  # a partial: the network and the contract reach the module as the objects they are
+        make = instantiate(cfg.module, _partial_=True)
+    except InstantiationException as error:  # Hydra's wrapper: the one-line error is the cause
+        raise TrainError(one_line(error.__cause__ or error)) from None
+    try:
+        module = make(model=build_student(config["model"]), contract=contract)
+    except ValueError as error:
+        raise TrainError(one_line(error)) from None
+    module.save_hyperparameters({"cfg": config})
+    return module
+
+
 def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
     """The checkpoint to resume from: None, ``<checkpoint_dir>/last.ckpt`` for ``last``, or the given file; it must
     hold weights of ``module``'s network (same names and shapes), else one line naming the settings that differ."""
@@ -132,7 +150,7 @@ def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
             f"ckpt_path={value}: {path} holds another network: {what}; resume with the model settings it was "
             "trained with, or leave ckpt_path unset to start afresh"
         )
-    check_resume_settings(module.cfg, checkpoint, value, path)
+    check_resume_settings(module.hparams["cfg"], checkpoint, value, path)
     return str(path)
 
 
@@ -315,9 +333,10 @@ def fit(cfg: DictConfig) -> L.Trainer:
         check_data(cfg)
         formats = export_formats(cfg)
         plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-        plain["input"] = training_contract(cfg).to_dict()
+        contract = training_contract(cfg)
+        plain["input"] = contract.to_dict()
         L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-        module = StudentModule(plain)
+        module = build_module(cfg, contract, plain)
         ckpt_path = resolve_ckpt_path(cfg, module)
         check_fresh_start(cfg)
         if cfg.compile:

@@ -28,3 +28,18 @@ def compose_train(*overrides):
 def train_cfg(tmp_path, train, val, *overrides):
     """The tiny student trained on shards ``train``, validated on ``val``, its run in ``tmp_path / "run"``."""
     return compose_train(f"data.train={train}", f"data.val={val}", f"out_dir={tmp_path / 'run'}", *TINY, *overrides)
+
+
+def student_module(cfg: dict):
+    """The ``StudentModule`` train.py would build from the resolved config ``cfg`` (plain dict, its ``loss``,
+    ``optim``, ``scheduler`` and ``metrics`` possibly changed), its input contract the synthetic frame's with the
+    config's ground removal and grid."""
+    from omegaconf import OmegaConf
+
+    from fastflow3d.contract import InputContract, read_grid
+    from fastflow3d.training import build_module
+
+    contract = InputContract(remove_ground=bool(cfg["data"]["remove_ground"]), grid=read_grid(cfg["model"], "model"))
+    parts = {"loss": cfg["loss"], "optimiser": cfg["optim"], "scheduler": cfg["scheduler"], "metrics": cfg["metrics"]}
+    cfg = {**cfg, "module": {**cfg["module"], **parts}}  # as conf/train.yaml's interpolations say, after changes
+    return build_module(OmegaConf.create(cfg), contract, cfg)
