@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import signal
 import sys
 import threading
@@ -149,6 +150,12 @@ def os_error_line(error: OSError, fix: str | None = None) -> str:
     return f"{text}; {fix}" if fix else text
 
 
+#: Hydra's words for a plain value given to a typed block of a structured config
+_GROUP_GIVEN_A_VALUE = re.compile(
+    r"Error merging override (?P<override>\S+=\S*).*Invalid type assigned: \w+ is not a subclass"
+)
+
+
 def error_line(error: BaseException, expected: tuple[type[BaseException], ...] = ()) -> str:
     """One line for an exception that escaped an entry point: the message of an ``expected`` (one-line) error or an
     :class:`OptionError` as it is; an OSError as :func:`os_error_line`; Hydra's and OmegaConf's errors (a bad
@@ -162,6 +169,10 @@ def error_line(error: BaseException, expected: tuple[type[BaseException], ...] =
         return os_error_line(error)
     if isinstance(error, (HydraException, OmegaConfBaseException)):
         text = one_line(str(error).split("\n    full_key:")[0])
+        group = _GROUP_GIVEN_A_VALUE.search(f"{text} {error.__cause__ or ''}")
+        if group:  # e.g. icpflow.ground=patchwork, a flat name of an older release that is a block now
+            key, value = group["override"].split("=", 1)
+            return f"{key}={value}: {key} is a block of settings, give one of its fields ({key}.<field>=...)"
         cause = error.__cause__
         if isinstance(cause, OmegaConfBaseException):
             text = f"{text} ({one_line(str(cause).split('full_key:')[0])})"

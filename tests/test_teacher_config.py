@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 import yaml
 from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
+from icpflow.entry import error_line
 from icpflow.teacher.config import (
     BLOCKS,
     ChecksConfig,
@@ -309,18 +311,25 @@ def test_old_names_on_the_command_line_and_in_dataset_teacher_blocks():
     with pytest.warns(FutureWarning) as caught:
         old = teacher_config(
             _compose(
-                "icpflow.deskew=true",
-                "icpflow.association=hungarian",
+                "icpflow.deskew.enabled=true",
+                "icpflow.association.method=hungarian",
                 "icpflow.min_cluster_size=7",
                 "icpflow.hist_max_points=500",
                 "icpflow.icp_backend=torch",
-                "icpflow.ground=patchwork",
+                "icpflow.ground.method=patchwork",
                 "icpflow.sensor_height=1.9",
                 "icpflow.ego_refine_voxel=0.3",
                 "icpflow.dataset=waymo",
             )
         )
-    assert old == new and len(caught) == 9 and new.ground.method == "patchwork"
+    assert old == new and len(caught) == 6 and new.ground.method == "patchwork"
+    # an older flat name that is a block's name is not read on the command line: every block is typed
+    for override in ("icpflow.deskew=true", "icpflow.ground=patchwork", "icpflow.association=hungarian"):
+        with pytest.raises(ConfigCompositionException) as refused:
+            _compose(override)
+        line = error_line(refused.value)
+        key = override.split("=")[0]
+        assert line == f"{override}: {key} is a block of settings, give one of its fields ({key}.<field>=...)"
     # a dataset's teacher block of the previous release (flat names) gives the same teacher as the nested one
     nested = _quiet(lambda: teacher_config(_compose("dataset=synthetic")))
     with pytest.warns(FutureWarning, match="'cluster_voxel_size' is deprecated, use 'clustering.voxel_size'"):

@@ -440,17 +440,17 @@ def _optional(kind, name: str):
 
 def schema():
     """The Hydra schema of the ``icpflow`` group: ``preset``, every flat field and every block's fields, all
-    null by default (= the preset's value), plus the older flat names (deprecated) and removed ones."""
+    null by default (= the preset's value) and all typed, plus the older flat names (deprecated) and removed ones.
+    An older flat name equal to a block's (``deskew=true``, ``ground=patchwork``, ``association=hungarian``,
+    ``ego_motion=kiss_icp``) is not read on the command line any more: the block is typed (stored configs of older
+    releases still read it, :func:`_merge`)."""
     hints = typing.get_type_hints(ICPFlowConfig)
     entries = [("preset", str | None, None)]
     entries += [(f.name, hints[f.name] | None, None) for f in fields(ICPFlowConfig) if f.name not in BLOCKS]
     old_names = _old_names()
     for block, kind in BLOCKS.items():
         overrides = _optional(kind, f"{kind.__name__}Overrides")
-        if block in old_names:  # also an older flat name (deskew=true, association=hungarian): untyped, either works
-            entries.append((block, typing.Any, field(default_factory=lambda kind=overrides: vars(kind()))))
-        else:
-            entries.append((block, overrides, field(default_factory=overrides)))
+        entries.append((block, overrides, field(default_factory=overrides)))
     flat = {name for name, _, _ in entries}
     for old, (block, name) in old_names.items():
         if old not in flat:
