@@ -11,6 +11,7 @@ from fastflow3d.contract import InputContract
 from fastflow3d.data import NetworkCrop, init_worker
 from fastflow3d.loss import flow_loss
 from fastflow3d.model import FastFlow3D
+from fastflow3d.module import StudentModule
 from fastflow3d.scatter import scatter_mean
 from fastflow3d.voxelize import Grid, pillar_ids, voxelize
 
@@ -101,13 +102,15 @@ def test_training_on_the_network_points_only_is_the_same_step():
     ground0, ground1 = pc0[:, 2] < -1.0, pc1[:, 2] < -1.0
     keep0, keep1 = ~ground0, ~ground1
 
-    def masked(model, *_):  # as fastflow3d.module does for whole scans
-        kept, kept_valid = model(pc0[keep0], batch0[keep0], pc1[keep1], batch1[keep1], 2)
-        residual = kept.new_zeros(len(pc0), 3).index_put((keep0,), kept)
-        return residual, torch.zeros_like(keep0).index_put((keep0,), kept_valid)
+    contract = InputContract(remove_ground=True, grid=model.grid)
+    module = StudentModule(model, {"name": "distillation"}, None, None, contract, {}, ".")
+
+    def masked(model, *_):  # the module's forward on whole scans (validation's path)
+        batch = {"pc0_compensated": pc0, "batch0": batch0, "pc1": pc1, "batch1": batch1, "batch_size": 2}
+        return module({**batch, "ground0": ground0, "ground1": ground1})
 
     whole = loss_and_gradients(model, masked, pc0, batch0, pc1, batch1, target)
-    crop = NetworkCrop(InputContract(remove_ground=True, grid=model.grid))
+    crop = NetworkCrop(contract)
     rows0 = torch.cat([crop.rows(pc0[batch0 == b], ground0[batch0 == b]) + int((batch0 < b).sum()) for b in (0, 1)])
     rows1 = torch.cat([crop.rows(pc1[batch1 == b], ground1[batch1 == b]) + int((batch1 < b).sum()) for b in (0, 1)])
     assert len(rows0) < keep0.sum() and len(rows1) < keep1.sum()  # the crop drops out-of-grid points too

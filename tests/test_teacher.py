@@ -44,56 +44,6 @@ def result(teacher, moving_scene):
 # ----------------------------------------------------------------------------------------------- config
 
 
-def test_presets_follow_the_reference():
-    av2, waymo, nus = (ICPFlowConfig.preset(n) for n in ("av2", "waymo", "nuscenes"))
-    assert (
-        av2.pairing.speed,
-        av2.crop_xy,
-        av2.clustering.min_cluster_size,
-        av2.checks.max_error,
-        av2.ground.range_z,
-    ) == (
-        1.0,
-        51.2,
-        20,
-        0.2,
-        -10000.0,
-    )
-    assert (
-        waymo.pairing.speed,
-        waymo.crop_xy,
-        waymo.clustering.min_cluster_size,
-        waymo.checks.max_error,
-        waymo.ground.range_z,
-    ) == (
-        1.67,
-        32.0,
-        30,
-        0.3,
-        0.04,
-    )
-    assert (nus.ground.range_z, nus.icp.max_points, nus.checks.max_error, nus.clustering.min_cluster_size) == (
-        -1.84,
-        5000,
-        0.2,
-        20,
-    )
-    window = waymo.pairing.window
-    assert window(0.5, k=1) == pytest.approx(3.34) and window(5.0, k=2) == pytest.approx(10.0)
-    assert ICPFlowConfig.preset("av2", histogram={"init": "centroid"}).histogram.init == "centroid"
-    assert ICPFlowConfig(**av2.to_dict()) == av2
-
-
-@pytest.mark.parametrize(
-    "overrides, words",
-    [
-        ({"ground.method": "x"}, "method=.x."),
-        ({"clustering": {"min_cluster_size": 0}}, "min_cluster_size"),
-        ({"histogram.nms_kernel": 10}, "odd"),
-        ({"checks": {"max_error": -1.0}}, "max_error"),
-        ({"bogus": 1}, "unknown field"),
-    ],
-)
 def test_config_validation_is_one_line(overrides, words):
     with pytest.raises(ValueError, match=words) as info:
         ICPFlowConfig.preset("av2").replace(**overrides)

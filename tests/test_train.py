@@ -12,6 +12,7 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
@@ -65,10 +66,13 @@ def test_every_config_composes(group, option, tmp_path):
     weight = torch.nn.Parameter(torch.zeros(1))
     optimiser = instantiate(cfg.optim)(params=[weight])
     schedule = instantiate(cfg.scheduler)(optimiser, total_steps=50)
+    base = instantiate(cfg.optim).keywords["lr"]
+    seen = []
     for _ in range(50):
         optimiser.step()
         schedule.step()
-    assert all(group["lr"] >= 0 for group in optimiser.param_groups)
+        seen.append(optimiser.param_groups[0]["lr"])
+    assert all(0 < lr <= base * (1 + 1e-9) for lr in seen), seen  # a schedule scales the lr down, never up
 
 
 def test_model_configs_build_the_issue_networks():
@@ -122,19 +126,20 @@ def test_xl_config_is_zeroflows_and_runs_forward_and_backward():
 
 
 def test_experiment_recipes():
-    paper = _compose("experiment=paper")
-    assert paper.optim.lr == 2e-4 and paper.optim._target_ == "torch.optim.Adam"
-    assert list(paper.scheduler.milestones) == [0.5] and paper.scheduler.gamma == 0.1  # x0.1 after 25 of 50 epochs
-    assert paper.trainer.max_epochs == 50 and paper.model.cell == 0.2
-    assert paper.model.decoder == "linear"  # ZeroFlow's FastFlow3D exactly
+    """Rules the recipes keep (their numbers live only in conf/): the paper and zeroflow recipes train ZeroFlow's
+    network exactly (test_model_configs_build_the_issue_networks), zeroflow's effective batch is 64 as in ZeroFlow,
+    ``python train.py`` alone reads what ``python label.py`` alone writes, and a group given on the command line
+    beats the experiment's."""
     zeroflow = _compose("experiment=zeroflow")
-    assert zeroflow.optim.lr == 2e-6 and list(zeroflow.scheduler.milestones) == [] and zeroflow.data.augment is None
     assert zeroflow.data.batch_size * zeroflow.trainer.accumulate_grad_batches == 64
-    assert zeroflow.model.decoder == "linear" and zeroflow.data.train_points is None
     quick = _compose()  # python train.py with no arguments
-    assert quick.data.train == "outputs/labels/synthetic/train" and quick.data.val == "outputs/labels/synthetic/val"
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        train_labels = compose("label").out_dir
+        val_labels = compose("label", ["split=val"]).out_dir
+    assert (quick.data.train, quick.data.val) == (train_labels, val_labels)
     assert quick.trainer.max_steps > 0 and quick.trainer.accelerator == "cpu"
-    assert _compose("model=fastflow3d_xl").model.cell == 0.1  # a group on the command line beats the experiment's
+    xl = _compose("experiment=paper", "model=fastflow3d_xl").model  # the xl grid, whatever the experiment
+    assert _compose("model=fastflow3d_xl").model.cell == xl.cell != quick.model.cell
 
 
 # ---------------------------------------------------------------------------------------------------- tiny shards
