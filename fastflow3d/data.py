@@ -188,14 +188,13 @@ def labeller_contract(shard_dir, remove_ground: bool, grid: Grid) -> InputContra
         problem = one_line(error)[:160]
         raise DataError(f"{first}: its labeller config is not plain YAML ({type(error).__name__}: {problem})") from None
     content = content if isinstance(content, dict) else {}
-    block = content.get("preprocessing", content.get("teacher"))
-    if not isinstance(block, dict):
+    if not isinstance(content.get("preprocessing", content.get("teacher")), dict):
         raise DataError(
             f"{first}: its labeller config holds no teacher settings (height frame, ground): not written by "
             "label.py? label the data with label.py"
         )
     try:
-        return upgrade(block, remove_ground=remove_ground, grid=grid)
+        return upgrade(content, remove_ground=remove_ground, grid=grid)
     except ContractError as error:
         raise DataError(f"{first}: its labeller config: {one_line(error)}") from None
 

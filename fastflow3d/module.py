@@ -52,9 +52,9 @@ class StudentModule(L.LightningModule):
     ``weighting``, ``bucket_edges``, ``background_weight`` (``fastflow3d.loss``); ``optimiser``: ``optimiser(params)``
     and ``scheduler``: ``scheduler(optimiser, total_steps=...)``, Hydra ``_partial_`` targets (``conf/optim``,
     ``conf/scheduler``); ``contract``: the input contract (``fastflow3d.contract``); ``metrics``: ``crop`` and
-    ``bev_every``; ``out_dir``: where BEV images go (``<out_dir>/bev``). ``fastflow3d.training.build_module`` also saves the whole
-    resolved training config as ``hparams.cfg`` (export, evaluation and resume need only a checkpoint); it is never
-    read here."""
+    ``bev_every``; ``out_dir``: where BEV images go (``<out_dir>/bev``). ``fastflow3d.training.build_module`` also
+    saves the whole resolved training config as ``hparams.cfg`` (export, evaluation and resume need only a
+    checkpoint); it is never read here."""
 
     def __init__(
         self,
