@@ -44,6 +44,28 @@ def result(teacher, moving_scene):
 # ----------------------------------------------------------------------------------------------- config
 
 
+def test_presets_round_trip_and_take_block_overrides():
+    """Rules every preset keeps (their numbers are test_teacher_config's previous-release check): the pairing window
+    grows with the frame gap, a block override changes that field only, a config rebuilds from its dict."""
+    waymo = ICPFlowConfig.preset("waymo")
+    assert waymo.pairing.window(5.0, k=2) > waymo.pairing.window(0.5, k=1) > 0
+    for name in ("av2", "waymo", "nuscenes"):
+        preset = ICPFlowConfig.preset(name)
+        changed = ICPFlowConfig.preset(name, histogram={"init": "centroid"})
+        assert changed.histogram.init == "centroid" and changed.replace(histogram=preset.histogram) == preset
+        assert ICPFlowConfig(**preset.to_dict()) == preset
+
+
+@pytest.mark.parametrize(
+    "overrides, words",
+    [
+        ({"ground.method": "x"}, "method=.x."),
+        ({"clustering": {"min_cluster_size": 0}}, "min_cluster_size"),
+        ({"histogram.nms_kernel": 10}, "odd"),
+        ({"checks": {"max_error": -1.0}}, "max_error"),
+        ({"bogus": 1}, "unknown field"),
+    ],
+)
 def test_config_validation_is_one_line(overrides, words):
     with pytest.raises(ValueError, match=words) as info:
         ICPFlowConfig.preset("av2").replace(**overrides)
