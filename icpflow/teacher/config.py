@@ -460,11 +460,16 @@ def schema():
 
 
 def register_configs() -> None:
-    """Store the schema as ``icpflow/schema`` in Hydra's ConfigStore (``conf/icpflow/default.yaml`` extends it).
+    """Store the schema as ``icpflow/schema`` in Hydra's ConfigStore (``conf/icpflow/default.yaml`` extends it) and
+    register the ``negative`` resolver the dataset configs use.
     Idempotent; :mod:`icpflow.teacher.config` calls it on import."""
     from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
 
     ConfigStore.instance().store(group="icpflow", name="schema", node=schema())
+    # ${negative:x}: a value that follows from another, written once (a dataset's Patchwork++ offset from its
+    # sensor height, conf/dataset/*.yaml)
+    OmegaConf.register_new_resolver("negative", lambda value: -float(value), replace=True)
 
 
 def _chosen(values: dict) -> dict:
