@@ -54,7 +54,7 @@ def test_teacher_block_names_teacher_fields(name):
     """dataset.teacher holds ICPFlowConfig fields only; they land in the teacher config over the preset."""
     cfg = _composed(f"dataset={name}", "dataset.root=/nowhere")
     teacher = teacher_config(cfg)
-    block = OmegaConf.to_container(cfg.dataset.teacher)
+    block = OmegaConf.to_container(cfg.dataset.teacher, resolve=True)
     assert teacher == ICPFlowConfig.preset(cfg.dataset.preset, **block)
     assert (
         teacher_config(
