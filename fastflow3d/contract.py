@@ -53,8 +53,9 @@ class ContractError(ValueError):
 class PreparedPair:
     """A pair as the network takes it. ``pc0`` / ``pc1`` (N0, 3) / (N1, 3): the scans in the height frame;
     ``ego1_from_ego0`` (4, 4) in that frame; ``compensated`` (N0, 3): pc0 moved into the ego frame of t + dt;
-    ``ground0`` / ``ground1``: the masks left out (all False unless ``remove_ground``); ``rows0`` / ``rows1`` (K0,) /
-    (K1,) int64: the input rows the network sees (in the grid, off the ground); ``network0`` / ``network1``
+    ``ground0`` / ``ground1``: the masks left out (all False unless ``remove_ground``); ``inside0`` (N0,) bool:
+    ``compensated`` inside the grid, ground or not; ``rows0`` / ``rows1`` (K0,) / (K1,) int64: the input rows the
+    network sees (in the grid, off the ground); ``network0`` / ``network1``
     (K0, 3) / (K1, 3) float32 C-contiguous: those rows of ``compensated`` and ``pc1``."""
 
     pc0: np.ndarray
@@ -63,6 +64,7 @@ class PreparedPair:
     compensated: np.ndarray
     ground0: np.ndarray
     ground1: np.ndarray
+    inside0: np.ndarray
     rows0: np.ndarray
     rows1: np.ndarray
 
@@ -114,9 +116,10 @@ class InputContract:
         if not self.remove_ground:
             ground0, ground1 = np.zeros(len(pc0), bool), np.zeros(len(pc1), bool)
         compensated = compensate(pc0_frame, ego)
-        rows0 = np.flatnonzero(self.network_mask(compensated, ground0))
+        inside0 = self.network_mask(compensated)  # the grid's test alone, once: the rows and the plausibility check
+        rows0 = np.flatnonzero(inside0 & ~ground0)
         rows1 = np.flatnonzero(self.network_mask(pc1_frame, ground1))
-        return PreparedPair(pc0_frame, pc1_frame, ego, compensated, ground0, ground1, rows0, rows1)
+        return PreparedPair(pc0_frame, pc1_frame, ego, compensated, ground0, ground1, inside0, rows0, rows1)
 
     @staticmethod
     def restore(prepared: PreparedPair, residual: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -59,7 +59,7 @@ from fastflow3d.artifact import (
     read_metadata,
     sibling_metadata,
 )
-from fastflow3d.contract import ContractError, InputContract, read_grid, upgrade
+from fastflow3d.contract import ContractError, InputContract, PreparedPair, read_grid, upgrade
 from fastflow3d.refine import RefineConfig, refine_residual
 from icpflow.entry import one_line
 from icpflow.frames import FramePairError, check_points
@@ -273,7 +273,7 @@ class Predictor:
         """Full flow with the residual, masks and ego motion behind it (see :class:`Prediction`)."""
         pc0, pc1 = as_points("pc0", pc0), as_points("pc1", pc1)
         lift = self.frame_lift(pc0)
-        lifted = self.contract.lifted(pc0, pc1, lift)
+        lifted = self.contract.lifted(pc0, pc1, lift)  # the scans in the height frame, lifted once
         estimated, assumed = ego1_from_ego0 is None, False
         if estimated and min(len(pc0), len(pc1)) < MIN_EGO_POINTS:
             warnings.warn(
@@ -282,17 +282,17 @@ class Predictor:
                 PredictorWarning,
                 stacklevel=2,
             )
-            ego, estimated, assumed = np.eye(4), False, True
+            ego_frame, estimated, assumed = np.eye(4), False, True
         elif estimated:
-            ego = lift_transform(self.estimate_ego_motion(*lifted), -lift)
+            ego_frame = self.estimate_ego_motion(*lifted)
         else:
-            ego = np.asarray(ego1_from_ego0, dtype=np.float64)
-        problem = rigid_problem(ego)
+            ego_frame = lift_transform(np.asarray(ego1_from_ego0, dtype=np.float64), lift)
+        problem = rigid_problem(ego_frame)
         if problem:
             raise PredictorError(f"{'estimated ' if estimated else ''}ego1_from_ego0 {problem}")
         ground0 = self.ground_mask("ground0", lifted[0], ground0)
         ground1 = self.ground_mask("ground1", lifted[1], ground1)
-        pair = self.contract.prepare(pc0, pc1, ego, ground0, ground1, lift)
+        pair = self.contract.prepare(*lifted, ego_frame, ground0, ground1)  # already in the height frame
         if ego1_from_ego0 is not None and self.ego_checks_left > 0:
             self.ego_checks_left -= 1
             self.check_given_ego(pair.pc0[~pair.ground0], pair.pc1[~pair.ground1], pair.ego1_from_ego0)
@@ -312,8 +312,9 @@ class Predictor:
                 residual[rows], refined[rows] = refine_residual(
                     pair.compensated[rows], residual[rows], pair.pc1[~pair.ground1], self.refine
                 )
-        self.check_plausible(pair.compensated, pair.ground0)
+        self.check_plausible(pair)
         flow = residual_to_full(residual, pair.pc0, pair.ego1_from_ego0)  # a common lift changes no flow vector
+        ego = ego_frame if lift == 0 else lift_transform(ego_frame, -lift)  # in the scans' own frame
         return Prediction(flow, residual, in_grid, pair.ground0, ego, estimated, float(lift), refined, assumed)
 
     def frame_lift(self, pc0: np.ndarray) -> float:
@@ -351,11 +352,11 @@ class Predictor:
             self._said.add(kind)
             warnings.warn(message, PredictorWarning, stacklevel=4)
 
-    def check_plausible(self, compensated: np.ndarray, ground0: np.ndarray) -> None:
+    def check_plausible(self, pair: PreparedPair) -> None:
         """One-line warning when pc0's ground fraction or its share inside the network's grid is implausible."""
-        if self.contract.grid is None or not len(compensated):
+        if self.contract.grid is None or not len(pair.pc0):
             return
-        inside = self.contract.network_mask(compensated)  # inside the grid, ground or not
+        ground0, inside = pair.ground0, pair.inside0
         reason = implausible(float(ground0.mean()), float(inside.mean()))
         if reason:
             self._warn_once(
