@@ -101,7 +101,8 @@ class StudentDataset(Dataset):
         self.augment = augment
         self.crop = crop
         if not self.root.is_dir():
-            raise DataError(f"{self.root}: shard directory does not exist")
+            what = "is a file, not a shard directory" if self.root.exists() else "shard directory does not exist"
+            raise DataError(f"{self.root}: {what}")
         try:
             self.shards = ShardDataset(self.root)
         except FileNotFoundError:
