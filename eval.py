@@ -16,18 +16,17 @@ from omegaconf import DictConfig
 
 from fastflow3d.eval_method import refined_student_method, student_method
 from icpflow.console import quiet
-from icpflow.entry import check_overrides, reported, run
+from icpflow.entry import reported, run
 from icpflow.evaluation import run_eval
+from icpflow.options import register
 
-#: options whose type the config alone does not give (null defaults; a horizon may be 2, [1,2] or 1..4)
-TYPES = {"limit": (int,), "horizon": (int, list, str), "tracker": (bool, list), "method": (str, list)}
+register()  # eval_schema in Hydra's ConfigStore: the structured config conf/eval.yaml extends
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="eval")
 def main(cfg: DictConfig) -> None:
     quiet()
     with reported("eval"):
-        check_overrides(TYPES)
         status = run_eval(cfg, extra_methods={"student": student_method, "student+refine": refined_student_method})
         if status:
             sys.exit(status)

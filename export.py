@@ -11,15 +11,17 @@ import hydra
 from omegaconf import DictConfig
 
 from fastflow3d.export import run_export
+from fastflow3d.options import register
 from icpflow.console import quiet
-from icpflow.entry import check_overrides, reported, run
+from icpflow.entry import reported, run
+
+register()  # export_schema in Hydra's ConfigStore: the structured config conf/export.yaml extends
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="export")
 def main(cfg: DictConfig) -> None:
     quiet()
     with reported("export"):
-        check_overrides()
         status = run_export(cfg)
         if status:
             sys.exit(status)

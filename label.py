@@ -13,15 +13,17 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from icpflow.console import quiet
-from icpflow.entry import check_overrides, reported, run
+from icpflow.entry import reported, run
 from icpflow.labelling.cli import label
+from icpflow.options import register
+
+register()  # label_schema in Hydra's ConfigStore: the structured config conf/label.yaml extends
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="label")
 def main(cfg: DictConfig) -> None:
     quiet()
     with reported("label"):
-        check_overrides({"limit": (int,)})
         status = label(cfg)
         if status == 1 and HydraConfig.get().mode == RunMode.MULTIRUN:
             return  # failed samples are in failures.jsonl and the summary; the sweep goes on with its other jobs

@@ -8,16 +8,18 @@ python train.py [experiment=synthetic_quick|paper|zeroflow] [data.train=<shard d
 import hydra
 from omegaconf import DictConfig
 
+from fastflow3d.options import register
 from fastflow3d.training import TrainError, fit
 from icpflow.console import quiet
-from icpflow.entry import check_overrides, reported, run
+from icpflow.entry import reported, run
+
+register()  # train_schema in Hydra's ConfigStore: the structured config conf/train.yaml extends
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="train")
 def main(cfg: DictConfig) -> None:
     quiet()
     with reported("train", TrainError):
-        check_overrides()
         fit(cfg)
 
 

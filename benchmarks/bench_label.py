@@ -31,6 +31,7 @@ import h5py
 import numpy as np
 from hydra import compose, initialize_config_dir
 
+from icpflow import options as icpflow_options
 from icpflow.labelling.cli import label
 from icpflow.shards import ShardDataset, verify_shard, write_shard
 from icpflow.shards.schema import COMPRESSIONS
@@ -92,6 +93,7 @@ def read_rate(out_dir: Path, repeats: int) -> tuple[float, int]:
 def compression_rows(overrides: list[str], repeats: int) -> list[tuple]:
     """(compression, bytes/sample, read samples/s, read MB/s) for each compression setting."""
     rows = []
+    icpflow_options.register()  # the schemas the configs extend, as the entry script stores them
     with tempfile.TemporaryDirectory() as tmp, initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         source = Path(tmp) / "labels"
         with contextlib.redirect_stdout(io.StringIO()):  # the summary line; errors still reach stderr

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
+from fastflow3d import options as fastflow3d_options
 from fastflow3d.artifact import FILE_NAMES, OnnxRuntimeNetwork, SingleSampleNet, TorchNetwork, load_network
 from fastflow3d.checkpoint import build_student
 from fastflow3d.export import PARITY_TOLERANCE, export_model, measure_parity
@@ -66,6 +67,7 @@ def model_config(name: str, overrides: list[str]) -> dict:
     """``conf/model/<name>.yaml`` as train.py composes it, with ``model.<key>=<value>`` overrides."""
     from hydra import compose, initialize_config_dir
 
+    fastflow3d_options.register()  # the schemas the configs extend, as the entry script stores them
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("train", [f"model={name}", *(f"model.{item}" for item in overrides)])
         return OmegaConf.to_container(cfg.model, resolve=True)

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from icpflow import metrics
+from icpflow import options as icpflow_options
 from icpflow.geometry import ego_flow, pose_error, relative_transform
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.config import teacher_config
@@ -40,6 +41,7 @@ def dataset_teacher(name: str, fields: dict) -> ICPFlowConfig:
     """The teacher that ``label.py dataset=<name>`` runs (its preset and ``dataset.teacher``), with ``fields``."""
     from hydra import compose, initialize_config_dir
 
+    icpflow_options.register()  # the schemas the configs extend, as the entry script stores them
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         return teacher_config(compose("label", [f"dataset={name}"])).replace(**fields)
 

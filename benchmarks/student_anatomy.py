@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow import options as icpflow_options
 from icpflow.geometry import ego_flow, kabsch, rigid_flow
 from icpflow.metrics import PairTruth
 
@@ -45,6 +46,7 @@ def open_split(overrides: list[str]):
 
     from icpflow.datasets.from_config import open_dataset
 
+    icpflow_options.register()  # the schemas the configs extend, as the entry script stores them
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("eval", overrides)
     return open_dataset(cfg, 1), cfg

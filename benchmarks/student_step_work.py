@@ -23,6 +23,12 @@ def main() -> None:
     from fastflow3d import data as data_module
     from fastflow3d.module import StudentModule
 
+    try:  # the schema conf/train.yaml extends (trees older than issue 32 have none)
+        from fastflow3d.options import register
+    except ImportError:
+        pass
+    else:
+        register()
     with initialize_config_dir(config_dir=conf_dir, version_base="1.3"):
         cfg = compose("train", [f"data.train={train}", f"data.val={val}", *overrides])
     plain = OmegaConf.to_container(cfg, resolve=True)

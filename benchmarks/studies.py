@@ -58,7 +58,7 @@ def trained_and_scored(run_dir: Path, metrics_json: Path, train: list[str], test
                 *train,
                 f"out_dir={run_dir}",
                 "export.formats=[onnx]",
-                "+trainer.enable_progress_bar=false",
+                "trainer.enable_progress_bar=false",
             ]
         )
         write_text_atomic(timing, f"{seconds:.1f}\n")

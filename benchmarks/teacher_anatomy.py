@@ -41,6 +41,7 @@ from types import SimpleNamespace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from icpflow import options as icpflow_options
 from icpflow.geometry import euler_angles, kabsch, transform_points
 from icpflow.metrics import PairTruth
 from icpflow.teacher.histogram import main_axis
@@ -70,6 +71,7 @@ def open_split(overrides: list[str]):
 
     from icpflow.datasets.from_config import open_dataset
 
+    icpflow_options.register()  # the schemas the configs extend, as the entry script stores them
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("eval", overrides)
     return open_dataset(cfg, 1), cfg

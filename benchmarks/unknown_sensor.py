@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow import options as icpflow_options
 from icpflow.geometry import ego_flow, relative_transform
 from icpflow.preprocess import Preprocessing, estimate_ground_height, lift_points, lift_transform
 from icpflow.teacher import ICPFlow
@@ -44,6 +45,7 @@ def dataset_teacher(name: str):
     """The teacher that ``label.py dataset=<name>`` runs."""
     from hydra import compose, initialize_config_dir
 
+    icpflow_options.register()  # the schemas the configs extend, as the entry script stores them
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         return teacher_config(compose("label", [f"dataset={name}", "dataset.root=unused"]))
 

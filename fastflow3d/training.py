@@ -29,6 +29,7 @@ from fastflow3d.export import export_checkpoint
 from fastflow3d.module import NonFiniteLoss, StudentModule
 from icpflow.atomic import FolderInUse, folder_lock
 from icpflow.entry import Stop, one_line, os_error_line, signal_words, stop_on_signals
+from icpflow.settings import check_config
 from icpflow.shards.verify import ShardError
 
 log = logging.getLogger(__name__)
@@ -43,10 +44,8 @@ def check_data(cfg: DictConfig) -> None:
     complete and valid (else one line naming it: the checks ``label.py`` makes before it skips a shard);
     supervised needs gt."""
     for key in ("train", "val"):
-        if not isinstance(cfg.data[key], str) or not cfg.data[key]:
-            raise TrainError(
-                f"data.{key}={cfg.data[key]} must be one label folder (a path), got {type(cfg.data[key]).__name__}"
-            )
+        if not cfg.data[key]:
+            raise TrainError(f"data.{key} is empty; give a label folder (a path)")
     same = Path(cfg.data.train).resolve() == Path(cfg.data.val).resolve()
     if same:
         log.warning("data.val is data.train (%s): validation scores the training samples", cfg.data.train)
@@ -174,9 +173,12 @@ def build_trainer(cfg: DictConfig) -> L.Trainer:
     callbacks = [instantiate(callback) for callback in (cfg.get("callbacks") or {}).values()]
     callbacks.sort(key=lambda callback: isinstance(callback, LastCheckpoint))
     trainer_kwargs = OmegaConf.to_container(cfg.trainer, resolve=True)
-    if trainer_kwargs.setdefault("enable_progress_bar", True):  # the console: icpflow.console, fastflow3d.callbacks
+    for name, ours in (("enable_progress_bar", True), ("enable_model_summary", False)):
+        if trainer_kwargs.get(name) is None:  # Lightning's default (None): ours
+            trainer_kwargs[name] = ours
+    if trainer_kwargs["enable_progress_bar"]:  # the console: icpflow.console, fastflow3d.callbacks
         callbacks.append(progress_bar())
-    if not trainer_kwargs.setdefault("enable_model_summary", False):
+    if not trainer_kwargs["enable_model_summary"]:
         callbacks.append(ModelSize())
     callbacks.sort(key=lambda callback: isinstance(callback, LastCheckpoint))
     plugins = trainer_kwargs.pop("plugins", None) or [AtomicCheckpointIO()]
@@ -329,6 +331,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
     the training loop after saving ``last.ckpt`` at the current step (``fastflow3d.callbacks.LastCheckpoint``),
     elsewhere at once; its message says what was kept and how to resume.
     """
+    check_config(cfg)  # the schema's rules (fastflow3d.options.TrainOptions)
     with stop_on_signals(), run_folder(cfg):
         check_data(cfg)
         formats = export_formats(cfg)

@@ -9,8 +9,9 @@ unreadable file, a full or read-only disk); 128 + N stopped by signal N (130 Ctr
   function, for Hydra's own errors: a bad override, an output folder it cannot create) turn whatever escapes into
   that line and status; :func:`exit_status` is :func:`reported` for a command that returns its status
   (``fastflow3d-infer``, ``run_export``).
-* :func:`check_overrides` (first thing inside the ``@hydra.main`` function): a command-line value of the wrong type
-  (``data.batch_size=abc``) is a one-line :class:`OptionError` naming the option, before any work.
+* A config's options are checked by its schema (``icpflow.settings``): Hydra's error about a value of the wrong
+  type or an unknown option becomes one line naming it (:func:`error_line`), and so does an
+  :class:`~icpflow.settings.OptionError`.
 * One way to stop: :func:`on_signals` is the only place that installs handlers for :data:`STOP_SIGNALS` (the entry
   points through :func:`stop_on_signals`, training's ``fastflow3d.callbacks.LastCheckpoint`` to note a signal and
   stop after the current step). :class:`Stop` is a signal turned into an exception; it carries the line that says
@@ -23,11 +24,12 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
-import re
 import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator
+
+from icpflow.settings import OptionError, type_error_line
 
 FULL_ERROR = "HYDRA_FULL_ERROR"  # set (to 1) by the user: tracebacks as Python and Hydra print them
 MARKER = "ICPFLOW_ENTRY"  # set by :func:`run` with HYDRA_FULL_ERROR=1: Hydra raises to us, no traceback was asked
@@ -43,10 +45,6 @@ FIXES = {
     errno.ENOTDIR: "check the path: a part of it is a file",
     errno.EISDIR: "give a file, not a folder",
 }
-
-
-class OptionError(ValueError):
-    """An option's value cannot be used (wrong type). The message is one line naming the option and the fix."""
 
 
 #: the signals that stop a run: Ctrl-C (SIGINT) and a scheduler's or supervisor's SIGTERM
@@ -150,12 +148,6 @@ def os_error_line(error: OSError, fix: str | None = None) -> str:
     return f"{text}; {fix}" if fix else text
 
 
-#: Hydra's words for a plain value given to a typed block of a structured config
-_GROUP_GIVEN_A_VALUE = re.compile(
-    r"Error merging override (?P<override>\S+=\S*).*Invalid type assigned: \w+ is not a subclass"
-)
-
-
 def error_line(error: BaseException, expected: tuple[type[BaseException], ...] = ()) -> str:
     """One line for an exception that escaped an entry point: the message of an ``expected`` (one-line) error or an
     :class:`OptionError` as it is; an OSError as :func:`os_error_line`; Hydra's and OmegaConf's errors (a bad
@@ -168,11 +160,10 @@ def error_line(error: BaseException, expected: tuple[type[BaseException], ...] =
     if isinstance(error, OSError):
         return os_error_line(error)
     if isinstance(error, (HydraException, OmegaConfBaseException)):
+        line = type_error_line(error)  # a value of the wrong type, an unknown option (the schemas)
+        if line is not None:
+            return f"{line}; see `--help` and `--cfg job` for the options"
         text = one_line(str(error).split("\n    full_key:")[0])
-        group = _GROUP_GIVEN_A_VALUE.search(f"{text} {error.__cause__ or ''}")
-        if group:  # e.g. icpflow.ground=patchwork, a flat name of an older release that is a block now
-            key, value = group["override"].split("=", 1)
-            return f"{key}={value}: {key} is a block of settings, give one of its fields ({key}.<field>=...)"
         cause = error.__cause__
         if isinstance(cause, OmegaConfBaseException):
             text = f"{text} ({one_line(str(cause).split('full_key:')[0])})"
@@ -236,74 +227,3 @@ def exit_status(prog: str, body: Callable[[], int | None], *expected: type[BaseE
     except SystemExit as stopped:
         code = stopped.code
         return code if isinstance(code, int) else 0 if code is None else 1
-
-
-# ---------------------------------------------------------------------------------------------------- option types
-
-_WORDS = {bool: "true or false", int: "an integer", float: "a number", list: "a list, e.g. [a,b]", str: "a text"}
-
-
-def _kinds(value) -> tuple[type, ...] | None:
-    """The types a command-line value may take where the config's value is ``value`` (None: any)."""
-    from omegaconf import DictConfig, ListConfig
-
-    if isinstance(value, bool):
-        return (bool,)
-    if isinstance(value, (int, float)):
-        return (int, float)  # an int option may take a fraction (Lightning's val_check_interval=0.5)
-    if isinstance(value, (list, ListConfig)):
-        return (list,)
-    if isinstance(value, (dict, DictConfig)):
-        return (dict,)
-    return None
-
-
-def _fits(value, kinds: tuple[type, ...]) -> bool:
-    if value is None:
-        return True  # null: the option's "none"
-    if isinstance(value, bool):
-        return bool in kinds
-    return isinstance(value, tuple(kinds))
-
-
-def _words(kinds: tuple[type, ...]) -> str:
-    if set(kinds) == {int, float}:
-        return "a number"
-    return " or ".join(_WORDS.get(kind, "a dict, e.g. {key:value}") for kind in kinds)
-
-
-def check_overrides(types: dict[str, tuple[type, ...]] | None = None) -> None:
-    """Raise :class:`OptionError` for the first command-line override whose value does not have the type of the
-    option in the config (composed with the same config-group choices), e.g. ``data.batch_size=abc: expected a
-    number, got 'abc' (the default is 8)``. ``types``: the types an option may take where the config alone does not
-    say it (a null default) or says too little (an int that also takes ``1..4``). Call it inside ``@hydra.main``."""
-    from hydra import compose
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from omegaconf import OmegaConf
-
-    hydra_cfg = HydraConfig.get()
-    overrides = OverridesParser.create().parse_overrides(list(hydra_cfg.overrides.task))
-    choices = set(hydra_cfg.runtime.choices)
-    groups = [o.input_line for o in overrides if o.key_or_group in choices]
-    reference = None
-    for override in overrides:
-        key = override.key_or_group
-        if key in choices or key.startswith("hydra.") or override.is_delete() or override.is_sweep_override():
-            continue
-        kinds = (types or {}).get(key)
-        default = None
-        if kinds is None:
-            if not GlobalHydra.instance().is_initialized():  # a job launched elsewhere (submitit): Hydra not here
-                return
-            if reference is None:
-                reference = compose(config_name=hydra_cfg.job.config_name, overrides=groups)
-            default = OmegaConf.select(reference, key, default=None, throw_on_missing=False)
-            kinds = _kinds(default)
-        value = override.value()
-        if kinds is None or _fits(value, kinds):
-            continue
-        shown = OmegaConf.to_container(default) if OmegaConf.is_config(default) else default
-        hint = f" (the default is {shown})" if default is not None else ""
-        raise OptionError(f"{override.input_line}: expected {_words(kinds)}, got {value!r}{hint}")

@@ -151,11 +151,10 @@ class PairRecording:
 
 
 def check_viewer(value) -> str | None:
-    """``eval.py viewer=``: None (no recording) or ``rerun`` (installed); ValueError / ViewerUnavailable otherwise."""
-    if value in (None, False, "none", "null"):
+    """``eval.py viewer=``: None (no recording) or ``rerun`` (the schema, ``icpflow.options``, allows no other),
+    which must be installed (:class:`ViewerUnavailable` otherwise)."""
+    if value is None:
         return None
-    if value not in VIEWERS:
-        raise ValueError(f"viewer must be null or one of {', '.join(VIEWERS)}, got {value!r}")
     import_rerun()
     return value
 

@@ -6,6 +6,13 @@ from pathlib import Path
 import pytest
 import torch
 
+import fastflow3d.options
+import icpflow.options
+
+# the structured configs conf/*.yaml extend, as the entry points store them before Hydra composes
+icpflow.options.register()
+fastflow3d.options.register()
+
 
 @pytest.fixture(scope="session", autouse=True)
 def one_torch_thread():

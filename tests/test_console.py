@@ -52,7 +52,7 @@ def test_tiny_label_and_train_runs_print_no_noise(tmp_path):
     reader = ["dataset.reader.num_sequences=1", "dataset.reader.frames_per_sequence=2", "dataset.reader.beams=32"]
     label = _run(
         "label.py", *reader, "dataset.reader.azimuth_resolution_deg=1.0", "workers=1", f"out_dir={shards}",
-        f"+hydra_dir={tmp_path / 'hydra'}",
+        f"hydra_dir={tmp_path / 'hydra'}",
     )  # fmt: skip
     train = _run(
         "train.py", f"data.train={shards}", f"data.val={shards}", f"out_dir={tmp_path / 'run'}", *TINY_MODEL,

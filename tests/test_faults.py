@@ -230,9 +230,9 @@ def scan():
 
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
-    """An untrained tiny student checkpoint (a +-6.4 m grid)."""
+    """A tiny student checkpoint after one step (a +-6.4 m grid)."""
     cfg = tiny_model(6.4, 0.4)
-    return tiny_checkpoint(tmp_path_factory.mktemp("model") / "tiny.ckpt", cfg, SyntheticDataset(**READER).pair(0), 0)
+    return tiny_checkpoint(tmp_path_factory.mktemp("model") / "tiny.ckpt", cfg, SyntheticDataset(**READER).pair(0), 1)
 
 
 def _infer(args, capsys) -> tuple[int, list[str]]:

@@ -275,32 +275,36 @@ def test_train_on_a_real_full_disk_is_one_line_and_keeps_last_checkpoint(shards,
 # -------------------------------------------------------------------------------------------- 6. one-line errors
 
 
+HELP = "; see `--help` and `--cfg job` for the options"
+
+
 def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path):
     """Issue 20.6: a value of the wrong type, an unknown option, a missing checkpoint: exit 2, one line, before any
     work; HYDRA_FULL_ERROR=1 gives the traceback."""
     run = ["trainer.max_steps=1", *STEPS]
-    defaults = compose_train()  # the default experiment's values, as the messages quote them
+    defaults = compose_train(*TINY, *run)  # the values before the bad override, as the messages quote them
     cases = {
         "data.batch_size": (
             _train(tmp_path / "a", shards, *run, "data.batch_size=abc"),
-            f"train: data.batch_size=abc: expected a number, got 'abc' (the default is {defaults.data.batch_size})",
+            f"train: data.batch_size=abc: expected an integer, got 'abc' (the default is {defaults.data.batch_size})"
+            f"{HELP}",
         ),
         "trainer.max_steps": (
             _train(tmp_path / "b", shards, *run, "trainer.max_steps=abc"),
-            f"train: trainer.max_steps=abc: expected a number, got 'abc' (the default is {defaults.trainer.max_steps})",
+            "train: trainer.max_steps=abc: expected an integer, got 'abc' "
+            f"(the default is {defaults.trainer.max_steps}){HELP}",
         ),
         "export.formats": (
             _train(tmp_path / "c", shards, *run, "export.formats=onnx"),
-            "train: export.formats=onnx: expected a list, e.g. [a,b], got 'onnx' (the default is ['onnx', 'pt2'])",
+            f"train: export.formats=onnx: expected a list, e.g. [a,b], got 'onnx' (the default is []){HELP}",
         ),
         "unknown": (
             _train(tmp_path / "d", shards, *run, "trainer.max_stepz=3"),
-            "train: Could not override 'trainer.max_stepz'. To append to your config use +trainer.max_stepz=3 "
-            "(Key 'max_stepz' is not in struct); see `--help` and `--cfg job` for the options",
+            f"train: trainer.max_stepz=3: trainer.max_stepz is not an option (did you mean trainer.max_steps?){HELP}",
         ),
         "eval limit": (
             [sys.executable, str(REPO / "eval.py"), "limit=abc", f"out_dir={tmp_path / 'e'}"],
-            "eval: limit=abc: expected an integer, got 'abc'",
+            f"eval: limit=abc: expected an integer, got 'abc'{HELP}",
         ),
         "export": (
             [sys.executable, str(REPO / "export.py"), f"checkpoint={tmp_path / 'none.ckpt'}"],
@@ -312,8 +316,8 @@ def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path
         _, err = process.communicate(timeout=300)
         assert (process.returncode, err.strip()) == (2, cases[name][1]), name
         assert none_left_within(process.pid)
-    for name in ("a", "b"):  # stopped before any work: only Hydra's record of the launch
-        assert [path.name for path in (tmp_path / name).iterdir()] == ["hydra"]
+    for name in ("a", "b"):  # refused while composing, before any work: not even Hydra's record of the launch
+        assert not (tmp_path / name).exists()
     full = subprocess.run(
         _train(tmp_path / "f", shards, *run, "data.batch_size=abc"),
         env={**TESTS_ENV, "HYDRA_FULL_ERROR": "1"},
@@ -321,7 +325,8 @@ def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path
         text=True,
         timeout=300,
     )
-    assert full.returncode == 1 and "Traceback" in full.stderr and "OptionError: data.batch_size=abc" in full.stderr
+    assert full.returncode == 1 and "Traceback" in full.stderr
+    assert "Error merging override data.batch_size=abc" in full.stderr
 
 
 def test_a_read_only_out_dir_is_one_line(shards, tmp_path, mount_tmpfs):

@@ -59,7 +59,7 @@ def test_presets_round_trip_and_take_block_overrides():
 @pytest.mark.parametrize(
     "overrides, words",
     [
-        ({"ground.method": "x"}, "method=.x."),
+        ({"ground.method": "x"}, "method must be one of .*, got .x."),
         ({"clustering": {"min_cluster_size": 0}}, "min_cluster_size"),
         ({"histogram.nms_kernel": 10}, "odd"),
         ({"checks": {"max_error": -1.0}}, "max_error"),

@@ -180,26 +180,29 @@ def test_round_trip_through_a_dict_and_yaml():
 @pytest.mark.parametrize(
     "build, words",
     [
-        (lambda: ClusteringConfig(min_cluster_size=0), "ClusteringConfig: min_cluster_size=0 must be an integer >= 1"),
-        (lambda: ClusteringConfig(min_cluster_size=2.5), "min_cluster_size=2.5 must be an integer"),
-        (lambda: ClusteringConfig(min_samples=0), "min_samples=0 must be None or an integer >= 1"),
-        (lambda: ClusteringConfig(voxel_size=-0.1), "voxel_size=-0.1 must be a number >= 0"),
-        (lambda: PairingConfig(speed=0.0), "speed=0.0 must be a number > 0"),
-        (lambda: PairingConfig(extent_ratio=1.5), "extent_ratio=1.5 must be a number in \\[0, 1\\]"),
-        (lambda: HistogramConfig(nms_kernel=10), "nms_kernel=10 must be an odd integer"),
-        (lambda: HistogramConfig(init="median"), "init='median' must be one of \\['histogram', 'centroid'\\]"),
-        (lambda: ICPConfig(backend="cuda"), "backend='cuda' must be one of"),
-        (lambda: ICPConfig(max_iter=-1), "max_iter=-1 must be an integer >= 0"),
-        (lambda: ICPConfig(max_corr=float("nan")), "max_corr=nan must be a number > 0"),
-        (lambda: DeskewConfig(enabled="yes"), "enabled='yes' must be true or false"),
-        (lambda: ChecksConfig(min_iou=True), "min_iou=True must be a number in"),
-        (lambda: GroundConfig(method="x"), "GroundConfig: method='x' must be one of"),
-        (lambda: GroundConfig(range_z="low"), "range_z='low' must be a number"),
-        (lambda: GroundConfig(slack=-0.1), "slack=-0.1 must be a number >= 0"),
-        (lambda: EgoMotionConfig(method="gps"), "EgoMotionConfig: method='gps' must be one of"),
-        (lambda: EgoMotionConfig(kiss_voxel_size=0), "kiss_voxel_size=0 must be a number > 0"),
+        (
+            lambda: ClusteringConfig(min_cluster_size=0),
+            "ClusteringConfig: min_cluster_size must be an integer >= 1.*got 0",
+        ),
+        (lambda: ClusteringConfig(min_cluster_size=2.5), "min_cluster_size must be an integer.*got 2.5"),
+        (lambda: ClusteringConfig(min_samples=0), "min_samples must be None or an integer >= 1.*got 0"),
+        (lambda: ClusteringConfig(voxel_size=-0.1), "voxel_size must be a number >= 0.*got -0.1"),
+        (lambda: PairingConfig(speed=0.0), "speed must be a number > 0.*got 0.0"),
+        (lambda: PairingConfig(extent_ratio=1.5), "extent_ratio must be a number in \\[0, 1\\].*got 1.5"),
+        (lambda: HistogramConfig(nms_kernel=10), "nms_kernel must be an odd integer.*got 10"),
+        (lambda: HistogramConfig(init="median"), "init must be one of histogram, centroid, got 'median'"),
+        (lambda: ICPConfig(backend="cuda"), "backend must be one of.*got 'cuda'"),
+        (lambda: ICPConfig(max_iter=-1), "max_iter must be an integer >= 0.*got -1"),
+        (lambda: ICPConfig(max_corr=float("nan")), "max_corr must be a number > 0.*got nan"),
+        (lambda: DeskewConfig(enabled="yes"), "enabled must be true or false.*got 'yes'"),
+        (lambda: ChecksConfig(min_iou=True), "min_iou must be a number in.*got True"),
+        (lambda: GroundConfig(method="x"), "GroundConfig: method must be one of.*got 'x'"),
+        (lambda: GroundConfig(range_z="low"), "range_z must be a number.*got 'low'"),
+        (lambda: GroundConfig(slack=-0.1), "slack must be a number >= 0.*got -0.1"),
+        (lambda: EgoMotionConfig(method="gps"), "EgoMotionConfig: method must be one of.*got 'gps'"),
+        (lambda: EgoMotionConfig(kiss_voxel_size=0), "kiss_voxel_size must be a number > 0.*got 0"),
         (lambda: ICPFlowConfig(ground="both"), "ground must be a GroundConfig"),
-        (lambda: ICPFlowConfig(seed=1.0), "seed=1.0 must be an integer"),
+        (lambda: ICPFlowConfig(seed=1.0), "seed must be an integer.*got 1.0"),
         (lambda: ICPFlowConfig(clustering=3), "clustering must be a ClusteringConfig"),
         (lambda: ICPFlowConfig().replace(clustering={"bogus": 1}), "unknown field\\(s\\) \\['clustering.bogus'\\]"),
         (lambda: ICPFlowConfig().replace(**{"icp.bogus": 1}), "unknown field\\(s\\) \\['icp.bogus'\\]"),
@@ -329,21 +332,26 @@ def test_old_names_on_the_command_line_and_in_dataset_teacher_blocks():
             _compose(override)
         line = error_line(refused.value)
         key = override.split("=")[0]
-        assert line == f"{override}: {key} is a block of settings, give one of its fields ({key}.<field>=...)"
+        assert line.startswith(f"{override}: {key} is a block of settings, give one of its fields ({key}.<field>=...)")
     # a dataset's teacher block of the previous release (flat names) gives the same teacher as the nested one
     nested = _quiet(lambda: teacher_config(_compose("dataset=synthetic")))
     with pytest.warns(FutureWarning, match="'cluster_voxel_size' is deprecated, use 'clustering.voxel_size'"):
         flat = teacher_config(
-            _compose("dataset=synthetic", "~dataset.teacher.clustering", "+dataset.teacher.cluster_voxel_size=0.1")
+            _compose(
+                "dataset=synthetic",
+                "dataset.teacher.clustering.voxel_size=null",
+                "dataset.teacher.cluster_voxel_size=0.1",
+            )
         )
     assert flat == nested and nested.clustering.voxel_size == 0.1
     with pytest.warns(FutureWarning) as caught:
         flat = teacher_config(
             _compose(
                 "dataset=synthetic",
-                "~dataset.teacher.ground",
-                "+dataset.teacher.sensor_height=1.9",
-                "+dataset.teacher.patchwork_z_offset=-1.9",
+                "dataset.teacher.ground.sensor_height=null",
+                "dataset.teacher.ground.patchwork_z_offset=null",
+                "dataset.teacher.sensor_height=1.9",
+                "dataset.teacher.patchwork_z_offset=-1.9",
             )
         )
     assert flat == nested and nested.ground.sensor_height == 1.9
@@ -379,7 +387,7 @@ def test_hydra_overrides_are_typed_and_checked():
     for bad in ("icpflow.icp.max_iter=abc", "icpflow.clustering.bogus=1", "icpflow.bogus=1"):
         with pytest.raises(ConfigCompositionException):
             _compose(bad)
-    with pytest.raises(ValueError, match="HistogramConfig: nms_kernel=4 must be an odd integer"):
+    with pytest.raises(ValueError, match="HistogramConfig: nms_kernel must be an odd integer.*got 4"):
         teacher_config(_compose("icpflow.histogram.nms_kernel=4"))
 
 

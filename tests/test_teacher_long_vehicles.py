@@ -53,10 +53,10 @@ def test_presets_switch_the_long_vehicle_steps_on():
 @pytest.mark.parametrize(
     "build, words",
     [
-        (lambda: HistogramConfig(axis_step=0.0), "axis_step=0.0 must be a number > 0"),
-        (lambda: HistogramConfig(axis_min_extent=-1.0), "axis_min_extent=-1.0 must be a number >= 0"),
-        (lambda: MergingConfig(gain=1.5), "gain=1.5 must be a number in \\[0, 1\\]"),
-        (lambda: MergingConfig(rounds=0), "rounds=0 must be an integer >= 1"),
+        (lambda: HistogramConfig(axis_step=0.0), "axis_step must be a number > 0, got 0.0"),
+        (lambda: HistogramConfig(axis_min_extent=-1.0), "axis_min_extent must be a number >= 0, got -1.0"),
+        (lambda: MergingConfig(gain=1.5), "gain must be a number in \\[0, 1\\], got 1.5"),
+        (lambda: MergingConfig(rounds=0), "rounds must be an integer >= 1, got 0"),
     ],
 )
 def test_new_fields_are_checked(build, words):

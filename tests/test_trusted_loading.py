@@ -176,7 +176,7 @@ def test_a_checkpoint_cannot_choose_where_export_writes(tmp_path, stored):
     base = "/remote/run/checkpoints"
     export_dir = stored if stored.startswith("/") else str(Path(base) / stored)
     cfg = {"checkpoint_dir": base, "export": {"dir": export_dir}}
-    checkpoint = tiny_checkpoint(run / "checkpoints" / "x.ckpt", tiny_model(6.4, 0.4), pair, steps=1, cfg=cfg)
+    checkpoint = tiny_checkpoint(run / "checkpoints" / "x.ckpt", tiny_model(6.4, 0.4), pair, steps=1, stored=cfg)
     with pytest.raises(ExportError, match="outside its run folder") as caught:
         export_checkpoint(checkpoint, formats=("pt2",))
     assert "\n" not in str(caught.value)
@@ -193,5 +193,5 @@ def test_a_checkpoints_own_export_dir_inside_its_run_is_kept(tmp_path):
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     cfg = {"checkpoint_dir": "/old/place/run/checkpoints", "export": {"dir": "/old/place/run/export"}}
-    checkpoint = tiny_checkpoint(run / "checkpoints" / "x.ckpt", tiny_model(6.4, 0.4), pair, steps=1, cfg=cfg)
+    checkpoint = tiny_checkpoint(run / "checkpoints" / "x.ckpt", tiny_model(6.4, 0.4), pair, steps=1, stored=cfg)
     assert export_checkpoint(checkpoint, formats=("pt2",)) == run / "export"

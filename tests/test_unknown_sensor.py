@@ -16,7 +16,7 @@ from fastflow3d.predictor import Predictor, PredictorWarning
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, invert, relative_transform
 from icpflow.labelling.cli import label
-from icpflow.preprocess import Preprocessing, estimate_ground_height
+from icpflow.preprocess import estimate_ground_height
 from icpflow.shards import ShardDataset
 from icpflow.teacher.config import ICPFlowConfig
 
@@ -77,13 +77,13 @@ def test_ground_height_of_the_bare_hdl64_scans():
 
 @pytest.fixture(scope="module")
 def synthetic_student(tmp_path_factory):
-    """A small network trained a few steps on a synthetic pair, saved with the synthetic world's preprocessing
-    (ground removal, ground at z = 0): a model whose frame differs from KITTI's velodyne frame by 1.73 m."""
+    """A small network trained a few steps on a synthetic pair by train.py's code, its input contract that of its
+    shards' labeller (the synthetic world's: ground removal, ground at z = 0): a model whose frame differs from
+    KITTI's velodyne frame by 1.73 m."""
     pair = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=2, seed=1)[0]
     keep0, keep1 = np.flatnonzero(~pair.ground0), np.flatnonzero(~pair.ground1)
-    cfg = {"data": {"remove_ground": True, "preprocessing": Preprocessing.from_teacher(SYNTHETIC).to_dict()}}
     path = tmp_path_factory.mktemp("student") / "student.ckpt"
-    return tiny_checkpoint(path, MODEL, pair, 5, keep0, keep1, cfg=cfg)
+    return tiny_checkpoint(path, MODEL, pair, 5, keep0, keep1, remove_ground=True)
 
 
 @needs_seq01

@@ -120,7 +120,7 @@ def test_eval_viewer_rerun_records_every_method(pairs, tmp_path, capsys):
     np.testing.assert_allclose(entities["flow/ego/moved"][0]["positions"], pairs[0].pc0 + ego_only_flow(pairs[0]))
     assert f"recording of 1 pairs -> {tmp_path / 'recording.rrd'}" in capsys.readouterr().out
     assert run_eval(_cfg(tmp_path / "bad", "viewer=open3d"), progress=False) == 2
-    assert "eval: viewer must be null or one of rerun, got 'open3d'" in capsys.readouterr().err
+    assert "eval: viewer must be one of rerun, null, got 'open3d'" in capsys.readouterr().err
 
 
 @pytest.mark.skipif(not (KITTI / "000001.bin").is_file(), reason=f"shipped KITTI scans absent: {KITTI}")

@@ -25,10 +25,9 @@ from icpflow.evaluation.methods import EvaluationError, MethodFactory, build_met
 from icpflow.evaluation.report import check_writable, format_table, metrics_json, table_rows, write_results
 from icpflow.evaluation.run import Evaluation, PairHook, PairPredictions, signals_held
 from icpflow.evaluation.scoring import MetricOptions
-from icpflow.teacher.config import teacher_config  # importing it stores the icpflow schema eval.yaml composes with
+from icpflow.settings import check_config
+from icpflow.teacher.config import teacher_config
 
-WEIGHTINGS = ("point_weighted", "per_pair")
-RELATIVE_TO = ("residual", "full")
 #: skipped samples listed at the end of a run (the rest: metrics.json)
 SHOWN_FAILURES = 10
 
@@ -46,42 +45,7 @@ def end_child_processes() -> None:
             child.join(timeout=5)
 
 
-def check_options(cfg) -> dict:
-    """The options that need no dataset, checked and converted (one-line :class:`EvaluationError` naming the
-    option): ``limit``, ``bev``, ``render``, ``render_size``, ``bev_extent``, ``crop``, ``include_ground``,
-    ``relative_to``, ``weighting``."""
-
-    def integer(name, low):
-        value = cfg[name]
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
-            raise EvaluationError(f"{name} must be an integer >= {low}, got {value!r}")
-        return value
-
-    def number(name, value):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            raise EvaluationError(f"{name} must be a number > 0, got {value!r}")
-        return float(value)
-
-    size = list(cfg.render_size) if not isinstance(cfg.render_size, (str, int, float)) else None
-    pixels = size is not None and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in size)
-    if not pixels or len(size) != 2:
-        raise EvaluationError(f"render_size must be [width,height] in pixels, got {cfg.render_size!r}")
-    for name, allowed in (("relative_to", RELATIVE_TO), ("weighting", WEIGHTINGS)):
-        if cfg[name] not in allowed:
-            raise EvaluationError(f"{name} must be one of {', '.join(allowed)}, got {cfg[name]!r}")
-    if not isinstance(cfg.include_ground, bool):
-        raise EvaluationError(f"include_ground must be true or false, got {cfg.include_ground!r}")
-    return {
-        "limit": None if cfg.limit is None else integer("limit", 1),
-        "bev": integer("bev", 0),
-        "render": integer("render", 0),
-        "render_size": tuple(size),
-        "bev_extent": number("bev_extent", cfg.bev_extent),
-        "crop": None if cfg.crop is None else number("crop", cfg.crop),
-    }
-
-
-def picture_hooks(cfg, options: dict, out_dir: Path, horizons: list[int]) -> list[PairHook]:
+def picture_hooks(cfg, out_dir: Path, horizons: list[int]) -> list[PairHook]:
     """The per-pair hooks of ``cfg``: ``bev=N`` matplotlib BEV pictures and ``render=N`` open3d renders of the first
     N pairs, ``<pair>_<method>.png`` under ``bev/`` and ``render/`` (under ``k<gap>/`` when several gaps are
     scored). Other per-pair consumers (a viewer) are added to this list."""
@@ -103,12 +67,12 @@ def picture_hooks(cfg, options: dict, out_dir: Path, horizons: list[int]) -> lis
 
     def bev(pair, path, flow, name):
         title = f"{cfg.dataset.name} {cfg.split} {pair.sample_id}: {name}"
-        plot_bev(pair, path, predicted=flow, extent=options["bev_extent"], title=title)
+        plot_bev(pair, path, predicted=flow, extent=float(cfg.bev_extent), title=title)
 
     def render(pair, path, flow, name):
-        render_pair(pair, path, predicted=flow, size=options["render_size"], extent=options["bev_extent"])
+        render_pair(pair, path, predicted=flow, size=tuple(cfg.render_size), extent=float(cfg.bev_extent))
 
-    return [pictures(kind, options[kind], draw) for kind, draw in (("bev", bev), ("render", render)) if options[kind]]
+    return [pictures(kind, cfg[kind], draw) for kind, draw in (("bev", bev), ("render", render)) if cfg[kind]]
 
 
 def recording_hook(recording, count: int, per_gap: bool) -> PairHook:
@@ -164,7 +128,7 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
     trackers = list(cfg.tracker) if OmegaConf.is_list(cfg.tracker) else [cfg.tracker]
     out_dir = Path(cfg.out_dir)
     try:
-        options = check_options(cfg)
+        check_config(cfg)  # the schema's rules (icpflow.options.EvalOptions)
         horizons = parse_horizons(cfg.horizon)
         dataset = open_dataset(cfg, horizons[-1])
         teacher = teacher_config(cfg) if "icpflow" in names else None
@@ -174,9 +138,9 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
                 f"{teacher.pairing.max_frame_gap} (icpflow.pairing.max_frame_gap=...)"
             )
         viewer = check_viewer(cfg.get("viewer"))  # the 3D recording (icpflow.viz_rerun)
-        problem = offscreen_problem() if options["render"] > 0 else None
+        problem = offscreen_problem() if cfg.render > 0 else None
         if problem:
-            raise EvaluationError(f"render={options['render']}: {problem}")
+            raise EvaluationError(f"render={cfg.render}: {problem}")
         extra = {name: functools.partial(factory, cfg) for name, factory in (extra_methods or {}).items()}
         methods = build_methods(
             names, horizons, trackers, dataset=dataset, teacher_config=teacher, shards=cfg.shards, extra=extra
@@ -189,16 +153,16 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
         print(f"eval: {one_line(error)}", file=sys.stderr)
         return 2
     metric_options = MetricOptions(
-        crop=options["crop"],
+        crop=None if cfg.crop is None else float(cfg.crop),
         include_ground=cfg.include_ground,
         relative_to=str(cfg.relative_to),
         class_to_meta=dataset.class_to_meta,
     )
-    limit = len(dataset) if options["limit"] is None else min(options["limit"], len(dataset))
+    limit = len(dataset) if cfg.limit is None else min(cfg.limit, len(dataset))
     evaluation = Evaluation(dataset, methods, metric_options)
     stopped, status = None, None
     recording = PairRecording(out_dir / "recording.rrd") if viewer else None
-    all_hooks = [*picture_hooks(cfg, options, out_dir, horizons), *(hooks or [])]
+    all_hooks = [*picture_hooks(cfg, out_dir, horizons), *(hooks or [])]
     if recording is not None:
         all_hooks.append(recording_hook(recording, int(cfg.viewer_pairs), len(horizons) > 1))
     with recording or contextlib.nullcontext():

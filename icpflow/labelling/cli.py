@@ -18,8 +18,8 @@ from icpflow.labelling.job import LabelError, LabelJob
 from icpflow.labelling.plan import plan_shards
 from icpflow.labelling.run import run_labelling
 from icpflow.preprocess import Preprocessing
-from icpflow.shards.schema import COMPRESSIONS
-from icpflow.teacher.config import teacher_config  # importing it stores the icpflow schema label.py composes with
+from icpflow.settings import check_config
+from icpflow.teacher.config import teacher_config
 from icpflow.teacher.warmup import ensure_compiled
 
 #: failed samples listed at the end of a run (the rest: failures.jsonl)
@@ -45,19 +45,12 @@ def labeller_yaml(cfg: DictConfig, teacher) -> str:
 
 
 def check_options(cfg: DictConfig) -> str | None:
-    """Validate the options that need no dataset; returns the compression filter (None: uncompressed)."""
-    if cfg.runner not in ("local", "ray"):
-        raise LabelError(f"runner must be local or ray, got {cfg.runner!r}")
+    """Check ``cfg`` against its schema's rules (``icpflow.options.LabelOptions``) and what they cannot say (the ray
+    package for ``runner=ray``); returns the compression filter (None: uncompressed)."""
+    check_config(cfg)
     if cfg.runner == "ray" and importlib.util.find_spec("ray") is None:
         raise LabelError("runner=ray needs the ray package, which is not installed (pip install 'ray>=2.9')")
-    compression = "none" if cfg.compression is None else cfg.compression
-    if compression not in COMPRESSIONS:
-        raise LabelError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
-    for name in ("horizon", "shard_size", "workers", "num_shards", "limit"):
-        value = cfg[name]
-        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-            raise LabelError(f"{name} must be an integer >= 1, got {value!r}")
-    return None if compression == "none" else compression
+    return None if cfg.compression in (None, "none") else cfg.compression
 
 
 def label(cfg: DictConfig, progress: bool = True) -> int:

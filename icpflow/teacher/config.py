@@ -24,49 +24,12 @@ Hydra's ConfigStore, which ``conf/icpflow/*.yaml`` extend; :func:`from_hydra` an
 from __future__ import annotations
 
 import dataclasses
-import math
+import functools
 import typing
 import warnings
 from dataclasses import dataclass, field, fields
 
-#: what each ``rule`` of :func:`setting` accepts, as the error message says it
-RULES = {
-    "positive": "a number > 0",
-    "non_negative": "a number >= 0",
-    "fraction": "a number in [0, 1]",
-    "number": "a number",
-    "count": "an integer >= 1",
-    "count_or_zero": "an integer >= 0",
-    "odd_count": "an odd integer >= 1",
-    "count_or_none": "None or an integer >= 1",
-    "integer": "an integer",
-    "flag": "true or false",
-}
-
-
-def _accepts(rule: str, value) -> bool:
-    is_int = isinstance(value, int) and not isinstance(value, bool)
-    is_number = (is_int or isinstance(value, float)) and not math.isnan(value)
-    return {
-        "positive": lambda: is_number and value > 0,
-        "non_negative": lambda: is_number and value >= 0,
-        "fraction": lambda: is_number and 0 <= value <= 1,
-        "number": lambda: is_number,
-        "count": lambda: is_int and value >= 1,
-        "count_or_zero": lambda: is_int and value >= 0,
-        "odd_count": lambda: is_int and value >= 1 and value % 2 == 1,
-        "count_or_none": lambda: value is None or (is_int and value >= 1),
-        "integer": lambda: is_int,
-        "flag": lambda: isinstance(value, bool),
-    }[rule]()
-
-
-def setting(default, rule: str | None = None, *, choices: tuple | None = None, old: str | None = None):
-    """A config field: its ``default``, the ``rule`` its value obeys (a key of ``RULES``) or its allowed
-    ``choices``, and its ``old`` flat name (before the per-step blocks) when it had another one."""
-    if rule is not None and rule not in RULES:
-        raise ValueError(f"setting: unknown rule {rule!r}")
-    return field(default=default, metadata={"rule": rule, "choices": choices, "old": old})
+from icpflow.settings import broken_rule, setting
 
 
 class _Checked:
@@ -74,12 +37,9 @@ class _Checked:
 
     def __post_init__(self):
         for f in fields(self):
-            value = getattr(self, f.name)
-            choices, rule = f.metadata.get("choices"), f.metadata.get("rule")
-            if choices is not None and value not in choices:
-                raise ValueError(f"{type(self).__name__}: {f.name}={value!r} must be one of {list(choices)}")
-            if rule is not None and not _accepts(rule, value):
-                raise ValueError(f"{type(self).__name__}: {f.name}={value!r} must be {RULES[rule]}")
+            problem = broken_rule(f, getattr(self, f.name))
+            if problem:
+                raise ValueError(f"{type(self).__name__}: {f.name} {problem}")
 
 
 @dataclass(frozen=True)
@@ -434,10 +394,17 @@ def _optional(kind, name: str):
     """A dataclass with ``kind``'s fields, each Optional and None by default (None: the preset's value)."""
     hints = typing.get_type_hints(kind)
     return dataclasses.make_dataclass(
-        name, [(f.name, hints[f.name] | None, None) for f in fields(kind) if f.name not in BLOCKS]
+        name, [(f.name, hints[f.name] | None, _unset(f)) for f in fields(kind) if f.name not in BLOCKS]
     )
 
 
+def _unset(f: dataclasses.Field):
+    """A schema field for ``f``: None by default (the preset's value), with ``f``'s rule and choices
+    (``icpflow.settings.check_config`` checks them on the composed config)."""
+    return field(default=None, metadata=f.metadata)
+
+
+@functools.cache
 def schema():
     """The Hydra schema of the ``icpflow`` group: ``preset``, every flat field and every block's fields, all
     null by default (= the preset's value) and all typed, plus the older flat names (deprecated) and removed ones.
@@ -445,8 +412,8 @@ def schema():
     ``ego_motion=kiss_icp``) is not read on the command line any more: the block is typed (stored configs of older
     releases still read it, :func:`_merge`)."""
     hints = typing.get_type_hints(ICPFlowConfig)
-    entries = [("preset", str | None, None)]
-    entries += [(f.name, hints[f.name] | None, None) for f in fields(ICPFlowConfig) if f.name not in BLOCKS]
+    entries = [("preset", str | None, setting(None, choices=(*PRESETS, None)))]
+    entries += [(f.name, hints[f.name] | None, _unset(f)) for f in fields(ICPFlowConfig) if f.name not in BLOCKS]
     old_names = _old_names()
     for block, kind in BLOCKS.items():
         overrides = _optional(kind, f"{kind.__name__}Overrides")
@@ -454,7 +421,8 @@ def schema():
     flat = {name for name, _, _ in entries}
     for old, (block, name) in old_names.items():
         if old not in flat:
-            entries.append((old, typing.get_type_hints(BLOCKS[block])[name] | None, None))
+            target = next(f for f in fields(BLOCKS[block]) if f.name == name)
+            entries.append((old, typing.get_type_hints(BLOCKS[block])[name] | None, _unset(target)))
     entries += [(name, str | None, None) for name in REMOVED]
     return dataclasses.make_dataclass("ICPFlowOverrides", entries)
 
@@ -507,7 +475,7 @@ def teacher_config(cfg) -> ICPFlowConfig:
     A ``dataset.teacher`` key that is not a teacher field is an error (ValueError naming it).
     """
     block = cfg.dataset.get("teacher")
-    per_dataset = _container(block) if block is not None else {}
+    per_dataset = _chosen(_container(block)) if block is not None else {}
     chosen = _chosen(_container(cfg.icpflow))
     preset = chosen.pop("preset", None)
     if preset is None:

@@ -13,8 +13,8 @@ TINY = [
     "model.stage_channels=[16,32,64]",
     "data.workers=0",
     "trainer.log_every_n_steps=1",
-    "+trainer.enable_progress_bar=false",
-    "+trainer.enable_model_summary=false",
+    "trainer.enable_progress_bar=false",
+    "trainer.enable_model_summary=false",
     "export.formats=[]",
 ]
 
