@@ -292,12 +292,31 @@ class Predictor:
             raise PredictorError(f"{'estimated ' if estimated else ''}ego1_from_ego0 {problem}")
         ground0 = self.ground_mask("ground0", lifted[0], ground0)
         ground1 = self.ground_mask("ground1", lifted[1], ground1)
+        check_ego = ego1_from_ego0 is not None and self.ego_checks_left > 0
+        return self.flow_in_frame(lifted, ego_frame, ground0, ground1, lift, estimated, assumed, check_ego)
+
+    def flow_in_frame(
+        self,
+        lifted: tuple[np.ndarray, np.ndarray],
+        ego_frame: np.ndarray,
+        ground0: np.ndarray,
+        ground1: np.ndarray,
+        lift: float,
+        estimated: bool,
+        assumed: bool = False,
+        check_ego: bool = False,
+    ) -> Prediction:
+        """The :class:`Prediction` of a pair already in the model's height frame: ``lifted`` (pc0, pc1) (N, 3)
+        float32 raised by ``lift`` m, ``ego_frame`` (4, 4) in that frame, the ground masks (N,) bool (from
+        :meth:`ground_mask`). What :meth:`predict` and a stream (``fastflow3d.stream``) run after their own ego
+        motion and ground steps; ``check_ego``: compare the given ego motion with the identity and its inverse."""
         pair = self.contract.prepare(*lifted, ego_frame, ground0, ground1)  # already in the height frame
-        if ego1_from_ego0 is not None and self.ego_checks_left > 0:
+        if check_ego:
             self.ego_checks_left -= 1
             self.check_given_ego(pair.pc0[~pair.ground0], pair.pc1[~pair.ground1], pair.ego1_from_ego0)
-        residual, in_grid = np.zeros((len(pc0), 3), np.float32), np.zeros(len(pc0), bool)
-        refined = np.zeros(len(pc0), bool) if self.refine is not None else None
+        count = len(pair.pc0)
+        residual, in_grid = np.zeros((count, 3), np.float32), np.zeros(count, bool)
+        refined = np.zeros(count, bool) if self.refine is not None else None
         if len(pair.rows0) and len(pair.rows1):  # the network needs points in both scans
             kept, valid = self.network(pair.network0, pair.network1)
             if not np.isfinite(kept[valid]).all():

@@ -11,6 +11,8 @@ or a teacher config holding it (:func:`ego_settings`).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from icpflow.geometry import invert
@@ -54,24 +56,42 @@ def kiss_icp_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:
 
 def refine_motion(pc0: np.ndarray, pc1: np.ndarray, ego1_from_ego0: np.ndarray, cfg) -> np.ndarray:
     """Point-to-plane ICP of pc0 onto pc1 from ``ego1_from_ego0``, on ``refine_voxel`` down-sampled scans."""
+    voxel = float(ego_settings(cfg).refine_voxel)
+    source, target = refinement_cloud(pc0, voxel), refinement_cloud(pc1, voxel, normals=True)
+    return refine_clouds(source, target, ego1_from_ego0, voxel)
+
+
+def refinement_cloud(points: np.ndarray, voxel: float, normals: bool = False, neighbours: int | None = None):
+    """The open3d cloud of ``points`` (N, 3) down-sampled to ``voxel`` m, with normals when it is a refinement's
+    target (of the points within ``4 * voxel``, at most 20; or of the ``neighbours`` nearest)."""
     import open3d as o3d
 
-    voxel = float(ego_settings(cfg).refine_voxel)
-    clouds = []
-    for points in (pc0, pc1):
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
-        clouds.append(cloud.voxel_down_sample(voxel))
-    clouds[1].estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=20))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    cloud = cloud.voxel_down_sample(voxel)
+    if normals and neighbours:
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
+    elif normals:
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=20))
+    return cloud
+
+
+def refine_clouds(source, target, transform: np.ndarray, voxel: float, iterations: int = 50) -> np.ndarray:
+    """Point-to-plane ICP of the :func:`refinement_cloud` ``source`` onto ``target`` (with normals), both of
+    ``voxel`` m, from ``transform`` (correspondences within twice the voxel, at most ``iterations``); ``transform``
+    itself when under 30 % of the source finds a correspondence."""
+    import open3d as o3d
+
     result = o3d.pipelines.registration.registration_icp(
-        clouds[0],
-        clouds[1],
+        source,
+        target,
         2.0 * voxel,
-        ego1_from_ego0,
+        transform,
         o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-        o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=50),
+        o3d.pipelines.registration.ICPConvergenceCriteria(
+            relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=iterations
+        ),
     )
-    transform = np.asarray(result.transformation, dtype=np.float64)
-    return transform if result.fitness > 0.3 else ego1_from_ego0
+    return np.asarray(result.transformation, dtype=np.float64) if result.fitness > 0.3 else transform
 
 
 #: fewer points than this in either scan: no estimate (the identity)
@@ -87,3 +107,96 @@ def estimate_ego_motion(pc0: np.ndarray, pc1: np.ndarray, cfg) -> np.ndarray:
     if ego_settings(cfg).refine_voxel > 0:
         transform = refine_motion(pc0, pc1, transform, cfg)
     return transform
+
+
+@dataclasses.dataclass(frozen=True)
+class OdometryStep:
+    """One step of :class:`StreamOdometry`: ``ego1_from_ego0`` (4, 4) float64 from the previous scan's frame into
+    this scan's (None when the track is lost: no estimate for this pair); ``fitness``: the fraction of the previous
+    scan's non-ground points (down-sampled) with a point of this scan within twice the voxel after the motion;
+    ``restarted``: the stream's own estimate fitted worse than ``min_fitness``, so the pair was estimated afresh from
+    the two scans (a fresh KISS-ICP, as :func:`estimate_ego_motion` does) and the track starts again from it."""
+
+    ego1_from_ego0: np.ndarray | None
+    fitness: float
+    restarted: bool = False
+
+
+#: metres: the voxel of the stream's refinement clouds (non-ground points). Finer than the pairwise step's 0.2 m: a
+#: voxel grid fixed in each scan's frame pulls a slow motion towards the identity (BENCHMARKS.md, issue 33)
+STREAM_VOXEL = 0.125
+#: the stream's refinement: at most this many source points (an even subsample of the previous scan's cloud) and
+#: iterations (it starts from KISS-ICP's estimate, centimetres away)
+STREAM_SOURCE_POINTS, STREAM_ITERATIONS = 8000, 20
+#: the stream's target normals: of the nearest 10 points (a quarter cheaper than the pairwise radius search, as exact
+#: on the synthetic sequences)
+STREAM_NORMAL_NEIGHBOURS = 10
+
+
+class StreamOdometry:
+    """Ego motion along a stream of scans (N, 3) in one frame (the model's height frame).
+
+    One KISS-ICP runs across the frames (its local map and constant-velocity model: the estimate a stream gets
+    almost free); each step is then refined point-to-plane from it on the non-ground points of the two scans
+    (``STREAM_VOXEL`` clouds; each scan is down-sampled and given normals once, as the target of its own step, and
+    serves as the source of the next). The refinement's fitness says whether the track holds.
+
+    :meth:`step` returns None for the first scan after a start or :meth:`reset`, else an :class:`OdometryStep`. A
+    step whose fitness is below ``min_fitness`` (the track is lost: a jump, another place) is estimated afresh from
+    the two scans; if that fits no better, the pair gets no estimate and the track starts again from this scan.
+    ``refine=False``: KISS-ICP alone (the fitness is still measured).
+    """
+
+    def __init__(self, cfg, min_fitness: float = 0.5, refine: bool = True, voxel: float = STREAM_VOXEL):
+        self.settings = ego_settings(cfg)
+        self.min_fitness, self.refine, self.voxel = float(min_fitness), bool(refine), float(voxel)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the map and the motion: the next scan starts a new track."""
+        self._kiss = None
+        # (points, non-ground cloud with normals, KISS pose, its subsample) of the previous scan
+        self._previous = None
+
+    def step(self, points: np.ndarray, ground: np.ndarray | None = None) -> OdometryStep | None:
+        """Register the scan ``points`` (N, 3) (``ground``: its (N,) bool ground mask, left out of the
+        refinement); see the class docstring."""
+        points = np.asarray(points, np.float64)
+        if self._kiss is None:
+            self._kiss = kiss_odometry(self.settings)
+        kept = points if ground is None else points[~np.asarray(ground, bool)]
+        kept = kept if len(kept) >= MIN_EGO_POINTS else points
+        self._kiss.register_frame(kept, np.zeros(0))
+        cloud = refinement_cloud(kept, self.voxel, normals=True, neighbours=STREAM_NORMAL_NEIGHBOURS)
+        step = max(1, len(cloud.points) // STREAM_SOURCE_POINTS)
+        current = (points, cloud, np.asarray(self._kiss.last_pose, np.float64), cloud.uniform_down_sample(step))
+        previous, self._previous = self._previous, current
+        if previous is None:
+            return None
+        transform, fitness = self._aligned(previous[3], cloud, invert(current[2]) @ previous[2])
+        if fitness >= self.min_fitness:
+            return OdometryStep(transform, fitness)
+        # lost: the two scans alone (a fresh KISS-ICP, as for a single pair); the track restarts from this pair
+        self._kiss = kiss_odometry(self.settings)
+        self._kiss.register_frame(previous[0], np.zeros(0))
+        self._kiss.register_frame(points, np.zeros(0))
+        pose = np.asarray(self._kiss.last_pose, np.float64)
+        transform, fitness = self._aligned(previous[3], cloud, invert(pose))
+        if fitness >= self.min_fitness:
+            self._previous = (points, cloud, pose, current[3])
+            return OdometryStep(transform, fitness, restarted=True)
+        self.reset()
+        self.step(points, ground)  # this scan starts the new track
+        return OdometryStep(None, fitness, restarted=True)
+
+    def _aligned(self, source, target, transform: np.ndarray) -> tuple[np.ndarray, float]:
+        """``transform`` refined from ``source`` onto ``target`` (when ``refine``), and its fitness."""
+        import open3d as o3d
+
+        distance = 2.0 * self.voxel
+        if self.refine and len(source.points) and len(target.points):
+            transform = refine_clouds(source, target, transform, self.voxel, STREAM_ITERATIONS)
+        if not len(source.points) or not len(target.points):
+            return transform, 0.0
+        result = o3d.pipelines.registration.evaluate_registration(source, target, distance, transform)
+        return transform, float(result.fitness)

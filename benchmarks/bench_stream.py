@@ -1,0 +1,251 @@
+"""Streaming inference (``fastflow3d.stream.FlowStream``): per-frame latency on real scans, and the ego-motion error
+of the streamed estimate against true poses.
+
+    .venv/bin/python benchmarks/bench_stream.py latency [--backends onnx-tuned,openvino] [--scans kitti,av2]
+        [--passes 5] [--threads 2] [--model fastflow3d_small]
+    .venv/bin/python benchmarks/bench_stream.py ego [--frames 100] [--seeds 0,1,2] [--beams 64,32]
+
+``latency``: each scan list is played as a stream (KITTI HDL-64E ``000000``-``000005``; the two AV2 sweeps
+alternate, s0 s1 s0 s1 ..., as the only AV2 stream shipped) ``--passes`` times from a fresh stream; the frames after
+the first two of each pass are timed (the whole ``push``). Regimes: ``pairwise`` (``Predictor.predict`` on each pair
+with nothing given: today's path), ``streamed`` (nothing given) and ``given`` (the ego motion and ground masks passed
+in, computed beforehand). The model has random weights (latency does not depend on them), exported and run by
+``fastflow3d.runtime``. Prints median / p90 ms, Hz, the RSS growth of the stream, and the streamed regime's time per
+step (ground, odometry, network, the rest).
+
+``ego``: synthetic sequences of ``--frames`` frames (exact poses; the seeds draw the speed, 0-20 m/s, and turns) and
+KITTI sequence 01's three frames (``../shared/data``): translation (cm) and rotation (degrees) error per frame of the
+streamed estimate, today's pairwise estimate (KISS-ICP on the pair, then point-to-plane) and KISS-ICP alone
+(streamed, no refinement), median and p95.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from bench_latency import DATA, TEACHERS, cpu_name, model_config, rss_mb  # benchmarks/ is the script's folder
+
+from fastflow3d.checkpoint import build_student
+from fastflow3d.contract import InputContract
+from fastflow3d.export import export_model
+from fastflow3d.predictor import Predictor
+from fastflow3d.runtime import runtime_network
+from fastflow3d.stream import FlowStream
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.geometry import invert
+from icpflow.preprocess import Preprocessing
+from icpflow.teacher.config import ICPFlowConfig
+from icpflow.teacher.ego_motion import StreamOdometry, estimate_ego_motion
+
+RUNTIMES = {"onnx-tuned": ("onnxruntime", "f32"), "openvino": ("openvino", "f32")}
+
+
+def stream_scans(name: str) -> list[np.ndarray] | None:
+    """The scans of a shipped stream, in order (the AV2 sweeps alternating), or None where they are absent."""
+    if name == "kitti":
+        files = sorted((DATA / "kitti_hdl64_scans").glob("*.bin"))
+        return [np.fromfile(f, np.float32).reshape(-1, 4)[:, :3].copy() for f in files] or None
+    import pandas as pd
+
+    sweeps = sorted((DATA / "av2" / "sensor" / "val").glob("*/sensors/lidar/*.feather"))
+    scans = [pd.read_feather(s, columns=["x", "y", "z"]).to_numpy().astype(np.float32) for s in sweeps]
+    return [scans[i % len(scans)] for i in range(6)] if len(scans) >= 2 else None
+
+
+class StepClock:
+    """Seconds spent in the stream's steps (ground, odometry, network), by wrapping the callables it calls."""
+
+    def __init__(self, stream: FlowStream):
+        self.spent = {"ground (Patchwork++, 1 scan)": 0.0, "odometry (KISS-ICP + refinement)": 0.0, "network": 0.0}
+        predictor = stream.predictor
+        predictor.ground_mask = self.wrap(predictor.ground_mask, "ground (Patchwork++, 1 scan)")
+        stream.odometry.step = self.wrap(stream.odometry.step, "odometry (KISS-ICP + refinement)")
+        predictor.network = self.wrap(predictor.network, "network")
+
+    def wrap(self, function, key):
+        def timed(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                self.spent[key] += time.perf_counter() - start
+
+        return timed
+
+    def take(self) -> dict[str, float]:
+        spent, self.spent = self.spent, dict.fromkeys(self.spent, 0.0)
+        return spent
+
+
+def latency(args) -> None:
+    torch.set_num_threads(args.threads)
+    model = build_student(model_config(args.model, [])).eval()
+    print(
+        f"model {args.model} grid {model.grid.nx}x{model.grid.ny}; {cpu_name()}, {os.cpu_count()} logical CPUs, "
+        f"{args.threads} threads; load average at start {os.getloadavg()[0]:.2f}"
+    )
+    rows, steps = [], {}
+    with tempfile.TemporaryDirectory() as tmp:
+        export_model(model, tmp, ["onnx"])
+        for scan_name in args.scans.split(","):
+            scans = stream_scans(scan_name)
+            if scans is None:
+                print(f"{scan_name}: no scans under {DATA}; no rows")
+                continue
+            contract = InputContract(Preprocessing.from_teacher(TEACHERS[scan_name]), True, model.grid)
+            for backend in args.backends.split(","):
+                runtime, precision = RUNTIMES[backend]
+                try:
+                    network = runtime_network(Path(tmp) / "fastflow3d.onnx", runtime, args.threads, precision)
+                except Exception as error:  # OpenVINO not installed
+                    print(f"{backend}: {error}; no row")
+                    continue
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # the height-frame lift of velodyne scans, said once per stream
+                    times, memory, spent = play(network, contract, backend, scans, args)
+                for regime, values in times.items():
+                    rows.append((scan_name, len(scans[0]), regime, backend, values, memory.get(regime)))
+                steps[(scan_name, backend)] = spent
+    print("| stream | points | regime | engine | median ms | p90 ms | Hz | vs pairwise | memory MB |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    base = {}
+    for scan_name, points, regime, backend, values, memory in rows:
+        median, p90 = statistics.median(values), float(np.percentile(values, 90))
+        base.setdefault((scan_name, backend), median)
+        shown = "" if memory is None else f"{memory:.0f}"
+        print(
+            f"| {scan_name} | {points} | {regime} | {backend} | {1000 * median:.1f} | {1000 * p90:.1f} | "
+            f"{1 / median:.1f} | {base[(scan_name, backend)] / median:.2f}x | {shown} |"
+        )
+    for (scan_name, backend), spent in steps.items():
+        parts = ", ".join(f"{key} {1000 * value:.1f} ms" for key, value in spent.items())
+        print(f"{scan_name}, {backend}, streamed: median per frame: {parts}")
+    print(
+        f"median and p90 of the frames after the first two of each of {args.passes} passes; load average at the "
+        f"end {os.getloadavg()[0]:.2f}"
+    )
+
+
+def play(network, contract, backend, scans, args):
+    """Per-frame seconds of each regime (pairwise, streamed, given), the streamed regime's RSS growth and its
+    median time per step."""
+    times = {"pairwise": [], "streamed": [], "given": []}
+    predictor = Predictor(network, contract, backend)
+    # the given regime's inputs: the stream's own estimates, computed once beforehand
+    reference = FlowStream(Predictor(network, contract, backend))
+    given = [reference.push(scan).prediction for scan in scans]
+    lift = FlowStream(predictor).predictor.frame_lift(scans[0])
+    grounds = [predictor.ground_mask("g", scan + np.array([0, 0, lift], np.float32), None) for scan in scans]
+    memory, per_step = {}, []
+    for _ in range(args.passes):
+        for k in range(1, len(scans)):
+            start = time.perf_counter()
+            predictor.predict(scans[k - 1], scans[k])
+            if k > 2:
+                times["pairwise"].append(time.perf_counter() - start)
+            start = time.perf_counter()
+            predictor.predict(scans[k - 1], scans[k], given[k].ego1_from_ego0, grounds[k - 1], grounds[k])
+            if k > 2:
+                times["given"].append(time.perf_counter() - start)
+        before = rss_mb()
+        stream = FlowStream(Predictor(network, contract, backend))
+        clock = StepClock(stream)
+        for k, scan in enumerate(scans):
+            clock.take()
+            start = time.perf_counter()
+            stream.push(scan)
+            seconds = time.perf_counter() - start
+            spent = clock.take()
+            if k > 2:
+                times["streamed"].append(seconds)
+                per_step.append({**spent, "the rest": seconds - sum(spent.values())})
+        memory["streamed"] = max(memory.get("streamed", 0.0), rss_mb() - before)
+    medians = {key: statistics.median(step[key] for step in per_step) for key in per_step[0]}
+    return times, memory, medians
+
+
+def rotation_deg(transform: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(transform[:3, :3]) - 1) / 2, -1.0, 1.0))))
+
+
+def ego_errors(args) -> None:
+    cfg = ICPFlowConfig.preset("waymo").ego_motion
+    print("| sequence | frames | ego speed m/s | turn deg/frame | method | median cm | p95 cm | median deg | p95 deg |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    everything = {}
+    sequences = []
+    for beams in [int(b) for b in args.beams.split(",")]:
+        for seed in [int(s) for s in args.seeds.split(",")]:
+            data = SyntheticDataset(
+                split="test", num_sequences=1, frames_per_sequence=args.frames, beams=beams, seed=seed
+            )
+            pairs = [data[i] for i in range(len(data))]
+            scans = [pairs[0].pc0] + [pair.pc1 for pair in pairs]
+            grounds = [pairs[0].ground0] + [pair.ground1 for pair in pairs]
+            truth = [pair.ego1_from_ego0 for pair in pairs]
+            sequences.append((f"synthetic {beams}b seed {seed}", scans, grounds, truth, pairs[0].dt))
+    kitti = DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"
+    if kitti.is_file():
+        with np.load(kitti) as f:
+            scans = [f[f"points{i}"][:, :3].astype(np.float32) for i in range(3)]
+            poses = f["velo_poses_world"]
+        lift = np.array([0, 0, 1.73], np.float32)  # the velodyne origin is 1.73 m above the road
+        truth = [invert(poses[i + 1]) @ poses[i] for i in range(2)]
+        sequences.append(("KITTI seq 01 frames 0-2", [s + lift for s in scans], [None] * 3, truth, 0.1))
+    for name, scans, grounds, truth, dt in sequences:
+        estimates = {"streamed": [], "pairwise (today)": [], "KISS-ICP alone (streamed)": []}
+        for key, refine in (("streamed", True), ("KISS-ICP alone (streamed)", False)):
+            odometry = StreamOdometry(cfg, refine=refine)
+            odometry.step(scans[0], grounds[0])
+            estimates[key] = [
+                odometry.step(scan, ground).ego1_from_ego0 for scan, ground in zip(scans[1:], grounds[1:])
+            ]
+        estimates["pairwise (today)"] = [estimate_ego_motion(a, b, cfg) for a, b in zip(scans[:-1], scans[1:])]
+        speed = statistics.median(np.linalg.norm(t[:3, 3]) for t in truth) / dt
+        turn = statistics.median(rotation_deg(t) for t in truth)
+        for method, values in estimates.items():
+            errors = [invert(t) @ e for t, e in zip(truth, values)]
+            cm = [100 * float(np.linalg.norm(e[:3, 3])) for e in errors]
+            deg = [rotation_deg(e) for e in errors]
+            everything.setdefault(method, []).append((cm, deg))
+            print(
+                f"| {name} | {len(scans)} | {speed:.1f} | {turn:.2f} | {method} | {np.median(cm):.2f} | "
+                f"{np.percentile(cm, 95):.2f} | {np.median(deg):.3f} | {np.percentile(deg, 95):.3f} |"
+            )
+    for method, parts in everything.items():
+        synthetic = parts[: len(parts) - (1 if kitti.is_file() else 0)]
+        cm = np.concatenate([p[0] for p in synthetic])
+        deg = np.concatenate([p[1] for p in synthetic])
+        print(
+            f"| all synthetic | {len(cm)} pairs | | | {method} | {np.median(cm):.2f} | {np.percentile(cm, 95):.2f} | "
+            f"{np.median(deg):.3f} | {np.percentile(deg, 95):.3f} |"
+        )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="mode", required=True)
+    lat = sub.add_parser("latency")
+    lat.add_argument("--model", default="fastflow3d_small")
+    lat.add_argument("--threads", type=int, default=2)
+    lat.add_argument("--backends", default="onnx-tuned,openvino")
+    lat.add_argument("--scans", default="kitti,av2")
+    lat.add_argument("--passes", type=int, default=5)
+    ego = sub.add_parser("ego")
+    ego.add_argument("--frames", type=int, default=100)
+    ego.add_argument("--seeds", default="0,1,2")
+    ego.add_argument("--beams", default="64,32")
+    args = parser.parse_args()
+    latency(args) if args.mode == "latency" else ego_errors(args)
+
+
+if __name__ == "__main__":
+    main()

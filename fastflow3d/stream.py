@@ -1,0 +1,199 @@
+"""Flow of a LiDAR stream: scans in one at a time, the flow of each scan to the next out, nothing else given.
+
+``FlowStream(predictor)`` wraps a :class:`fastflow3d.predictor.Predictor`; :meth:`FlowStream.push` takes the next
+scan (N, 3) (with an optional timestamp in seconds) and returns the :class:`StreamStep` of the previous scan to this
+one: the same :class:`~fastflow3d.predictor.Prediction` as ``predictor.predict(previous, scan)`` would give with
+the ego motion and ground masks the stream estimated (FULL flow, project convention, in the previous scan's frame).
+What the pairwise call recomputes for every pair, the stream keeps:
+
+* the height frame: found on the first scan (``Predictor.frame_lift``) and checked every ``check_every`` scans
+  (the ground below the sensor); a scan whose ground moved by more than ``FRAME_TOLERANCE`` (another sensor or
+  frame) is warned about, lifted by its own ground, and the odometry restarts;
+* the odometry: one KISS-ICP across frames, each step refined against the previous scan
+  (``icpflow.teacher.ego_motion.StreamOdometry``), every scan down-sampled and given normals once;
+* each scan's ground mask (Patchwork++, the model's settings): computed once, as pc1 of its pair, and reused as pc0
+  of the next.
+
+Bad streams never give a silent wrong flow: a missing or unreadable scan (:meth:`FlowStream.skip`), a time gap longer
+than ``max_gap_s`` or a timestamp that does not increase restart the odometry with a warning (the pair across the gap
+is estimated from its two scans alone); a scan with too few points keeps the motion model's prediction and gets the
+ego flow only; a lost track (the refinement's fitness under ``min_fitness``) is estimated afresh, and where that fits
+no better the pair gets no flow (``StreamStep.prediction`` None) and a new track starts. Each case is one
+:class:`StreamWarning`; the other frames keep their flow.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+
+from fastflow3d.predictor import Prediction, Predictor, PredictorWarning, as_points
+from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height
+from icpflow.teacher.ego_motion import MIN_EGO_POINTS, StreamOdometry
+
+
+class StreamWarning(PredictorWarning):
+    """Something in the stream was wrong (a gap, a lost track, a scan of another frame); one line, naming it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class StreamStep:
+    """The result of one pushed scan: ``prediction`` of the previous scan to this one (None: no flow for this pair:
+    the first scan, or a lost track that a fresh estimate could not recover); ``source`` / ``previous``: the names
+    of this scan and of the previous one (what the caller passed, e.g. the files); ``pose`` (4, 4) float64: this
+    scan's pose in the current track's first frame (the trajectory; None when unknown); ``fitness`` of the ego-motion
+    step (None: no step); ``restarted``: the odometry started again on this pair."""
+
+    prediction: Prediction | None
+    source: str | None
+    previous: str | None
+    pose: np.ndarray | None
+    fitness: float | None
+    restarted: bool
+
+
+@dataclasses.dataclass
+class _Scan:
+    points: np.ndarray  # (N, 3) float32 in the scans' own frame
+    lifted: np.ndarray  # (N, 3) float32 in the model's height frame
+    ground: np.ndarray  # (N,) bool
+    timestamp: float | None
+    source: str | None
+
+
+class FlowStream:
+    """See the module docstring. ``max_gap_s``: a larger time between two scans restarts the odometry (default
+    0.25 s: 2.5 frames at 10 Hz); ``min_fitness``: below it the track is lost; ``check_every``: scans between
+    checks of the height frame; ``refine``: refine each odometry step (off: KISS-ICP alone)."""
+
+    def __init__(
+        self,
+        predictor: Predictor,
+        max_gap_s: float = 0.25,
+        min_fitness: float = 0.5,
+        check_every: int = 10,
+        refine: bool = True,
+    ):
+        self.predictor = predictor
+        self.max_gap_s, self.check_every = float(max_gap_s), int(check_every)
+        self.odometry = StreamOdometry(predictor.ego_config, min_fitness=min_fitness, refine=refine)
+        self.lift: float | None = None
+        self._previous: _Scan | None = None
+        self._pose = np.eye(4)
+        self._since_check = 0
+        self._gap: str | None = None  # why the next pair must restart the odometry
+
+    def reset(self) -> None:
+        """Start again: the next scan begins a new stream (height frame, odometry, trajectory)."""
+        self.odometry.reset()
+        self.lift, self._previous, self._pose, self._since_check, self._gap = None, None, np.eye(4), 0, None
+
+    def skip(self, source: str, reason: str) -> None:
+        """A scan of the stream could not be read (``source`` names it): one warning; the pair across it is
+        estimated from its two scans alone (the odometry restarts)."""
+        self._warn(f"{source}: skipped ({reason}); the next pair spans the gap, the odometry restarts")
+        self._gap = "a skipped scan"
+
+    def push(self, scan, timestamp: float | None = None, source: str | None = None) -> StreamStep:
+        """Take the next scan (N, 3) (``timestamp`` in seconds, ``source`` its name); see :class:`StreamStep`."""
+        points = as_points(source or "scan", scan)
+        if self.lift is None:
+            self.lift = self.predictor.frame_lift(points)
+        else:
+            self._check_frame(points, source)
+        previous = self._previous
+        if previous is not None and timestamp is not None and previous.timestamp is not None:
+            gap = float(timestamp) - previous.timestamp
+            if gap <= 0:
+                self._warn(
+                    f"{source or 'scan'}: timestamp {timestamp} does not follow {previous.timestamp}; the "
+                    "odometry restarts"
+                )
+                self._gap = "a timestamp going backwards"
+            elif gap > self.max_gap_s:
+                self._warn(
+                    f"{source or 'scan'}: {gap:.3f} s after the previous scan (more than {self.max_gap_s} s); "
+                    "the odometry restarts"
+                )
+                self._gap = "a time gap"
+        lifted = points + np.array([0.0, 0.0, self.lift], np.float32) if self.lift else points
+        ground = self.predictor.ground_mask("ground", lifted, None)
+        current = _Scan(points, lifted, ground, None if timestamp is None else float(timestamp), source)
+        self._previous = current
+        if previous is None:
+            self.odometry.reset()
+            self.odometry.step(lifted, ground)
+            self._pose = np.eye(4)
+            return StreamStep(None, source, None, self._pose.copy(), None, False)
+        if self._gap is not None:
+            self.odometry.reset()
+            self.odometry.step(previous.lifted, previous.ground)
+            self._gap = None
+            forced = True
+        else:
+            forced = False
+        if len(points) < MIN_EGO_POINTS or len(previous.points) < MIN_EGO_POINTS:
+            return self._too_few(previous, current)
+        step = self.odometry.step(lifted, ground)
+        restarted = forced or step.restarted
+        if step.ego1_from_ego0 is None:
+            self._warn(
+                f"{source or 'scan'}: lost track (fitness {step.fitness:.2f} after a fresh estimate, under "
+                f"{self.odometry.min_fitness}); no flow for this pair, a new track starts here"
+            )
+            self._pose = np.eye(4)
+            return StreamStep(None, source, previous.source, None, step.fitness, True)
+        if step.restarted and not forced:
+            self._warn(f"{source or 'scan'}: the odometry lost track and restarted (fitness {step.fitness:.2f})")
+        ego = step.ego1_from_ego0
+        prediction = self.predictor.flow_in_frame(
+            (previous.lifted, lifted), ego, previous.ground, ground, float(self.lift), estimated=True
+        )
+        self._pose = self._pose @ np.linalg.inv(prediction.ego1_from_ego0)
+        return StreamStep(prediction, source, previous.source, self._pose.copy(), step.fitness, restarted)
+
+    def _too_few(self, previous: _Scan, current: _Scan) -> StreamStep:
+        """A pair with a scan of fewer than ``MIN_EGO_POINTS`` points: the ego flow of the identity, a warning;
+        the next pair restarts the odometry."""
+        self._warn(
+            f"{current.source or 'scan'}: too few points to estimate the ego motion ({len(previous.points)} and "
+            f"{len(current.points)}; at least {MIN_EGO_POINTS}): the identity is assumed, the odometry restarts"
+        )
+        self._gap = "too few points"
+        prediction = self.predictor.flow_in_frame(
+            (previous.lifted, current.lifted),
+            np.eye(4),
+            previous.ground,
+            current.ground,
+            float(self.lift),
+            estimated=False,
+            assumed=True,
+        )
+        return StreamStep(prediction, current.source, previous.source, None, None, True)
+
+    def _check_frame(self, points: np.ndarray, source: str | None) -> None:
+        """Every ``check_every`` scans: is the ground still where the height frame has it? If not, warn, take
+        this scan's lift and restart the odometry."""
+        self._since_check += 1
+        if self._since_check < self.check_every:
+            return
+        self._since_check = 0
+        ground = estimate_ground_height(points)
+        if ground is None:
+            return
+        lift = self.predictor.preprocessing.frame.ground_z - ground
+        if abs(lift - self.lift) > FRAME_TOLERANCE:
+            self._warn(
+                f"{source or 'scan'}: the ground moved by {lift - self.lift:+.2f} m against the stream's height frame "
+                "(another sensor or frame?); lifted by its own ground from here, the odometry restarts"
+            )
+            self.lift, self._gap = lift, "another frame"
+            if self._previous is not None:  # the previous scan in the new frame, for the pair across the change
+                prev = self._previous
+                prev.lifted = prev.points + np.array([0.0, 0.0, lift], np.float32)
+
+    @staticmethod
+    def _warn(message: str) -> None:
+        warnings.warn(f"FlowStream: {message}", StreamWarning, stacklevel=3)
