@@ -305,11 +305,13 @@ class Predictor:
         estimated: bool,
         assumed: bool = False,
         check_ego: bool = False,
+        run_network: bool = True,
     ) -> Prediction:
         """The :class:`Prediction` of a pair already in the model's height frame: ``lifted`` (pc0, pc1) (N, 3)
         float32 raised by ``lift`` m, ``ego_frame`` (4, 4) in that frame, the ground masks (N,) bool (from
         :meth:`ground_mask`). What :meth:`predict` and a stream (``fastflow3d.stream``) run after their own ego
-        motion and ground steps; ``check_ego``: compare the given ego motion with the identity and its inverse."""
+        motion and ground steps; ``check_ego``: compare the given ego motion with the identity and its inverse;
+        ``run_network`` False: the ego flow only (a stream's pair with too few points)."""
         pair = self.contract.prepare(*lifted, ego_frame, ground0, ground1)  # already in the height frame
         if check_ego:
             self.ego_checks_left -= 1
@@ -317,7 +319,7 @@ class Predictor:
         count = len(pair.pc0)
         residual, in_grid = np.zeros((count, 3), np.float32), np.zeros(count, bool)
         refined = np.zeros(count, bool) if self.refine is not None else None
-        if len(pair.rows0) and len(pair.rows1):  # the network needs points in both scans
+        if run_network and len(pair.rows0) and len(pair.rows1):  # the network needs points in both scans
             kept, valid = self.network(pair.network0, pair.network1)
             if not np.isfinite(kept[valid]).all():
                 raise PredictorError(

@@ -155,12 +155,15 @@ class FlowStream:
         return StreamStep(prediction, source, previous.source, self._pose.copy(), step.fitness, restarted)
 
     def _too_few(self, previous: _Scan, current: _Scan) -> StreamStep:
-        """A pair with a scan of fewer than ``MIN_EGO_POINTS`` points: the ego flow of the identity, a warning;
-        the next pair restarts the odometry."""
-        self._warn(
-            f"{current.source or 'scan'}: too few points to estimate the ego motion ({len(previous.points)} and "
-            f"{len(current.points)}; at least {MIN_EGO_POINTS}): the identity is assumed, the odometry restarts"
-        )
+        """A pair with a scan of fewer than ``MIN_EGO_POINTS`` points: the ego flow of the identity; one warning
+        for the scan (as pc1 of its first pair; its second pair is said by the first); the next pair restarts the
+        odometry."""
+        if len(current.points) < MIN_EGO_POINTS:
+            self._warn(
+                f"{current.source or 'scan'}: {len(current.points)} points, too few to estimate the ego motion (at "
+                f"least {MIN_EGO_POINTS}): the identity is assumed for its pairs (ego flow only), the odometry "
+                "restarts"
+            )
         self._gap = "too few points"
         prediction = self.predictor.flow_in_frame(
             (previous.lifted, current.lifted),
@@ -170,6 +173,7 @@ class FlowStream:
             float(self.lift),
             estimated=False,
             assumed=True,
+            run_network=False,
         )
         return StreamStep(prediction, current.source, previous.source, None, None, True)
 

@@ -1,0 +1,159 @@
+"""The streaming Predictor (fastflow3d.stream.FlowStream) and its odometry (icpflow.teacher.ego_motion.StreamOdometry):
+the flow of a stream is the Predictor's with the stream's ego motion and masks; the ego motion is exact on the
+synthetic world; every bad stream (a gap, a skipped scan, time going backwards, too few points, a lost track,
+another frame) is one warning and never a silent wrong flow, and the other frames keep theirs."""
+
+import re
+import warnings
+
+import numpy as np
+import pytest
+
+from fastflow3d.predictor import Predictor
+from fastflow3d.stream import FlowStream, StreamWarning
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.geometry import invert
+from icpflow.teacher.config import ICPFlowConfig
+from icpflow.teacher.ego_motion import StreamOdometry
+
+from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
+
+EGO = ICPFlowConfig.preset("waymo").ego_motion
+
+
+def _sequence(seed: int, frames: int, beams: int = 32):
+    data = SyntheticDataset(split="test", num_sequences=1, frames_per_sequence=frames, beams=beams, seed=seed)
+    pairs = [data[i] for i in range(len(data))]
+    return pairs, [pairs[0].pc0] + [pair.pc1 for pair in pairs]
+
+
+@pytest.fixture(scope="module")
+def moving():
+    """A sequence of 8 frames whose ego drives (seed 3: about 8 m/s)."""
+    pairs, scans = _sequence(3, 8)
+    assert np.linalg.norm(pairs[0].ego1_from_ego0[:3, 3]) > 0.3
+    return pairs, scans
+
+
+@pytest.fixture(scope="module")
+def other_place():
+    return _sequence(11, 4)
+
+
+@pytest.fixture(scope="module")
+def predictor_path(tmp_path_factory, moving):
+    pairs, _ = moving
+    return tiny_checkpoint(tmp_path_factory.mktemp("stream") / "tiny.ckpt", tiny_model(25.6, 0.8), pairs[0], 2)
+
+
+def _errors(truth, estimate):
+    delta = invert(truth) @ estimate
+    angle = np.degrees(np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(delta[:3, 3])), float(angle)
+
+
+def test_streamed_ego_motion_is_exact_on_the_synthetic_world(moving):
+    """Within 2 cm and 0.05 degrees per frame (the issue's target), with the refinement; KISS-ICP alone is kept
+    for comparison and is worse."""
+    pairs, scans = moving
+    for refine, worst in ((True, 0.02), (False, None)):
+        odometry = StreamOdometry(EGO, refine=refine)
+        assert odometry.step(scans[0], pairs[0].ground0) is None
+        steps = [odometry.step(pair.pc1, pair.ground1) for pair in pairs]
+        errors = np.array([_errors(pair.ego1_from_ego0, step.ego1_from_ego0) for pair, step in zip(pairs, steps)])
+        assert not any(step.restarted for step in steps) and min(step.fitness for step in steps) > 0.8
+        if worst:
+            assert np.median(errors[:, 0]) <= worst and np.median(errors[:, 1]) <= 0.05, errors
+
+
+def test_the_stream_gives_the_predictors_flow_with_its_own_ego_motion(predictor_path, moving):
+    pairs, scans = moving
+    stream = FlowStream(Predictor.load(predictor_path))
+    first = stream.push(scans[0], timestamp=0.0, source="s0")
+    assert first.prediction is None and np.array_equal(first.pose, np.eye(4))
+    predictor = Predictor.load(predictor_path)
+    for k, pair in enumerate(pairs[:4], start=1):
+        step = stream.push(scans[k], timestamp=0.1 * k, source=f"s{k}")
+        assert (step.source, step.previous, step.restarted) == (f"s{k}", f"s{k - 1}", False)
+        ego = step.prediction.ego1_from_ego0
+        expected = predictor.predict(pair.pc0, pair.pc1, ego, step.prediction.ground0, None)
+        np.testing.assert_allclose(step.prediction.flow, expected.flow, atol=1e-5)
+        assert _errors(pair.ego1_from_ego0, ego)[0] < 0.02 and step.prediction.ego_estimated
+    # the trajectory: the product of the steps, in the first scan's frame
+    truth = np.eye(4)
+    for pair in pairs[:4]:
+        truth = truth @ invert(pair.ego1_from_ego0)
+    assert np.linalg.norm(step.pose[:3, 3] - truth[:3, 3]) < 4 * 0.02  # four steps of at most 2 cm
+
+
+def _pushed(stream, scans, times=None, sources=None):
+    """Push every scan; returns the steps and the StreamWarning messages."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        steps = [
+            stream.push(scan, None if times is None else times[k], None if sources is None else sources[k])
+            for k, scan in enumerate(scans)
+        ]
+    return steps, [str(w.message) for w in caught if issubclass(w.category, StreamWarning)]
+
+
+@pytest.mark.parametrize("kind", ["gap", "backwards"])
+def test_a_time_gap_or_time_going_backwards_restarts_the_odometry(predictor_path, moving, kind):
+    pairs, scans = moving
+    times = [0.0, 0.1, 0.2, 0.9, 1.0] if kind == "gap" else [0.0, 0.1, 0.2, 0.15, 0.25]
+    steps, said = _pushed(FlowStream(Predictor.load(predictor_path)), scans[:5], times, [f"s{k}" for k in range(5)])
+    words = "s after the previous scan" if kind == "gap" else "does not follow"
+    assert len(said) == 1 and said[0].startswith("FlowStream: s3: ") and words in said[0], said
+    assert [step.restarted for step in steps[1:]] == [False, False, True, False]
+    for pair, step in zip(pairs, steps[1:]):  # every pair keeps its flow, the one across the gap included
+        assert step.prediction is not None and _errors(pair.ego1_from_ego0, step.prediction.ego1_from_ego0)[0] < 0.03
+
+
+def test_a_skipped_scan_is_bridged_by_the_next_pair(predictor_path, moving):
+    pairs, scans = moving
+    stream = FlowStream(Predictor.load(predictor_path))
+    stream.push(scans[0], source="s0")
+    stream.push(scans[1], source="s1")
+    with pytest.warns(StreamWarning, match=r"^FlowStream: s2: skipped \(unreadable\); the next pair spans the gap"):
+        stream.skip("s2", "unreadable")
+    step = stream.push(scans[3], source="s3")
+    truth = pairs[2].ego1_from_ego0 @ pairs[1].ego1_from_ego0  # s1 -> s3
+    assert step.previous == "s1" and step.restarted and _errors(truth, step.prediction.ego1_from_ego0)[0] < 0.03
+
+
+def test_a_scan_with_too_few_points_gets_ego_only_flow_and_a_warning(predictor_path, moving):
+    _, scans = moving
+    stream = FlowStream(Predictor.load(predictor_path))
+    stream.push(scans[0])
+    steps, said = _pushed(stream, [scans[1][:50], scans[2], scans[3]], sources=["few", "s2", "s3"])
+    assert len(said) == 1 and said[0].startswith("FlowStream: few: 50 points, too few"), said
+    for step in steps[:2]:  # both pairs of the scan: the identity, ego flow only
+        assert step.prediction.ego_assumed and np.array_equal(step.prediction.ego1_from_ego0, np.eye(4))
+        assert not step.prediction.in_grid.any() and not step.prediction.flow.any()
+    assert steps[2].restarted and steps[2].prediction.ego_estimated  # then a new track
+
+
+def test_splicing_two_places_is_a_lost_track_without_flow(predictor_path, moving, other_place):
+    """Two unrelated sequences one after the other: the pair across the splice gets no flow and one warning; the
+    odometry starts again on the second place and its pairs keep exact ego motion."""
+    pairs, scans = moving
+    others, other_scans = other_place
+    spliced = [*scans[:4], *other_scans[:4]]
+    steps, said = _pushed(FlowStream(Predictor.load(predictor_path)), spliced, sources=[f"s{k}" for k in range(8)])
+    assert len(said) == 1 and said[0].startswith("FlowStream: s4: lost track"), said
+    assert steps[4].prediction is None and steps[4].restarted
+    for k, pair in ((1, pairs[0]), (2, pairs[1]), (3, pairs[2]), (5, others[0]), (6, others[1]), (7, others[2])):
+        assert steps[k].prediction is not None, k
+        assert _errors(pair.ego1_from_ego0, steps[k].prediction.ego1_from_ego0)[0] < 0.03, k
+
+
+def test_a_scan_from_another_frame_is_caught_by_the_height_check(predictor_path, moving):
+    """Scans that suddenly come 1.5 m lower (another sensor's origin): the height check says so, lifts them by their
+    own ground, and the pairs keep the right ego motion."""
+    pairs, scans = moving
+    lowered = [scan if k < 4 else scan - np.array([0, 0, 1.5], np.float32) for k, scan in enumerate(scans)]
+    stream = FlowStream(Predictor.load(predictor_path), check_every=1)
+    steps, said = _pushed(stream, lowered, sources=[f"s{k}" for k in range(len(lowered))])
+    assert len(said) == 1 and re.match(r"FlowStream: s4: the ground moved by \+1\.[45]\d m", said[0]), said
+    for pair, step in zip(pairs[4:], steps[5:]):
+        assert _errors(pair.ego1_from_ego0, step.prediction.ego1_from_ego0)[0] < 0.03
