@@ -1,7 +1,7 @@
 """Evaluate scene-flow methods against ground truth (see conf/eval.yaml and icpflow.evaluation); the student comes
 from fastflow3d.eval_method.
 
-    python eval.py [dataset=<name>] [split=val] [method=[zero,ego,icpflow,student,student+refine,shards]]
+    python eval.py [dataset=<name>] [split=val] [method=[zero,ego,icpflow,student,student+refine,student-stream,shards]]
         [checkpoint=...]
         [shards=<label out_dir>] [horizon=k | horizon=[1,2,3,4] | horizon=1..4] [tracker=true | tracker=[false,true]]
         [limit=N] [bev=N] [render=N] [out_dir=...]
@@ -14,7 +14,7 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from fastflow3d.eval_method import refined_student_method, student_method
+from fastflow3d.eval_method import refined_student_method, streamed_student_method, student_method
 from icpflow.console import quiet
 from icpflow.entry import reported, run
 from icpflow.evaluation import run_eval
@@ -27,7 +27,12 @@ register()  # eval_schema in Hydra's ConfigStore: the structured config conf/eva
 def main(cfg: DictConfig) -> None:
     quiet()
     with reported("eval"):
-        status = run_eval(cfg, extra_methods={"student": student_method, "student+refine": refined_student_method})
+        methods = {
+            "student": student_method,
+            "student+refine": refined_student_method,
+            "student-stream": streamed_student_method,  # nothing given: the stream's ego motion and ground
+        }
+        status = run_eval(cfg, extra_methods=methods)
         if status:
             sys.exit(status)
 

@@ -1,6 +1,8 @@
 """The student as an evaluation method: ``student_method(cfg)`` for ``icpflow.evaluation.run_eval``'s
-``extra_methods`` (``eval.py`` adds it as ``student``), and ``refined_student_method(cfg)``, the same model with the
-Predictor's ICP refinement (``fastflow3d.refine``; ``eval.py`` method ``student+refine``)."""
+``extra_methods`` (``eval.py`` adds it as ``student``), ``refined_student_method(cfg)``, the same model with the
+Predictor's ICP refinement (``fastflow3d.refine``; ``eval.py`` method ``student+refine``), and
+``streamed_student_method(cfg)`` (``student-stream``): the same model fed the dataset's scans as a stream
+(``fastflow3d.stream.FlowStream``), nothing given: the ego motion and ground masks are the stream's own."""
 
 from __future__ import annotations
 
@@ -24,15 +26,48 @@ class StudentMethod:
         return self.predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1)
 
 
-def student_method(cfg, refine=None) -> StudentMethod:
-    """The student of ``cfg.checkpoint`` (a ``.ckpt``, an export directory or an exported file) with the height
-    frame ``cfg.sensor_height`` (None, ``auto`` or metres); ``refine`` as ``Predictor.load`` takes it."""
+class StreamedStudentMethod:
+    """The student on the dataset's scans as a stream, nothing given: consecutive pairs of a sequence (a pair whose
+    pc0 is the previous pair's pc1, same log) continue the stream; any other pair starts a new one. A pair the
+    stream gives no flow (a lost track) gets the pairwise Predictor's, nothing given, with the stream's warning."""
+
+    def __init__(self, path, sensor_height=None):
+        from fastflow3d.stream import FlowStream
+
+        self.predictor = Predictor.load(path, sensor_height=sensor_height)
+        self.stream = FlowStream(self.predictor)
+        self._last: tuple[str | None, np.ndarray] | None = None  # (log, pc1) of the previous pair
+
+    def __call__(self, pair: FramePair, index: int) -> np.ndarray:
+        follows = self._last is not None and self._last[0] == pair.log_id and np.array_equal(self._last[1], pair.pc0)
+        if not follows:
+            self.stream.reset()
+            self.stream.push(pair.pc0, source=f"{pair.sample_id} pc0")
+        step = self.stream.push(pair.pc1, source=f"{pair.sample_id} pc1")
+        self._last = (pair.log_id, pair.pc1)
+        if step.prediction is None:
+            return self.predictor(pair.pc0, pair.pc1)
+        return step.prediction.flow
+
+
+def streamed_student_method(cfg) -> StreamedStudentMethod:
+    """The student of ``cfg.checkpoint`` in streaming mode (``StreamedStudentMethod``)."""
+    return StreamedStudentMethod(_checkpoint(cfg), cfg.get("sensor_height"))
+
+
+def _checkpoint(cfg) -> str:
     checkpoint = cfg.checkpoint
     if not checkpoint:
         raise EvaluationError("method student needs checkpoint=<.ckpt or export>")
     if not Path(checkpoint).exists():
         raise EvaluationError(f"{checkpoint}: checkpoint does not exist")
-    return StudentMethod(checkpoint, refine, cfg.get("sensor_height"))
+    return checkpoint
+
+
+def student_method(cfg, refine=None) -> StudentMethod:
+    """The student of ``cfg.checkpoint`` (a ``.ckpt``, an export directory or an exported file) with the height
+    frame ``cfg.sensor_height`` (None, ``auto`` or metres); ``refine`` as ``Predictor.load`` takes it."""
+    return StudentMethod(_checkpoint(cfg), refine, cfg.get("sensor_height"))
 
 
 def refined_student_method(cfg) -> StudentMethod:

@@ -1,9 +1,18 @@
-"""Scene flow of two raw scan files with a trained FastFlow3D; writes the flow and a bird's-eye-view PNG.
+"""Scene flow of raw scan files with a trained FastFlow3D: a pair (the flow and a bird's-eye-view PNG) or a stream.
 
     python -m fastflow3d.infer MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
         [--bev FILE.png | --no-bev] [--rerun FILE.rrd] [--bin-columns N] [--backend onnx|pt2|torchscript]
         [--device cpu] [--runtime onnxruntime|openvino] [--threads N] [--sensor-height METRES|auto]
         [--metadata FILE | --remove-ground yes|no]
+    python -m fastflow3d.infer MODEL DIR|'GLOB' [--out OUT_DIR] [--rerun FILE.rrd] [...]
+
+Stream mode (one argument after MODEL: a folder of scans, read in name order, or a quoted glob): the scans are one
+stream (``fastflow3d.stream.FlowStream``: nothing given, the ego motion and ground kept across frames), and each
+consecutive pair's flow is written to ``OUT_DIR/<first scan's name>.npz`` (default ``outputs/infer/<folder>``),
+holding what a pair's ``.npz`` holds; a progress bar shows frames per second. An unreadable scan is skipped with a
+warning naming it (the pair across it is estimated from its two scans); a pair the stream cannot estimate (a lost
+track) gets no file and a warning. ``--rerun`` records the whole stream (points coloured by speed, flow arrows,
+the estimated trajectory) on one timeline.
 
 MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz``
 (array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
@@ -30,6 +39,7 @@ points the network sees (outside its grid), a frame converted without being told
 from __future__ import annotations
 
 import argparse
+import glob
 import sys
 import warnings
 from pathlib import Path
@@ -40,7 +50,7 @@ from fastflow3d.artifact import FORMATS, LEGACY_FORMATS
 from icpflow.atomic import atomic_path
 from icpflow.console import quiet
 from icpflow.datasets.io import SCAN_SUFFIXES, fail, load_npz, read_poses, read_scan
-from icpflow.entry import exit_status, stop_on_signals
+from icpflow.entry import exit_status, one_line, stop_on_signals
 from icpflow.frames import FramePair, check_points
 from icpflow.geometry import relative_transform
 
@@ -94,8 +104,10 @@ def write_flow(path: Path, prediction) -> None:
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m fastflow3d.infer", description=__doc__.splitlines()[0])
     parser.add_argument("model", type=Path, help="export directory, .onnx, .pt2, .pt (older TorchScript) or .ckpt")
-    parser.add_argument("scan0", type=Path, help="scan at t (.npz, .npy, .bin, .ply, .pcd)")
-    parser.add_argument("scan1", type=Path, help="scan at t + dt")
+    parser.add_argument(
+        "scan0", type=Path, help="scan at t (.npz, .npy, .bin, .ply, .pcd); or a folder / glob of scans: a stream"
+    )
+    parser.add_argument("scan1", type=Path, nargs="?", help="scan at t + dt (none: SCAN0 is a stream)")
     ego = parser.add_mutually_exclusive_group()
     ego.add_argument("--poses", type=Path, help="two world_from_ego poses (scan0, scan1)")
     ego.add_argument("--ego", type=Path, help="one ego1_from_ego0 transform")
@@ -233,6 +245,86 @@ def infer(args) -> tuple[Path, Path | None]:
     return out, bev
 
 
+def stream_files(where: Path) -> list[Path]:
+    """The scans of a stream: the scan files of a folder, or the files a glob matches, in name order."""
+    suffixes = {".npz", *SCAN_SUFFIXES}
+    if where.is_dir():
+        files = sorted(path for path in where.iterdir() if path.suffix.lower() in suffixes and path.is_file())
+    elif any(char in str(where) for char in "*?["):
+        files = sorted(Path(name) for name in glob.glob(str(where)) if Path(name).is_file())
+    else:
+        raise ValueError(f"{where}: give two scans (a pair), or a folder or glob of scans (a stream)")
+    if len(files) < 2:
+        kinds = ", ".join(sorted(suffixes))
+        raise ValueError(f"{where}: a stream needs at least two scans ({kinds}), found {len(files)}")
+    return files
+
+
+def infer_stream(args) -> tuple[Path, int, int]:
+    """Stream mode (module docstring): returns the output folder, the flows written and the scans read."""
+    from fastflow3d.predictor import Predictor
+    from fastflow3d.stream import FlowStream
+    from icpflow.console import Progress
+
+    if args.poses is not None or args.ego is not None:
+        raise ValueError("--poses / --ego give a pair's ego motion; a stream estimates its own (leave them out)")
+    files = stream_files(args.scan0)
+    out = args.out or Path("outputs/infer") / (args.scan0.name if args.scan0.is_dir() else "stream")
+    if out.suffix in (".npz", ".npy"):
+        raise ValueError(f"{out}: --out of a stream is a folder (one .npz per pair)")
+    predictor = Predictor.load(
+        args.model,
+        backend=args.backend,
+        device=args.device,
+        runtime=args.runtime,
+        threads=args.threads,
+        sensor_height=args.sensor_height,
+        preprocessing=given_preprocessing(args),
+        refine=args.refine,
+    )
+    stream = FlowStream(predictor)
+    recording = None
+    if args.rerun is not None:
+        from icpflow.viz_rerun import PairRecording
+
+        recording = PairRecording(args.rerun, application="fastflow3d-infer")
+    written, previous, trajectory = 0, None, []
+    with Progress(total=len(files), unit="frame", desc="infer") as bar:  # its rate: frames per second
+        for path in files:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                try:
+                    points = read_raw_scan(path, args.bin_columns)
+                except (ValueError, OSError) as error:
+                    stream.skip(str(path), one_line(error))
+                    points = None
+                step = None if points is None else stream.push(points, source=str(path))
+            for warning in caught:
+                bar.write(f"infer: warning: {str(warning.message).split(': ', 1)[-1]}", file=sys.stderr)
+            if step is not None and step.prediction is not None:
+                write_flow(out / f"{Path(step.previous).stem}.npz", step.prediction)
+                written += 1
+                if recording is not None:
+                    pair = FramePair(
+                        pc0=previous,
+                        pc1=points,
+                        ego1_from_ego0=step.prediction.ego1_from_ego0,
+                        ground0=step.prediction.ground0 if predictor.remove_ground else None,
+                        source=step.previous,
+                    )
+                    recording.log_pair(written, pair, {"fastflow3d": step.prediction.flow}, step.prediction.in_grid)
+            if step is not None and step.pose is not None:
+                trajectory = [] if step.restarted and step.prediction is None else trajectory
+                trajectory.append(step.pose[:3, 3])
+                if recording is not None:
+                    recording.log_trajectory(written, np.array(trajectory))
+            previous = points if points is not None else previous
+            bar.update(1)
+    if recording is not None:
+        recording.close()
+    return out, written, len(files)
+
+
 def main(argv=None) -> int:
     """Command-line entry; returns the exit status (0 written; 2 an error, one line on stderr; 130 / 143 stopped by
     Ctrl-C / SIGTERM) as ``icpflow.entry`` reports it for every entry point. A bad option exits (argparse)."""
@@ -242,6 +334,12 @@ def main(argv=None) -> int:
 
 
 def _main(args) -> None:
+    if args.scan1 is None:
+        with stop_on_signals():  # each flow file is written atomically: a stop leaves the pairs done, whole
+            out, written, frames = infer_stream(args)
+        rerun = f", 3D -> {args.rerun}" if args.rerun else ""
+        print(f"infer: {written} flows of {frames} scans -> {out}" + rerun)
+        return
     with stop_on_signals():  # the flow file is written atomically: a stop leaves none or the whole file
         out, bev = infer(args)
     rerun = f", 3D -> {args.rerun}" if args.rerun else ""

@@ -126,6 +126,12 @@ class PairRecording:
         )
         self.pairs += 1
 
+    def log_trajectory(self, step: int, positions: np.ndarray) -> None:
+        """The ego trajectory so far, (K, 3) positions in the first scan's frame, at ``step`` of the ``pair``
+        timeline (a stream's recording)."""
+        self.stream.set_time("pair", sequence=int(step))
+        self.stream.log("trajectory", self.rr.LineStrips3D([np.asarray(positions, np.float32)], colors=PC0_RGB))
+
     def close(self) -> Path:
         """Write the file and put it in place; returns its path (``WriteError`` naming it where the place is full or
         read-only; nothing is left there then)."""

@@ -157,3 +157,64 @@ def test_a_scan_from_another_frame_is_caught_by_the_height_check(predictor_path,
     assert len(said) == 1 and re.match(r"FlowStream: s4: the ground moved by \+1\.[45]\d m", said[0]), said
     for pair, step in zip(pairs[4:], steps[5:]):
         assert _errors(pair.ego1_from_ego0, step.prediction.ego1_from_ego0)[0] < 0.03
+
+
+def test_infer_streams_a_folder_and_bridges_a_broken_scan(predictor_path, moving, tmp_path, capsys):
+    """fastflow3d-infer MODEL DIR --out OUT: one .npz per consecutive pair, named after its first scan, holding what
+    a pair's output holds; a broken scan mid-stream is one warning naming it and the next pair spans the gap; the
+    recording holds the pairs and the trajectory."""
+    pytest.importorskip("rerun", reason="rerun-sdk is an optional dependency (pip install 'icpflow[viz]')")
+    from fastflow3d.infer import main as infer_main
+
+    from helpers.rerun import read_recording
+
+    pairs, scans = moving
+    folder, out, recording = tmp_path / "scans", tmp_path / "flows", tmp_path / "stream.rrd"
+    folder.mkdir()
+    for k, scan in enumerate(scans[:5]):
+        np.save(folder / f"{k:06d}.npy", scan)
+    (folder / "000002.npy").write_bytes(b"not a scan")
+    assert infer_main([str(predictor_path), str(folder), "--out", str(out), "--rerun", str(recording)]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("infer: warning")]
+    assert len(err) == 1 and "000002.npy: skipped" in err[0] and "the next pair spans the gap" in err[0], err
+    assert sorted(path.name for path in out.iterdir()) == ["000000.npz", "000001.npz", "000003.npz"]
+    with np.load(out / "000001.npz") as bridged:  # 000001 -> 000003
+        truth = pairs[2].ego1_from_ego0 @ pairs[1].ego1_from_ego0
+        assert _errors(truth, bridged["ego1_from_ego0"])[0] < 0.03 and bool(bridged["ego_estimated"])
+        assert {"flow", "residual", "in_grid", "ground0", "ego_assumed"} <= set(bridged.files)
+        assert bridged["flow"].shape == scans[1].shape
+    entities = read_recording(recording)
+    assert {"pc0", "pc1", "flow/fastflow3d/moved", "trajectory"} <= set(entities)
+    assert len(entities["pc0"]) == 3
+
+
+def test_infer_stream_needs_a_folder_or_glob_of_two_scans(predictor_path, tmp_path, capsys):
+    from fastflow3d.infer import main as infer_main
+
+    (tmp_path / "one").mkdir()
+    np.save(tmp_path / "one" / "a.npy", np.zeros((200, 3), np.float32))
+    assert infer_main([str(predictor_path), str(tmp_path / "one")]) == 2
+    assert "a stream needs at least two scans" in capsys.readouterr().err
+    assert infer_main([str(predictor_path), str(tmp_path / "one"), "--ego", "x.txt"]) == 2
+    assert "--poses / --ego give a pair's ego motion" in capsys.readouterr().err
+
+
+def test_eval_student_stream_continues_a_sequence_and_restarts_on_the_next(predictor_path):
+    """eval.py method student-stream: the pairs of one sequence are one stream (the same flows as a FlowStream fed
+    the scans), a pair of another sequence starts a new one."""
+    from fastflow3d.eval_method import StreamedStudentMethod
+
+    data = SyntheticDataset(split="test", num_sequences=2, frames_per_sequence=4, beams=32, seed=3)
+    pairs = [data[i] for i in range(len(data))]
+    method = StreamedStudentMethod(predictor_path)
+    flows = [method(pair, index) for index, pair in enumerate(pairs)]
+    for sequence in (pairs[:3], pairs[3:]):
+        assert len({pair.log_id for pair in sequence}) == 1
+    first = pairs[0].log_id
+    stream = FlowStream(Predictor.load(predictor_path))
+    for start in (0, 3):
+        stream.reset()
+        stream.push(pairs[start].pc0)
+        for k in range(start, start + 3):
+            np.testing.assert_allclose(flows[k], stream.push(pairs[k].pc1).prediction.flow, atol=1e-6)
+    assert pairs[3].log_id != first

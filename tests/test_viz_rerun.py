@@ -4,7 +4,6 @@ entity and value by value; from eval.py viewer=rerun and fastflow3d-infer --reru
 from __future__ import annotations
 
 import sys
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -20,30 +19,12 @@ from icpflow.viz_rerun import PairRecording, ViewerUnavailable, import_rerun, sp
 from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 
 pytest.importorskip("rerun", reason="rerun-sdk is an optional dependency (pip install 'icpflow[viz]')")
-from rerun.chunk import RrdReader  # noqa: E402
+from helpers.rerun import read_recording  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO.parent / "shared" / "data" / "kitti_hdl64_scans"
 READER = {"split": "val", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 1.0}
 TINY = tiny_model(16.0, 0.5)
-
-
-def read_recording(path) -> dict[str, dict[int, dict]]:
-    """``{entity: {pair step: {component: numpy array}}}`` of an .rrd file, through rerun's RrdReader."""
-    entities = defaultdict(dict)
-    for chunk in RrdReader(path).stream():
-        batch = chunk.to_record_batch()
-        if "pair" not in batch.schema.names:
-            continue
-        for row in range(batch.num_rows):
-            step = batch.column("pair")[row].as_py()
-            values = {}
-            for name in batch.schema.names:
-                if ":" in name:
-                    value = batch.column(name)[row].as_py()
-                    values[name.split(":", 1)[1]] = value if name.startswith("TextDocument") else np.asarray(value)
-            entities[str(chunk.entity_path).lstrip("/")][step] = values
-    return dict(entities)
 
 
 def rgb(packed: np.ndarray) -> np.ndarray:
