@@ -58,7 +58,7 @@ def refine_motion(pc0: np.ndarray, pc1: np.ndarray, ego1_from_ego0: np.ndarray, 
     """Point-to-plane ICP of pc0 onto pc1 from ``ego1_from_ego0``, on ``refine_voxel`` down-sampled scans."""
     voxel = float(ego_settings(cfg).refine_voxel)
     source, target = refinement_cloud(pc0, voxel), refinement_cloud(pc1, voxel, normals=True)
-    return refine_clouds(source, target, ego1_from_ego0, voxel)
+    return refine_clouds(source, target, ego1_from_ego0, voxel)[0]
 
 
 def refinement_cloud(points: np.ndarray, voxel: float, normals: bool = False, neighbours: int | None = None):
@@ -75,10 +75,13 @@ def refinement_cloud(points: np.ndarray, voxel: float, normals: bool = False, ne
     return cloud
 
 
-def refine_clouds(source, target, transform: np.ndarray, voxel: float, iterations: int = 50) -> np.ndarray:
+def refine_clouds(
+    source, target, transform: np.ndarray, voxel: float, iterations: int = 50
+) -> tuple[np.ndarray, float]:
     """Point-to-plane ICP of the :func:`refinement_cloud` ``source`` onto ``target`` (with normals), both of
-    ``voxel`` m, from ``transform`` (correspondences within twice the voxel, at most ``iterations``); ``transform``
-    itself when under 30 % of the source finds a correspondence."""
+    ``voxel`` m, from ``transform`` (correspondences within twice the voxel, at most ``iterations``): the refined
+    transform (``transform`` itself when under 30 % of the source finds a correspondence) and that fraction (the
+    fitness)."""
     import open3d as o3d
 
     result = o3d.pipelines.registration.registration_icp(
@@ -91,7 +94,8 @@ def refine_clouds(source, target, transform: np.ndarray, voxel: float, iteration
             relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=iterations
         ),
     )
-    return np.asarray(result.transformation, dtype=np.float64) if result.fitness > 0.3 else transform
+    refined = np.asarray(result.transformation, dtype=np.float64) if result.fitness > 0.3 else transform
+    return refined, float(result.fitness)
 
 
 #: fewer points than this in either scan: no estimate (the identity)
@@ -193,10 +197,9 @@ class StreamOdometry:
         """``transform`` refined from ``source`` onto ``target`` (when ``refine``), and its fitness."""
         import open3d as o3d
 
-        distance = 2.0 * self.voxel
-        if self.refine and len(source.points) and len(target.points):
-            transform = refine_clouds(source, target, transform, self.voxel, STREAM_ITERATIONS)
         if not len(source.points) or not len(target.points):
             return transform, 0.0
-        result = o3d.pipelines.registration.evaluate_registration(source, target, distance, transform)
+        if self.refine:
+            return refine_clouds(source, target, transform, self.voxel, STREAM_ITERATIONS)
+        result = o3d.pipelines.registration.evaluate_registration(source, target, 2.0 * self.voxel, transform)
         return transform, float(result.fitness)
