@@ -44,11 +44,13 @@ from omegaconf import OmegaConf
 from fastflow3d import options as fastflow3d_options
 from fastflow3d.artifact import FILE_NAMES, OnnxRuntimeNetwork, SingleSampleNet, TorchNetwork, load_network
 from fastflow3d.checkpoint import build_student
+from fastflow3d.contract import InputContract
 from fastflow3d.export import PARITY_TOLERANCE, export_model, measure_parity
 from fastflow3d.model import compensate
 from fastflow3d.predictor import Predictor
 from fastflow3d.runtime import BF16_TOLERANCE, runtime_network
 from icpflow.geometry import residual_to_full
+from icpflow.preprocess import Preprocessing
 from icpflow.teacher.config import ICPFlowConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -229,8 +231,8 @@ def main():
                 print(f"{scan}: no scans under {DATA}; no rows")
                 continue
             pc0, pc1 = data
-            metadata = {"preprocessing": {"remove_ground": True, "teacher": TEACHERS[scan].to_dict()}}
-            predictors = {name: Predictor(net, metadata, name) for name, net in networks.items()}
+            contract = InputContract(Preprocessing.from_teacher(TEACHERS[scan]), True, model.grid)
+            predictors = {name: Predictor(net, contract, name) for name, net in networks.items()}
             first = next(iter(predictors.values()))
             ego = first.estimate_ego_motion(pc0, pc1)  # the given regime's inputs, computed outside the timing
             g0, g1 = first.ground_mask("ground0", pc0, None), first.ground_mask("ground1", pc1, None)

@@ -128,12 +128,13 @@ class OdometryStep:
 
 #: metres: the voxel of the stream's refinement clouds (non-ground points). Finer than the pairwise step's 0.2 m: a
 #: voxel grid fixed in each scan's frame pulls a slow motion towards the identity (BENCHMARKS.md, issue 33)
-STREAM_VOXEL = 0.125
+STREAM_VOXEL = 0.15
 #: the stream's refinement: at most this many source points (an even subsample of the previous scan's cloud) and
 #: iterations (it starts from KISS-ICP's estimate, centimetres away)
-STREAM_SOURCE_POINTS, STREAM_ITERATIONS = 8000, 20
-#: the stream's target normals: of the nearest 10 points (a quarter cheaper than the pairwise radius search, as exact
-#: on the synthetic sequences)
+STREAM_SOURCE_POINTS, STREAM_ITERATIONS = 4000, 10
+#: the stream's target normals: of the nearest 10 points (the normals are the stream's costliest step: a quarter
+#: cheaper than the pairwise radius search; 6 neighbours are cheaper still but tilt on a 32-beam scan's sparse rings,
+#: 1.5-2 cm instead of 0.5 cm, BENCHMARKS.md, issue 33)
 STREAM_NORMAL_NEIGHBOURS = 10
 
 
@@ -159,8 +160,9 @@ class StreamOdometry:
     def reset(self) -> None:
         """Forget the map and the motion: the next scan starts a new track."""
         self._kiss = None
-        # (points, non-ground cloud with normals, KISS pose, its subsample) of the previous scan
+        # (non-ground points, their cloud with normals, KISS pose, the cloud's subsample) of the previous scan
         self._previous = None
+        self._steps = 0  # steps of this track: its first has no motion model yet (KISS-ICP starts at the identity)
 
     def step(self, points: np.ndarray, ground: np.ndarray | None = None) -> OdometryStep | None:
         """Register the scan ``points`` (N, 3) (``ground``: its (N,) bool ground mask, left out of the
@@ -173,33 +175,37 @@ class StreamOdometry:
         self._kiss.register_frame(kept, np.zeros(0))
         cloud = refinement_cloud(kept, self.voxel, normals=True, neighbours=STREAM_NORMAL_NEIGHBOURS)
         step = max(1, len(cloud.points) // STREAM_SOURCE_POINTS)
-        current = (points, cloud, np.asarray(self._kiss.last_pose, np.float64), cloud.uniform_down_sample(step))
+        current = (kept, cloud, np.asarray(self._kiss.last_pose, np.float64), cloud.uniform_down_sample(step))
         previous, self._previous = self._previous, current
         if previous is None:
             return None
-        transform, fitness = self._aligned(previous[3], cloud, invert(current[2]) @ previous[2])
+        self._steps += 1
+        young = self._steps == 1
+        transform, fitness = self._aligned(previous[3], cloud, invert(current[2]) @ previous[2], young)
         if fitness >= self.min_fitness:
             return OdometryStep(transform, fitness)
         # lost: the two scans alone (a fresh KISS-ICP, as for a single pair); the track restarts from this pair
         self._kiss = kiss_odometry(self.settings)
         self._kiss.register_frame(previous[0], np.zeros(0))
-        self._kiss.register_frame(points, np.zeros(0))
+        self._kiss.register_frame(kept, np.zeros(0))
         pose = np.asarray(self._kiss.last_pose, np.float64)
-        transform, fitness = self._aligned(previous[3], cloud, invert(pose))
+        transform, fitness = self._aligned(previous[3], cloud, invert(pose), young=True)
         if fitness >= self.min_fitness:
-            self._previous = (points, cloud, pose, current[3])
+            self._previous, self._steps = (kept, cloud, pose, current[3]), 1
             return OdometryStep(transform, fitness, restarted=True)
         self.reset()
         self.step(points, ground)  # this scan starts the new track
         return OdometryStep(None, fitness, restarted=True)
 
-    def _aligned(self, source, target, transform: np.ndarray) -> tuple[np.ndarray, float]:
-        """``transform`` refined from ``source`` onto ``target`` (when ``refine``), and its fitness."""
+    def _aligned(self, source, target, transform: np.ndarray, young: bool = False) -> tuple[np.ndarray, float]:
+        """``transform`` refined from ``source`` onto ``target`` (when ``refine``; the pairwise step's 50
+        iterations on a ``young`` track's first step, whose start is KISS-ICP's estimate from one scan), and its
+        fitness."""
         import open3d as o3d
 
         if not len(source.points) or not len(target.points):
             return transform, 0.0
         if self.refine:
-            return refine_clouds(source, target, transform, self.voxel, STREAM_ITERATIONS)
+            return refine_clouds(source, target, transform, self.voxel, 50 if young else STREAM_ITERATIONS)
         result = o3d.pipelines.registration.evaluate_registration(source, target, 2.0 * self.voxel, transform)
         return transform, float(result.fitness)
