@@ -76,12 +76,12 @@ def refinement_cloud(points: np.ndarray, voxel: float, normals: bool = False, ne
 
 
 def refine_clouds(
-    source, target, transform: np.ndarray, voxel: float, iterations: int = 50
+    source, target, transform: np.ndarray, voxel: float, iterations: int = 50, tukey: float | None = None
 ) -> tuple[np.ndarray, float]:
     """Point-to-plane ICP of the :func:`refinement_cloud` ``source`` onto ``target`` (with normals), both of
     ``voxel`` m, from ``transform`` (correspondences within twice the voxel, at most ``iterations``): the refined
     transform (``transform`` itself when under 30 % of the source finds a correspondence) and that fraction (the
-    fitness)."""
+    fitness). ``tukey``: a robust Tukey kernel of that width (m), which leaves moving objects out of the fit."""
     import open3d as o3d
 
     result = o3d.pipelines.registration.registration_icp(
@@ -89,7 +89,9 @@ def refine_clouds(
         target,
         2.0 * voxel,
         transform,
-        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+        o3d.pipelines.registration.TransformationEstimationPointToPlane(
+            *([] if tukey is None else [o3d.pipelines.registration.TukeyLoss(k=tukey)])
+        ),
         o3d.pipelines.registration.ICPConvergenceCriteria(
             relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=iterations
         ),
@@ -132,6 +134,9 @@ STREAM_VOXEL = 0.15
 #: the stream's refinement: at most this many source points (an even subsample of the previous scan's cloud) and
 #: iterations (it starts from KISS-ICP's estimate, centimetres away)
 STREAM_SOURCE_POINTS, STREAM_ITERATIONS = 4000, 10
+#: metres: the width of the stream refinement's robust (Tukey) kernel: the moving traffic of a fast drive pulled the
+#: plain least squares by 2-3 cm (synthetic, 9.6 m/s: 2.20 -> 0.20 cm median, BENCHMARKS.md, issue 33)
+STREAM_TUKEY = 0.1
 #: the stream's target normals: of the nearest 10 points (the normals are the stream's costliest step: a quarter
 #: cheaper than the pairwise radius search; 6 neighbours are cheaper still but tilt on a 32-beam scan's sparse rings,
 #: 1.5-2 cm instead of 0.5 cm, BENCHMARKS.md, issue 33)
@@ -198,14 +203,15 @@ class StreamOdometry:
         return OdometryStep(None, fitness, restarted=True)
 
     def _aligned(self, source, target, transform: np.ndarray, young: bool = False) -> tuple[np.ndarray, float]:
-        """``transform`` refined from ``source`` onto ``target`` (when ``refine``; the pairwise step's 50
-        iterations on a ``young`` track's first step, whose start is KISS-ICP's estimate from one scan), and its
-        fitness."""
+        """``transform`` refined from ``source`` onto ``target`` (when ``refine``; on a ``young`` track's first step,
+        whose start is KISS-ICP's estimate from one scan, as the pairwise step refines), and its fitness."""
         import open3d as o3d
 
         if not len(source.points) or not len(target.points):
             return transform, 0.0
         if self.refine:
-            return refine_clouds(source, target, transform, self.voxel, 50 if young else STREAM_ITERATIONS)
+            if young:  # the start may be decimetres off: plain least squares, the pairwise step's iterations
+                return refine_clouds(source, target, transform, self.voxel, 50)
+            return refine_clouds(source, target, transform, self.voxel, STREAM_ITERATIONS, STREAM_TUKEY)
         result = o3d.pipelines.registration.evaluate_registration(source, target, 2.0 * self.voxel, transform)
         return transform, float(result.fitness)
