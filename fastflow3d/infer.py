@@ -173,9 +173,25 @@ def given_preprocessing(args):
     return None
 
 
+def load_predictor(args):
+    """The Predictor the options ask for (model, engine, height frame, preprocessing, refinement)."""
+    from fastflow3d.predictor import Predictor
+
+    return Predictor.load(
+        args.model,
+        backend=args.backend,
+        device=args.device,
+        runtime=args.runtime,
+        threads=args.threads,
+        sensor_height=args.sensor_height,
+        preprocessing=given_preprocessing(args),
+        refine=args.refine,
+    )
+
+
 def infer(args) -> tuple[Path, Path | None]:
     """Read, predict, write; returns the flow path and the picture path (or None)."""
-    from fastflow3d.predictor import Predictor, PredictorWarning
+    from fastflow3d.predictor import PredictorWarning
     from icpflow.viz import plot_bev
 
     out = args.out or Path("outputs/infer") / f"{args.scan0.stem}_flow.npz"
@@ -188,16 +204,7 @@ def infer(args) -> tuple[Path, Path | None]:
         ego = relative_transform(pose0, pose1)
     elif args.ego is not None:
         ego = read_transforms(args.ego, 1)[0]
-    predictor = Predictor.load(
-        args.model,
-        backend=args.backend,
-        device=args.device,
-        runtime=args.runtime,
-        threads=args.threads,
-        sensor_height=args.sensor_height,
-        preprocessing=given_preprocessing(args),
-        refine=args.refine,
-    )
+    predictor = load_predictor(args)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PredictorWarning)
         prediction = predictor.predict(pc0, pc1, ego)
@@ -262,7 +269,6 @@ def stream_files(where: Path) -> list[Path]:
 
 def infer_stream(args) -> tuple[Path, int, int]:
     """Stream mode (module docstring): returns the output folder, the flows written and the scans read."""
-    from fastflow3d.predictor import Predictor
     from fastflow3d.stream import FlowStream
     from icpflow.console import Progress
 
@@ -272,16 +278,7 @@ def infer_stream(args) -> tuple[Path, int, int]:
     out = args.out or Path("outputs/infer") / (args.scan0.name if args.scan0.is_dir() else "stream")
     if out.suffix in (".npz", ".npy"):
         raise ValueError(f"{out}: --out of a stream is a folder (one .npz per pair)")
-    predictor = Predictor.load(
-        args.model,
-        backend=args.backend,
-        device=args.device,
-        runtime=args.runtime,
-        threads=args.threads,
-        sensor_height=args.sensor_height,
-        preprocessing=given_preprocessing(args),
-        refine=args.refine,
-    )
+    predictor = load_predictor(args)
     stream = FlowStream(predictor)
     recording = None
     if args.rerun is not None:
