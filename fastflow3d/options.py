@@ -94,6 +94,9 @@ class TrainOptions:
     hydra_dir: str = MISSING
     checkpoint_dir: str = MISSING
     ckpt_path: str | None = None
+    # samples per optimiser step over every device and node; set: trainer.accumulate_grad_batches follows from it
+    # (fastflow3d.training.settle_batch); null: data.batch_size x accumulation x devices x nodes as configured
+    effective_batch: int | None = setting(None, "count")
     overwrite: bool = False
     seed: int = 0
     compile: bool = False

@@ -187,6 +187,33 @@ def build_trainer(cfg: DictConfig) -> L.Trainer:
     )
 
 
+def accumulation(effective: int, batch: int, devices: int, nodes: int) -> int:
+    """The batches to accumulate so that ``batch`` samples per device on ``devices`` devices of ``nodes`` nodes make
+    an ``effective`` batch; TrainError (one line) when they cannot."""
+    parts = batch * devices * nodes
+    if effective % parts:
+        raise TrainError(
+            f"effective_batch={effective} is not a multiple of data.batch_size x devices x nodes = {batch} x "
+            f"{devices} x {nodes} = {parts}; choose a batch size and devices that divide it"
+        )
+    return effective // parts
+
+
+def settle_batch(cfg: DictConfig, trainer: L.Trainer) -> tuple[int, str]:
+    """The run's effective batch (samples per optimiser step over every device and node) and its line; with
+    ``effective_batch`` set, ``trainer.accumulate_grad_batches`` is set to reach it on this trainer's devices."""
+    batch, devices, nodes = int(cfg.data.batch_size), int(trainer.num_devices), int(trainer.num_nodes)
+    if cfg.get("effective_batch"):
+        trainer.accumulate_grad_batches = accumulation(int(cfg.effective_batch), batch, devices, nodes)
+    accumulated = int(trainer.accumulate_grad_batches)
+    effective = batch * accumulated * devices * nodes
+    line = (
+        f"effective batch {effective} = {batch} per device x {accumulated} accumulated x {devices} device(s) x "
+        f"{nodes} node(s)"
+    )
+    return effective, line
+
+
 def best_checkpoint(trainer: L.Trainer) -> Path | None:
     """The best checkpoint of the first monitoring ModelCheckpoint, if it exists."""
     for callback in trainer.checkpoint_callbacks:
@@ -347,6 +374,10 @@ def fit(cfg: DictConfig) -> L.Trainer:
         data = plain["data"]
         datamodule = ShardDataModule.from_config(data, module.contract)
         trainer = build_trainer(cfg)
+        effective, line = settle_batch(cfg, trainer)
+        module.hparams["cfg"]["effective_batch"] = effective  # the logged and saved config say it
+        if trainer.is_global_zero:
+            log.info(line)
         try:
             trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
         except TrainingStopped:

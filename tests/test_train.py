@@ -20,7 +20,7 @@ from fastflow3d.artifact import FILE_NAMES, METADATA_NAME
 from fastflow3d.checkpoint import CheckpointError, build_student, load_student
 from fastflow3d.data import DataError, StudentDataset, collate
 from fastflow3d.model import FastFlow3D
-from fastflow3d.training import TrainError, fit
+from fastflow3d.training import TrainError, accumulation, build_trainer, fit, settle_batch
 from fastflow3d.voxelize import Grid
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, transform_points
@@ -131,7 +131,7 @@ def test_experiment_recipes():
     ``python train.py`` alone reads what ``python label.py`` alone writes, and a group given on the command line
     beats the experiment's."""
     zeroflow = _compose("experiment=zeroflow")
-    assert zeroflow.data.batch_size * zeroflow.trainer.accumulate_grad_batches == 64
+    assert zeroflow.effective_batch == 64  # whatever the devices (test_effective_batch_holds_for_any_split)
     quick = _compose()  # python train.py with no arguments
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         train_labels = compose("label").out_dir
@@ -140,6 +140,33 @@ def test_experiment_recipes():
     assert quick.trainer.max_steps > 0 and quick.trainer.accelerator == "cpu"
     xl = _compose("experiment=paper", "model=fastflow3d_xl").model  # the xl grid, whatever the experiment
     assert _compose("model=fastflow3d_xl").model.cell == xl.cell != quick.model.cell
+
+
+@pytest.mark.parametrize("batch, devices, nodes, accumulated", [(1, 8, 1, 8), (8, 4, 1, 2), (8, 2, 1, 4), (2, 4, 2, 4)])
+def test_effective_batch_holds_for_any_split(batch, devices, nodes, accumulated):
+    """Issue 34.3: effective_batch sets the accumulation, batch x accumulation x devices x nodes = 64 (1x8x8, 8x2x4,
+    a CPU 2-process split, two nodes); a split that cannot reach it is one line."""
+    assert accumulation(64, batch, devices, nodes) == accumulated
+    assert batch * accumulated * devices * nodes == 64
+    with pytest.raises(TrainError, match=r"^effective_batch=64 is not a multiple of .* = 5 x 2 x 1 = 10;"):
+        accumulation(64, 5, 2, 1)
+
+
+@pytest.mark.parametrize("split", ["cpu", "ddp_cpu"])
+def test_the_trainer_of_a_run_reaches_the_recipes_effective_batch(split):
+    """The zeroflow recipe's Trainer, on one CPU process or as 2 DDP processes (built, not run): its accumulation
+    makes the effective batch 64, and the line the run prints says the split."""
+    devices = ["trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2", "trainer.sync_batchnorm=false"]
+    cfg = _compose("experiment=zeroflow", *(devices if split == "ddp_cpu" else []), "~logger", "~callbacks")
+    trainer = build_trainer(cfg)
+    effective, line = settle_batch(cfg, trainer)
+    expected = {"cpu": (8, 1), "ddp_cpu": (4, 2)}[split]
+    assert (trainer.accumulate_grad_batches, trainer.num_devices) == expected and effective == 64
+    assert (
+        line == f"effective batch 64 = 8 per device x {expected[0]} accumulated x {expected[1]} device(s) x 1 node(s)"
+    )
+    plain = _compose("trainer.accumulate_grad_batches=3", "data.batch_size=2", "~logger", "~callbacks")
+    assert settle_batch(plain, build_trainer(plain))[0] == 6  # no effective_batch: as configured
 
 
 # ---------------------------------------------------------------------------------------------------- tiny shards
@@ -459,6 +486,8 @@ def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
         _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=5", "ckpt_path=last", *common), resolve=True
     )
     expected["input"] = second.lightning_module.contract.to_dict()  # the teacher's part from the shards
+    batch = expected["data"]["batch_size"] * expected["trainer"]["accumulate_grad_batches"]
+    expected["effective_batch"] = batch  # what ran: batch x accumulation x 1 device x 1 node
     assert second.lightning_module.contract.preprocessing == Preprocessing.from_teacher(TEACHER)
     assert not model.training and cfg == expected
     assert cfg["model"]["cell"] == 1.0 and cfg["model"]["stage_channels"] == [16, 32, 64]
