@@ -244,11 +244,12 @@ class ShardDataModule(L.LightningDataModule):
         if stage in (None, "fit", "validate") and self.val_set is None:
             self.val_set = StudentDataset(self.val_dir)
 
-    def _loader(self, dataset, shuffle: bool) -> DataLoader:
+    def _loader(self, dataset, shuffle: bool, sampler=None) -> DataLoader:
         return DataLoader(
             dataset,
             batch_size=self.batch_size,
             shuffle=shuffle,
+            sampler=sampler,
             num_workers=self.workers,
             collate_fn=collate,
             persistent_workers=self.workers > 0,
@@ -261,4 +262,14 @@ class ShardDataModule(L.LightningDataModule):
         return self._loader(self.train_set, shuffle=True)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self.val_set, shuffle=False)
+        """The validation samples; with several processes, each rank gets its share of them once, none repeated
+        (Lightning's own sampler would pad the shares with repeats to equal length, which the val metrics, summed
+        over ranks in ``StudentModule.on_validation_epoch_end``, would count twice)."""
+        world = self.trainer.world_size if self.trainer is not None else 1
+        if world <= 1:
+            return self._loader(self.val_set, shuffle=False)
+        from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
+
+        rank = self.trainer.global_rank
+        sampler = UnrepeatedDistributedSampler(self.val_set, num_replicas=world, rank=rank, shuffle=False)
+        return self._loader(self.val_set, shuffle=False, sampler=sampler)

@@ -558,3 +558,23 @@ def test_load_student_rejects_other_files(tmp_path):
         load_student(wrong)
     with pytest.raises(CheckpointError, match="does not exist"):
         load_student(tmp_path / "missing.ckpt")
+
+
+@pytest.mark.parametrize("world", [1, 2])
+def test_validation_shares_of_several_processes_hold_each_sample_once(shards, world):
+    """Issue 34.1 (c), the data side: with several processes each rank validates its share, together every sample of
+    the val set exactly once (Lightning's own sampler pads the shares with repeats, which the summed metrics would
+    count twice); shares differ by at most one sample."""
+    from types import SimpleNamespace
+
+    from fastflow3d.data import ShardDataModule
+
+    seen = []
+    for rank in range(world):
+        module = ShardDataModule(shards["gt"], shards["gt"], batch_size=2, workers=0)
+        module.trainer = SimpleNamespace(world_size=world, global_rank=rank)
+        module.setup("validate")
+        seen.append([sample_id for batch in module.val_dataloader() for sample_id in batch["sample_id"]])
+    everything = StudentDataset(shards["gt"]).shards.sample_ids
+    assert sorted(sum(seen, [])) == sorted(everything) and len(everything) >= world
+    assert max(map(len, seen)) - min(map(len, seen)) <= 1
