@@ -27,6 +27,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 
 from icpflow.settings import OptionError, type_error_line
@@ -121,8 +122,29 @@ def stop_on_signals(signums=STOP_SIGNALS) -> Iterator[None]:
     restore = on_signals(raise_stop, signums)
     try:
         yield
+    except (Stop, KeyboardInterrupt):
+        join_library_threads()
+        raise
     finally:
         restore()
+
+
+#: packages whose calls run their own worker threads and return when these end (scipy's ``cKDTree.query`` with
+#: ``workers``): a stop that lands while such a call waits for its threads leaves them running on the call's data
+LIBRARY_THREADS = ("scipy.",)
+
+
+def join_library_threads(timeout: float = 5.0) -> None:
+    """Wait (at most ``timeout`` s in all) for the worker threads of ``LIBRARY_THREADS`` calls that a stop
+    interrupted: if the process exited with them running, finalising Python frees their data under them (a
+    segmentation fault at exit, seen after a Ctrl-C during labelling). A thread's function is read from
+    ``Thread._target``, the standard library's private field that holds it (there is no public one)."""
+    deadline = time.monotonic() + timeout
+    for thread in threading.enumerate():
+        target = getattr(thread, "_target", None)
+        module = getattr(target, "__module__", None) or ""
+        if thread is not threading.current_thread() and module.startswith(LIBRARY_THREADS):
+            thread.join(max(0.0, deadline - time.monotonic()))
 
 
 # ---------------------------------------------------------------------------------------------------- messages

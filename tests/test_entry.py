@@ -193,3 +193,30 @@ def test_a_signal_during_evaluation_keeps_a_partial_result_and_exits_128_plus_it
         f'eval: {what}; the 0 pairs scored are kept in {tmp_path / "metrics.json"} ("complete": false); '
         "rerun the same command for all pairs"
     )
+
+
+def test_a_stop_waits_for_the_library_threads_it_interrupted():
+    """A stop that lands while a scipy call waits for its worker threads (cKDTree.query with workers) lets those
+    threads end before it propagates: exiting with them running segfaulted at interpreter exit."""
+    import threading
+    import time
+
+    done = threading.Event()
+
+    def work():
+        time.sleep(0.3)
+        done.set()
+
+    work.__module__ = "scipy.spatial._ckdtree"  # as scipy's query threads are
+    worker = threading.Thread(target=work, daemon=True)
+    with pytest.raises(Stop):
+        with stop_on_signals():
+            worker.start()
+            raise Stop(signal.SIGINT)
+    assert done.is_set() and not worker.is_alive()
+    other = threading.Thread(target=lambda: time.sleep(0.5), daemon=True)
+    other.start()
+    start = time.monotonic()
+    with pytest.raises(Stop), stop_on_signals():
+        raise Stop(signal.SIGTERM)
+    assert time.monotonic() - start < 0.4 and other.is_alive()  # no wait for threads of others
