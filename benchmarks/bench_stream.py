@@ -41,7 +41,7 @@ from fastflow3d.runtime import runtime_network
 from fastflow3d.stream import FlowStream
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
-from icpflow.preprocess import Preprocessing
+from icpflow.preprocess import Preprocessing, lift_points
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.ego_motion import StreamOdometry, estimate_ego_motion
 
@@ -142,8 +142,8 @@ def play(network, contract, backend, scans, args):
     # the given regime's inputs: the stream's own estimates, computed once beforehand
     reference = FlowStream(Predictor(network, contract, backend))
     given = [reference.push(scan).prediction for scan in scans]
-    lift = FlowStream(predictor).predictor.frame_lift(scans[0])
-    grounds = [predictor.ground_mask("g", scan + np.array([0, 0, lift], np.float32), None) for scan in scans]
+    lift = predictor.frame_lift(scans[0])
+    grounds = [predictor.ground_mask("g", lift_points(scan, lift), None) for scan in scans]
     memory, per_step = {}, []
     for _ in range(args.passes):
         for k in range(1, len(scans)):

@@ -30,7 +30,7 @@ import warnings
 import numpy as np
 
 from fastflow3d.predictor import Prediction, Predictor, PredictorWarning, as_points
-from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height
+from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
 from icpflow.teacher.ego_motion import MIN_EGO_POINTS, StreamOdometry
 
 
@@ -118,7 +118,7 @@ class FlowStream:
                     "the odometry restarts"
                 )
                 self._gap = "a time gap"
-        lifted = points + np.array([0.0, 0.0, self.lift], np.float32) if self.lift else points
+        lifted = lift_points(points, self.lift)
         ground = self.predictor.ground_mask("ground", lifted, None)
         current = _Scan(points, lifted, ground, None if timestamp is None else float(timestamp), source)
         self._previous = current
@@ -196,7 +196,7 @@ class FlowStream:
             self.lift, self._gap = lift, "another frame"
             if self._previous is not None:  # the previous scan in the new frame, for the pair across the change
                 prev = self._previous
-                prev.lifted = prev.points + np.array([0.0, 0.0, lift], np.float32)
+                prev.lifted = lift_points(prev.points, lift)
 
     @staticmethod
     def _warn(message: str) -> None:
