@@ -3,7 +3,7 @@
 synthetic test pairs, with the teacher ``eval.py method=icpflow`` runs for ``dataset=synthetic``.
 
     .venv/bin/python benchmarks/teacher_backends.py [--pairs 32] [--teacher FIELD=VALUE ...] [--max-seconds S]
-        [--json OUT]
+        [--json OUT] [--av2 ../shared/data/av2]
 
 No Hydra: the reader is ``SyntheticDataset(split="test", ...)`` with conf/dataset/synthetic.yaml's ``reader``
 settings (``num_sequences`` as many as ``--pairs`` needs: 4 pairs a sequence), the teacher
@@ -56,20 +56,20 @@ DIFF_TOLERANCE = 0.01  # m: a point whose two flows differ by more counts as dif
 
 
 def dataset_settings() -> dict:
-    """conf/dataset/synthetic.yaml as a dict (PyYAML; the yaml has no interpolation but ``split: ${split}``)."""
-    import yaml
+    """conf/dataset/synthetic.yaml as a dict, its interpolations resolved as Hydra resolves them (the teacher's ground
+    block follows ``reader.sensor_height``; the split is the test split)."""
+    from omegaconf import OmegaConf
 
-    return yaml.safe_load(SYNTHETIC_YAML.read_text())
+    import icpflow.teacher.config  # noqa: F401  (registers the ``negative`` resolver)
+
+    composed = OmegaConf.create({"split": "test", "dataset": OmegaConf.load(SYNTHETIC_YAML)})
+    return OmegaConf.to_container(composed.dataset, resolve=True)
 
 
 def reader_kwargs(settings: dict, pairs: int) -> dict:
-    """``SyntheticDataset`` arguments of the yaml's ``reader`` (``_target_`` and interpolations dropped) with enough
-    test sequences for ``pairs`` pairs."""
-    reader = {
-        key: value
-        for key, value in settings["reader"].items()
-        if key != "_target_" and not (isinstance(value, str) and value.startswith("${"))
-    }
+    """``SyntheticDataset`` arguments of the yaml's ``reader`` (``_target_`` dropped) with enough test sequences for
+    ``pairs`` pairs."""
+    reader = {key: value for key, value in settings["reader"].items() if key != "_target_"}
     per_sequence = int(reader.get("frames_per_sequence", 5)) - int(reader.get("max_horizon", 1))
     reader["split"] = "test"
     reader["num_sequences"] = max(1, math.ceil(pairs / per_sequence))
@@ -245,6 +245,14 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the numbers to this file")
     parser.add_argument(
+        "--av2",
+        type=Path,
+        default=None,
+        metavar="ROOT",
+        help="the Argoverse 2 pair of ROOT (e.g. ../shared/data/av2: split val, pair 0, map ground within 0.3 m) with "
+        "the av2 preset, instead of synthetic pairs",
+    )
+    parser.add_argument(
         "--max-seconds",
         type=float,
         default=None,
@@ -269,15 +277,23 @@ def main(argv=None) -> int:
     from icpflow.datasets.synthetic import SyntheticDataset
     from icpflow.teacher.warmup import ensure_compiled
 
-    settings = dataset_settings()
-    configs = teacher_configs(settings, overrides)
-    reader = reader_kwargs(settings, args.pairs)
-    dataset = SyntheticDataset(**reader)
     tic = time.perf_counter()
-    pairs = [dataset[i] for i in range(min(args.pairs, len(dataset)))]
+    if args.av2 is not None:
+        from icpflow.datasets.av2 import AV2Dataset
+
+        settings = {"preset": "av2", "teacher": {}}  # conf/dataset/av2.yaml's
+        reader = {"root": str(args.av2), "split": "val", "ground_threshold": 0.3}
+        pairs, what = [AV2Dataset(**reader).pair(0)], "Argoverse 2 pair (split val, pair 0, "
+    else:
+        settings = dataset_settings()
+        reader = reader_kwargs(settings, args.pairs)
+        dataset = SyntheticDataset(**reader)
+        pairs = [dataset[i] for i in range(min(args.pairs, len(dataset)))]
+        what = f"synthetic test pairs ({reader['num_sequences']} sequences, "
+    configs = teacher_configs(settings, overrides)
     env = environment()
     print(
-        f"teacher_backends: {len(pairs)} synthetic test pairs ({reader['num_sequences']} sequences, "
+        f"teacher_backends: {len(pairs)} {what}"
         f"{np.mean([len(p.pc0) for p in pairs]):.0f} points per scan, made in {time.perf_counter() - tic:.1f} s); "
         f"preset {settings['preset']} + dataset teacher block; overrides {overrides or 'none'}; "
         f"torch {env['torch']} on {env['torch_device']}, numba {env['numba']} with {env['numba_threads']} threads",

@@ -289,17 +289,17 @@ class OnnxRuntimeNetwork:
 
 class TorchNetwork:
     """A :class:`SingleSampleNet`, a loaded ExportedProgram's module or a TorchScript trace on ``device``: numpy in,
-    numpy out."""
+    numpy out (float32 residual). ``bf16``: the module runs under bfloat16 autocast (the points stay float32)."""
 
-    def __init__(self, module, device: str = "cpu"):
-        self.module, self.device = module, torch.device(device)
+    def __init__(self, module, device: str = "cpu", bf16: bool = False):
+        self.module, self.device, self.bf16 = module, torch.device(device), bool(bf16)
 
     def __call__(self, pc0_compensated: np.ndarray, pc1: np.ndarray):
-        with torch.inference_mode():
+        with torch.inference_mode(), torch.autocast(self.device.type, torch.bfloat16, enabled=self.bf16):
             residual, valid = self.module(
                 torch.from_numpy(pc0_compensated).to(self.device), torch.from_numpy(pc1).to(self.device)
             )
-        return residual.cpu().numpy(), valid.cpu().numpy()
+        return residual.float().cpu().numpy(), valid.cpu().numpy()
 
 
 TORCHSCRIPT_WARNING = (

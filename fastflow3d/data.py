@@ -32,6 +32,7 @@ import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import h5py
 import lightning as L
@@ -40,7 +41,7 @@ import torch
 import yaml
 from lightning.fabric.utilities.seed import pl_worker_init_function
 from threadpoolctl import threadpool_limits
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
 from fastflow3d.augment import Augmentation
 from fastflow3d.contract import ContractError, InputContract, upgrade
@@ -72,29 +73,43 @@ class NetworkCrop:
         if self.max_points is not None and self.max_points < 1:
             raise ValueError(f"data.train_points must be null or >= 1, got {self.max_points}")
 
-    def rows(self, points: torch.Tensor, ground: torch.Tensor) -> torch.Tensor:
-        """Sorted row indices (K,) int64 of one scan's kept points (N, 3) with ground mask (N,)."""
+    def rows(self, points: torch.Tensor, ground: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+        """Sorted row indices (K,) int64 of one scan's kept points (N, 3) with ground mask (N,); ``rng`` draws the
+        ``max_points``."""
         rows = torch.nonzero(self.contract.network_mask(points, ground))[:, 0]
         if self.max_points is not None and len(rows) > self.max_points:
-            rows = rows[torch.randperm(len(rows))[: self.max_points]].sort().values
+            rows = rows[torch.from_numpy(rng.permutation(len(rows))[: self.max_points])].sort().values
         return rows
 
-    def __call__(self, sample: dict) -> dict:
+    def __call__(self, sample: dict, rng: np.random.Generator) -> dict:
         """``sample`` (``StudentDataset`` layout) with the per-point tensors of both scans cut to the kept rows."""
         out = dict(sample, network_points=True)
         for keys, points, ground in ((PER_POINT0, "pc0_compensated", "ground0"), (PER_POINT1, "pc1", "ground1")):
-            rows = self.rows(sample[points], sample[ground])
+            rows = self.rows(sample[points], sample[ground], rng)
             for key in keys:
                 if key in sample:
                     out[key] = sample[key][rows]
         return out
 
 
+class Draw(NamedTuple):
+    """A training read: sample ``index`` with its random choices (augmentation, ``train_points``) drawn from
+    ``entropy`` (the run's seed and the epoch) and the index alone, so they do not depend on which rank or DataLoader
+    worker reads it."""
+
+    index: int
+    entropy: tuple[int, int]
+
+    def rng(self) -> np.random.Generator:
+        return np.random.default_rng([*self.entropy, self.index])
+
+
 class StudentDataset(Dataset):
     """The samples of one shard directory (a ``label.py`` out_dir) as torch tensors (module docstring); with
-    ``augment`` (training only) each read is a fresh random augmentation (``fastflow3d.augment``) drawn from torch's
-    random state (seeded per DataLoader worker by Lightning's ``seed_everything(workers=True)``); with ``crop``
-    (training only) each sample is then cut to the network's points."""
+    ``augment`` (training only) each read is a random augmentation (``fastflow3d.augment``); with ``crop`` (training
+    only) each sample is then cut to the network's points. The random choices of ``dataset[Draw(i, (seed, epoch))]``
+    (what :class:`EpochOrder` hands the DataLoader) are those of ``Draw.rng``; a plain ``dataset[i]`` draws fresh
+    ones from torch's random state."""
 
     def __init__(self, shard_dir, augment: Augmentation | None = None, crop: NetworkCrop | None = None):
         self.root = Path(shard_dir)
@@ -113,10 +128,14 @@ class StudentDataset(Dataset):
     def __len__(self) -> int:
         return len(self.shards)
 
-    def __getitem__(self, index: int) -> dict:
+    def __getitem__(self, index: int | Draw) -> dict:
+        if isinstance(index, Draw):
+            index, rng = index.index, index.rng()
+        else:
+            rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,)).item()))
         raw = self.shards[index]
         if self.augment is not None:
-            raw = self.augment(raw, np.random.default_rng(int(torch.randint(0, 2**62, (1,)).item())))
+            raw = self.augment(raw, rng)
         pc0, ego = raw["pc0"], raw["ego1_from_ego0"]
         sample = {
             "pc0": torch.from_numpy(pc0),
@@ -139,7 +158,7 @@ class StudentDataset(Dataset):
                 gt_valid=torch.from_numpy(valid),
                 gt_classes=torch.from_numpy(classes),
             )
-        return sample if self.crop is None else self.crop(sample)
+        return sample if self.crop is None else self.crop(sample, rng)
 
 
 def collate(samples: list[dict]) -> dict:
@@ -200,10 +219,39 @@ def labeller_contract(shard_dir, remove_ground: bool, grid: Grid) -> InputContra
         raise DataError(f"{first}: its labeller config: {one_line(error)}") from None
 
 
+class EpochOrder(DistributedSampler):
+    """The training order: each epoch a permutation of the samples drawn from ``seed`` and the epoch number only,
+    dealt round-robin to the ``world`` ranks (rank r gets positions r, r + world, ...). So a batch of b samples on
+    each of w ranks holds the same samples as a batch of w x b on one process, whatever the split. When the
+    samples do not divide among the ranks, the permutation's last ``len % world`` are left out of that epoch (other
+    ones each epoch): no rank repeats a sample to fill its share (torch's DistributedSampler with
+    ``drop_last=True``). Each index comes as a :class:`Draw`: its random choices depend on the seed, the epoch and
+    the sample only.
+
+    ``resume=(epoch, batches, batch_size)``: in that epoch, this rank's first ``batches`` batches were trained before
+    a checkpoint (``ShardDataModule.state_dict``); its iteration starts after them, so a resumed run sees the samples
+    an uninterrupted one would. ``len`` stays the whole share (Lightning counts the epoch's batches from it and
+    continues its batch index from the checkpoint's)."""
+
+    def __init__(self, dataset, world: int, rank: int, seed: int, resume: tuple[int, int, int] | None = None):
+        super().__init__(dataset, num_replicas=world, rank=rank, shuffle=True, seed=seed, drop_last=True)
+        self.resume = resume
+
+    def __iter__(self):
+        order = list(super().__iter__())
+        if self.resume is not None:
+            epoch, batches, batch_size = self.resume
+            if epoch == self.epoch and batches * batch_size < len(order):
+                order = order[batches * batch_size :]
+        return iter([Draw(index, (self.seed, self.epoch)) for index in order])
+
+
 class ShardDataModule(L.LightningDataModule):
     """Train / val shard directories -> DataLoaders of flat batches (``workers`` loader processes per loader, each
     with ``worker_blas_threads`` BLAS threads); ``augment`` (``Augmentation`` fields, or None) and ``crop``
-    (``NetworkCrop``, or None) apply to the training samples only."""
+    (``NetworkCrop``, or None) apply to the training samples only. The training order is :class:`EpochOrder`'s
+    (``seed``), on one process or several; its position is saved in checkpoints (``state_dict``) and a resume
+    continues it."""
 
     def __init__(
         self,
@@ -214,6 +262,7 @@ class ShardDataModule(L.LightningDataModule):
         augment: dict | None = None,
         crop: NetworkCrop | None = None,
         worker_blas_threads: int = 1,
+        seed: int = 0,
     ):
         super().__init__()
         self.train_dir, self.val_dir = train, val
@@ -221,12 +270,15 @@ class ShardDataModule(L.LightningDataModule):
         self.augment = Augmentation(**augment) if augment else None
         self.crop = crop
         self.worker_blas_threads = int(worker_blas_threads)
+        self.seed = int(seed)
         self.train_set = self.val_set = None
+        self.resume: tuple[int, int] | None = None  # (epoch, batches trained in it) of the checkpoint resumed
 
     @classmethod
-    def from_config(cls, data: dict, contract: InputContract) -> ShardDataModule:
+    def from_config(cls, data: dict, contract: InputContract, seed: int = 0) -> ShardDataModule:
         """The data module of a training config's ``data`` block (plain dict, ``conf/data/shards.yaml``) for a
-        student with input ``contract``: training samples cropped to the network's points (``train_points``)."""
+        student with input ``contract``: training samples cropped to the network's points (``train_points``), in the
+        order of ``seed``."""
         crop = NetworkCrop(contract, data.get("train_points"))
         return cls(
             data["train"],
@@ -236,6 +288,7 @@ class ShardDataModule(L.LightningDataModule):
             data["augment"],
             crop,
             data.get("worker_blas_threads", 1),
+            seed,
         )
 
     def setup(self, stage: str | None = None) -> None:
@@ -258,18 +311,37 @@ class ShardDataModule(L.LightningDataModule):
             ),
         )
 
+    def _world(self) -> tuple[int, int]:
+        """(processes, this one's rank) of the trainer (1, 0 without one)."""
+        return (self.trainer.world_size, self.trainer.global_rank) if self.trainer is not None else (1, 0)
+
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self.train_set, shuffle=True)
+        world, rank = self._world()
+        resume = (*self.resume, self.batch_size) if self.resume else None
+        sampler = EpochOrder(self.train_set, world, rank, self.seed, resume)
+        return self._loader(self.train_set, shuffle=False, sampler=sampler)
+
+    def state_dict(self) -> dict:
+        """Saved in checkpoints: the epoch and the batches of it each rank has trained (Lightning's progress)."""
+        if self.trainer is None:
+            return {}
+        trained = self.trainer.fit_loop.epoch_loop.batch_progress.current.processed
+        return {"epoch": int(self.trainer.current_epoch), "batches": int(trained)}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Before a resume's loaders are built: where the training order stopped (checkpoints of older versions
+        hold nothing: the epoch then starts at its first batch)."""
+        if "epoch" in state and "batches" in state:
+            self.resume = (int(state["epoch"]), int(state["batches"]))
 
     def val_dataloader(self) -> DataLoader:
         """The validation samples; with several processes, each rank gets its share of them once, none repeated
         (Lightning's own sampler would pad the shares with repeats to equal length, which the val metrics, summed
         over ranks in ``StudentModule.on_validation_epoch_end``, would count twice)."""
-        world = self.trainer.world_size if self.trainer is not None else 1
+        world, rank = self._world()
         if world <= 1:
             return self._loader(self.val_set, shuffle=False)
         from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
 
-        rank = self.trainer.global_rank
         sampler = UnrepeatedDistributedSampler(self.val_set, num_replicas=world, rank=rank, shuffle=False)
         return self._loader(self.val_set, shuffle=False, sampler=sampler)

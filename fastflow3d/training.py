@@ -3,7 +3,9 @@ ending with the export of the best checkpoint.
 
 Everything a run writes lands under ``out_dir``: ``checkpoints/`` (best on validation dynamic EPE and
 ``last.ckpt``), ``tensorboard/``, ``bev/``, ``export/`` and ``hydra/``. ``ckpt_path=last`` resumes from
-``<checkpoint_dir>/last.ckpt`` (optimiser, schedule and step count included); any other value is a checkpoint file.
+``<checkpoint_dir>/last.ckpt`` (optimiser, schedule, step count and the position in the training order included),
+``ckpt_path=auto`` does so where it exists and starts afresh otherwise (a cluster job's requeue); any other value is a
+checkpoint file.
 The saved config's ``input`` holds the input contract (``fastflow3d.contract``: the height frame, ground removal and
 its settings, the ego-motion settings, the grid) that the Predictor uses on raw scans.
 """
@@ -12,11 +14,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 from pathlib import Path
 
 import lightning as L
 from hydra.utils import instantiate
+from lightning.fabric.plugins.environments import SLURMEnvironment
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
@@ -28,7 +30,7 @@ from fastflow3d.data import DataError, ShardDataModule, StudentDataset, labeller
 from fastflow3d.export import export_checkpoint
 from fastflow3d.module import NonFiniteLoss, StudentModule
 from icpflow.atomic import FolderInUse, folder_lock
-from icpflow.entry import Stop, one_line, os_error_line, signal_words, stop_on_signals
+from icpflow.entry import Stop, launching_process, one_line, os_error_line, signal_words, stop_on_signals
 from icpflow.settings import check_config
 from icpflow.shards.verify import ShardError
 
@@ -116,9 +118,17 @@ def build_module(cfg: DictConfig, contract: InputContract, config: dict) -> Stud
 
 
 def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
-    """The checkpoint to resume from: None, ``<checkpoint_dir>/last.ckpt`` for ``last``, or the given file; it must
-    hold weights of ``module``'s network (same names and shapes), else one line naming the settings that differ."""
+    """The checkpoint to resume from: None, ``<checkpoint_dir>/last.ckpt`` for ``last`` (and for ``auto`` where it
+    exists: a job a cluster requeues after a pre-emption runs the same command, first afresh, then resuming), or the
+    given file; it must hold weights of ``module``'s network (same names and shapes), else one line naming the
+    settings that differ."""
     value = cfg.get("ckpt_path")
+    if value == "auto":
+        value = "last" if (Path(cfg.checkpoint_dir) / "last.ckpt").is_file() else None
+        if launching_process():
+            log.info(
+                "ckpt_path=auto: %s", f"resuming from {cfg.checkpoint_dir}/last.ckpt" if value else "starting afresh"
+            )
     if not value:
         return None
     path = Path(cfg.checkpoint_dir) / "last.ckpt" if value == "last" else Path(value)
@@ -168,7 +178,7 @@ def export_formats(cfg: DictConfig) -> tuple[str, ...]:
 def build_trainer(cfg: DictConfig) -> L.Trainer:
     """The Lightning Trainer of ``cfg.trainer`` (Trainer keyword arguments) with the configured logger and callbacks
     (``LastCheckpoint`` after the other checkpoint callbacks, so it saves their state after theirs) and checkpoint
-    files written atomically."""
+    files written atomically; in a SLURM job, Lightning's SLURM environment without its SIGUSR1 auto-requeue."""
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     callbacks = [instantiate(callback) for callback in (cfg.get("callbacks") or {}).values()]
     callbacks.sort(key=lambda callback: isinstance(callback, LastCheckpoint))
@@ -182,6 +192,8 @@ def build_trainer(cfg: DictConfig) -> L.Trainer:
         callbacks.append(ModelSize())
     callbacks.sort(key=lambda callback: isinstance(callback, LastCheckpoint))
     plugins = trainer_kwargs.pop("plugins", None) or [AtomicCheckpointIO()]
+    if SLURMEnvironment.detect():  # one way to stop and resume on SLURM: SIGTERM saves last.ckpt (LastCheckpoint),
+        plugins.append(SLURMEnvironment(auto_requeue=False))  # ckpt_path=auto resumes; not Lightning's SIGUSR1 requeue
     return L.Trainer(
         **trainer_kwargs, logger=logger, callbacks=callbacks, plugins=plugins, default_root_dir=cfg.out_dir
     )
@@ -262,18 +274,12 @@ def kept_checkpoint(cfg: DictConfig) -> str:
     return f"{last} (step {step}) is kept; to resume, rerun the same command with ckpt_path=last"
 
 
-def _launching_process() -> bool:
-    """Whether this is the process a user started (not a rank a DDP launcher or SLURM started beside it)."""
-    ranks = (os.environ.get(name, "0") for name in ("LOCAL_RANK", "NODE_RANK", "SLURM_PROCID", "RANK"))
-    return all(rank in ("", "0") for rank in ranks)
-
-
 @contextlib.contextmanager
 def run_folder(cfg: DictConfig):
     """One run per ``out_dir``: its lock (``icpflow.atomic.folder_lock``) for the whole run, taken by the launching
     process only; a second run into the folder is refused in one line naming the holder's pid."""
     with contextlib.ExitStack() as stack:
-        if _launching_process():
+        if launching_process():
             try:
                 stack.enter_context(folder_lock(cfg.out_dir, "train.py"))
             except FolderInUse as error:
@@ -287,7 +293,7 @@ def check_fresh_start(cfg: DictConfig) -> None:
     """A run without ``ckpt_path`` into a folder that holds ``last.ckpt`` would overwrite another run's checkpoints:
     refused in one line, unless ``overwrite=true`` (then the folder's checkpoints are removed first, said in the
     log)."""
-    if cfg.get("ckpt_path"):
+    if cfg.get("ckpt_path"):  # auto included: it resumes where last.ckpt exists
         return
     folder = Path(cfg.checkpoint_dir)
     last = folder / "last.ckpt"
@@ -372,7 +378,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
         if cfg.compile:
             module.model.compile(dynamic=True)
         data = plain["data"]
-        datamodule = ShardDataModule.from_config(data, module.contract)
+        datamodule = ShardDataModule.from_config(data, module.contract, int(cfg.seed))
         trainer = build_trainer(cfg)
         effective, line = settle_batch(cfg, trainer)
         module.hparams["cfg"]["effective_batch"] = effective  # the logged and saved config say it

@@ -118,14 +118,14 @@ def raise_stop(signum: int) -> None:
 @contextlib.contextmanager
 def stop_on_signals(signums=STOP_SIGNALS) -> Iterator[None]:
     """Within the block, the signals raise :class:`Stop` in this process (so ``finally`` blocks, atomic writers and
-    worker pools clean up), as :func:`on_signals` routes them; the previous handlers come back after it."""
+    worker pools clean up), as :func:`on_signals` routes them; the previous handlers come back after it. Leaving the
+    block waits for library worker threads a stop may have left running (:func:`join_library_threads`), whether the
+    stop escapes the block or a handler inside it turned it into an exit status."""
     restore = on_signals(raise_stop, signums)
     try:
         yield
-    except (Stop, KeyboardInterrupt):
-        join_library_threads()
-        raise
     finally:
+        join_library_threads()
         restore()
 
 
@@ -211,7 +211,8 @@ def reported(prog: str, *expected: type[BaseException]) -> Iterator[None]:
     try:
         yield
     except Stop as stop:
-        print(f"{prog}: {one_line(stop)}", file=sys.stderr)
+        if launching_process():  # the ranks a launcher started beside it stop with it, silently
+            print(f"{prog}: {one_line(stop)}", file=sys.stderr)
         sys.exit(stop.status)
     except KeyboardInterrupt:
         print(f"{prog}: {signal_words(signal.SIGINT)}", file=sys.stderr)
@@ -221,6 +222,13 @@ def reported(prog: str, *expected: type[BaseException]) -> Iterator[None]:
             raise
         print(f"{prog}: {error_line(error, expected)}", file=sys.stderr)
         sys.exit(2)
+
+
+def launching_process() -> bool:
+    """Whether this is the process a user started, not a rank that a data-parallel launcher (Lightning's DDP,
+    torchrun, SLURM's srun) started beside it: every rank variable they set is unset or 0."""
+    ranks = (os.environ.get(name, "0") for name in ("LOCAL_RANK", "NODE_RANK", "SLURM_PROCID", "RANK"))
+    return all(rank in ("", "0") for rank in ranks)
 
 
 def run(prog: str, hydra_main: Callable[[], object]) -> None:

@@ -197,7 +197,8 @@ def test_a_signal_during_evaluation_keeps_a_partial_result_and_exits_128_plus_it
 
 def test_a_stop_waits_for_the_library_threads_it_interrupted():
     """A stop that lands while a scipy call waits for its worker threads (cKDTree.query with workers) lets those
-    threads end before it propagates: exiting with them running segfaulted at interpreter exit."""
+    threads end before the block is left, whether the stop propagates or is caught inside (label.py's Ctrl-C):
+    exiting with them running segfaulted at interpreter exit."""
     import threading
     import time
 
@@ -214,6 +215,15 @@ def test_a_stop_waits_for_the_library_threads_it_interrupted():
             worker.start()
             raise Stop(signal.SIGINT)
     assert done.is_set() and not worker.is_alive()
+    done.clear()
+    caught = threading.Thread(target=work, daemon=True)
+    with stop_on_signals():  # a handler inside the block makes the stop an exit status (label.py, eval.py)
+        try:
+            caught.start()
+            raise Stop(signal.SIGINT)
+        except Stop:
+            pass
+    assert done.is_set() and not caught.is_alive()
     other = threading.Thread(target=lambda: time.sleep(0.5), daemon=True)
     other.start()
     start = time.monotonic()

@@ -1,6 +1,7 @@
 """One way to check a config (icpflow.settings): every entry point's config is a structured config whose types and
 keys Hydra checks while composing, and whose rules check_config checks before any work."""
 
+import copy
 import dataclasses
 import inspect
 import typing
@@ -67,12 +68,13 @@ def test_each_entry_config_is_its_schema_and_its_defaults_obey_the_rules(name):
 def test_a_value_breaking_any_rule_is_one_line_naming_the_option(name):
     """Each field with a rule or choices, given a value of its type that breaks it: OptionError naming it."""
     checked = 0
-    for key, f in _ruled_fields(_compose(name)):
+    composed = _compose(name)
+    for key, f in _ruled_fields(composed):
         rule, choices = f.metadata.get("rule"), f.metadata.get("choices")
         value = "bogus" if choices else BREAKS.get(rule)
         if value is None:
             continue
-        cfg = _compose(name)
+        cfg = copy.deepcopy(composed)
         OmegaConf.update(cfg, key, value, merge=False)
         with pytest.raises(OptionError) as refused:
             check_config(cfg)

@@ -3,6 +3,7 @@ pseudo-images against ZeroFlow's per-point concatenation (a reference written he
 the network's points in the DataLoader against whole scans masked in the module; DataLoader workers run one BLAS
 thread; the inexact point cap is a switch."""
 
+import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
@@ -14,6 +15,8 @@ from fastflow3d.model import FastFlow3D
 from fastflow3d.module import StudentModule
 from fastflow3d.scatter import scatter_mean
 from fastflow3d.voxelize import Grid, pillar_ids, voxelize
+
+RNG = np.random.default_rng(0)
 
 SMALL = {
     "x_range": (-8.0, 8.0),
@@ -111,8 +114,8 @@ def test_training_on_the_network_points_only_is_the_same_step():
 
     whole = loss_and_gradients(model, masked, pc0, batch0, pc1, batch1, target)
     crop = NetworkCrop(contract)
-    rows0 = torch.cat([crop.rows(pc0[batch0 == b], ground0[batch0 == b]) + int((batch0 < b).sum()) for b in (0, 1)])
-    rows1 = torch.cat([crop.rows(pc1[batch1 == b], ground1[batch1 == b]) + int((batch1 < b).sum()) for b in (0, 1)])
+    rows0 = torch.cat([crop.rows(pc0[batch0 == b], ground0[batch0 == b], RNG) + (batch0 < b).sum() for b in (0, 1)])
+    rows1 = torch.cat([crop.rows(pc1[batch1 == b], ground1[batch1 == b], RNG) + (batch1 < b).sum() for b in (0, 1)])
     assert len(rows0) < keep0.sum() and len(rows1) < keep1.sum()  # the crop drops out-of-grid points too
     model.load_state_dict(state)
     cropped = loss_and_gradients(
@@ -127,11 +130,11 @@ def test_network_crop_rows_and_point_cap():
     grid = Grid((-4.0, 4.0), (-4.0, 4.0), (-1.0, 1.0), 1.0)
     points = torch.tensor([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 0.0, 2.0], [1.0, 1.0, 0.5], [-3.9, 3.9, -1.0]])
     ground = torch.tensor([False, False, False, True, False])
-    assert NetworkCrop(InputContract(remove_ground=True, grid=grid)).rows(points, ground).tolist() == [0, 4]
-    assert NetworkCrop(InputContract(remove_ground=False, grid=grid)).rows(points, ground).tolist() == [0, 3, 4]
+    assert NetworkCrop(InputContract(remove_ground=True, grid=grid)).rows(points, ground, RNG).tolist() == [0, 4]
+    assert NetworkCrop(InputContract(remove_ground=False, grid=grid)).rows(points, ground, RNG).tolist() == [0, 3, 4]
     many = torch.rand(1000, 3) * 6 - 3
     crop = NetworkCrop(InputContract(remove_ground=False, grid=grid), max_points=100)
-    capped = crop.rows(many, torch.zeros(1000, dtype=torch.bool))
+    capped = crop.rows(many, torch.zeros(1000, dtype=torch.bool), RNG)
     assert len(capped) == 100 and torch.all(capped[1:] > capped[:-1])
     sample = {
         "pc0": points,
@@ -141,7 +144,7 @@ def test_network_crop_rows_and_point_cap():
         "pc1": points[:2],
         "ground1": ground[:2],
     }
-    out = NetworkCrop(InputContract(remove_ground=True, grid=grid))(sample)
+    out = NetworkCrop(InputContract(remove_ground=True, grid=grid))(sample, RNG)
     assert out["network_points"] and torch.equal(out["pseudo"], points[[0, 4]] * 2) and len(out["pc1"]) == 1
 
 

@@ -1,0 +1,258 @@
+"""One command for a GPU machine: label, train the two students for a fixed time each, score them beside the teacher
+and ego-only, and time the network and the teacher's ICP on the GPU (issue 34.4).
+
+    python3 benchmarks/gpu_run.py [--out outputs/gpu_run] [--minutes 3] [--workers 16] [--train-sequences 256]
+        [--test-pairs 64] [--data ../shared/data]
+    python3 benchmarks/gpu_run.py --smoke --out <dir>    # tiny sizes on the CPU (tests/test_gpu_run.py)
+
+The steps are the project's own command lines, each a subprocess with its log in ``<out>/logs/<step>.log``; a step
+whose output is complete (or that finished, ``<step>.done``) is skipped when the command runs again (an interrupted
+run resumes):
+
+1. ``labels``: ``label.py`` on ``--train-sequences`` synthetic sequences of 3 frames (2 pairs each) and the val split,
+   with ``--workers`` processes;
+2. ``train_paper`` and ``train_small``: ``train.py experiment=paper`` (FastFlow3D 512 x 512, 6.8 M parameters) and
+   ``experiment=synthetic_cpu`` (the CPU recipes' small model), each ``--minutes`` of training
+   (``trainer.max_time``) on the GPU in bf16-mixed, exported to ONNX;
+3. ``eval``: ``eval.py`` on ``--test-pairs`` synthetic test pairs: ego-only, the teacher and the paper student; the
+   small student on the same pairs;
+4. ``latency_paper`` and ``latency_small``: ``benchmarks/bench_latency.py --device cuda`` with backends ``eager``,
+   ``eager-bf16`` and ``onnx`` (ONNX Runtime's CUDA provider where ``onnxruntime-gpu`` is installed; its CPU provider
+   otherwise, said in the table), median of 100 calls after 10, on the shipped KITTI and AV2 scans, poses given;
+5. ``teacher``: ``benchmarks/teacher_backends.py --av2 <data>/av2``: ``icp.backend=torch`` (CUDA) against the CPU
+   backend on the shipped Argoverse 2 pair: time of each and the largest flow difference (synthetic pairs where the
+   AV2 sample is absent).
+
+``<out>/report.md`` then holds every table: the steps' wall times, the students' steps reached, the scores (dynamic
+foreground, Threeway and static foreground EPE, each student's ratio to the teacher and to ego-only), the latency
+and the teacher tables. Sized for under 10 minutes of a 16-core H100/H200 machine with ``--minutes 3``.
+
+The device machine reaches no package registry and its ``python3`` holds torch (CUDA), lightning, h5py, onnx, numba
+and scipy: bring the rest as cp312 wheels in a git-ignored ``.wheels/`` folder named in the run's ``carry`` (64 MiB
+in all), e.g. ``pip download --python-version 3.12 --only-binary=:all: --no-deps -d .wheels hydra-core omegaconf
+antlr4-python3-runtime hdbscan scikit-learn joblib threadpoolctl pypatchworkpp kiss-icp tqdm tensorboard
+onnxruntime pyyaml``; this script installs ``.wheels/*.whl`` first where the folder exists (``--no-index``).
+``onnxruntime-gpu`` (over 200 MB) does not fit the carry: the ``onnx`` rows then run on ONNX Runtime's CPU provider.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from icpflow.atomic import write_text_atomic
+
+ROOT = Path(__file__).resolve().parents[1]
+#: the tiny network of --smoke (tests/helpers/training.py's)
+SMOKE_MODEL = [
+    "model.x_range=[-16.0,16.0]",
+    "model.y_range=[-16.0,16.0]",
+    "model.cell=1.0",
+    "model.pillar_channels=16",
+    "model.stage_channels=[16,32,64]",
+]
+SMOKE_LATENCY_MODEL = [item.removeprefix("model.") for item in SMOKE_MODEL]
+
+
+class Step:
+    """One command of the run, logged to ``<out>/logs/<name>.log``, skipped where ``done`` exists."""
+
+    def __init__(self, out: Path, name: str, arguments: list[str], done: Path):
+        self.out, self.name, self.arguments, self.done = out, name, arguments, done
+
+    def run(self, seconds: dict) -> bool:
+        """Run it unless done; its wall time goes to ``seconds[name]``; False (said on stderr) when it failed."""
+        if self.done.exists():
+            print(f"gpu_run: {self.name}: done before ({self.done}), skipped", flush=True)
+            return True
+        log = self.out / "logs" / f"{self.name}.log"
+        log.parent.mkdir(parents=True, exist_ok=True)
+        print(f"gpu_run: {self.name}: python {' '.join(self.arguments)}", flush=True)
+        tic = time.perf_counter()
+        with open(log, "w") as handle:
+            result = subprocess.run(
+                [sys.executable, *self.arguments], cwd=ROOT, stdout=handle, stderr=subprocess.STDOUT
+            )
+        seconds[self.name] = time.perf_counter() - tic
+        if result.returncode != 0:
+            tail = log.read_text().strip().splitlines()[-3:]
+            print(f"gpu_run: {self.name} failed (exit {result.returncode}, {log}): {' | '.join(tail)}", flush=True)
+            return False
+        (self.out / "logs" / f"{self.name}.done").touch()
+        print(f"gpu_run: {self.name}: {seconds[self.name]:.0f} s", flush=True)
+        return True
+
+
+def install_wheels() -> None:
+    """``.wheels/*.whl`` into this interpreter's environment (no index), where the folder exists."""
+    wheels = sorted((ROOT / ".wheels").glob("*.whl"))
+    if wheels:
+        command = [sys.executable, "-m", "pip", "install", "-q", "--no-index", "--find-links", str(ROOT / ".wheels")]
+        subprocess.run([*command, *map(str, wheels)], check=False)
+
+
+def steps(args) -> list[Step]:
+    """The run's commands, sized by ``args`` (``--smoke``: tiny, on the CPU)."""
+    out, smoke = args.out, args.smoke
+    labels = out / "labels"
+    trainer = ["trainer=cpu", "trainer.precision=bf16-mixed"] if smoke else ["trainer=gpu"]
+    quick = ["trainer.max_steps=2", "trainer.num_sanity_val_steps=0", "metrics.bev_every=0", *SMOKE_MODEL]
+    length = quick if smoke else [f"trainer.max_time=00:00:{args.minutes:02d}:00"]
+    reader = ["dataset.reader.num_sequences=1", "dataset.reader.beams=32"] if smoke else []
+    label_common = [f"workers={args.workers}", *reader]
+    train_common = [
+        f"data.train={labels / 'train'}",
+        f"data.val={labels / 'val'}",
+        *trainer,
+        *length,
+        "export.formats=[onnx]",
+        "trainer.enable_progress_bar=false",
+        f"data.workers={0 if smoke else 4}",
+    ]
+    train_steps = {"paper": ["experiment=paper", "trainer.max_epochs=-1"], "small": ["experiment=synthetic_cpu"]}
+    test_sequences = max(1, -(-args.test_pairs // 4))
+    test = ["split=test", f"dataset.reader.num_sequences={test_sequences}", f"limit={args.test_pairs}", *reader[1:]]
+    result = [
+        Step(
+            out,
+            "labels_train",
+            ["label.py", f"dataset.reader.num_sequences={args.train_sequences}", "dataset.reader.frames_per_sequence=3"]
+            + [f"workers={args.workers}", f"out_dir={labels / 'train'}", *reader[1:]],
+            labels / "train" / "index.json",
+        ),
+        Step(
+            out,
+            "labels_val",
+            ["label.py", "split=val", *label_common, f"out_dir={labels / 'val'}"],
+            labels / "val" / "index.json",
+        ),
+    ]
+    for name, recipe in train_steps.items():
+        run_dir = out / f"train_{name}"
+        result.append(
+            Step(
+                out,
+                f"train_{name}",
+                ["train.py", *recipe, *train_common, f"out_dir={run_dir}"],
+                run_dir / "export" / "metadata.json",
+            )
+        )
+    for name, methods in (("paper", "[ego,icpflow,student]"), ("small", "[student]")):
+        eval_dir = out / f"eval_{name}"
+        arguments = ["eval.py", *test, f"method={methods}", f"checkpoint={out / f'train_{name}' / 'export'}"]
+        result.append(
+            Step(out, f"eval_{name}", [*arguments, f"out_dir={eval_dir}", "bev=0"], eval_dir / "metrics.json")
+        )
+    for name, model in (("paper", "fastflow3d"), ("small", "fastflow3d_small")):
+        latency = ["benchmarks/bench_latency.py", "--model", model, "--regimes", "given"]
+        if smoke:  # the ONNX row for one model only: its export is the step's costliest part
+            latency += ["--device", "cpu", "--runs", "2", "--warmup", "1", "--scans", "uniform", "--points", "3000"]
+            backends = "eager,eager-bf16,onnx" if name == "small" else "eager,eager-bf16"
+            latency += ["--backends", backends, "--set", *SMOKE_LATENCY_MODEL]
+        else:
+            latency += ["--device", "cuda", "--runs", "100", "--warmup", "10", "--scans", "kitti,av2"]
+            latency += ["--backends", "eager,eager-bf16,onnx"]
+        result.append(Step(out, f"latency_{name}", latency, out / "logs" / f"latency_{name}.done"))
+    teacher = ["benchmarks/teacher_backends.py", "--json", str(out / "teacher.json")]
+    if smoke:
+        teacher += ["--pairs", "1", "--teacher", "icp.max_points=300", "--teacher", "icp.max_iter=3"]
+    elif (args.data / "av2" / "sensor").is_dir():
+        teacher += ["--av2", str(args.data / "av2")]
+    else:
+        teacher += ["--pairs", "8"]
+    result.append(Step(out, "teacher", teacher, out / "teacher.json"))
+    return result
+
+
+def table_lines(log: Path) -> list[str]:
+    """The markdown table lines (and the lines just before each table) a step printed."""
+    if not log.is_file():
+        return ["(no log)"]
+    lines = log.read_text().splitlines()
+    keep = [i for i, line in enumerate(lines) if line.startswith("|")]
+    picked = sorted({j for i in keep for j in (i - 1, i) if j >= 0})
+    return [lines[j] for j in picked] or ["(no table: see the log)"]
+
+
+def report(args, seconds: dict, failed: list[str]) -> str:
+    """``report.md``: every table of the run."""
+    from student_report import rows  # benchmarks/student_report.py: Python puts this script's folder on sys.path
+
+    out = args.out
+    lines = [f"# gpu_run ({'smoke, CPU' if args.smoke else 'GPU'}): {time.strftime('%Y-%m-%d %H:%M')}", ""]
+    lines += ["| step | wall (s) |", "|---|---|"] + [f"| {k} | {v:.0f} |" for k, v in seconds.items()]
+    if failed:
+        lines += ["", f"failed: {', '.join(failed)} (logs in {out / 'logs'})"]
+    lines += [
+        "",
+        "## Students after the fixed time",
+        "",
+        "| student | steps | best val dynamic EPE (m) |",
+        "|---|---|---|",
+    ]
+    for name in ("paper", "small"):
+        last = out / f"train_{name}" / "checkpoints" / "last.ckpt"
+        steps, best = "-", "-"
+        if last.is_file():
+            import torch
+
+            checkpoint = torch.load(last, map_location="cpu", weights_only=True, mmap=True)
+            steps = checkpoint.get("global_step", "-")
+            for key, state in checkpoint.get("callbacks", {}).items():
+                if key.startswith("ModelCheckpoint") and state.get("best_model_score") is not None:
+                    best = f"{float(state['best_model_score']):.3f}"
+        lines.append(f"| {name} | {steps} | {best} |")
+    lines += ["", f"## Scores on {args.test_pairs} synthetic test pairs", ""]
+    scores = {}
+    for name in ("paper", "small"):
+        metrics = out / f"eval_{name}" / "metrics.json"
+        if metrics.is_file():
+            for method, row in rows(metrics).items():
+                scores[f"student ({name})" if method == "student" else method] = row
+    columns = ["dynamic_fg", "threeway", "static_fg"]
+    lines += ["| method | " + " | ".join(columns) + " | / teacher (dynamic) | / ego (dynamic) |", "|---|" + "---|" * 5]
+    for method, row in scores.items():
+        cells = [f"{row[c]:.3f}" if row.get(c) is not None else "-" for c in columns]
+        ratios = [
+            f"{row['dynamic_fg'] / scores[ref]['dynamic_fg']:.2f}x" if ref in scores and method != ref else "-"
+            for ref in ("icpflow", "ego")
+        ]
+        lines.append(f"| {method} | " + " | ".join(cells + ratios) + " |")
+    for name in ("latency_paper", "latency_small", "teacher"):
+        lines += ["", f"## {name}", "", *table_lines(out / "logs" / f"{name}.log")]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "gpu_run")
+    parser.add_argument("--minutes", type=int, default=3, help="training minutes of each student")
+    parser.add_argument("--workers", type=int, default=16, help="labelling processes")
+    parser.add_argument("--train-sequences", type=int, default=256, help="synthetic training sequences (2 pairs each)")
+    parser.add_argument("--test-pairs", type=int, default=64)
+    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data", help="the shipped samples")
+    parser.add_argument(
+        "--smoke", action="store_true", help="tiny sizes on the CPU: every step runs, in about a minute"
+    )
+    args = parser.parse_args(argv)
+    if args.smoke:
+        args.train_sequences, args.test_pairs, args.workers, args.minutes = 2, 2, 1, 0
+    args.out = args.out.resolve()
+    install_wheels()
+    seconds, failed = {}, []
+    for step in steps(args):
+        if not step.run(seconds):
+            failed.append(step.name)
+    text = report(args, seconds, failed)
+    write_text_atomic(args.out / "report.md", text)
+    write_text_atomic(args.out / "seconds.json", json.dumps(seconds, indent=1))
+    print(text)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

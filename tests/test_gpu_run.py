@@ -1,0 +1,59 @@
+"""The GPU run of issue 34.4 (``benchmarks/gpu_run.py``), smoke-tested on the CPU with tiny sizes: every step runs
+(labelling, both recipes' training with their export, scoring beside the teacher and ego-only, the latency table
+with eager, eager bf16 and ONNX Runtime, the teacher's two ICP backends) and the report holds each table."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from helpers.labelling import TESTS_ENV
+
+REPO = Path(__file__).resolve().parents[1]
+STEPS = ("labels_train", "labels_val", "train_paper", "train_small", "eval_paper", "eval_small", "teacher")
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    out = tmp_path_factory.mktemp("gpu_run")
+    result = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "gpu_run.py"), "--smoke", "--out", str(out)],
+        cwd=REPO,
+        env=TESTS_ENV,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    return out, result
+
+
+def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
+    out, result = smoke
+    assert result.returncode == 0, result.stdout[-3000:]
+    report = (out / "report.md").read_text()
+    for step in STEPS:
+        assert f"| {step} |" in report, step
+    for name in ("paper", "small"):
+        assert (out / f"train_{name}" / "export" / "fastflow3d.onnx").is_file()
+        assert f"| {name} | 2 |" in report  # the steps each student reached
+    for method in ("ego", "icpflow", "student (paper)", "student (small)"):
+        assert f"| {method} |" in report, method
+    for backend, rows in (("eager", 2), ("eager-bf16", 2), ("onnx", 1)):  # both models; ONNX for the small one
+        assert report.count(f"| given | {backend} |") == rows, backend
+    assert "| cpu | cpu (numba" in report and "| torch | cpu" in report  # the teacher's two backends
+
+
+def test_a_second_run_skips_what_is_done(smoke):
+    out, _ = smoke
+    again = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "gpu_run.py"), "--smoke", "--out", str(out)],
+        cwd=REPO,
+        env=TESTS_ENV,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert again.returncode == 0, again.stdout[-3000:]
+    for step in (*STEPS, "latency_paper", "latency_small"):
+        assert f"gpu_run: {step}: done before" in again.stdout, step
