@@ -137,14 +137,24 @@ LIBRARY_THREADS = ("scipy.",)
 def join_library_threads(timeout: float = 5.0) -> None:
     """Wait (at most ``timeout`` s in all) for the worker threads of ``LIBRARY_THREADS`` calls that a stop
     interrupted: if the process exited with them running, finalising Python frees their data under them (a
-    segmentation fault at exit, seen after a Ctrl-C during labelling). A thread's function is read from
-    ``Thread._target``, the standard library's private field that holds it (there is no public one)."""
+    segmentation fault at exit, seen after a Ctrl-C during labelling). Such a thread is waited for until it has left
+    ``threading.enumerate()``, not by ``Thread.join``: the library's own join, interrupted by the stop, has already
+    marked it stopped while it runs on (CPython 3.11: ``join`` returns at once, ``is_alive()`` is False). A thread's
+    function is read from ``Thread._target``, the standard library's private field that holds it (there is no public
+    one)."""
     deadline = time.monotonic() + timeout
-    for thread in threading.enumerate():
-        target = getattr(thread, "_target", None)
-        module = getattr(target, "__module__", None) or ""
-        if thread is not threading.current_thread() and module.startswith(LIBRARY_THREADS):
-            thread.join(max(0.0, deadline - time.monotonic()))
+
+    def running() -> list[threading.Thread]:
+        current = threading.current_thread()
+        return [
+            thread
+            for thread in threading.enumerate()
+            if thread is not current
+            and (getattr(getattr(thread, "_target", None), "__module__", None) or "").startswith(LIBRARY_THREADS)
+        ]
+
+    while running() and time.monotonic() < deadline:
+        time.sleep(0.002)
 
 
 # ---------------------------------------------------------------------------------------------------- messages

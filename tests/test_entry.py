@@ -224,6 +224,16 @@ def test_a_stop_waits_for_the_library_threads_it_interrupted():
         except Stop:
             pass
     assert done.is_set() and not caught.is_alive()
+    done.clear()
+    joined = threading.Thread(target=work, daemon=True)
+    with stop_on_signals():  # the stop lands in the library's own join of its threads, as in cKDTree.query
+        try:
+            joined.start()
+            threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
+            joined.join()
+        except Stop:
+            assert not done.is_set()
+    assert done.is_set()  # the interrupted join had marked the running thread stopped; the wait did not trust it
     other = threading.Thread(target=lambda: time.sleep(0.5), daemon=True)
     other.start()
     start = time.monotonic()
