@@ -14,8 +14,10 @@ unreadable file, a full or read-only disk); 128 + N stopped by signal N (130 Ctr
   :class:`~icpflow.settings.OptionError`.
 * One way to stop: :func:`on_signals` is the only place that installs handlers for :data:`STOP_SIGNALS` (the entry
   points through :func:`stop_on_signals`, training's ``fastflow3d.callbacks.LastCheckpoint`` to note a signal and
-  stop after the current step). :class:`Stop` is a signal turned into an exception; it carries the line that says
-  what was kept and how to go on, and its exit status (:func:`stop_signum` also reads a bare ``KeyboardInterrupt``).
+  stop after the current step); :func:`signals_held` only holds them back around a call that must not be
+  interrupted, and delivers them to those handlers after it. :class:`Stop` is a signal turned into an exception; it
+  carries the line that says what was kept and how to go on, and its exit status (:func:`stop_signum` also reads a
+  bare ``KeyboardInterrupt``).
 * :func:`one_line` is the one way to fold a message (an exception's text) onto one line.
 """
 
@@ -27,7 +29,6 @@ import os
 import signal
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 
 from icpflow.settings import OptionError, type_error_line
@@ -118,43 +119,33 @@ def raise_stop(signum: int) -> None:
 @contextlib.contextmanager
 def stop_on_signals(signums=STOP_SIGNALS) -> Iterator[None]:
     """Within the block, the signals raise :class:`Stop` in this process (so ``finally`` blocks, atomic writers and
-    worker pools clean up), as :func:`on_signals` routes them; the previous handlers come back after it. Leaving the
-    block waits for library worker threads a stop may have left running (:func:`join_library_threads`), whether the
-    stop escapes the block or a handler inside it turned it into an exit status."""
+    worker pools clean up), as :func:`on_signals` routes them; the previous handlers come back after it."""
     restore = on_signals(raise_stop, signums)
     try:
         yield
     finally:
-        join_library_threads()
         restore()
 
 
-#: packages whose calls run their own worker threads and return when these end (scipy's ``cKDTree.query`` with
-#: ``workers``): a stop that lands while such a call waits for its threads leaves them running on the call's data
-LIBRARY_THREADS = ("scipy.",)
-
-
-def join_library_threads(timeout: float = 5.0) -> None:
-    """Wait (at most ``timeout`` s in all) for the worker threads of ``LIBRARY_THREADS`` calls that a stop
-    interrupted: if the process exited with them running, finalising Python frees their data under them (a
-    segmentation fault at exit, seen after a Ctrl-C during labelling). Such a thread is waited for until it has left
-    ``threading.enumerate()``, not by ``Thread.join``: the library's own join, interrupted by the stop, has already
-    marked it stopped while it runs on (CPython 3.11: ``join`` returns at once, ``is_alive()`` is False). A thread's
-    function is read from ``Thread._target``, the standard library's private field that holds it (there is no public
-    one)."""
-    deadline = time.monotonic() + timeout
-
-    def running() -> list[threading.Thread]:
-        current = threading.current_thread()
-        return [
-            thread
-            for thread in threading.enumerate()
-            if thread is not current
-            and (getattr(getattr(thread, "_target", None), "__module__", None) or "").startswith(LIBRARY_THREADS)
-        ]
-
-    while running() and time.monotonic() < deadline:
-        time.sleep(0.002)
+@contextlib.contextmanager
+def signals_held(signums=STOP_SIGNALS) -> Iterator[None]:
+    """Hold the signals back for the block and deliver them after it, to the handlers installed before it: around a
+    library call that runs its own threads on the call's memory (scipy's ``cKDTree.query`` with ``workers``). A
+    :class:`Stop` or ``KeyboardInterrupt`` raised inside such a call unwinds it while its threads still write into
+    what it allocated: a segmentation fault, seen after a Ctrl-C of ``label.py`` (the call's own join of its
+    threads is where the signal lands). Outside the main thread nothing is held (signals reach the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    arrived: list[int] = []
+    previous = {signum: signal.signal(signum, lambda signum, frame: arrived.append(signum)) for signum in signums}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)  # None: installed outside Python
+        for signum in dict.fromkeys(arrived):
+            signal.raise_signal(signum)
 
 
 # ---------------------------------------------------------------------------------------------------- messages

@@ -23,6 +23,8 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from icpflow.entry import signals_held
+
 
 class _CoreDistanceTree:
     """What hdbscan's Boruvka reads of its core-distance tree (``data``, ``query``), answered by scipy."""
@@ -33,7 +35,8 @@ class _CoreDistanceTree:
         self._workers = workers
 
     def query(self, points, k, dualtree=True, breadth_first=True):  # the signature hdbscan calls
-        distances, indices = self._tree.query(points, k=k, workers=self._workers)
+        with signals_held():  # a stop inside the threaded query would free its memory under its threads
+            distances, indices = self._tree.query(points, k=k, workers=self._workers)
         return distances, indices.astype(np.intp)
 
 
