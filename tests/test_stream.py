@@ -14,7 +14,7 @@ from fastflow3d.stream import FlowStream, StreamWarning
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
 from icpflow.teacher.config import ICPFlowConfig
-from icpflow.teacher.ego_motion import StreamOdometry
+from icpflow.teacher.ego_motion import StreamOdometry, local_target, refinement_cloud
 
 from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 
@@ -64,6 +64,27 @@ def test_streamed_ego_motion_is_exact_on_the_synthetic_world(moving):
         assert not any(step.restarted for step in steps) and min(step.fitness for step in steps) > 0.8
         if worst:
             assert np.median(errors[:, 0]) <= worst and np.median(errors[:, 1]) <= 0.05, errors
+
+
+def test_the_local_target_is_the_nearest_points_with_the_whole_scans_normals(moving):
+    """A stream step's target: for each moved source point its nearest target point (once each), with the normal of
+    its 10 nearest target points, as open3d estimates it on the whole cloud (the stream computes no other)."""
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    pairs, scans = moving
+    target = refinement_cloud(scans[1], 0.15)
+    points = np.asarray(target.points)
+    source = np.asarray(refinement_cloud(scans[0], 0.15).points)[::7]
+    transform = pairs[0].ego1_from_ego0
+    local = local_target(points, source, transform)
+    moved = source @ transform[:3, :3].T + transform[:3, 3]
+    expected = np.unique(cKDTree(points).query(moved)[1])
+    np.testing.assert_array_equal(np.asarray(local.points), points[expected])
+    whole = o3d.geometry.PointCloud(target)
+    whole.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(10))
+    agree = np.abs((np.asarray(local.normals) * np.asarray(whole.normals)[expected]).sum(axis=1))
+    assert np.median(agree) > 0.999 and np.mean(agree > 0.95) > 0.95
 
 
 def test_the_stream_gives_the_predictors_flow_with_its_own_ego_motion(predictor_path, moving):

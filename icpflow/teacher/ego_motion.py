@@ -61,16 +61,14 @@ def refine_motion(pc0: np.ndarray, pc1: np.ndarray, ego1_from_ego0: np.ndarray, 
     return refine_clouds(source, target, ego1_from_ego0, voxel)[0]
 
 
-def refinement_cloud(points: np.ndarray, voxel: float, normals: bool = False, neighbours: int | None = None):
+def refinement_cloud(points: np.ndarray, voxel: float, normals: bool = False):
     """The open3d cloud of ``points`` (N, 3) down-sampled to ``voxel`` m, with normals when it is a refinement's
-    target (of the points within ``4 * voxel``, at most 20; or of the ``neighbours`` nearest)."""
+    target (of the points within ``4 * voxel``, at most 20)."""
     import open3d as o3d
 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
     cloud = cloud.voxel_down_sample(voxel)
-    if normals and neighbours:
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
-    elif normals:
+    if normals:
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=20))
     return cloud
 
@@ -137,10 +135,34 @@ STREAM_SOURCE_POINTS, STREAM_ITERATIONS = 4000, 10
 #: metres: the width of the stream refinement's robust (Tukey) kernel: the moving traffic of a fast drive pulled the
 #: plain least squares by 2-3 cm (synthetic, 9.6 m/s: 2.20 -> 0.20 cm median, BENCHMARKS.md, issue 33)
 STREAM_TUKEY = 0.1
-#: the stream's target normals: of the nearest 10 points (the normals are the stream's costliest step: a quarter
-#: cheaper than the pairwise radius search; 6 neighbours are cheaper still but tilt on a 32-beam scan's sparse rings,
+#: the stream's target normals: of the nearest 10 points (6 are cheaper but tilt on a 32-beam scan's sparse rings,
 #: 1.5-2 cm instead of 0.5 cm, BENCHMARKS.md, issue 33)
 STREAM_NORMAL_NEIGHBOURS = 10
+
+
+def local_target(points: np.ndarray, source: np.ndarray, transform: np.ndarray):
+    """The open3d cloud (with normals) of the target points a refinement from ``transform`` will match: for each
+    ``source`` point (K, 3) moved by ``transform``, the nearest of ``points`` (M, 3), with the normal (PCA) of the
+    ``STREAM_NORMAL_NEIGHBOURS`` nearest around it (once per target point). A stream step starts centimetres from
+    the answer, so its correspondences stay among these; computing normals for them alone, not for the whole scan,
+    was the odometry's costliest step (BENCHMARKS.md, issue 33)."""
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    from icpflow.entry import signals_held
+
+    moved = source @ transform[:3, :3].T + transform[:3, 3]
+    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # built once, queried once: quicker so
+    with signals_held():  # a stop inside the threaded query would free its memory under its threads
+        _, neighbours = tree.query(moved, k=min(STREAM_NORMAL_NEIGHBOURS, len(points)), workers=-1)
+    neighbours = neighbours.reshape(len(moved), -1)
+    nearest, first = np.unique(neighbours[:, 0], return_index=True)
+    around = points[neighbours[first]]
+    centred = around - around.mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.matmul(centred.transpose(0, 2, 1), centred))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[nearest]))
+    cloud.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(vectors[:, :, 0]))
+    return cloud
 
 
 class StreamOdometry:
@@ -148,8 +170,9 @@ class StreamOdometry:
 
     One KISS-ICP runs across the frames (its local map and constant-velocity model: the estimate a stream gets
     almost free); each step is then refined point-to-plane from it on the non-ground points of the two scans
-    (``STREAM_VOXEL`` clouds; each scan is down-sampled and given normals once, as the target of its own step, and
-    serves as the source of the next). The refinement's fitness says whether the track holds.
+    (``STREAM_VOXEL`` clouds; each scan is down-sampled once, is the target of its own step, with normals for the
+    points that step matches (:func:`local_target`), and serves as the source of the next). The refinement's
+    fitness says whether the track holds.
 
     :meth:`step` returns None for the first scan after a start or :meth:`reset`, else an :class:`OdometryStep`. A
     step whose fitness is below ``min_fitness`` (the track is lost: a jump, another place) is estimated afresh from
@@ -178,7 +201,7 @@ class StreamOdometry:
         kept = points if ground is None else points[~np.asarray(ground, bool)]
         kept = kept if len(kept) >= MIN_EGO_POINTS else points
         self._kiss.register_frame(kept, np.zeros(0))
-        cloud = refinement_cloud(kept, self.voxel, normals=True, neighbours=STREAM_NORMAL_NEIGHBOURS)
+        cloud = refinement_cloud(kept, self.voxel)
         step = max(1, len(cloud.points) // STREAM_SOURCE_POINTS)
         current = (kept, cloud, np.asarray(self._kiss.last_pose, np.float64), cloud.uniform_down_sample(step))
         previous, self._previous = self._previous, current
@@ -210,8 +233,11 @@ class StreamOdometry:
         if not len(source.points) or not len(target.points):
             return transform, 0.0
         if self.refine:
-            if young:  # the start may be decimetres off: plain least squares, the pairwise step's iterations
-                return refine_clouds(source, target, transform, self.voxel, 50)
-            return refine_clouds(source, target, transform, self.voxel, STREAM_ITERATIONS, STREAM_TUKEY)
+            if young:  # the start may be decimetres off: plain least squares on every point, the pairwise iterations
+                whole = o3d.geometry.PointCloud(target)
+                whole.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(STREAM_NORMAL_NEIGHBOURS))
+                return refine_clouds(source, whole, transform, self.voxel, 50)
+            local = local_target(np.asarray(target.points), np.asarray(source.points), transform)
+            return refine_clouds(source, local, transform, self.voxel, STREAM_ITERATIONS, STREAM_TUKEY)
         result = o3d.pipelines.registration.evaluate_registration(source, target, 2.0 * self.voxel, transform)
         return transform, float(result.fitness)
