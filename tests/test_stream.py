@@ -14,7 +14,7 @@ from fastflow3d.stream import FlowStream, StreamWarning
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
 from icpflow.teacher.config import ICPFlowConfig
-from icpflow.teacher.ego_motion import StreamOdometry, local_target, refinement_cloud
+from icpflow.teacher.ego_motion import StreamOdometry, local_target, refinement_cloud, smallest_axes
 
 from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 
@@ -85,6 +85,21 @@ def test_the_local_target_is_the_nearest_points_with_the_whole_scans_normals(mov
     whole.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(10))
     agree = np.abs((np.asarray(local.normals) * np.asarray(whole.normals)[expected]).sum(axis=1))
     assert np.median(agree) > 0.999 and np.mean(agree > 0.95) > 0.95
+
+
+def test_the_normals_in_closed_form_are_numpys_eigenvectors():
+    """``smallest_axes``: the eigenvector of the smallest eigenvalue, as numpy.linalg.eigh gives it (up to sign), on
+    planes, lines and blobs of 10 points anywhere; (0, 0, 1) where no axis is defined."""
+    rng = np.random.default_rng(0)
+    for spread in ([1.0, 0.5, 0.01], [1.0, 0.02, 0.01], [1.0, 1.0, 1.0], [1.0, 0.3, 0.03]):
+        points = rng.normal(size=(500, 10, 3)) * spread
+        rotations = np.linalg.qr(rng.normal(size=(500, 3, 3)))[0]
+        points = np.matmul(points, rotations.transpose(0, 2, 1)) + rng.normal(size=(500, 1, 3)) * 30
+        centred = points - points.mean(axis=1, keepdims=True)
+        scatter = np.matmul(centred.transpose(0, 2, 1), centred)
+        expected = np.linalg.eigh(scatter)[1][:, :, 0]
+        assert np.abs((smallest_axes(scatter) * expected).sum(axis=1)).min() > 1 - 1e-9
+    np.testing.assert_array_equal(smallest_axes(np.zeros((2, 3, 3))), [[0, 0, 1], [0, 0, 1]])
 
 
 def test_the_stream_gives_the_predictors_flow_with_its_own_ego_motion(predictor_path, moving):
