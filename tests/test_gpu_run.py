@@ -14,10 +14,9 @@ REPO = Path(__file__).resolve().parents[1]
 STEPS = ("labels_train", "labels_val", "train_paper", "train_small", "eval_paper", "eval_small", "teacher")
 
 
-@pytest.fixture(scope="module")
-def smoke(tmp_path_factory):
-    out = tmp_path_factory.mktemp("gpu_run")
-    result = subprocess.run(
+def _smoke(out: Path) -> subprocess.CompletedProcess:
+    """``benchmarks/gpu_run.py --smoke --out <out>``."""
+    return subprocess.run(
         [sys.executable, str(REPO / "benchmarks" / "gpu_run.py"), "--smoke", "--out", str(out)],
         cwd=REPO,
         env=TESTS_ENV,
@@ -25,7 +24,12 @@ def smoke(tmp_path_factory):
         text=True,
         timeout=600,
     )
-    return out, result
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    out = tmp_path_factory.mktemp("gpu_run")
+    return out, _smoke(out)
 
 
 def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
@@ -46,14 +50,7 @@ def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
 
 def test_a_second_run_skips_what_is_done(smoke):
     out, _ = smoke
-    again = subprocess.run(
-        [sys.executable, str(REPO / "benchmarks" / "gpu_run.py"), "--smoke", "--out", str(out)],
-        cwd=REPO,
-        env=TESTS_ENV,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    again = _smoke(out)
     assert again.returncode == 0, again.stdout[-3000:]
     for step in (*STEPS, "latency_paper", "latency_small"):
         assert f"gpu_run: {step}: done before" in again.stdout, step
