@@ -131,8 +131,10 @@ class StudentDataset(Dataset):
     def __getitem__(self, index: int | Draw) -> dict:
         if isinstance(index, Draw):
             index, rng = index.index, index.rng()
-        else:
+        elif self.augment is not None or self.crop is not None:  # random choices to draw: fresh ones
             rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,)).item()))
+        else:
+            rng = None
         raw = self.shards[index]
         if self.augment is not None:
             raw = self.augment(raw, rng)

@@ -12,9 +12,9 @@ import pytest
 from fastflow3d.predictor import Predictor
 from fastflow3d.stream import FlowStream, StreamWarning
 from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import invert
+from icpflow.geometry import invert, smallest_axes
 from icpflow.teacher.config import ICPFlowConfig
-from icpflow.teacher.ego_motion import StreamOdometry, local_target, refinement_cloud, smallest_axes
+from icpflow.teacher.ego_motion import StreamOdometry, local_target, refinement_cloud
 
 from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 

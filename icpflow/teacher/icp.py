@@ -23,6 +23,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from icpflow.geometry import plane_normals
 from icpflow.teacher.neighbours import nearest, transform_cloud
 
 # Neighbours (the point included) whose covariance gives a destination point's normal in point-to-plane ICP.
@@ -173,6 +174,4 @@ def normals(points: np.ndarray, neighbours: int = PLANE_NEIGHBOURS) -> np.ndarra
     if k < 3:
         return np.tile([0.0, 0.0, 1.0], (len(points), 1))
     _, nearest = cKDTree(points).query(points, k)
-    local = points[nearest] - points[nearest].mean(axis=1, keepdims=True)
-    _, axes = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
-    return axes[:, :, 0]
+    return plane_normals(points[nearest])
