@@ -2,16 +2,19 @@
 of the streamed estimate against true poses.
 
     .venv/bin/python benchmarks/bench_stream.py latency [--backends onnx-tuned,openvino] [--scans kitti,av2]
-        [--passes 5] [--threads 2] [--model fastflow3d_small]
+        [--passes 5] [--threads 2] [--model fastflow3d_small] [--regimes pairwise,streamed,given] [--device cpu|cuda]
     .venv/bin/python benchmarks/bench_stream.py ego [--frames 100] [--seeds 0,1,2] [--beams 64,32]
 
 ``latency``: each scan list is played as a stream (KITTI HDL-64E ``000000``-``000005``; the two AV2 sweeps
 alternate, s0 s1 s0 s1 ..., as the only AV2 stream shipped) ``--passes`` times from a fresh stream; the frames after
 the first two of each pass are timed (the whole ``push``). Regimes: ``pairwise`` (``Predictor.predict`` on each pair
 with nothing given: today's path), ``streamed`` (nothing given) and ``given`` (the ego motion and ground masks passed
-in, computed beforehand). The model has random weights (latency does not depend on them), exported and run by
-``fastflow3d.runtime``. Prints median / p90 ms, Hz, the RSS growth of the stream, and the streamed regime's time per
-step (ground, odometry, network, the rest).
+in, computed beforehand). The model has random weights (latency does not depend on them); ``--backends`` are
+``bench_latency.py``'s (``onnx-tuned`` and ``openvino``: ``fastflow3d.runtime``, the CPU engines; ``eager``,
+``eager-bf16``, ``compile``: PyTorch on ``--device``; ``onnx``: ONNX Runtime's CUDA provider with ``--device cuda``
+where ``onnxruntime-gpu`` is installed, else its CPU provider). With ``--device cuda`` only the network runs on the
+GPU: ground, odometry and the rest stay on the CPU's ``--threads``. Prints median / p90 ms, Hz, the RSS growth of the
+stream (and the GPU's peak memory), and the streamed regime's time per step (ground, odometry, network, the rest).
 
 ``ego``: synthetic sequences of ``--frames`` frames (exact poses; the seeds draw the speed, 0-20 m/s, and turns) and
 KITTI sequence 01's three frames (``../shared/data``): translation (cm) and rotation (degrees) error per frame of the
@@ -31,13 +34,20 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_latency import DATA, TEACHERS, cpu_name, model_config, rss_mb  # benchmarks/ is the script's folder
+from bench_latency import (  # benchmarks/ is the script's folder
+    BACKENDS,
+    DATA,
+    TEACHERS,
+    build_network,
+    cpu_name,
+    model_config,
+    rss_mb,
+)
 
 from fastflow3d.checkpoint import build_student
 from fastflow3d.contract import InputContract
 from fastflow3d.export import export_model
 from fastflow3d.predictor import Predictor
-from fastflow3d.runtime import runtime_network
 from fastflow3d.stream import FlowStream
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
@@ -45,7 +55,7 @@ from icpflow.preprocess import Preprocessing, lift_points
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.ego_motion import StreamOdometry, estimate_ego_motion
 
-RUNTIMES = {"onnx-tuned": ("onnxruntime", "f32"), "openvino": ("openvino", "f32")}
+REGIMES = ("pairwise", "streamed", "given")
 
 
 def stream_scans(name: str) -> list[np.ndarray] | None:
@@ -86,35 +96,47 @@ class StepClock:
 
 
 def latency(args) -> None:
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    regimes = [r.strip() for r in args.regimes.split(",") if r.strip()]
+    unknown = sorted(set(backends) - set(BACKENDS)) + sorted(set(regimes) - set(REGIMES))
+    if unknown or not backends or not regimes:
+        raise SystemExit(f"bench_stream: unknown {', '.join(unknown) or '(none)'}; backends {BACKENDS}, {REGIMES}")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("bench_stream: --device cuda but torch sees no CUDA device (a CPU build of torch?)")
     torch.set_num_threads(args.threads)
     model = build_student(model_config(args.model, [])).eval()
+    gpu = f", {torch.cuda.get_device_name()}, torch {torch.__version__}" if args.device == "cuda" else ""
     print(
-        f"model {args.model} grid {model.grid.nx}x{model.grid.ny}; {cpu_name()}, {os.cpu_count()} logical CPUs, "
-        f"{args.threads} threads; load average at start {os.getloadavg()[0]:.2f}"
+        f"model {args.model} grid {model.grid.nx}x{model.grid.ny}; network on {args.device}{gpu}; {cpu_name()}, "
+        f"{os.cpu_count()} logical CPUs, {len(os.sched_getaffinity(0))} usable, {args.threads} threads; "
+        f"load average at start {os.getloadavg()[0]:.2f}"
     )
-    rows, steps = [], {}
+    rows, steps, gpu_memory = [], {}, {}
     with tempfile.TemporaryDirectory() as tmp:
-        export_model(model, tmp, ["onnx"])
-        for scan_name in args.scans.split(","):
-            scans = stream_scans(scan_name)
-            if scans is None:
-                print(f"{scan_name}: no scans under {DATA}; no rows")
+        export_model(model, tmp, ["onnx"] + (["pt2"] if "pt2" in backends else []))
+        for backend in backends:
+            network = build_network(backend, model, Path(tmp), args.device, args.threads)
+            if network is None:
+                print(f"{backend}: not installed; no row")
                 continue
-            contract = InputContract(Preprocessing.from_teacher(TEACHERS[scan_name]), True, model.grid)
-            for backend in args.backends.split(","):
-                runtime, precision = RUNTIMES[backend]
-                try:
-                    network = runtime_network(Path(tmp) / "fastflow3d.onnx", runtime, args.threads, precision)
-                except Exception as error:  # OpenVINO not installed
-                    print(f"{backend}: {error}; no row")
+            if args.device == "cuda":
+                torch.cuda.reset_peak_memory_stats()
+            for scan_name in args.scans.split(","):
+                scans = stream_scans(scan_name)
+                if scans is None:
+                    print(f"{scan_name}: no scans under {DATA}; no rows")
                     continue
+                contract = InputContract(Preprocessing.from_teacher(TEACHERS[scan_name]), True, model.grid)
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # the height-frame lift of velodyne scans, said once per stream
-                    times, memory, spent = play(network, contract, backend, scans, args)
+                    times, memory, spent = play(network, contract, backend, scans, regimes, args.passes)
                 for regime, values in times.items():
                     rows.append((scan_name, len(scans[0]), regime, backend, values, memory.get(regime)))
-                steps[(scan_name, backend)] = spent
-    print("| stream | points | regime | engine | median ms | p90 ms | Hz | vs pairwise | memory MB |")
+                if spent:
+                    steps[(scan_name, backend)] = spent
+            if args.device == "cuda":
+                gpu_memory[backend] = torch.cuda.max_memory_allocated() / 2**20
+    print(f"| stream | points | regime | engine | median ms | p90 ms | Hz | vs {regimes[0]} | memory MB |")
     print("|---|---|---|---|---|---|---|---|---|")
     base = {}
     for scan_name, points, regime, backend, values, memory in rows:
@@ -128,16 +150,19 @@ def latency(args) -> None:
     for (scan_name, backend), spent in steps.items():
         parts = ", ".join(f"{key} {1000 * value:.1f} ms" for key, value in spent.items())
         print(f"{scan_name}, {backend}, streamed: median per frame: {parts}")
+    if gpu_memory:
+        print("GPU memory, peak allocated by torch: " + ", ".join(f"{k} {v:.0f} MB" for k, v in gpu_memory.items()))
     print(
-        f"median and p90 of the frames after the first two of each of {args.passes} passes; load average at the "
-        f"end {os.getloadavg()[0]:.2f}"
+        f"median and p90 of the frames after the first two of each of {args.passes} passes "
+        f"({len(rows[0][4]) if rows else 0} frames per row); load average at the end "
+        f"{os.getloadavg()[0]:.2f}"
     )
 
 
-def play(network, contract, backend, scans, args):
-    """Per-frame seconds of each regime (pairwise, streamed, given), the streamed regime's RSS growth and its
-    median time per step."""
-    times = {"pairwise": [], "streamed": [], "given": []}
+def play(network, contract, backend, scans, regimes, passes):
+    """Per-frame seconds of each of ``regimes`` (pairwise, streamed, given), the streamed regime's RSS growth and
+    its median time per step (empty when it is not played)."""
+    times = {regime: [] for regime in regimes}
     predictor = Predictor(network, contract, backend)
     # the given regime's inputs: the stream's own estimates, computed once beforehand
     reference = FlowStream(Predictor(network, contract, backend))
@@ -145,16 +170,20 @@ def play(network, contract, backend, scans, args):
     lift = predictor.frame_lift(scans[0])
     grounds = [predictor.ground_mask("g", lift_points(scan, lift), None) for scan in scans]
     memory, per_step = {}, []
-    for _ in range(args.passes):
+    for _ in range(passes):
         for k in range(1, len(scans)):
-            start = time.perf_counter()
-            predictor.predict(scans[k - 1], scans[k])
-            if k > 2:
-                times["pairwise"].append(time.perf_counter() - start)
-            start = time.perf_counter()
-            predictor.predict(scans[k - 1], scans[k], given[k].ego1_from_ego0, grounds[k - 1], grounds[k])
-            if k > 2:
-                times["given"].append(time.perf_counter() - start)
+            if "pairwise" in times:
+                start = time.perf_counter()
+                predictor.predict(scans[k - 1], scans[k])
+                if k > 2:
+                    times["pairwise"].append(time.perf_counter() - start)
+            if "given" in times:
+                start = time.perf_counter()
+                predictor.predict(scans[k - 1], scans[k], given[k].ego1_from_ego0, grounds[k - 1], grounds[k])
+                if k > 2:
+                    times["given"].append(time.perf_counter() - start)
+        if "streamed" not in times:
+            continue
         before = rss_mb()
         stream = FlowStream(Predictor(network, contract, backend))
         clock = StepClock(stream)
@@ -168,7 +197,7 @@ def play(network, contract, backend, scans, args):
                 times["streamed"].append(seconds)
                 per_step.append({**spent, "the rest": seconds - sum(spent.values())})
         memory["streamed"] = max(memory.get("streamed", 0.0), rss_mb() - before)
-    medians = {key: statistics.median(step[key] for step in per_step) for key in per_step[0]}
+    medians = {key: statistics.median(step[key] for step in per_step) for key in per_step[0]} if per_step else {}
     return times, memory, medians
 
 
@@ -239,6 +268,8 @@ def main() -> None:
     lat.add_argument("--backends", default="onnx-tuned,openvino")
     lat.add_argument("--scans", default="kitti,av2")
     lat.add_argument("--passes", type=int, default=5)
+    lat.add_argument("--regimes", default="pairwise,streamed,given")
+    lat.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="where the network runs")
     ego = sub.add_parser("ego")
     ego.add_argument("--frames", type=int, default=100)
     ego.add_argument("--seeds", default="0,1,2")

@@ -17,28 +17,39 @@ run resumes):
 3. ``eval``: ``eval.py`` on ``--test-pairs`` synthetic test pairs: ego-only, the teacher and the paper student; the
    small student on the same pairs;
 4. ``latency_paper`` and ``latency_small``: ``benchmarks/bench_latency.py --device cuda`` with backends ``eager``,
-   ``eager-bf16`` and ``onnx`` (ONNX Runtime's CUDA provider where ``onnxruntime-gpu`` is installed; its CPU provider
-   otherwise, said in the table), median of 100 calls after 10, on the shipped KITTI and AV2 scans, poses given;
+   ``eager-bf16`` and ``onnx`` (ONNX Runtime's CUDA provider, where ``onnxruntime-gpu`` is installed), median of
+   100 calls after 10, on the shipped KITTI and AV2 scans, poses given;
+   ``latency_stream`` (issue 33.7): ``benchmarks/bench_stream.py latency --device cuda``, the small model's network
+   on the GPU with the same backends, the shipped scans played as streams, regimes ``streamed`` (nothing given) and
+   ``given``, 102 frames each after the first two of each pass, the process held to 2 CPU cores (ground and
+   odometry as on the 2-core laptop);
 5. ``teacher``: ``benchmarks/teacher_backends.py --av2 <data>/av2``: ``icp.backend=torch`` (CUDA) against the CPU
    backend on the shipped Argoverse 2 pair: time of each and the largest flow difference (synthetic pairs where the
    AV2 sample is absent).
 
+``--steps a,b`` runs only the named steps (e.g. ``latency_stream,latency_small`` first when device time is short).
 ``<out>/report.md`` then holds every table: the steps' wall times, the students' steps reached, the scores (dynamic
 foreground, Threeway and static foreground EPE, each student's ratio to the teacher and to ego-only), the latency
 and the teacher tables. Sized for under 10 minutes of a 16-core H100/H200 machine with ``--minutes 3``.
 
-The device machine reaches no package registry and its ``python3`` holds torch (CUDA), lightning, h5py, onnx, numba
-and scipy: bring the rest as cp312 wheels in a git-ignored ``.wheels/`` folder named in the run's ``carry`` (64 MiB
-in all), e.g. ``pip download --python-version 3.12 --only-binary=:all: --no-deps -d .wheels hydra-core omegaconf
-antlr4-python3-runtime hdbscan scikit-learn joblib threadpoolctl pypatchworkpp kiss-icp tqdm tensorboard
-onnxruntime pyyaml``; this script installs ``.wheels/*.whl`` first where the folder exists (``--no-index``).
-``onnxruntime-gpu`` (over 200 MB) does not fit the carry: the ``onnx`` rows then run on ONNX Runtime's CPU provider.
+The device machine reaches no package registry. Its image (2026-11) holds torch (CUDA), lightning, onnxruntime (CPU),
+pandas, pyarrow, scikit-learn, tensorboard, tqdm and pyyaml; what it lacked on 2026-11-27, as cp312 wheels in a
+git-ignored ``.wheels/`` folder named in the run's ``carry`` (64 MiB in all, 10 MB of these): hydra-core omegaconf
+antlr4-python3-runtime (built with ``pip wheel``: it has no wheel on PyPI) hdbscan kiss-icp pypatchworkpp pebble and
+kiss-icp's pydantic pydantic-core pydantic-settings python-dotenv annotated-types typing-inspection typing-extensions
+natsort pyquaternion (``pip download --no-deps --only-binary=:all: --python-version 3.12 ...``); this script
+installs ``.wheels/*.whl`` first where the folder exists (``--no-index --no-deps``). Two do not fit the carry:
+``open3d-cpu`` (99 MB; the ego motion's refinement needs it: the 2026-11-27 run carried its ``cpu`` module as a
+39 MB xz archive with the X and GL libraries it links, BENCHMARKS.md issue 33) and ``onnxruntime-gpu`` (over 200 MB:
+without its CUDA provider the GPU latency steps have no ``onnx`` rows). The ``teacher`` step on the AV2 sample also
+needs the ``av2`` package.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -61,8 +72,8 @@ SMOKE_LATENCY_MODEL = [item.removeprefix("model.") for item in SMOKE_MODEL]
 class Step:
     """One command of the run, logged to ``<out>/logs/<name>.log``, skipped where ``done`` exists."""
 
-    def __init__(self, out: Path, name: str, arguments: list[str], done: Path):
-        self.out, self.name, self.arguments, self.done = out, name, arguments, done
+    def __init__(self, out: Path, name: str, arguments: list[str], done: Path, cpus: int | None = None):
+        self.out, self.name, self.arguments, self.done, self.cpus = out, name, arguments, done, cpus
 
     def run(self, seconds: dict) -> bool:
         """Run it unless done; its wall time goes to ``seconds[name]``; False (said on stderr) when it failed."""
@@ -73,9 +84,15 @@ class Step:
         log.parent.mkdir(parents=True, exist_ok=True)
         print(f"gpu_run: {self.name}: python {' '.join(self.arguments)}", flush=True)
         tic = time.perf_counter()
+        usable = sorted(os.sched_getaffinity(0))
+        held = set(usable[: self.cpus]) if self.cpus else None
         with open(log, "w") as handle:
             result = subprocess.run(
-                [sys.executable, *self.arguments], cwd=ROOT, stdout=handle, stderr=subprocess.STDOUT
+                [sys.executable, *self.arguments],
+                cwd=ROOT,
+                stdout=handle,
+                stderr=subprocess.STDOUT,
+                preexec_fn=(lambda: os.sched_setaffinity(0, held)) if held else None,
             )
         seconds[self.name] = time.perf_counter() - tic
         if result.returncode != 0:
@@ -88,11 +105,22 @@ class Step:
 
 
 def install_wheels() -> None:
-    """``.wheels/*.whl`` into this interpreter's environment (no index), where the folder exists."""
+    """``.wheels/*.whl`` into this interpreter's environment (no index, no dependencies: the folder holds what the
+    machine lacks), where the folder exists."""
     wheels = sorted((ROOT / ".wheels").glob("*.whl"))
     if wheels:
-        command = [sys.executable, "-m", "pip", "install", "-q", "--no-index", "--find-links", str(ROOT / ".wheels")]
+        command = [sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps"]
         subprocess.run([*command, *map(str, wheels)], check=False)
+
+
+def gpu_backends() -> str:
+    """The latency steps' backends on a GPU: eager and eager bf16, and ``onnx`` where ONNX Runtime has its CUDA
+    provider (``onnxruntime-gpu``; its CPU provider's rows would time the CPU, the paper model's at seconds a call)."""
+    try:
+        import onnxruntime
+    except ImportError:
+        return "eager,eager-bf16"
+    return "eager,eager-bf16" + (",onnx" if "CUDAExecutionProvider" in onnxruntime.get_available_providers() else "")
 
 
 def steps(args) -> list[Step]:
@@ -113,7 +141,7 @@ def steps(args) -> list[Step]:
         "trainer.enable_progress_bar=false",
         f"data.workers={0 if smoke else 4}",
     ]
-    train_steps = {"paper": ["experiment=paper", "trainer.max_epochs=-1"], "small": ["experiment=synthetic_cpu"]}
+    train_steps = {"paper": ["experiment=paper"], "small": ["experiment=synthetic_cpu"]}
     test_sequences = max(1, -(-args.test_pairs // 4))
     test = ["split=test", f"dataset.reader.num_sequences={test_sequences}", f"limit={args.test_pairs}", *reader[1:]]
     result = [
@@ -155,8 +183,15 @@ def steps(args) -> list[Step]:
             latency += ["--backends", backends, "--set", *SMOKE_LATENCY_MODEL]
         else:
             latency += ["--device", "cuda", "--runs", "100", "--warmup", "10", "--scans", "kitti,av2"]
-            latency += ["--backends", "eager,eager-bf16,onnx"]
+            latency += ["--backends", gpu_backends()]
         result.append(Step(out, f"latency_{name}", latency, out / "logs" / f"latency_{name}.done"))
+    stream = ["benchmarks/bench_stream.py", "latency", "--regimes", "streamed,given", "--threads", "2"]
+    if smoke:
+        stream = [*stream[:3], "streamed", *stream[4:], "--device", "cpu", "--backends", "eager", "--passes", "1"]
+        stream += ["--scans", "kitti"]
+    else:
+        stream += ["--device", "cuda", "--backends", gpu_backends(), "--passes", "34"]
+    result.append(Step(out, "latency_stream", stream, out / "logs" / "latency_stream.done", cpus=2))
     teacher = ["benchmarks/teacher_backends.py", "--json", str(out / "teacher.json")]
     if smoke:
         teacher += ["--pairs", "1", "--teacher", "icp.max_points=300", "--teacher", "icp.max_iter=3"]
@@ -222,7 +257,7 @@ def report(args, seconds: dict, failed: list[str]) -> str:
             for ref in ("icpflow", "ego")
         ]
         lines.append(f"| {method} | " + " | ".join(cells + ratios) + " |")
-    for name in ("latency_paper", "latency_small", "teacher"):
+    for name in ("latency_paper", "latency_small", "latency_stream", "teacher"):
         lines += ["", f"## {name}", "", *table_lines(out / "logs" / f"{name}.log")]
     return "\n".join(lines) + "\n"
 
@@ -238,13 +273,22 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--smoke", action="store_true", help="tiny sizes on the CPU: every step runs, in about a minute"
     )
+    parser.add_argument("--steps", default=None, help="comma-separated step names to run (default: all)")
     args = parser.parse_args(argv)
     if args.smoke:
         args.train_sequences, args.test_pairs, args.workers, args.minutes = 2, 2, 1, 0
     args.out = args.out.resolve()
-    install_wheels()
+    if not args.smoke:
+        install_wheels()
     seconds, failed = {}, []
-    for step in steps(args):
+    chosen = steps(args)
+    if args.steps:
+        names = [name.strip() for name in args.steps.split(",") if name.strip()]
+        unknown = sorted(set(names) - {step.name for step in chosen})
+        if unknown:
+            parser.error(f"--steps: unknown {', '.join(unknown)}; steps: {', '.join(step.name for step in chosen)}")
+        chosen = [step for step in chosen if step.name in names]
+    for step in chosen:
         if not step.run(seconds):
             failed.append(step.name)
     text = report(args, seconds, failed)

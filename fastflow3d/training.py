@@ -163,6 +163,16 @@ def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
     return str(path)
 
 
+def check_length(cfg: DictConfig) -> None:
+    """A run's length in steps or epochs: the learning-rate schedule is laid out over it (``trainer.max_time``
+    can stop a run earlier but gives no length)."""
+    if cfg.trainer.get("max_steps", -1) == -1 and cfg.trainer.get("max_epochs") == -1:
+        raise TrainError(
+            "trainer.max_steps=-1 and trainer.max_epochs=-1: the learning-rate schedule needs the run's length; "
+            "set one of them (trainer.max_time may still stop the run earlier)"
+        )
+
+
 def export_formats(cfg: DictConfig) -> tuple[str, ...]:
     """``export.formats`` checked before training (an unknown name would otherwise fail only at the end)."""
     formats = tuple(cfg.export.formats or ())
@@ -365,6 +375,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
     elsewhere at once; its message says what was kept and how to resume.
     """
     check_config(cfg)  # the schema's rules (fastflow3d.options.TrainOptions)
+    check_length(cfg)
     with stop_on_signals(), run_folder(cfg):
         check_data(cfg)
         formats = export_formats(cfg)

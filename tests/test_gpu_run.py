@@ -11,6 +11,7 @@ import pytest
 from helpers.labelling import TESTS_ENV
 
 REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
 STEPS = ("labels_train", "labels_val", "train_paper", "train_small", "eval_paper", "eval_small", "teacher")
 
 
@@ -46,11 +47,21 @@ def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
     for backend, rows in (("eager", 2), ("eager-bf16", 2), ("onnx", 1)):  # both models; ONNX for the small one
         assert report.count(f"| given | {backend} |") == rows, backend
     assert "| cpu | cpu (numba" in report and "| torch | cpu" in report  # the teacher's two backends
+    assert "| stream | points | regime | engine |" in report  # the stream's table (issue 33.7), rows with the data
+    if (DATA / "kitti_hdl64_scans").is_dir():
+        assert report.count("| kitti | 124668 | streamed | eager |") == 1
+
+
+def test_steps_picks_steps_and_refuses_an_unknown_one(tmp_path):
+    command = [sys.executable, str(REPO / "benchmarks" / "gpu_run.py"), "--smoke", "--out", str(tmp_path)]
+    result = subprocess.run([*command, "--steps", "teacher,nope"], cwd=REPO, env=TESTS_ENV, capture_output=True)
+    assert result.returncode == 2 and b"--steps: unknown nope; steps: labels_train," in result.stderr
+    assert not (tmp_path / "logs").exists()  # nothing ran
 
 
 def test_a_second_run_skips_what_is_done(smoke):
     out, _ = smoke
     again = _smoke(out)
     assert again.returncode == 0, again.stdout[-3000:]
-    for step in (*STEPS, "latency_paper", "latency_small"):
+    for step in (*STEPS, "latency_paper", "latency_small", "latency_stream"):
         assert f"gpu_run: {step}: done before" in again.stdout, step

@@ -527,6 +527,15 @@ def test_weight_averaging_is_what_checkpoints_hold_and_a_resume_keeps_both(shard
     assert all(torch.equal(trained[k], averaged[k]) for k in averaged)
 
 
+def test_a_run_bounded_by_time_alone_is_refused_before_it_starts(shards, tmp_path):
+    """The schedule is laid out over the run's steps: max_steps=-1 with max_epochs=-1 gave an OverflowError deep in
+    Lightning (found on a GPU run of experiment=paper with max_time); now one line before any work."""
+    unbounded = ("trainer.max_steps=-1", "trainer.max_epochs=-1", "trainer.max_time=00:00:01:00")
+    with pytest.raises(TrainError, match=r"^trainer.max_steps=-1 and trainer.max_epochs=-1: the learning-rate"):
+        fit(_cfg(tmp_path / "run", shards["gt"], shards["gt"], *unbounded))
+    assert not (tmp_path / "run").exists()
+
+
 def test_ckpt_path_last_without_checkpoint(shards, tmp_path):
     with pytest.raises(TrainError, match="last.ckpt does not exist"):
         fit(_cfg(tmp_path, shards["gt"], shards["gt"], "ckpt_path=last"))
