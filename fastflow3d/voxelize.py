@@ -79,5 +79,5 @@ def voxelize(points: torch.Tensor, batch: torch.Tensor, grid: Grid, batch_size: 
     means = scatter_mean(points, ids, num_slots)
     centres = pillar_centres(ids, grid)
     features = torch.cat([points, points - means[ids], points - centres], dim=1)
-    features = torch.where(valid[:, None], features, torch.zeros_like(features))
+    features = features * valid[:, None].to(features.dtype)  # finite points: a Where, 4x slower in ONNX Runtime
     return features, ids, valid

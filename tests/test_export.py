@@ -407,6 +407,26 @@ def test_cpu_runtimes_keep_the_export_parity(export_dir, expected, pairs, runtim
         assert options.get_session_config_entry("session.intra_op.allow_spinning") == "0"
 
 
+def test_onnx_runtime_pillar_sums_are_exact_with_threads_on_crowded_pillars(export_dir, eager):
+    """The pillar means are one scatter-add over many points per pillar: a threaded engine that races on repeated
+    pillar ids (ONNX Runtime's ScatterND-add did, issue 33) gives sums that change from run to run. 60,000 points
+    in 150 pillars, 2 threads, three runs: each equals eager to the export's tolerance."""
+    from fastflow3d.runtime import runtime_network
+
+    rng = np.random.default_rng(1)
+    cells = rng.uniform(-3.0, 3.0, (150, 2))
+    crowded = []
+    for count in (60_000, 40_000):
+        xy = cells[rng.integers(0, len(cells), count)] + rng.uniform(-0.05, 0.05, (count, 2))
+        crowded.append(np.column_stack([xy, rng.uniform(0.3, 2.0, count)]).astype(np.float32))
+    with torch.no_grad():
+        want = eager(*map(torch.from_numpy, crowded))[0].numpy()
+    network = runtime_network(export_dir / FILE_NAMES["onnx"], "onnxruntime", 2)
+    for _ in range(3):
+        got, valid = network(*crowded)
+        assert valid.all() and np.abs(got - want).max() <= TOLERANCE
+
+
 def test_cpu_runtime_rejects_what_it_cannot_run(export_dir):
     from fastflow3d.runtime import runtime_network
 
