@@ -113,7 +113,11 @@ def latency(args) -> None:
     )
     rows, steps, gpu_memory = [], {}, {}
     with tempfile.TemporaryDirectory() as tmp:
-        export_model(model, tmp, ["onnx"] + (["pt2"] if "pt2" in backends else []))
+        formats = [name for name in ("onnx", "pt2") if any(b.startswith(name) for b in backends)]
+        if any(b.startswith("openvino") for b in backends) and "onnx" not in formats:
+            formats.append("onnx")
+        if formats:  # the eager backends need no export
+            export_model(model, tmp, formats)
         for backend in backends:
             network = build_network(backend, model, Path(tmp), args.device, args.threads)
             if network is None:
@@ -165,10 +169,11 @@ def play(network, contract, backend, scans, regimes, passes):
     times = {regime: [] for regime in regimes}
     predictor = Predictor(network, contract, backend)
     # the given regime's inputs: the stream's own estimates, computed once beforehand
-    reference = FlowStream(Predictor(network, contract, backend))
-    given = [reference.push(scan).prediction for scan in scans]
-    lift = predictor.frame_lift(scans[0])
-    grounds = [predictor.ground_mask("g", lift_points(scan, lift), None) for scan in scans]
+    if "given" in times:
+        reference = FlowStream(Predictor(network, contract, backend))
+        given = [reference.push(scan).prediction for scan in scans]
+        lift = predictor.frame_lift(scans[0])
+        grounds = [predictor.ground_mask("g", lift_points(scan, lift), None) for scan in scans]
     memory, per_step = {}, []
     for _ in range(passes):
         for k in range(1, len(scans)):
