@@ -112,6 +112,11 @@ def cpu_name() -> str:
     return platform.processor() or "unknown CPU"
 
 
+def export_formats(backends) -> list[str]:
+    """The export files ``backends`` run from: ``onnx`` (ONNX Runtime and OpenVINO), ``pt2``; none for eager."""
+    return [f for f in ("onnx", "pt2") if any(b.startswith(f) or (f == "onnx" and "openvino" in b) for b in backends)]
+
+
 def build_network(name: str, model, export_dir: Path, device: str, threads: int):
     """The runnable network of backend ``name`` (numpy in, numpy out); None when its runtime is not installed."""
     onnx_file = export_dir / FILE_NAMES["onnx"]
@@ -203,8 +208,7 @@ def main():
         f"{os.getloadavg()[0]:.2f}"
     )
     with tempfile.TemporaryDirectory() as tmp:
-        formats = [f for f in ("onnx", "pt2") if any(b.startswith(f) or b.startswith("openvino") for b in backends)]
-        formats = sorted({"onnx" if f.startswith("openvino") else f for f in formats})
+        formats = export_formats(backends)
         if formats:
             export_model(model, tmp, formats)
         eager_net = SingleSampleNet(copy.deepcopy(model)).eval()

@@ -40,6 +40,7 @@ from bench_latency import (  # benchmarks/ is the script's folder
     TEACHERS,
     build_network,
     cpu_name,
+    export_formats,
     model_config,
     rss_mb,
 )
@@ -113,9 +114,7 @@ def latency(args) -> None:
     )
     rows, steps, gpu_memory = [], {}, {}
     with tempfile.TemporaryDirectory() as tmp:
-        formats = [name for name in ("onnx", "pt2") if any(b.startswith(name) for b in backends)]
-        if any(b.startswith("openvino") for b in backends) and "onnx" not in formats:
-            formats.append("onnx")
+        formats = export_formats(backends)
         if formats:  # the eager backends need no export
             export_model(model, tmp, formats)
         for backend in backends:

@@ -126,6 +126,7 @@ def gpu_backends() -> str:
 def steps(args) -> list[Step]:
     """The run's commands, sized by ``args`` (``--smoke``: tiny, on the CPU)."""
     out, smoke = args.out, args.smoke
+    on_gpu = "" if smoke else gpu_backends()
     labels = out / "labels"
     trainer = ["trainer=cpu", "trainer.precision=bf16-mixed"] if smoke else ["trainer=gpu"]
     quick = ["trainer.max_steps=2", "trainer.num_sanity_val_steps=0", "metrics.bev_every=0", *SMOKE_MODEL]
@@ -182,14 +183,14 @@ def steps(args) -> list[Step]:
             latency += ["--backends", "eager,eager-bf16", "--set", *SMOKE_LATENCY_MODEL]
         else:
             latency += ["--device", "cuda", "--runs", "100", "--warmup", "10", "--scans", "kitti,av2"]
-            latency += ["--backends", gpu_backends()]
+            latency += ["--backends", on_gpu]
         result.append(Step(out, f"latency_{name}", latency, out / "logs" / f"latency_{name}.done"))
-    stream = ["benchmarks/bench_stream.py", "latency", "--regimes", "streamed,given", "--threads", "2"]
+    stream = ["benchmarks/bench_stream.py", "latency", "--threads", "2"]
     if smoke:
-        stream = [*stream[:3], "streamed", *stream[4:], "--device", "cpu", "--backends", "eager", "--passes", "1"]
+        stream += ["--regimes", "streamed", "--device", "cpu", "--backends", "eager", "--passes", "1"]
         stream += ["--scans", "kitti"]
     else:
-        stream += ["--device", "cuda", "--backends", gpu_backends(), "--passes", "34"]
+        stream += ["--regimes", "streamed,given", "--device", "cuda", "--backends", on_gpu, "--passes", "34"]
     result.append(Step(out, "latency_stream", stream, out / "logs" / "latency_stream.done", cpus=2))
     teacher = ["benchmarks/teacher_backends.py", "--json", str(out / "teacher.json")]
     if smoke:
