@@ -1,7 +1,8 @@
 """Evaluate scene-flow methods against ground truth (see conf/eval.yaml and icpflow.evaluation); the student comes
 from fastflow3d.eval_method.
 
-    python eval.py [dataset=<name>] [split=val] [method=[zero,ego,icpflow,student,student+refine,student-stream,shards]]
+    python eval.py [dataset=<name>] [split=val]
+        [method=[zero,ego,icpflow,icpflow-raw,student,student+refine,student-stream,shards]]
         [checkpoint=...]
         [shards=<label out_dir>] [horizon=k | horizon=[1,2,3,4] | horizon=1..4] [tracker=true | tracker=[false,true]]
         [limit=N] [bev=N] [render=N] [out_dir=...]

@@ -1,17 +1,17 @@
-"""What the ego-motion estimate (``icpflow.teacher.ego_motion``, the Predictor's and the teacher's step when no
-poses are given) is made of, and how close each part gets to the true motion.
+"""Ego motion from the scans alone (``icpflow.odometry``): its error against true poses, pairwise and per drive.
 
-    .venv/bin/python benchmarks/bench_ego_motion.py [--repeats 5]
+    .venv/bin/python benchmarks/bench_ego_motion.py [--frames 100] [--seeds 0,1,2] [--beams 64,32]
+        [--ground estimated|world] [--methods drive,pair]
 
-Per pair of real scans (median of ``repeats`` runs after one warm-up, seconds in ms):
-* ``KISS-ICP pair``: ``kiss_icp_motion``, what every stateless call pays (pc0 then pc1 registered by a fresh KISS-ICP);
-* ``KISS-ICP one frame``: pc1 alone registered onto a KISS-ICP that already holds pc0, what an estimator that keeps
-  KISS-ICP between frames would pay per frame;
-* ``refinement``: ``refine_motion`` (point-to-plane ICP of the down-sampled scans from the KISS-ICP estimate);
-* errors against the true motion where it is known (translation cm / rotation degrees of ``inv(truth) @ estimate``):
-  Argoverse 2's shipped pair (``ego_motion.npz``) and KITTI odometry sequence 01's frames 0 -> 1 and 1 -> 2 (ground-
-  truth poses); the KITTI HDL-64E scans have none.
-Preset ``av2``'s ego-motion settings (``ICPFlowConfig.preset("av2").ego_motion``, the Predictor's default).
+Sequences: synthetic drives of ``--frames`` frames (the test split; each seed draws the ego's speed, 0-20 m/s, and
+turns) at each beam count, KITTI odometry sequence 01 frames 0-2 (true poses; lifted 1.73 m into the height frame)
+and Argoverse 2's shipped pair (``ego_motion.npz``). Each scan's ground comes from ``icpflow.ground`` with the
+dataset's settings (``--ground estimated``, what a user gets) or from the world's exact masks (``world``,
+synthetic only). Methods: ``drive`` (one ``Odometry`` over the whole sequence, as ``label.py`` and a stream run it)
+and ``pair`` (``estimate_ego_motion`` on each consecutive pair alone: no map, no motion model, as the teacher and
+the Predictor run a lone pair). Prints, per sequence and over all synthetic pairs of each beam count, the
+translation error (cm: median / p95 / max) and the rotation error (degrees: median / p95 / max) of
+``inv(truth) @ estimate``, the steps with no estimate, and the median ms per step (the ground not included).
 """
 
 from __future__ import annotations
@@ -19,84 +19,114 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
-from bench_teacher import DATA, read_av2, read_kitti
 
-from icpflow.geometry import pose_error, relative_transform
-from icpflow.teacher.config import ICPFlowConfig
-from icpflow.teacher.ego_motion import kiss_icp_motion, kiss_odometry, refine_motion
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.geometry import invert, pose_error
+from icpflow.ground import GroundSegmenter
+from icpflow.odometry import Odometry, estimate_ego_motion
+from icpflow.preprocess import HeightFrame, Preprocessing
+from icpflow.teacher.config import GroundConfig, ICPFlowConfig
 
-
-def cases() -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray | None]]:
-    """(name, pc0, pc1, true ego1_from_ego0 or None) for each shipped pair that is present."""
-    found = []
-    kitti = read_kitti()
-    if kitti is not None:
-        found.append(("KITTI HDL-64E 000000 -> 000001", kitti[0], kitti[1], None))
-    av2 = read_av2()
-    if av2 is not None:
-        found.append(("AV2 sweeps 0 -> 1", av2[0], av2[1], av2[2]))
-    seq01 = DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"
-    if seq01.is_file():
-        frames = np.load(seq01)
-        poses = frames["velo_poses_world"]
-        for k in range(2):
-            truth = relative_transform(poses[k], poses[k + 1])
-            found.append((f"KITTI seq 01 {k} -> {k + 1}", frames[f"points{k}"], frames[f"points{k + 1}"], truth))
-    return found
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SEQ01 = DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"
 
 
-def errors(estimate: np.ndarray, truth: np.ndarray | None) -> str:
-    if truth is None:
-        return "-"
-    translation, angle = pose_error(estimate, truth)
-    return f"{100 * translation:.2f} / {angle:.3f}"
+def sequences(args):
+    """(name, group, scans, ground masks, true ego1_from_ego0 per step)."""
+    world = args.ground == "world"
+    for beams in [int(b) for b in args.beams.split(",")]:
+        for seed in [int(s) for s in args.seeds.split(",")]:
+            data = SyntheticDataset(
+                split="test", num_sequences=1, frames_per_sequence=args.frames, beams=beams, seed=seed
+            )
+            pairs = [data[i] for i in range(len(data))]
+            scans = [pairs[0].pc0] + [pair.pc1 for pair in pairs]
+            segmenter = GroundSegmenter(Preprocessing())
+            grounds = [pairs[0].ground0] + [p.ground1 for p in pairs] if world else [segmenter(s) for s in scans]
+            yield (
+                f"synthetic {beams} beams, seed {seed}",
+                f"synthetic {beams} beams",
+                scans,
+                grounds,
+                [pair.ego1_from_ego0 for pair in pairs],
+            )
+    if SEQ01.is_file():
+        with np.load(SEQ01) as data:
+            scans = [data[f"points{i}"][:, :3].astype(np.float32) + np.float32([0, 0, 1.73]) for i in range(3)]
+            poses = data["velo_poses_world"]
+        segmenter = GroundSegmenter(Preprocessing(HeightFrame(0.0), GroundConfig(sensor_height=1.73)))
+        truth = [invert(poses[i + 1]) @ poses[i] for i in range(2)]
+        yield "KITTI seq 01 frames 0-2", "KITTI", scans, [segmenter(s) for s in scans], truth
+    logs = sorted((DATA / "av2" / "sensor" / "val").glob("*/"))
+    if logs:
+        import pandas as pd
+
+        sweeps = sorted((logs[0] / "sensors" / "lidar").glob("*.feather"))[:2]
+        scans = [pd.read_feather(s, columns=["x", "y", "z"]).to_numpy().astype(np.float32) for s in sweeps]
+        truth = [np.load(logs[0] / "ego_motion.npz")["ego_motion"][0].astype(np.float64)]
+        segmenter = GroundSegmenter(ICPFlowConfig.preset("av2"))
+        yield "AV2 sweeps 0-1", "AV2", scans, [segmenter(s) for s in scans], truth
 
 
-def median_ms(function, arguments: tuple, repeats: int) -> float:
-    """Median ms of ``function(*arguments)`` over ``repeats`` calls after one warm-up call."""
-    function(*arguments)
-    walls = []
-    for _ in range(repeats):
+def estimates(method: str, scans, grounds, cfg):
+    """(estimates per step (None: none), seconds per step)."""
+    found, seconds = [], []
+    if method == "drive":
+        odometry = Odometry(cfg)
+        odometry.step(scans[0], grounds[0])
+        for scan, ground in zip(scans[1:], grounds[1:]):
+            tic = time.perf_counter()
+            found.append(odometry.step(scan, ground).ego1_from_ego0)
+            seconds.append(time.perf_counter() - tic)
+        return found, seconds
+    for k in range(len(scans) - 1):
         tic = time.perf_counter()
-        function(*arguments)
-        walls.append(time.perf_counter() - tic)
-    return 1e3 * statistics.median(walls)
+        found.append(estimate_ego_motion(scans[k], scans[k + 1], cfg, grounds[k], grounds[k + 1]))
+        seconds.append(time.perf_counter() - tic)
+    return found, seconds
 
 
-def one_frame_ms(pc0, pc1, cfg, repeats: int) -> float:
-    """Median ms of registering pc1 onto a KISS-ICP that holds pc0 (the odometry set up outside the timing)."""
-    walls = []
-    for _ in range(repeats + 1):
-        odometry = kiss_odometry(cfg)
-        odometry.register_frame(np.asarray(pc0, np.float64), np.zeros(0))
-        tic = time.perf_counter()
-        odometry.register_frame(np.asarray(pc1, np.float64), np.zeros(0))
-        walls.append(time.perf_counter() - tic)
-    return 1e3 * statistics.median(walls[1:])
+def row(name: str, method: str, errors: list, missing: int, seconds: list) -> str:
+    cm = 100 * np.array([e[0] for e in errors])
+    deg = np.array([e[1] for e in errors])
+    return (
+        f"| {name} | {method} | {len(errors) + missing} | {np.median(cm):.2f} / {np.percentile(cm, 95):.2f} / "
+        f"{cm.max():.2f} | {np.median(deg):.3f} / {np.percentile(deg, 95):.3f} / {deg.max():.3f} | {missing} | "
+        f"{1000 * statistics.median(seconds):.0f} |"
+    )
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=5)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--beams", default="64,32")
+    parser.add_argument("--ground", choices=("estimated", "world"), default="estimated")
+    parser.add_argument("--methods", default="drive,pair")
     args = parser.parse_args()
-    cfg = ICPFlowConfig.preset("av2")
-    found = cases()
-    if not found:
-        raise SystemExit(f"bench_ego_motion: no shipped scans under {DATA}")
-    print(f"preset av2 ego motion, median of {args.repeats} after a warm-up; ms; errors cm / degrees against the truth")
-    head = ["pair", "KISS-ICP pair", "KISS-ICP one frame", "refinement", "error, KISS-ICP", "error, + refinement"]
-    print("| " + " | ".join(head) + " |")
-    print("|" + "---|" * len(head))
-    for name, pc0, pc1, truth in found:
-        kiss = kiss_icp_motion(pc0, pc1, cfg)
-        refined = refine_motion(pc0, pc1, kiss, cfg)
-        pair = median_ms(kiss_icp_motion, (pc0, pc1, cfg), args.repeats)
-        frame = one_frame_ms(pc0, pc1, cfg, args.repeats)
-        refine = median_ms(refine_motion, (pc0, pc1, kiss, cfg), args.repeats)
-        cells = [name, f"{pair:.1f}", f"{frame:.1f}", f"{refine:.1f}", errors(kiss, truth), errors(refined, truth)]
-        print("| " + " | ".join(cells) + " |")
+    cfg = ICPFlowConfig.preset("waymo").ego_motion
+    methods = args.methods.split(",")
+    print(f"ground: {args.ground}; errors of inv(truth) @ estimate")
+    print("| sequence | method | steps | translation cm: median / p95 / max | rotation deg: median / p95 / max | "
+          "no estimate | ms per step |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|")
+    pooled: dict = {}
+    for name, group, scans, grounds, truth in sequences(args):
+        for method in methods:
+            found, seconds = estimates(method, scans, grounds, cfg)
+            errors = [pose_error(e, t) for e, t in zip(found, truth) if e is not None]
+            missing = sum(e is None for e in found)
+            print(row(name, method, errors, missing, seconds), flush=True)
+            everything = pooled.setdefault((group, method), [[], 0, []])
+            everything[0] += errors
+            everything[1] += missing
+            everything[2] += seconds
+    for (group, method), (errors, missing, seconds) in pooled.items():
+        if group.startswith("synthetic"):
+            print(row(f"all {group}", method, errors, missing, seconds))
 
 
 if __name__ == "__main__":

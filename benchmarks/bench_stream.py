@@ -1,9 +1,7 @@
-"""Streaming inference (``fastflow3d.stream.FlowStream``): per-frame latency on real scans, and the ego-motion error
-of the streamed estimate against true poses.
+"""Streaming inference (``fastflow3d.stream.FlowStream``): per-frame latency on real scans.
 
     .venv/bin/python benchmarks/bench_stream.py latency [--backends onnx-tuned,openvino] [--scans kitti,av2]
         [--passes 5] [--threads 2] [--model fastflow3d_small] [--regimes pairwise,streamed,given] [--device cpu|cuda]
-    .venv/bin/python benchmarks/bench_stream.py ego [--frames 100] [--seeds 0,1,2] [--beams 64,32]
 
 ``latency``: each scan list is played as a stream (KITTI HDL-64E ``000000``-``000005``; the two AV2 sweeps
 alternate, s0 s1 s0 s1 ..., as the only AV2 stream shipped) ``--passes`` times from a fresh stream; the frames after
@@ -16,10 +14,7 @@ where ``onnxruntime-gpu`` is installed, else its CPU provider). With ``--device 
 GPU: ground, odometry and the rest stay on the CPU's ``--threads``. Prints median / p90 ms, Hz, the RSS growth of the
 stream (and the GPU's peak memory), and the streamed regime's time per step (ground, odometry, network, the rest).
 
-``ego``: synthetic sequences of ``--frames`` frames (exact poses; the seeds draw the speed, 0-20 m/s, and turns) and
-KITTI sequence 01's three frames (``../shared/data``): translation (cm) and rotation (degrees) error per frame of the
-streamed estimate, today's pairwise estimate (KISS-ICP on the pair, then point-to-plane) and KISS-ICP alone
-(streamed, no refinement), median and p95.
+The ego motion's error against true poses, streamed and pairwise: ``benchmarks/bench_ego_motion.py``.
 """
 
 from __future__ import annotations
@@ -50,11 +45,7 @@ from fastflow3d.contract import InputContract
 from fastflow3d.export import export_model
 from fastflow3d.predictor import Predictor
 from fastflow3d.stream import FlowStream
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import invert
 from icpflow.preprocess import Preprocessing, lift_points
-from icpflow.teacher.config import ICPFlowConfig
-from icpflow.teacher.ego_motion import StreamOdometry, estimate_ego_motion
 
 REGIMES = ("pairwise", "streamed", "given")
 
@@ -75,10 +66,10 @@ class StepClock:
     """Seconds spent in the stream's steps (ground, odometry, network), by wrapping the callables it calls."""
 
     def __init__(self, stream: FlowStream):
-        self.spent = {"ground (Patchwork++, 1 scan)": 0.0, "odometry (KISS-ICP + refinement)": 0.0, "network": 0.0}
+        self.spent = {"ground (1 scan)": 0.0, "odometry (a step)": 0.0, "network": 0.0}
         predictor = stream.predictor
-        predictor.ground_mask = self.wrap(predictor.ground_mask, "ground (Patchwork++, 1 scan)")
-        stream.odometry.step = self.wrap(stream.odometry.step, "odometry (KISS-ICP + refinement)")
+        predictor.ground_mask = self.wrap(predictor.ground_mask, "ground (1 scan)")
+        stream.odometry.step = self.wrap(stream.odometry.step, "odometry (a step)")
         predictor.network = self.wrap(predictor.network, "network")
 
     def wrap(self, function, key):
@@ -205,68 +196,10 @@ def play(network, contract, backend, scans, regimes, passes):
     return times, memory, medians
 
 
-def rotation_deg(transform: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(transform[:3, :3]) - 1) / 2, -1.0, 1.0))))
-
-
-def ego_errors(args) -> None:
-    cfg = ICPFlowConfig.preset("waymo").ego_motion
-    print("| sequence | frames | ego speed m/s | turn deg/frame | method | median cm | p95 cm | median deg | p95 deg |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    everything = {}
-    sequences = []
-    for beams in [int(b) for b in args.beams.split(",")]:
-        for seed in [int(s) for s in args.seeds.split(",")]:
-            data = SyntheticDataset(
-                split="test", num_sequences=1, frames_per_sequence=args.frames, beams=beams, seed=seed
-            )
-            pairs = [data[i] for i in range(len(data))]
-            scans = [pairs[0].pc0] + [pair.pc1 for pair in pairs]
-            grounds = [pairs[0].ground0] + [pair.ground1 for pair in pairs]
-            truth = [pair.ego1_from_ego0 for pair in pairs]
-            sequences.append((f"synthetic {beams}b seed {seed}", scans, grounds, truth, pairs[0].dt))
-    kitti = DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"
-    if kitti.is_file():
-        with np.load(kitti) as f:
-            scans = [f[f"points{i}"][:, :3].astype(np.float32) for i in range(3)]
-            poses = f["velo_poses_world"]
-        lift = np.array([0, 0, 1.73], np.float32)  # the velodyne origin is 1.73 m above the road
-        truth = [invert(poses[i + 1]) @ poses[i] for i in range(2)]
-        sequences.append(("KITTI seq 01 frames 0-2", [s + lift for s in scans], [None] * 3, truth, 0.1))
-    for name, scans, grounds, truth, dt in sequences:
-        estimates = {"streamed": [], "pairwise (today)": [], "KISS-ICP alone (streamed)": []}
-        for key, refine in (("streamed", True), ("KISS-ICP alone (streamed)", False)):
-            odometry = StreamOdometry(cfg, refine=refine)
-            odometry.step(scans[0], grounds[0])
-            estimates[key] = [
-                odometry.step(scan, ground).ego1_from_ego0 for scan, ground in zip(scans[1:], grounds[1:])
-            ]
-        estimates["pairwise (today)"] = [estimate_ego_motion(a, b, cfg) for a, b in zip(scans[:-1], scans[1:])]
-        speed = statistics.median(np.linalg.norm(t[:3, 3]) for t in truth) / dt
-        turn = statistics.median(rotation_deg(t) for t in truth)
-        for method, values in estimates.items():
-            errors = [invert(t) @ e for t, e in zip(truth, values)]
-            cm = [100 * float(np.linalg.norm(e[:3, 3])) for e in errors]
-            deg = [rotation_deg(e) for e in errors]
-            everything.setdefault(method, []).append((cm, deg))
-            print(
-                f"| {name} | {len(scans)} | {speed:.1f} | {turn:.2f} | {method} | {np.median(cm):.2f} | "
-                f"{np.percentile(cm, 95):.2f} | {np.median(deg):.3f} | {np.percentile(deg, 95):.3f} |"
-            )
-    for method, parts in everything.items():
-        synthetic = parts[: len(parts) - (1 if kitti.is_file() else 0)]
-        cm = np.concatenate([p[0] for p in synthetic])
-        deg = np.concatenate([p[1] for p in synthetic])
-        print(
-            f"| all synthetic | {len(cm)} pairs | | | {method} | {np.median(cm):.2f} | {np.percentile(cm, 95):.2f} | "
-            f"{np.median(deg):.3f} | {np.percentile(deg, 95):.3f} |"
-        )
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="mode", required=True)
-    lat = sub.add_parser("latency")
+    lat = sub.add_parser("latency")  # the one mode (the ego-motion error: benchmarks/bench_ego_motion.py)
     lat.add_argument("--model", default="fastflow3d_small")
     lat.add_argument("--threads", type=int, default=2)
     lat.add_argument("--backends", default="onnx-tuned,openvino")
@@ -274,12 +207,8 @@ def main() -> None:
     lat.add_argument("--passes", type=int, default=5)
     lat.add_argument("--regimes", default="pairwise,streamed,given")
     lat.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="where the network runs")
-    ego = sub.add_parser("ego")
-    ego.add_argument("--frames", type=int, default=100)
-    ego.add_argument("--seeds", default="0,1,2")
-    ego.add_argument("--beams", default="64,32")
     args = parser.parse_args()
-    latency(args) if args.mode == "latency" else ego_errors(args)
+    latency(args)
 
 
 if __name__ == "__main__":

@@ -1,14 +1,18 @@
 """Quality tables of the ICP-Flow teacher and its ablations: Argoverse 2 pair, KITTI sequence 01, synthetic val split.
 
     .venv/bin/python benchmarks/eval_teacher.py [--av2 [--av2-ground map|patchwork] [--no-times]] [--kitti]
-        [--synthetic N] [--variants "teacher,centroid init,hungarian,kiss-icp ego,zero flow"] [--set FIELD=VALUE ...]
+        [--synthetic N [--split val|test]] [--variants "teacher,own ground,nothing given,kiss-icp ego,zero flow"]
+        [--set FIELD=VALUE ...]
 
 Scores come from ``icpflow.metrics`` (the same code as eval.py): the paper's split into dynamic foreground, static
 foreground and static background, point-weighted, ground excluded, in the dataset's crop (AV2 51.2 m, synthetic
 32 m). Variants: the teacher (the dataset's preset), centroid initialisation, Hungarian association, KISS-ICP ego
-motion (the given poses ignored), and the zero (ego-compensated) flow. For AV2 it also prints the protocol of
-``tests/test_teacher_real.py``: mean EPE over every point the official labels call dynamic (ground included, no
-crop). ``--no-times`` withholds the sweeps' per-point capture times, so the de-skew step does not run.
+motion (the given poses ignored: the pair's own odometry), the teacher's own ground (the dataset's masks withheld;
+also with the ground method of older releases), nothing given (own ground and ego motion, pairwise; ``eval.py
+method=icpflow-raw`` carries the odometry along a drive), and the zero (ego-compensated) flow. For AV2 it also
+prints the protocol of ``tests/test_teacher_real.py``: mean EPE over every point the official labels call dynamic
+(ground included, no crop). ``--no-times`` withholds the sweeps' per-point capture times, so the de-skew step does
+not run.
 """
 
 from __future__ import annotations
@@ -27,12 +31,19 @@ from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.config import teacher_config
 
 ROOT = Path(__file__).resolve().parents[1]
+#: a variant key: the dataset's ground masks are not passed to the teacher
+OWN_GROUND = "own ground"
 DATA = ROOT.parent / "shared" / "data"
 VARIANTS = {
     "teacher": {},
     "centroid init": {"histogram.init": "centroid"},
     "hungarian": {"association.method": "hungarian"},
     "kiss-icp ego": {"ego_motion": {"method": "kiss_icp"}},
+    # the dataset's ground masks withheld: the teacher's own ground (icpflow.ground), with the given ego motion or
+    # with its own (the pair's odometry) too; "older ground": the same with the ground of every release before
+    "own ground": {OWN_GROUND: True},
+    "own ground, older method": {OWN_GROUND: True, "ground.method": "both"},
+    "nothing given": {OWN_GROUND: True, "ego_motion": {"method": "kiss_icp"}},
     "zero flow": None,
 }
 
@@ -48,6 +59,8 @@ def dataset_teacher(name: str, fields: dict) -> ICPFlowConfig:
 
 def run_variant(overrides, pairs, dataset: str, crop: float, use_ground: bool, use_times: bool, base: dict):
     """(point-weighted table of ``icpflow.metrics``, median s/pair, mean EPE over each pair's ``dynamic`` points)."""
+    overrides = None if overrides is None else dict(overrides)
+    use_ground = use_ground and not (overrides or {}).pop(OWN_GROUND, False)
     teacher = None if overrides is None else ICPFlow(dataset_teacher(dataset, {**base, **overrides}))
     scores, seconds, dynamic_errors = metrics.MetricAccumulator(), [], []
     if teacher is not None:  # warm-up: numba caches, hdbscan's worker pool
@@ -116,14 +129,15 @@ def eval_kitti(base: dict) -> None:
         )
 
 
-def eval_synthetic(variants, count: int, base: dict) -> None:
+def eval_synthetic(variants, count: int, base: dict, split: str = "val") -> None:
     from icpflow.datasets.synthetic import SyntheticDataset
 
-    dataset = SyntheticDataset(split="val", num_sequences=max(1, -(-count // 4)))
+    dataset = SyntheticDataset(split=split, num_sequences=max(1, -(-count // 4)))
     pairs = [dataset.pair(i) for i in range(min(count, len(dataset)))]
     rows = {v: run_variant(VARIANTS[v], pairs, "synthetic", 32.0, True, False, base) for v in variants}
     print_table(
-        f"Synthetic val, {len(pairs)} pairs (conf/dataset/synthetic.yaml's teacher {base or ''}, ground masks given)",
+        f"Synthetic {split}, {len(pairs)} pairs (conf/dataset/synthetic.yaml's teacher {base or ''}, the world's "
+        "ground masks given unless the variant withholds them)",
         rows,
     )
 
@@ -134,7 +148,8 @@ def main() -> None:
     parser.add_argument("--av2-ground", choices=("map", "patchwork"), default="map")
     parser.add_argument("--no-times", action="store_true", help="AV2: do not pass per-point capture times")
     parser.add_argument("--kitti", action="store_true")
-    parser.add_argument("--synthetic", type=int, default=0, help="number of val pairs (0 = skip)")
+    parser.add_argument("--synthetic", type=int, default=0, help="number of synthetic pairs (0 = skip)")
+    parser.add_argument("--split", default="val", help="the synthetic split")
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument(
         "--set",
@@ -154,7 +169,7 @@ def main() -> None:
     if args.kitti:
         eval_kitti(base)
     if args.synthetic:
-        eval_synthetic(variants, args.synthetic, base)
+        eval_synthetic(variants, args.synthetic, base, args.split)
 
 
 if __name__ == "__main__":

@@ -29,10 +29,10 @@ import numpy as np
 
 from icpflow import options as icpflow_options
 from icpflow.geometry import ego_flow, relative_transform
+from icpflow.ground import GroundSegmenter
 from icpflow.preprocess import Preprocessing, estimate_ground_height, lift_points, lift_transform
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.config import teacher_config
-from icpflow.teacher.ground import GroundSegmenter
 
 ROOT = Path(__file__).resolve().parents[1]
 SEQ01 = ROOT.parent / "shared" / "data" / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"

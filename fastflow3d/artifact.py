@@ -53,7 +53,7 @@ METADATA_VERSION = 2  # 2: the input contract as ``input``; 1: ``preprocessing``
 INPUT_NOTE = (
     "inputs are in the height frame (ground near frame.ground_z; a scan in another frame is lifted first); with "
     "remove_ground, the network gets the non-ground points of each scan (ground masks by "
-    "icpflow.teacher.ground.GroundSegmenter with these settings, or given) inside the grid; ground pc0 points get "
+    "icpflow.ground.GroundSegmenter with these settings, or given) inside the grid; ground pc0 points get "
     "the ego flow (fastflow3d.contract)"
 )
 INPUT_NAMES = ("pc0_compensated", "pc1")

@@ -6,8 +6,8 @@
 moves pc0 into the ego frame of t + dt with ``ego1_from_ego0``, runs the network, which gives the residual
 (ego-compensated) flow, and adds the ego flow back, so the result is FULL flow in the project convention
 (``pc0 + flow`` is the position at t + dt in the ego frame of t + dt). Points outside the network's grid get the ego
-flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the two scans with the teacher's step
-(KISS-ICP, then point-to-plane refinement; ``icpflow.teacher.ego_motion``).
+flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the two scans' non-ground points
+(``icpflow.odometry``, the teacher's step 1).
 
 What runs before the network is the model's preprocessing block (``icpflow.preprocess.Preprocessing``, saved in
 its metadata or checkpoint): the height frame, the ground and the ego-motion settings.
@@ -21,7 +21,7 @@ its metadata or checkpoint): the height frame, the ground and the ego-motion set
   no flow vector; the ego motion given or returned is in the scans' own frame.
 * Ground: a model trained with ground removal (``preprocessing.remove_ground``) sees only the non-ground points of
   each scan: the masks passed in (``ground0``, ``ground1``) or, without them, those of
-  ``icpflow.teacher.ground.GroundSegmenter`` with the saved settings on the lifted scans; ground pc0 points get the
+  ``icpflow.ground.GroundSegmenter`` with the saved settings on the lifted scans; ground pc0 points get the
   ego flow.
 * Refinement (opt-in, ``refine=True`` or a ``fastflow3d.refine.RefineConfig``): the teacher's ICP started from the
   network's flow per bird's-eye-view component of pc0, kept where its checks accept it (``fastflow3d.refine``).
@@ -64,8 +64,8 @@ from fastflow3d.refine import RefineConfig, refine_residual
 from icpflow.entry import one_line
 from icpflow.frames import FramePairError, check_points
 from icpflow.geometry import residual_to_full, rigid_problem, transform_points
+from icpflow.odometry import MIN_EGO_POINTS
 from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, implausible, lift_transform
-from icpflow.teacher.ego_motion import MIN_EGO_POINTS
 
 
 def _network(file: Path, kind: str, device: str):
@@ -283,15 +283,15 @@ class Predictor:
                 stacklevel=2,
             )
             ego_frame, estimated, assumed = np.eye(4), False, True
-        elif estimated:
-            ego_frame = self.estimate_ego_motion(*lifted)
-        else:
+        ground0 = self.ground_mask("ground0", lifted[0], ground0)
+        ground1 = self.ground_mask("ground1", lifted[1], ground1)
+        if estimated:
+            ego_frame = self.estimate_ego_motion(*lifted, *self.odometry_ground(lifted, ground0, ground1))
+        elif not assumed:
             ego_frame = lift_transform(np.asarray(ego1_from_ego0, dtype=np.float64), lift)
         problem = rigid_problem(ego_frame)
         if problem:
             raise PredictorError(f"{'estimated ' if estimated else ''}ego1_from_ego0 {problem}")
-        ground0 = self.ground_mask("ground0", lifted[0], ground0)
-        ground1 = self.ground_mask("ground1", lifted[1], ground1)
         check_ego = ego1_from_ego0 is not None and self.ego_checks_left > 0
         return self.flow_in_frame(lifted, ego_frame, ground0, ground1, lift, estimated, assumed, check_ego)
 
@@ -392,15 +392,19 @@ class Predictor:
         if not self.remove_ground:
             return np.zeros(len(points), bool)
         if given is None:
-            if self._segmenter is None:
-                from icpflow.teacher.ground import GroundSegmenter
-
-                self._segmenter = GroundSegmenter(self.preprocessing)
-            return self._segmenter(points)
+            return self.segmenter()(points)
         mask = np.asarray(given)
         if mask.dtype != bool or mask.shape != (len(points),):
             raise PredictorError(f"{name} must be a bool ({len(points)},) mask, got {mask.dtype} {mask.shape}")
         return mask
+
+    def segmenter(self):
+        """The ground segmentation of the model's saved settings (``icpflow.ground.GroundSegmenter``)."""
+        if self._segmenter is None:
+            from icpflow.ground import GroundSegmenter
+
+            self._segmenter = GroundSegmenter(self.preprocessing)
+        return self._segmenter
 
     def check_given_ego(self, pc0: np.ndarray, pc1: np.ndarray, ego: np.ndarray) -> None:
         """Warn when a given ``ego`` (pc0's frame -> pc1's) fits the scans clearly worse than the identity or its
@@ -428,14 +432,26 @@ class Predictor:
                 stacklevel=3,
             )
 
-    def estimate_ego_motion(self, pc0: np.ndarray, pc1: np.ndarray) -> np.ndarray:
-        """(4, 4) float64 ``ego1_from_ego0`` from the two scans (KISS-ICP + refinement, the teacher's step 1)."""
-        from icpflow.teacher.ego_motion import estimate_ego_motion
+    def odometry_ground(self, lifted, ground0: np.ndarray, ground1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The ground masks the odometry leaves out of the two scans: those the network leaves out, or (a model that
+        sees ground) the segmentation's with the saved settings."""
+        if self.remove_ground:
+            return ground0, ground1
+        segmenter = self.segmenter()
+        return segmenter(lifted[0]), segmenter(lifted[1])
+
+    def estimate_ego_motion(self, pc0: np.ndarray, pc1: np.ndarray, ground0=None, ground1=None) -> np.ndarray:
+        """(4, 4) float64 ``ego1_from_ego0`` from the two scans in the height frame, their (N,) bool ground masks
+        left out (``icpflow.odometry``: the teacher's step 1). Raises PredictorError when no estimate fits."""
+        from icpflow.odometry import estimate_ego_motion
 
         try:
-            return estimate_ego_motion(pc0, pc1, self.ego_config)
+            ego = estimate_ego_motion(pc0, pc1, self.ego_config, ground0, ground1)
         except (RuntimeError, ValueError, MemoryError) as error:
             raise PredictorError(f"ego-motion estimation failed ({type(error).__name__}: {one_line(error)})") from None
+        if ego is None:
+            raise PredictorError("no ego motion fits the two scans (do they overlap?); pass ego1_from_ego0")
+        return ego
 
 
 def _is_number(value) -> bool:

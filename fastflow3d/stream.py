@@ -9,10 +9,10 @@ What the pairwise call recomputes for every pair, the stream keeps:
 * the height frame: found on the first scan (``Predictor.frame_lift``) and checked every ``check_every`` scans
   (the ground below the sensor); a scan whose ground moved by more than ``FRAME_TOLERANCE`` (another sensor or
   frame) is warned about, lifted by its own ground, and the odometry restarts;
-* the odometry: one KISS-ICP across frames, each step refined against the previous scan
-  (``icpflow.teacher.ego_motion.StreamOdometry``), every scan down-sampled and given normals once;
-* each scan's ground mask (Patchwork++, the model's settings): computed once, as pc1 of its pair, and reused as pc0
-  of the next.
+* the odometry (``icpflow.odometry.Odometry``: one KISS-ICP across frames, each step refined against the previous
+  scan's non-ground points), every scan down-sampled once;
+* each scan's ground mask (``icpflow.ground``, the model's settings): computed once, as pc1 of its pair, and reused
+  as pc0 of the next (and left out of the odometry, also for a model that sees ground).
 
 Bad streams never give a silent wrong flow: a missing or unreadable scan (:meth:`FlowStream.skip`), a time gap longer
 than ``max_gap_s`` or a timestamp that does not increase restart the odometry with a warning (the pair across the gap
@@ -30,8 +30,8 @@ import warnings
 import numpy as np
 
 from fastflow3d.predictor import Prediction, Predictor, PredictorWarning, as_points
+from icpflow.odometry import MIN_EGO_POINTS, Odometry
 from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
-from icpflow.teacher.ego_motion import MIN_EGO_POINTS, StreamOdometry
 
 
 class StreamWarning(PredictorWarning):
@@ -58,7 +58,8 @@ class StreamStep:
 class _Scan:
     points: np.ndarray  # (N, 3) float32 in the scans' own frame
     lifted: np.ndarray  # (N, 3) float32 in the model's height frame
-    ground: np.ndarray  # (N,) bool
+    ground: np.ndarray  # (N,) bool: left out by the network
+    odometry_ground: np.ndarray  # (N,) bool: left out by the odometry (the ground, whether or not the network sees it)
     timestamp: float | None
     source: str | None
 
@@ -78,7 +79,7 @@ class FlowStream:
     ):
         self.predictor = predictor
         self.max_gap_s, self.check_every = float(max_gap_s), int(check_every)
-        self.odometry = StreamOdometry(predictor.ego_config, min_fitness=min_fitness, refine=refine)
+        self.odometry = Odometry(predictor.ego_config, min_fitness=min_fitness, refine=refine)
         self.lift: float | None = None
         self._previous: _Scan | None = None
         self._pose = np.eye(4)
@@ -120,23 +121,26 @@ class FlowStream:
                 self._gap = "a time gap"
         lifted = lift_points(points, self.lift)
         ground = self.predictor.ground_mask("ground", lifted, None)
-        current = _Scan(points, lifted, ground, None if timestamp is None else float(timestamp), source)
+        odometry_ground = ground if self.predictor.remove_ground else self.predictor.segmenter()(lifted)
+        current = _Scan(
+            points, lifted, ground, odometry_ground, None if timestamp is None else float(timestamp), source
+        )
         self._previous = current
         if previous is None:
             self.odometry.reset()
-            self.odometry.step(lifted, ground)
+            self.odometry.step(lifted, odometry_ground)
             self._pose = np.eye(4)
             return StreamStep(None, source, None, self._pose.copy(), None, False)
         if self._gap is not None:
             self.odometry.reset()
-            self.odometry.step(previous.lifted, previous.ground)
+            self.odometry.step(previous.lifted, previous.odometry_ground)
             self._gap = None
             forced = True
         else:
             forced = False
         if len(points) < MIN_EGO_POINTS or len(previous.points) < MIN_EGO_POINTS:
             return self._too_few(previous, current)
-        step = self.odometry.step(lifted, ground)
+        step = self.odometry.step(lifted, odometry_ground)
         restarted = forced or step.restarted
         if step.ego1_from_ego0 is None:
             self._warn(

@@ -65,6 +65,8 @@ class HeightFrame:
         object.__setattr__(self, "ground_z", round(_number("frame.ground_z", self.ground_z), 6) + 0.0)  # no -0.0
 
 
+#: the ground method of every stored form older than the ``local`` method that does not name one
+LEGACY_GROUND_METHOD = "both"
 #: older flat teacher names (``ICPFlowConfig`` before its ``ground`` and ``ego_motion`` blocks, as stored in the
 #: shards, checkpoints and exports of older releases) -> (block, field); read from the fields' ``old``
 TEACHER_NAMES = {
@@ -146,13 +148,17 @@ class Preprocessing:
         """Read :meth:`to_dict`'s form, or an older one: a dict of ``ICPFlowConfig`` fields (shards, checkpoints and
         exports written before this block; their frame follows from the fields: ground at 0 for the synthetic
         world, -0.32 for AV2), or None (an export without teacher settings: ``ICPFlowConfig()``'s fields, ground
-        at z = 0 where it was trained, the synthetic world)."""
+        at z = 0 where it was trained, the synthetic world). A stored form older than the ``local`` ground method
+        that names none keeps the ground of its time (``LEGACY_GROUND_METHOD``)."""
         if values is None:
-            legacy = cls.from_teacher({})
+            legacy = cls.from_teacher({"ground": LEGACY_GROUND_METHOD})
             return dataclasses.replace(legacy, frame=HeightFrame(0.0))
         if not isinstance(values, dict):
             raise PreprocessingError(f"preprocessing must be a mapping, got {type(values).__name__}")
         if "version" not in values:
+            nested = values.get("ground")
+            if not (isinstance(nested, str) or (isinstance(nested, dict) and "method" in nested)):
+                values = {**values, "ground": {**(nested or {}), "method": LEGACY_GROUND_METHOD}}
             return cls.from_teacher(values)
         if values["version"] != VERSION:
             raise PreprocessingError(

@@ -25,10 +25,10 @@ from fastflow3d.voxelize import Grid
 from icpflow import __version__
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, residual_to_full
+from icpflow.ground import GroundSegmenter
+from icpflow.odometry import estimate_ego_motion
 from icpflow.preprocess import Preprocessing, lift_points, lift_transform
 from icpflow.teacher.config import ICPFlowConfig
-from icpflow.teacher.ego_motion import estimate_ego_motion
-from icpflow.teacher.ground import GroundSegmenter
 
 from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 
@@ -100,10 +100,12 @@ def expected(eager, pairs):
 
 
 @pytest.fixture(scope="module")
-def teacher_ego(pairs):
-    """The teacher's ego-motion estimate (step 1, default settings) of the smallest pair."""
+def teacher_ego(pairs, export_dir):
+    """The teacher's ego-motion estimate (step 1, default settings: the odometry of the two scans without their
+    ground, found with the model's settings) of the smallest pair."""
     pair = pairs[1]
-    return estimate_ego_motion(pair.pc0, pair.pc1, ICPFlowConfig())
+    segmenter = GroundSegmenter(Predictor.load(export_dir).preprocessing)
+    return estimate_ego_motion(pair.pc0, pair.pc1, ICPFlowConfig(), segmenter(pair.pc0), segmenter(pair.pc1))
 
 
 def test_metadata_describes_the_export(export_dir, checkpoint):
@@ -212,7 +214,9 @@ def ground_checkpoint(checkpoint):
     """The same trained weights in a checkpoint of an older version whose config says the network saw non-ground
     points only, with the teacher settings of the synthetic dataset (a 1.9 m high sensor over a z = 0 ground) as a
     flat ``data.teacher`` dict (before the typed preprocessing block)."""
-    teacher = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})
+    teacher = ICPFlowConfig.preset(
+        "waymo", ground={"method": "both", "sensor_height": 1.9, "patchwork_z_offset": -1.9}
+    )  # the ground of that version, as its flat dict says
     saved = torch.load(checkpoint, weights_only=True)
     del saved["hyper_parameters"]["cfg"]["input"]  # older versions stored no input contract
     saved["hyper_parameters"]["cfg"]["data"] = {

@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_dir
 
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import make_transform, transform_points
+from icpflow.ground import GroundSegmenter
 from icpflow.preprocess import (
     Preprocessing,
     PreprocessingError,
@@ -21,7 +22,6 @@ from icpflow.preprocess import (
     lift_transform,
 )
 from icpflow.teacher.config import ICPFlowConfig, teacher_config
-from icpflow.teacher.ground import GroundSegmenter
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -62,7 +62,9 @@ def test_stored_form_round_trips_through_json_and_yaml():
 def test_older_forms_are_read():
     """Shards, checkpoints and exports of older versions carried a flat dict of teacher fields (all of them in
     shards, nine in checkpoints and exports) or nothing: they read as the block of the frame they were made in."""
-    synthetic = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})
+    synthetic = ICPFlowConfig.preset(
+        "waymo", ground={"method": "both", "sensor_height": 1.9, "patchwork_z_offset": -1.9}
+    )  # the ground of every release before the local method
     from_shard = Preprocessing.from_dict(synthetic.to_dict())  # a shard's nested teacher config
     nine = dict(ground="both", sensor_height=1.9, patchwork_max_range=64.0, patchwork_z_offset=-1.9, range_z=0.04)
     nine.update(ground_slack=0.3, kiss_voxel_size=1.0, kiss_max_range=100.0, ego_refine_voxel=0.2)
@@ -74,6 +76,12 @@ def test_older_forms_are_read():
     )
     assert from_shard.frame.ground_z == 0.0 and from_shard.ground.sensor_height == 1.9
     assert Preprocessing.from_dict(None).frame.ground_z == 0.0  # an export without teacher settings
+    # a stored form older than the local ground method keeps the ground of its time, named or not
+    assert Preprocessing.from_dict(None).ground.method == "both"
+    unnamed = {key: value for key, value in nine.items() if key != "ground"}
+    assert Preprocessing.from_dict(unnamed).ground.method == "both"
+    assert Preprocessing.from_dict({"ground": {"sensor_height": 1.9}}).ground.method == "both"
+    assert Preprocessing().ground.method == "local"  # what is written now
     # the ground masks of the older form and of the block are the same masks
     pair = SyntheticDataset(split="val", beams=32, num_sequences=1, frames_per_sequence=2)[0]
     assert np.array_equal(GroundSegmenter(synthetic)(pair.pc0), GroundSegmenter(from_shard)(pair.pc0))

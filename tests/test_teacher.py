@@ -11,11 +11,11 @@ import pytest
 from teacher_scenes import scene  # tests/ is on sys.path (pytest prepend import mode)
 
 from icpflow.geometry import ego_flow, make_transform
+from icpflow.ground import GroundSegmenter
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.clustering import cluster_points, relabel_by_size, voxel_downsample
 from icpflow.teacher.config import from_hydra
 from icpflow.teacher.flow import match_confidence
-from icpflow.teacher.ground import GroundSegmenter
 from icpflow.teacher.pairing import cluster_stats, plausible
 from icpflow.teacher.tracker import long_horizon_flow
 
@@ -335,7 +335,9 @@ def test_ego_motion_switch(monkeypatch, moving_scene, mode, passed, estimated):
     s = moving_scene
     guess = make_transform(yaw=0.002, translation=(0.55, 0.01, 0.0))
     calls = []
-    monkeypatch.setattr("icpflow.teacher.pipeline.estimate_ego_motion", lambda a, b, cfg: calls.append(1) or guess)
+    monkeypatch.setattr(
+        "icpflow.teacher.pipeline.estimate_ego_motion", lambda a, b, cfg, g0, g1: calls.append(1) or guess
+    )
     result = ICPFlow(CFG.replace(**{"ego_motion.method": mode}))(s["pc0"], s["pc1"], s["ego"] if passed else None)
     assert bool(calls) == estimated
     np.testing.assert_array_equal(result.ego1_from_ego0, guess if estimated else s["ego"])

@@ -156,12 +156,20 @@ def _compose(*overrides):
 
 def test_defaults_and_presets_are_the_previous_releases():
     """Every setting the teacher used before the blocks keeps its value, defaults and presets alike (the
-    histogram vote's points included: 1000 by default, 300 for av2, as the pipeline read them)."""
-    assert _quiet(lambda: ICPFlowConfig.from_dict(OLD_DEFAULTS, warn=False)) == ICPFlowConfig()
-    for name, old in OLD_PRESETS.items():  # the presets since then add issue 30's steps for long vehicles
+    histogram vote's points included: 1000 by default, 300 for av2, as the pipeline read them), but for the steps
+    added since: issue 30's for long vehicles and issue 42's ground that keeps moving objects (``ground.method``
+    ``local``; the older ``both`` is named in every stored form)."""
+    assert _quiet(lambda: ICPFlowConfig.from_dict(OLD_DEFAULTS, warn=False)) == ICPFlowConfig(
+        ground={**ICPFlowConfig().to_dict()["ground"], "method": "both"}
+    )
+    assert ICPFlowConfig().ground.method == "local"
+    for name, old in OLD_PRESETS.items():
         assert _quiet(lambda old=old: ICPFlowConfig.from_dict({**OLD_DEFAULTS, **old}, warn=False)) == (
-            ICPFlowConfig.preset(name, histogram={"axis_min_extent": 0.0}, merging={"distance": 0.0})
+            ICPFlowConfig.preset(
+                name, histogram={"axis_min_extent": 0.0}, merging={"distance": 0.0}, ground={"method": "both"}
+            )
         )
+        assert ICPFlowConfig.preset(name).ground.method == "local"
     assert ICPFlowConfig().histogram.max_points == 1000 and ICPFlowConfig.preset("av2").histogram.max_points == 300
     assert HistogramConfig() == ICPFlowConfig().histogram and ICPConfig() == ICPFlowConfig().icp
 
@@ -426,10 +434,11 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
     with h5py.File(tmp_path / shard_name(0), "r") as handle:
         stored = yaml.safe_load(handle.attrs["config"])["teacher"]
     rebuilt = _quiet(lambda: ICPFlowConfig.from_dict(stored, warn=False))
-    # as those labels were made: without the steps a later release added (issue 30's, off by their defaults)
+    # as those labels were made: without the steps a later release added (issue 30's, off by their defaults; the
+    # ground they named, not issue 42's)
     assert rebuilt == ICPFlowConfig.preset(
         "waymo",
-        ground={"sensor_height": 1.9},
+        ground={"sensor_height": 1.9, "method": "both"},
         clustering={"voxel_size": 0.1},
         histogram={"axis_min_extent": 0.0},
         merging={"distance": 0.0},

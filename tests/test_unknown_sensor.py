@@ -16,7 +16,7 @@ from fastflow3d.predictor import Predictor, PredictorWarning
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, invert, relative_transform
 from icpflow.labelling.cli import label
-from icpflow.preprocess import estimate_ground_height
+from icpflow.preprocess import estimate_ground_height, lift_transform
 from icpflow.shards import ShardDataset
 from icpflow.teacher.config import ICPFlowConfig
 
@@ -104,10 +104,11 @@ def test_predictor_on_raw_kitti_frames_without_poses_or_masks(seq01, synthetic_s
     on_ground = prediction.ground0 & ground
     assert np.linalg.norm(prediction.flow[on_ground] - flow[on_ground], axis=1).mean() < 0.05
     assert 0.05 < prediction.in_grid.mean()  # the network saw the non-ground points near the car
-    # what a synthetic-trained model did before the height frame: the velodyne frame as it is, nearly all ground
-    with pytest.warns(PredictorWarning, match=r"implausible preprocessing of pc0: \d+% of the points called ground"):
-        before = Predictor.load(synthetic_student, sensor_height=0.0).predict(points0, points1, exact)
-    assert before.ground0.mean() > 0.85 and (before.ground0 == ground).mean() < 0.8
+    # the velodyne frame as it is (told sensor_height=0: no lift): the local ground height still finds the road,
+    # where the older z threshold (0.34 m above the model's ground) called over 85 % of it ground; the frame's cost
+    # is the network's alone (an older model's ground and its warning: tests/test_export.py)
+    before = Predictor.load(synthetic_student, sensor_height=0.0).predict(points0, points1, exact)
+    assert (before.ground0 == ground).mean() > 0.9 and before.ground0.mean() < 0.85
 
 
 @needs_seq01
@@ -139,3 +140,9 @@ def test_label_py_sequence_without_poses_on_seq01(seq01, tmp_path):
     np.testing.assert_allclose(sample["pc0"][:, :2], points[:, :2])
     assert (sample["ground0"] == ground).mean() > 0.92
     assert np.linalg.norm(sample["flow"][static] - flow[static], axis=1).mean() < 0.06
+    # the drive's trajectory, estimated once before the samples and kept beside the shards: the sample's ego motion
+    with np.load(tmp_path / "labels" / "trajectory.npz") as trajectory:
+        assert int(trajectory["done"]) == 2
+        np.testing.assert_allclose(sample["ego1_from_ego0"], trajectory["ego1_from_ego0"][0], atol=1e-9)
+    exact = relative_transform(seq01["velo_poses_world"][0], seq01["velo_poses_world"][1])
+    assert np.linalg.norm((invert(lift_transform(exact, lift)) @ sample["ego1_from_ego0"])[:3, 3]) < 0.05

@@ -44,6 +44,19 @@ class PairDataset(ABC):
         ``max_horizon`` more scans than t say which runs of scans were too short (:func:`too_short`)."""
         return ""
 
+    def drive_without_poses(self):
+        """``(names, read)`` when the reader's samples are the consecutive scans of one drive with no ego motion
+        of its own (a recording without poses): the scans' names in order and ``read(i)``, scan i as (N, 3) float32
+        in the height frame; ``label.py`` then estimates the drive's trajectory once
+        (``icpflow.labelling.trajectory``) and hands it back through :meth:`use_ego_motions`. None (the default):
+        the reader gives its ego motion, or its pairs are not one drive."""
+        return None
+
+    def use_ego_motions(self, motions) -> None:
+        """Take the drive's ego motion (:meth:`drive_without_poses`): ``motions`` (T - 1, 4, 4) float64, scan i to
+        scan i + 1, NaN where there is none."""
+        raise NotImplementedError(f"{self.name}: the reader gives its own ego motion")
+
     def metadata(self) -> dict:
         """Facts about the dataset that end up in shard attributes and reports."""
         return {"name": self.name, "size": len(self), "max_horizon": self.max_horizon}

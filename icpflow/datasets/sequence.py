@@ -13,8 +13,10 @@ sensor's height above the ground; 0 for scans already in such an ego frame) or `
 folder from the first scan by ``icpflow.preprocess.estimate_ground_height``, whatever the mounting height; a ground
 found within 0.5 m of z = 0 means the scans are in the height frame already and stay as they are); with
 poses, ``pose0``/``pose1`` (lowered onto that origin) and hence ``ego1_from_ego0``; without, None (the teacher
-estimates ego motion with KISS-ICP). No ground truth. ``dt`` = horizon / ``frequency_hz``. Samples are the scans t
-for which t + ``max_horizon`` exists.
+estimates the pair's ego motion, ``icpflow.odometry``), unless the drive's trajectory was handed over
+(:meth:`ScanSequenceDataset.use_ego_motions`: ``label.py`` estimates it once, in order, before labelling; a pair
+across a lost track then fails with that reason). No ground truth. ``dt`` = horizon / ``frequency_hz``. Samples
+are the scans t for which t + ``max_horizon`` exists.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import numpy as np
 
 from icpflow.datasets.base import PairDataset
 from icpflow.datasets.io import SCAN_SUFFIXES, fail, natural_key, read_poses, read_scan
-from icpflow.frames import FramePair
+from icpflow.frames import FramePair, FramePairError
 from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points, lift_pose
 
 
@@ -63,6 +65,7 @@ class ScanSequenceDataset(PairDataset):
         self._poses: np.ndarray | None = None
         self.poses()  # read and checked now: a broken poses file stops a run before any work, not every sample
         self._lift: float | None = None
+        self._motions: np.ndarray | None = None  # the drive's ego motion, scan i to i + 1 (use_ego_motions)
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_poses": None}
@@ -100,6 +103,35 @@ class ScanSequenceDataset(PairDataset):
             self._poses = poses
         return self._poses
 
+    def scan(self, index: int) -> np.ndarray:
+        """Scan ``index`` (N, 3) float32 in the height frame."""
+        return lift_points(read_scan(self.scans[index], self.bin_columns), self.lift())
+
+    def drive_without_poses(self):
+        if self.poses() is not None:
+            return None
+        return [path.name for path in self.scans], self.scan
+
+    def use_ego_motions(self, motions) -> None:
+        motions = np.asarray(motions, np.float64)
+        if motions.shape != (len(self.scans) - 1, 4, 4):
+            raise ValueError(f"{self.root}: {len(self.scans)} scans need ({len(self.scans) - 1}, 4, 4) ego motions")
+        self._motions = motions
+
+    def _drive_motion(self, index: int, horizon: int) -> np.ndarray | None:
+        """``ego{t+k}_from_ego{t}`` from the drive's ego motion, None without one; raises when a step is missing."""
+        if self._motions is None:
+            return None
+        motion = np.eye(4)
+        for step in range(index, index + horizon):
+            if not np.isfinite(self._motions[step]).all():
+                raise FramePairError(
+                    f"{self.scans[step + 1]}: no ego motion from {self.scans[step].name} (the drive's odometry "
+                    "lost track or a scan was unreadable; see the labelling's warnings)"
+                )
+            motion = self._motions[step] @ motion
+        return motion
+
     def pair(self, index: int, horizon: int = 1) -> FramePair:
         if not 1 <= horizon <= self.max_horizon:
             raise IndexError(f"{self.name}: horizon {horizon} outside 1..{self.max_horizon}")
@@ -110,6 +142,7 @@ class ScanSequenceDataset(PairDataset):
         return FramePair(
             pc0=lift_points(read_scan(self.scans[index], self.bin_columns), lift),
             pc1=lift_points(read_scan(self.scans[index + horizon], self.bin_columns), lift),
+            ego1_from_ego0=None if poses is not None else self._drive_motion(index, horizon),
             pose0=None if poses is None else lift_pose(poses[index], lift),
             pose1=None if poses is None else lift_pose(poses[index + horizon], lift),
             dt=horizon / self.frequency_hz,

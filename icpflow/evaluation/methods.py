@@ -7,6 +7,10 @@ of t -> positions in the ego frame of t + dt). This package's own methods:
 - ``icpflow``: the teacher (``conf/icpflow``) through :func:`icpflow.teacher.tracker.teacher_on_sample` (the call
   labelling makes); ``tracker=true`` chains it through the intermediate frames (``tracker=[false,true]``: one row
   each, ``icpflow`` and ``icpflow+tracker``);
+- ``icpflow-raw``: the teacher on the raw scans, nothing taken from the dataset: its own ground (``icpflow.ground``)
+  and the drive's odometry (``icpflow.odometry``, carried across the consecutive pairs of a log), as ``label.py``
+  labels a drive without poses; beside ``icpflow`` (the dataset's ego motion and ground masks) it says what a user's
+  own scans cost;
 - ``shards``: the pseudo-labels a ``label.py`` run wrote (``shards=<out_dir>``), matched by sample id.
 
 Other methods come in as factories by name (``extra``): ``eval.py`` adds ``student`` (``fastflow3d.eval_method``),
@@ -23,7 +27,7 @@ import numpy as np
 from icpflow.baselines import ego_only_flow, zero_flow
 from icpflow.frames import FramePair
 
-METHODS = ("zero", "ego", "icpflow", "shards")
+METHODS = ("zero", "ego", "icpflow", "icpflow-raw", "shards")
 Method = Callable[[FramePair, int], np.ndarray]
 #: a method from the run config (``eval.py``'s); raises :class:`EvaluationError` when the config does not allow it
 MethodFactory = Callable[[Any], Method]
@@ -44,6 +48,45 @@ class TeacherMethod:
         from icpflow.teacher.tracker import teacher_on_sample
 
         return teacher_on_sample(self.teacher, self.dataset, index, pair, self.horizon, self.tracker).flow
+
+
+class RawTeacherMethod:
+    """The teacher (an ``ICPFlow``) on pairs (t, t + horizon) with nothing given: each scan's ground from the
+    teacher's own segmentation, the ego motion from one ``icpflow.odometry.Odometry`` across the consecutive pairs of
+    a log (a pair whose pc0 is the previous pair's pc1); any other pair starts a new track. A pair the odometry gives
+    no estimate (a lost track) fails, with the reason (the evaluation skips it for every method)."""
+
+    def __init__(self, teacher, horizon: int = 1):
+        from icpflow.odometry import Odometry
+
+        self.teacher, self.horizon = teacher, horizon
+        self.odometry = Odometry(teacher.cfg)
+        self._last: tuple[str | None, np.ndarray, np.ndarray] | None = None  # (log, pc1, its ground) of the last pair
+
+    def __call__(self, pair: FramePair, index: int) -> np.ndarray:
+        last = self._last
+        follows = last is not None and last[0] == pair.log_id and np.array_equal(last[1], pair.pc0)
+        self._last = None  # until this pair's odometry step is done
+        ground0 = last[2] if follows else self.teacher.ground(pair.pc0)
+        ground1 = self.teacher.ground(pair.pc1)
+        if not follows:
+            self.odometry.reset()
+            self.odometry.step(pair.pc0, ground0)
+        step = self.odometry.step(pair.pc1, ground1)
+        self._last = (pair.log_id, pair.pc1, ground1)
+        if step.ego1_from_ego0 is None:
+            raise ValueError(f"icpflow-raw: the odometry lost track (fitness {step.fitness:.2f}); no ego motion")
+        return self.teacher(
+            pair.pc0,
+            pair.pc1,
+            step.ego1_from_ego0,
+            ground0,
+            ground1,
+            pair.time0,
+            pair.time1,
+            gap=self.horizon,
+            dt=pair.dt,
+        ).flow
 
 
 class ShardMethod:
@@ -99,7 +142,7 @@ def build_methods(
             shared[name] = lambda pair, index: zero_flow(pair)
         elif name == "ego":
             shared[name] = lambda pair, index: ego_only_flow(pair)
-        elif name == "icpflow":
+        elif name in ("icpflow", "icpflow-raw"):
             from icpflow.teacher import ICPFlow
             from icpflow.teacher.warmup import ensure_compiled
 
@@ -119,6 +162,9 @@ def build_methods(
     for horizon in horizons:
         row = {}
         for name in names:
+            if name == "icpflow-raw":  # its own odometry per horizon: a track follows the pairs of one gap
+                row[name] = RawTeacherMethod(shared[name], horizon)
+                continue
             if name != "icpflow":
                 row[name] = shared[name]
                 continue

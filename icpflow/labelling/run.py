@@ -12,6 +12,7 @@ from icpflow.datasets.base import sample_id_or_index
 from icpflow.labelling.executors import available_cores, in_process, local_pool, ray_tasks
 from icpflow.labelling.job import LabelJob
 from icpflow.labelling.records import died, finished, prepare, retried, write_manifests, write_shard_and_record
+from icpflow.labelling.trajectory import drive_trajectory
 from icpflow.shards.reader import read_shard_samples
 from icpflow.shards.schema import shard_name
 
@@ -73,6 +74,7 @@ def run_labelling(
 
     start = time.perf_counter()
     prepare(job, plan, overwrite)
+    drive_trajectory(job, progress)  # a drive without poses: its ego motion, once, before its pairs
     results, open_shards, skipped = {}, [], 0
     for shard, indices in plan:
         record = finished(job, shard, indices, [sample_id_or_index(job.dataset, i) for i in indices])

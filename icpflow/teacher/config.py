@@ -57,15 +57,25 @@ class EgoMotionConfig(_Checked):
 
 @dataclass(frozen=True)
 class GroundConfig(_Checked):
-    """Step 2 (``ground``): ground removal per scan (``teacher.ground``). A point is non-ground only if every
-    ``method`` says so (``both``: Patchwork++ and the z threshold)."""
+    """Step 2 (``ground``): ground removal per scan (``icpflow.ground``). ``local``: a local ground height from
+    Patchwork++'s ground, objects kept whole; ``both`` (the reference, and every model stored before ``local``): a
+    point is non-ground only if Patchwork++ and the z threshold both say so."""
 
-    method: str = setting("both", choices=("both", "patchwork", "zthreshold", "none"), old="ground")
+    method: str = setting("local", choices=("local", "both", "patchwork", "zthreshold", "none"), old="ground")
     sensor_height: float = setting(1.723, "non_negative")  # Patchwork++ sensor height above the ground (m)
-    patchwork_max_range: float = setting(64.0, "positive")  # Patchwork++ max_range (m)
+    patchwork_max_range: float = setting(64.0, "positive")  # Patchwork++ max_range (m); also the local map's reach
     patchwork_z_offset: float = setting(0.0, "number")  # added to z before Patchwork++ (ground near -sensor_height)
     range_z: float = setting(0.04, "number")  # z threshold: ground if z <= range_z + slack
     slack: float = setting(0.3, "non_negative", old="ground_slack")
+    # local: ground if at most margin above the local ground height (m), a map of cell m cells whose lower
+    # envelope rises at most slope (m per m); a ground point within column_radius (m, horizontally) of a non-ground
+    # point at most column_gap above the ground (m) belongs to that object (BENCHMARKS.md, "Ground that keeps
+    # moving objects")
+    margin: float = setting(0.15, "non_negative")
+    cell: float = setting(0.5, "positive")
+    slope: float = setting(0.3, "non_negative")
+    column_radius: float = setting(0.15, "non_negative")
+    column_gap: float = setting(0.6, "non_negative")
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,7 @@
 """The ICP-Flow teacher: ``ICPFlow(cfg)(pc0, pc1, ego1_from_ego0=None, ground0=None, ground1=None)``.
 
-Steps (one module each): ego motion (``ego_motion``), ground removal and crop (``ground``), one clustering of the
+Steps (one module each): ground removal and crop (``icpflow.ground``), ego motion on the non-ground points
+(``icpflow.odometry``, when none is given), one clustering of the
 fused non-ground points (``clustering``), candidate pairs in two stages (``pairing``), histogram or centroid
 initialisation (``histogram``), ICP (``registration``), checks (``checks``), association (``association``),
 optional recombination of split clusters (``merging``, with ``cfg.merging.distance`` > 0), optional rolling-shutter
@@ -24,12 +25,12 @@ import numpy as np
 
 from icpflow.frames import check_points
 from icpflow.geometry import rigid_problem, transform_points
+from icpflow.ground import GroundSegmenter
+from icpflow.odometry import estimate_ego_motion
 from icpflow.teacher import association, checks, deskew, histogram, merging, registration
 from icpflow.teacher.clustering import cluster_points
 from icpflow.teacher.config import ICPConfig, ICPFlowConfig
-from icpflow.teacher.ego_motion import estimate_ego_motion
 from icpflow.teacher.flow import absorb, match_confidence, point_flow
-from icpflow.teacher.ground import GroundSegmenter
 from icpflow.teacher.pairing import cluster_stats, stage1_pairs, stage2_pairs
 
 STAGES = ("ego_motion", "ground", "clustering", "pairing", "histogram", "icp", "merging", "deskew", "flow")
@@ -168,11 +169,20 @@ class ICPFlow:
         pc0_ok, pc1_ok = pc0_in[valid0], pc1_in[valid1]
 
         tic = time.perf_counter()
+        g0 = self.ground(pc0_ok) if ground0 is None else ground0[valid0]
+        g1 = self.ground(pc1_ok) if ground1 is None else ground1[valid1]
+        keep0 = ~g0 & (np.abs(pc0_ok[:, :2]) < cfg.crop_xy).all(axis=1)
+        keep1 = ~g1 & (np.abs(pc1_ok[:, :2]) < cfg.crop_xy).all(axis=1)
+        timings["ground"] = time.perf_counter() - tic
+
+        tic = time.perf_counter()
         if ego1_from_ego0 is None or cfg.ego_motion.method == "kiss_icp":
             try:
-                ego = estimate_ego_motion(pc0_ok, pc1_ok, cfg)
+                ego = estimate_ego_motion(pc0_ok, pc1_ok, cfg, g0, g1)
             except (RuntimeError, ValueError, MemoryError) as error:
                 raise ValueError(f"ICPFlow: ego-motion estimation failed ({type(error).__name__}: {error})") from None
+            if ego is None:
+                raise ValueError("ICPFlow: no ego motion fits the two scans (do they overlap?); pass ego1_from_ego0")
             if rigid_problem(ego):
                 raise ValueError(f"ICPFlow: the estimated ego motion {rigid_problem(ego)}")
         else:
@@ -181,13 +191,6 @@ class ICPFlow:
             if problem:
                 raise ValueError(f"ICPFlow: ego1_from_ego0 {problem}")
         timings["ego_motion"] = time.perf_counter() - tic
-
-        tic = time.perf_counter()
-        g0 = self.ground(pc0_ok) if ground0 is None else ground0[valid0]
-        g1 = self.ground(pc1_ok) if ground1 is None else ground1[valid1]
-        keep0 = ~g0 & (np.abs(pc0_ok[:, :2]) < cfg.crop_xy).all(axis=1)
-        keep1 = ~g1 & (np.abs(pc1_ok[:, :2]) < cfg.crop_xy).all(axis=1)
-        timings["ground"] = time.perf_counter() - tic
 
         tic = time.perf_counter()
         src = transform_points(ego, pc0_ok[keep0])

@@ -15,13 +15,14 @@ import importlib
 import sys
 import time
 
-#: the modules whose numba kernels the teacher calls on the CPU
+#: the modules whose numba kernels the teacher calls on the CPU (the ground's also the Predictor and the stream)
 KERNEL_MODULES = (
     "icpflow.teacher.neighbours",
     "icpflow.teacher.icp",
     "icpflow.teacher.histogram",
     "icpflow.teacher.registration_cpu",
     "icpflow.teacher.hdbscan_labels",
+    "icpflow.ground",
 )
 
 
@@ -63,8 +64,8 @@ def cache_location() -> str:
 
 
 def compile_kernels() -> None:
-    """Call every kernel with the types a labelling run uses: the teacher (av2 preset: histogram vote, ICP both
-    ways, de-skew) on a small synthetic pair with per-point capture times."""
+    """Call every kernel with the types a labelling run uses: the teacher (av2 preset: ground removal, histogram vote,
+    ICP both ways, de-skew) on a small synthetic pair with per-point capture times."""
     import numpy as np
 
     from icpflow.datasets.synthetic import SyntheticDataset
@@ -76,7 +77,7 @@ def compile_kernels() -> None:
     times0 = np.linspace(0.0, 0.1, len(pair.pc0), dtype=np.float32)
     times1 = np.linspace(0.0, 0.1, len(pair.pc1), dtype=np.float32)
     ICPFlow(ICPFlowConfig.preset("av2"))(
-        pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1, times0, times1, dt=pair.dt
+        pair.pc0, pair.pc1, pair.ego1_from_ego0, None, None, times0, times1, dt=pair.dt
     )
 
 

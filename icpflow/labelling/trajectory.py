@@ -1,0 +1,96 @@
+"""A drive without poses (``dataset=sequence`` with no poses file): its ego motion, estimated once before the
+samples are labelled, in order, by one :class:`icpflow.odometry.Odometry` over every scan (each with its ground,
+``icpflow.ground``), and handed to the reader, so that each pair is labelled with the drive's ego motion rather than
+its own two scans' (a pairwise estimate has no local map and no motion model).
+
+The steps are written beside the shards (``trajectory.npz``: ``ego1_from_ego0`` (T - 1, 4, 4) float64 per
+consecutive scans, NaN where there is none; ``done``, the steps estimated; ``identity``, the scans and settings they
+belong to) every ``SAVE_EVERY`` steps and at the end, atomically: a rerun with the same scans and settings reuses
+them, a stopped run goes on from the last saved step (whose track then starts again from that scan). A lost track
+or an unreadable scan is one warning and a restart; the pairs across it get no ego motion and fail with that reason
+(``failures.jsonl``), never a silent wrong pose.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+
+from icpflow.atomic import atomic_path
+from icpflow.frames import FramePairError
+
+NAME = "trajectory.npz"
+#: steps between two saves of the trajectory
+SAVE_EVERY = 25
+
+log = logging.getLogger("label")
+
+
+def read_trajectory(path, identity: str) -> tuple[np.ndarray, int] | None:
+    """The saved steps and their count at ``path``, or None when absent, unreadable or of other scans or settings."""
+    try:
+        with np.load(path, allow_pickle=False) as stored:
+            if str(stored["identity"]) != identity:
+                return None
+            return np.array(stored["ego1_from_ego0"], np.float64), int(stored["done"])
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def write_trajectory(path, identity: str, motions: np.ndarray, done: int) -> None:
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+        np.savez(handle, identity=np.array(identity), ego1_from_ego0=motions, done=np.array(done))
+
+
+def drive_trajectory(job, progress: bool = True) -> dict | None:
+    """Estimate (or reuse) the ego motion of ``job``'s drive when its reader has no poses (the reader's
+    ``drive_without_poses``), hand it to the reader (``use_ego_motions``) and return ``{"steps", "reused", "lost"}``;
+    None when the reader needs none."""
+    from icpflow.console import Progress
+    from icpflow.ground import GroundSegmenter
+    from icpflow.odometry import Odometry
+    from icpflow.preprocess import Preprocessing
+
+    drive = job.dataset.drive_without_poses()
+    if drive is None:
+        return None
+    names, read = drive
+    path = job.out_dir / NAME
+    settings = Preprocessing.from_teacher(job.teacher_cfg).to_dict()
+    identity = json.dumps({"scans": list(names), "preprocessing": settings}, sort_keys=True)
+    motions, done = np.full((len(names) - 1, 4, 4), np.nan), 0
+    stored = read_trajectory(path, identity)
+    if stored is not None and stored[0].shape == motions.shape:
+        motions, done = stored
+    reused = done
+    if done < len(motions):
+        segmenter, odometry = GroundSegmenter(job.teacher_cfg), Odometry(job.teacher_cfg)
+        bar = Progress(total=len(motions), initial=done, unit=" scans", disable=not progress, desc="trajectory")
+        try:  # scan ``done`` is read again: the first scan of this run's track
+            for scan in range(done, len(names)):
+                try:
+                    points = read(scan)
+                except (FramePairError, OSError, ValueError) as error:
+                    log.warning(f"{names[scan]}: skipped ({error}); the pairs across it get no ego motion")
+                    odometry.reset()
+                else:
+                    step = odometry.step(points, segmenter(points))
+                    if step is not None and step.ego1_from_ego0 is None:
+                        log.warning(f"{names[scan]}: the odometry lost track (fitness {step.fitness:.2f}): no ego "
+                                    f"motion from {names[scan - 1]}, a new track starts here")  # fmt: skip
+                    elif step is not None:
+                        motions[scan - 1] = step.ego1_from_ego0
+                        if step.restarted:
+                            log.warning(f"{names[scan]}: the odometry lost track and started again from this pair "
+                                        f"(fitness {step.fitness:.2f})")  # fmt: skip
+                bar.update(scan - done)
+                done = scan
+                if done % SAVE_EVERY == 0:
+                    write_trajectory(path, identity, motions, done)
+        finally:
+            write_trajectory(path, identity, motions, done)
+            bar.close()
+    job.dataset.use_ego_motions(motions)
+    return {"steps": len(motions), "reused": reused, "lost": int(np.isnan(motions[:, 0, 0]).sum())}

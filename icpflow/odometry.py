@@ -1,0 +1,337 @@
+"""Ego motion from the scans alone: one odometry for a drive, a stream and a pair (the teacher's step 1, the
+Predictor, the stream and ``label.py``'s trajectory of a drive without poses).
+
+A sequence of scans in, one ``ego1_from_ego0`` per step out: :class:`Odometry` takes each scan (N, 3) float32 in one
+height frame (``icpflow.preprocess``) with its (N,) bool ground mask (``icpflow.ground``) and returns the transform
+(4, 4) float64 from the previous scan's frame into this one's. A pair is a two-scan sequence
+(:func:`estimate_ego_motion`); a drive is the whole sequence (:func:`drive_motions`).
+
+Each step: KISS-ICP (``kiss-icp`` 1.x, one instance across the track: its local map and constant-velocity model)
+on the non-ground points gives a start, refined point-to-plane (open3d ``registration_icp``) on ``VOXEL`` m clouds
+of the two scans' non-ground points, with a robust (Tukey) kernel that leaves moving objects out; the target's
+normals come from one estimate (:func:`target_cloud`: ``icpflow.geometry.plane_normals`` of each target point's
+``NORMAL_NEIGHBOURS`` nearest points). The first step of a track has no motion model and a one-scan map: it is
+refined from several starts (:func:`_first_step`). The refinement's fitness says whether the track holds; a step
+under ``min_fitness`` is estimated afresh from its two scans (a new track); if that fits no better, the step has no
+estimate (``OdometryStep.ego1_from_ego0`` None), never a silent wrong pose.
+
+Settings: the ``ego_motion`` block (``icpflow.teacher.config.EgoMotionConfig``: KISS-ICP's voxel and range), or a
+``Preprocessing`` or teacher config holding it (:func:`ego_settings`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from icpflow.geometry import invert, plane_normals, transform_points
+from icpflow.preprocess import Preprocessing
+from icpflow.teacher.config import EgoMotionConfig
+
+#: fewer points than this in either scan: no estimate
+MIN_EGO_POINTS = 100
+#: metres: the voxel of the refinement clouds (non-ground points). Finer than KISS-ICP's: a voxel grid fixed in each
+#: scan's frame pulls a slow motion towards the identity (BENCHMARKS.md, issue 33)
+VOXEL = 0.15
+#: a step's refinement: at most this many source points (an even subsample of the previous scan's cloud) and
+#: iterations (it starts from KISS-ICP's estimate, centimetres away). 2,500 rather than 4,000: 6-7 ms less per frame,
+#: synthetic median 0.22 instead of 0.18 cm (BENCHMARKS.md, issue 33)
+SOURCE_POINTS, ITERATIONS = 2500, 10
+#: metres: the width of the refinement's robust (Tukey) kernel: the moving traffic of a fast drive pulled the plain
+#: least squares by 2-3 cm (synthetic, 9.6 m/s: 2.20 -> 0.20 cm median, BENCHMARKS.md, issue 33)
+TUKEY = 0.1
+#: the target normals: of the nearest 10 points (6 are cheaper but tilt on a 32-beam scan's sparse rings, 1.5-2 cm
+#: instead of 0.5 cm, BENCHMARKS.md, issue 33)
+NORMAL_NEIGHBOURS = 10
+#: the first step of a track (a pair): at most this many source points of the whole scan (ground included: its
+#: planes fix roll, pitch and height), and its (reach m, Tukey width m, iterations) stages, a wide one then a fine one
+FIRST_SOURCE_POINTS = 4000
+FIRST_STAGES = ((1.0, 0.3, 15), (0.3, 0.1, 30))
+#: the first step's fit (the mean Tukey weight of its point-to-plane residuals, about the share of the scan that
+#: fits) under which, or a result this far (m) from KISS-ICP's start, it is also refined from the identity and from
+#: KISS-ICP's reverse registration, the best fit winning (BENCHMARKS.md, "One odometry")
+RETRY_FIT, RETRY_JUMP = 0.45, 0.5
+
+
+def ego_settings(cfg) -> EgoMotionConfig:
+    """The ego-motion settings of ``cfg``: an EgoMotionConfig, or a Preprocessing / teacher config holding one (a
+    dict of teacher fields, older flat names included, is read by ``Preprocessing.from_teacher``)."""
+    if isinstance(cfg, EgoMotionConfig):
+        return cfg
+    if isinstance(getattr(cfg, "ego_motion", None), EgoMotionConfig):
+        return cfg.ego_motion
+    return Preprocessing.from_teacher(cfg).ego_motion
+
+
+def kiss_odometry(cfg):
+    """A fresh ``kiss_icp.kiss_icp.KissICP`` with ``cfg``'s ego-motion settings (max range, voxel size), deskewing off
+    (no per-point timestamps)."""
+    from kiss_icp.config import load_config
+    from kiss_icp.kiss_icp import KissICP
+
+    config = load_config(None)
+    config.data.deskew = False
+    settings = ego_settings(cfg)
+    config.data.max_range = float(settings.kiss_max_range)
+    config.mapping.voxel_size = float(settings.kiss_voxel_size)
+    return KissICP(config)
+
+
+def voxel_cloud(points: np.ndarray, voxel: float):
+    """The open3d cloud of ``points`` (N, 3) down-sampled to ``voxel`` m (one measured point per voxel, KISS-ICP's
+    voxel grid: 4x quicker than open3d's centroids)."""
+    import open3d as o3d
+    from kiss_icp.voxelization import voxel_down_sample
+
+    kept = voxel_down_sample(np.asarray(points, np.float64), voxel)
+    return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kept))
+
+
+class TargetPlanes:
+    """A refinement's target points (M, 3) with a k-d tree; each point's normal, one estimate: ``plane_normals`` of
+    its ``NORMAL_NEIGHBOURS`` nearest (computed only for the points a source lands near: a step that starts close to
+    the answer keeps its correspondences among these; computing normals for the whole scan was the odometry's
+    costliest step, BENCHMARKS.md, issue 33)."""
+
+    def __init__(self, points: np.ndarray):
+        from scipy.spatial import cKDTree
+
+        self.points = np.asarray(points, np.float64)
+        self.tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)  # built once: quicker so
+
+    def near(self, moved: np.ndarray | None = None):
+        """For the (K, 3) ``moved`` source points (None: every target point): the open3d cloud, with normals, of the
+        target points nearest to them (once each), and per source point the distance (K,) to its nearest target
+        point, that point (K, 3) and its normal (K, 3)."""
+        import open3d as o3d
+
+        from icpflow.entry import signals_held
+
+        centres = self.points if moved is None else moved
+        with signals_held():  # a stop inside the threaded query would free its memory under its threads
+            distance, neighbours = self.tree.query(centres, k=min(NORMAL_NEIGHBOURS, len(self.points)), workers=-1)
+        neighbours, distance = neighbours.reshape(len(centres), -1), distance.reshape(len(centres), -1)
+        nearest, first, back = np.unique(neighbours[:, 0], return_index=True, return_inverse=True)
+        normals = plane_normals(self.points[neighbours[first]])
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points[nearest]))
+        cloud.normals = o3d.utility.Vector3dVector(normals)
+        return cloud, distance[:, 0], self.points[neighbours[:, 0]], normals[back]
+
+
+def target_cloud(points: np.ndarray, source: np.ndarray | None = None, transform: np.ndarray | None = None):
+    """The open3d cloud, with normals (:class:`TargetPlanes`), of the target points (M, 3) a refinement will match:
+    all of them (``source`` None), or those nearest to the ``source`` points (K, 3) moved by ``transform``."""
+    moved = None if source is None else transform_points(transform, np.asarray(source, np.float64))
+    return TargetPlanes(points).near(moved)[0]
+
+
+def refine_clouds(
+    source, target, transform: np.ndarray, voxel: float, iterations: int = 50, tukey: float | None = None
+) -> tuple[np.ndarray, float]:
+    """Point-to-plane ICP of the open3d cloud ``source`` onto ``target`` (with normals, :func:`target_cloud`), both of
+    ``voxel`` m, from ``transform`` (correspondences within twice the voxel, at most ``iterations``): the refined
+    transform (``transform`` itself when under 30 % of the source finds a correspondence) and that fraction (the
+    fitness). ``tukey``: a robust Tukey kernel of that width (m), which leaves moving objects out of the fit."""
+    import open3d as o3d
+
+    registration = o3d.pipelines.registration
+    result = registration.registration_icp(
+        source,
+        target,
+        2.0 * voxel,
+        transform,
+        registration.TransformationEstimationPointToPlane(
+            *([] if tukey is None else [registration.TukeyLoss(k=tukey)])
+        ),
+        registration.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=iterations),
+    )
+    refined = np.asarray(result.transformation, dtype=np.float64) if result.fitness > 0.3 else transform
+    return refined, float(result.fitness)
+
+
+@dataclasses.dataclass(frozen=True)
+class OdometryStep:
+    """One step of :class:`Odometry`: ``ego1_from_ego0`` (4, 4) float64 from the previous scan's frame into this
+    scan's (None when the track is lost: no estimate for this pair); ``fitness``: the fraction of the previous scan's
+    non-ground points (down-sampled) with a point of this scan within twice the voxel after the motion;
+    ``restarted``: the track's own estimate fitted worse than ``min_fitness``, so the pair was estimated afresh from
+    the two scans and the track starts again from it."""
+
+    ego1_from_ego0: np.ndarray | None
+    fitness: float
+    restarted: bool = False
+
+
+@dataclasses.dataclass
+class _Scan:
+    points: np.ndarray  # (N, 3) float64, the whole scan
+    kept: np.ndarray  # (M, 3) float64 non-ground points
+    cloud: object  # their VOXEL cloud
+    source: object  # its subsample, the next step's source
+    kiss_pose: np.ndarray  # (4, 4) KISS-ICP's pose of the scan in its track
+    whole: np.ndarray | None = None  # (K, 3) the whole scan's VOXEL cloud, for a first step (made when needed)
+
+    def whole_cloud(self) -> np.ndarray:
+        if self.whole is None:
+            from kiss_icp.voxelization import voxel_down_sample
+
+            self.whole = voxel_down_sample(self.points, VOXEL)
+        return self.whole
+
+
+class Odometry:
+    """Ego motion along a sequence of scans (N, 3) in one frame (the height frame); see the module docstring.
+
+    :meth:`step` returns None for the first scan after a start or :meth:`reset`, else an :class:`OdometryStep`.
+    ``refine=False``: KISS-ICP alone (the fitness is still measured)."""
+
+    def __init__(self, cfg, min_fitness: float = 0.5, refine: bool = True, voxel: float = VOXEL):
+        self.settings = ego_settings(cfg)
+        self.min_fitness, self.refine, self.voxel = float(min_fitness), bool(refine), float(voxel)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the map and the motion: the next scan starts a new track."""
+        self._kiss = None
+        self._previous: _Scan | None = None
+        self._steps = 0  # steps of this track: its first has no motion model yet (KISS-ICP starts at the identity)
+
+    def step(self, points: np.ndarray, ground: np.ndarray | None = None) -> OdometryStep | None:
+        """Register the scan ``points`` (N, 3) (``ground``: its (N,) bool ground mask, left out); see the class
+        docstring."""
+        points = np.asarray(points, np.float64)
+        kept = points if ground is None else points[~np.asarray(ground, bool)]
+        kept = kept if len(kept) >= MIN_EGO_POINTS else points
+        if self._kiss is None:
+            self._kiss = kiss_odometry(self.settings)
+        self._kiss.register_frame(kept, np.zeros(0))
+        cloud = voxel_cloud(kept, self.voxel)
+        source = cloud.uniform_down_sample(max(1, len(cloud.points) // SOURCE_POINTS))
+        current = _Scan(points, kept, cloud, source, np.asarray(self._kiss.last_pose, np.float64))
+        previous, self._previous = self._previous, current
+        if previous is None:
+            return None
+        self._steps += 1
+        start = invert(current.kiss_pose) @ previous.kiss_pose
+        if self._steps == 1:
+            transform, fitness = self._first_step(previous, current, start)
+        else:
+            transform, fitness = self._aligned(previous, current, start)
+        if fitness >= self.min_fitness:
+            return OdometryStep(transform, fitness)
+        # lost: the two scans alone, a new track from this pair
+        self._kiss = kiss_odometry(self.settings)
+        self._kiss.register_frame(previous.kept, np.zeros(0))
+        self._kiss.register_frame(kept, np.zeros(0))
+        current.kiss_pose = np.asarray(self._kiss.last_pose, np.float64)
+        transform, fitness = self._first_step(previous, current, invert(current.kiss_pose))
+        if fitness >= self.min_fitness:
+            self._steps = 1
+            return OdometryStep(transform, fitness, restarted=True)
+        self.reset()
+        self.step(points, ground)  # this scan starts the new track
+        return OdometryStep(None, fitness, restarted=True)
+
+    def _aligned(
+        self, previous: _Scan, current: _Scan, transform: np.ndarray, refine: bool = True
+    ) -> tuple[np.ndarray, float]:
+        """``transform`` refined from the previous scan's non-ground points onto this one's (when ``refine``), and
+        its fitness."""
+        import open3d as o3d
+
+        if not len(previous.source.points) or not len(current.cloud.points):
+            return transform, 0.0
+        if self.refine and refine:
+            local = target_cloud(np.asarray(current.cloud.points), np.asarray(previous.source.points), transform)
+            return refine_clouds(previous.source, local, transform, self.voxel, ITERATIONS, TUKEY)
+        result = o3d.pipelines.registration.evaluate_registration(
+            previous.source, current.cloud, 2.0 * self.voxel, transform
+        )
+        return transform, float(result.fitness)
+
+    def _first_step(self, previous: _Scan, current: _Scan, start: np.ndarray) -> tuple[np.ndarray, float]:
+        """The first step of a track (a pair: no motion model, a one-scan map), from KISS-ICP's estimate on the
+        non-ground points (on every point, the ground's rings, drawn by the sensor, hold a single pair's KISS-ICP
+        near the identity). Refined point-to-plane on the whole scans (``FIRST_STAGES``, the target's normals
+        where the source lands); a poor fit, or a result far from the start, is also refined from the identity and
+        from KISS-ICP's reverse registration, and the best fit wins. Returns it and its fitness."""
+        if not self.refine or not len(previous.source.points) or not len(current.cloud.points):
+            return self._aligned(previous, current, start)
+        source = previous.whole_cloud()
+        source = source[:: max(1, len(source) // FIRST_SOURCE_POINTS)]
+        target = TargetPlanes(current.whole_cloud())
+        transform = _staged(source, target, start)
+        fit = _fit(source, target, transform)
+        jump = float(np.linalg.norm((invert(start) @ transform)[:3, 3]))
+        if fit < RETRY_FIT or jump > RETRY_JUMP:
+            reverse = invert(_kiss_registration(current.kept, previous.kept, self.settings))
+            for other in (np.eye(4), reverse):
+                refined = _staged(source, target, other)
+                refined_fit = _fit(source, target, refined)
+                if refined_fit > fit:
+                    transform, fit = refined, refined_fit
+        return self._aligned(previous, current, transform, refine=False)
+
+
+def _staged(source: np.ndarray, target: TargetPlanes, transform: np.ndarray) -> np.ndarray:
+    """``transform`` refined point-to-plane from ``source`` (K, 3) onto ``target`` through ``FIRST_STAGES``, each
+    with the normals of the target points nearest the source moved by its start."""
+    import open3d as o3d
+
+    registration = o3d.pipelines.registration
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
+    for reach, tukey, iterations in FIRST_STAGES:
+        result = registration.registration_icp(
+            cloud,
+            target.near(transform_points(transform, source))[0],
+            reach,
+            transform,
+            registration.TransformationEstimationPointToPlane(registration.TukeyLoss(k=tukey)),
+            registration.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=iterations),
+        )
+        transform = np.asarray(result.transformation, np.float64)
+    return transform
+
+
+def _fit(source: np.ndarray, target: TargetPlanes, transform: np.ndarray, width: float = TUKEY) -> float:
+    """The mean Tukey weight (of ``width`` m) of the point-to-plane residuals of ``source`` (K, 3) moved by
+    ``transform`` onto ``target`` (0 for a point with no target point within 0.5 m): about the share that fits."""
+    moved = transform_points(transform, source)
+    _, distance, nearest, normals = target.near(moved)
+    residual = np.abs(np.einsum("ij,ij->i", moved - nearest, normals))
+    weight = np.where((distance < 0.5) & (residual < width), (1 - (residual / width) ** 2) ** 2, 0.0)
+    return float(weight.mean())
+
+
+def _kiss_registration(points0: np.ndarray, points1: np.ndarray, cfg) -> np.ndarray:
+    """``ego1_from_ego0`` by a fresh KISS-ICP's registration of ``points1`` onto the map of ``points0``."""
+    odometry = kiss_odometry(cfg)
+    odometry.register_frame(np.asarray(points0, np.float64), np.zeros(0))
+    odometry.register_frame(np.asarray(points1, np.float64), np.zeros(0))
+    return invert(np.asarray(odometry.last_pose, np.float64))
+
+
+def estimate_ego_motion(pc0: np.ndarray, pc1: np.ndarray, cfg, ground0=None, ground1=None) -> np.ndarray | None:
+    """(4, 4) float64 ``ego1_from_ego0`` of the scans (N0, 3) and (N1, 3) (their (N,) bool ground masks left out
+    where given): a two-scan sequence of :class:`Odometry`. The identity if either has fewer than
+    ``MIN_EGO_POINTS`` points; None if no estimate fits (the scans do not overlap)."""
+    if len(pc0) < MIN_EGO_POINTS or len(pc1) < MIN_EGO_POINTS:
+        return np.eye(4)
+    odometry = Odometry(cfg)
+    odometry.step(pc0, ground0)
+    return odometry.step(pc1, ground1).ego1_from_ego0
+
+
+__all__ = [
+    "MIN_EGO_POINTS",
+    "Odometry",
+    "OdometryStep",
+    "ego_settings",
+    "estimate_ego_motion",
+    "kiss_odometry",
+    "TargetPlanes",
+    "refine_clouds",
+    "target_cloud",
+    "voxel_cloud",
+]

@@ -1,0 +1,182 @@
+"""The one odometry (icpflow.odometry): a sequence of scans in, one ego motion per step out; a pair is a two-scan
+sequence. Exact on the synthetic world (per drive and pairwise, the robust first step included); one normal estimate;
+a lost track is a restart or no estimate, never a silent wrong pose; label.py estimates a drive without poses once,
+in order, and resumes it."""
+
+import numpy as np
+import pytest
+
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.geometry import invert, pose_error, smallest_axes
+from icpflow.odometry import NORMAL_NEIGHBOURS, Odometry, estimate_ego_motion, target_cloud, voxel_cloud
+from icpflow.teacher.config import ICPFlowConfig
+
+EGO = ICPFlowConfig.preset("waymo").ego_motion
+
+
+def _sequence(seed: int, frames: int, beams: int = 32):
+    data = SyntheticDataset(split="test", num_sequences=1, frames_per_sequence=frames, beams=beams, seed=seed)
+    pairs = [data[i] for i in range(len(data))]
+    return pairs, [pairs[0].pc0] + [pair.pc1 for pair in pairs]
+
+
+@pytest.fixture(scope="module")
+def moving():
+    """A sequence of 8 frames whose ego drives (seed 3: about 8 m/s)."""
+    pairs, scans = _sequence(3, 8)
+    assert np.linalg.norm(pairs[0].ego1_from_ego0[:3, 3]) > 0.3
+    return pairs, scans
+
+
+def test_a_drive_is_exact_on_the_synthetic_world(moving):
+    """Within 2 cm and 0.05 degrees per frame (the target), the worst step within 4 cm; KISS-ICP alone (no
+    refinement) is kept for comparison and is worse."""
+    pairs, scans = moving
+    medians = {}
+    for refine in (True, False):
+        odometry = Odometry(EGO, refine=refine)
+        assert odometry.step(scans[0], pairs[0].ground0) is None
+        steps = [odometry.step(pair.pc1, pair.ground1) for pair in pairs]
+        errors = np.array([pose_error(step.ego1_from_ego0, pair.ego1_from_ego0) for pair, step in zip(pairs, steps)])
+        assert not any(step.restarted for step in steps) and min(step.fitness for step in steps) > 0.8
+        medians[refine] = np.median(errors[:, 0])
+        if refine:
+            assert medians[True] <= 0.02 and np.median(errors[:, 1]) <= 0.05 and errors[:, 0].max() <= 0.04, errors
+    assert medians[True] < medians[False]
+
+
+@pytest.mark.parametrize("beams, seed", [(64, 0), (32, 5)])
+def test_a_pair_is_a_two_scan_sequence_and_is_exact(beams, seed):
+    """The pairwise estimate (no map, no motion model: the teacher's and the Predictor's step 1 for a lone pair)
+    is the two-scan sequence's, within 5 cm on every pair of a drive, the scans' ground left out."""
+    pairs, _ = _sequence(seed, 6, beams)
+    for pair in pairs:
+        estimate = estimate_ego_motion(pair.pc0, pair.pc1, EGO, pair.ground0, pair.ground1)
+        odometry = Odometry(EGO)
+        odometry.step(pair.pc0, pair.ground0)
+        np.testing.assert_allclose(estimate, odometry.step(pair.pc1, pair.ground1).ego1_from_ego0, atol=1e-6)
+        translation, angle = pose_error(estimate, pair.ego1_from_ego0)
+        assert translation <= 0.05 and angle <= 0.1, (pair.sample_id, translation, angle)
+
+
+def test_the_target_normals_are_the_nearest_points_planes(moving):
+    """One normal estimate: for each moved source point its nearest target point (once each), with the normal of
+    its NORMAL_NEIGHBOURS nearest target points, as open3d estimates it on the whole cloud; the whole cloud's
+    normals (source None) are the same estimate."""
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    pairs, scans = moving
+    target = voxel_cloud(scans[1], 0.15)
+    points = np.asarray(target.points)
+    source = np.asarray(voxel_cloud(scans[0], 0.15).points)[::7]
+    transform = pairs[0].ego1_from_ego0
+    local = target_cloud(points, source, transform)
+    moved = source @ transform[:3, :3].T + transform[:3, 3]
+    expected = np.unique(cKDTree(points).query(moved)[1])
+    np.testing.assert_array_equal(np.asarray(local.points), points[expected])
+    whole = o3d.geometry.PointCloud(target)
+    whole.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
+    agree = np.abs((np.asarray(local.normals) * np.asarray(whole.normals)[expected]).sum(axis=1))
+    assert np.median(agree) > 0.999 and np.mean(agree > 0.95) > 0.95
+    everything = target_cloud(points)
+    np.testing.assert_array_equal(np.asarray(everything.points), points)
+    agree = np.abs((np.asarray(everything.normals) * np.asarray(whole.normals)).sum(axis=1))
+    assert np.median(agree) > 0.999 and np.mean(agree > 0.95) > 0.95
+
+
+def test_the_normals_in_closed_form_are_numpys_eigenvectors():
+    """``smallest_axes``: the eigenvector of the smallest eigenvalue, as numpy.linalg.eigh gives it (up to sign), on
+    planes, lines and blobs of 10 points anywhere; (0, 0, 1) where no axis is defined."""
+    rng = np.random.default_rng(0)
+    for spread in ([1.0, 0.5, 0.01], [1.0, 0.02, 0.01], [1.0, 1.0, 1.0], [1.0, 0.3, 0.03]):
+        points = rng.normal(size=(500, 10, 3)) * spread
+        rotations = np.linalg.qr(rng.normal(size=(500, 3, 3)))[0]
+        points = np.matmul(points, rotations.transpose(0, 2, 1)) + rng.normal(size=(500, 1, 3)) * 30
+        centred = points - points.mean(axis=1, keepdims=True)
+        scatter = np.matmul(centred.transpose(0, 2, 1), centred)
+        expected = np.linalg.eigh(scatter)[1][:, :, 0]
+        assert np.abs((smallest_axes(scatter) * expected).sum(axis=1)).min() > 1 - 1e-9
+    np.testing.assert_array_equal(smallest_axes(np.zeros((2, 3, 3))), [[0, 0, 1], [0, 0, 1]])
+
+
+def test_two_places_spliced_give_no_estimate_then_a_new_exact_track(moving):
+    """A jump to another place: no pose for that step (never a wrong one), then the next steps are exact."""
+    pairs, scans = moving
+    others, other_scans = _sequence(11, 4)
+    odometry = Odometry(EGO)
+    for scan in scans[:3]:
+        odometry.step(scan)
+    lost = odometry.step(other_scans[0])
+    assert lost.ego1_from_ego0 is None and lost.restarted and lost.fitness < 0.5
+    for pair, scan in zip(others, other_scans[1:]):
+        step = odometry.step(scan)
+        assert not step.restarted and pose_error(step.ego1_from_ego0, pair.ego1_from_ego0)[0] < 0.03
+    assert estimate_ego_motion(scans[0], other_scans[0], EGO) is None  # a pair that does not overlap
+
+
+def test_the_trajectory_is_the_product_of_the_steps(moving):
+    pairs, scans = moving
+    odometry = Odometry(EGO)
+    pose, truth = np.eye(4), np.eye(4)
+    odometry.step(scans[0], pairs[0].ground0)
+    for pair in pairs:
+        pose = pose @ invert(odometry.step(pair.pc1, pair.ground1).ego1_from_ego0)
+        truth = truth @ invert(pair.ego1_from_ego0)
+    assert np.linalg.norm(pose[:3, 3] - truth[:3, 3]) < 0.02 * len(pairs)
+
+
+def test_label_estimates_a_drive_once_in_order_and_resumes(tmp_path, moving, caplog):
+    """``label.py dataset=sequence`` without poses: the drive's ego motion, estimated once over every scan in order,
+    written beside the shards and handed to the reader. A jump to another place and an unreadable scan are each one
+    warning and a restart; the pairs across them fail with that reason (never a wrong pose). A stopped run goes on
+    from its last saved step; a rerun of the same scans and settings reuses the file; other settings redo it."""
+    from icpflow.datasets.sequence import ScanSequenceDataset
+    from icpflow.frames import FramePairError
+    from icpflow.labelling.job import LabelJob
+    from icpflow.labelling.trajectory import NAME, drive_trajectory, read_trajectory, write_trajectory
+
+    pairs, scans = moving
+    others, other_scans = _sequence(11, 4)
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    drive = [*scans[:5], *other_scans]  # 0-4 one place, 5-8 another
+    for k, scan in enumerate(drive):
+        np.save(folder / f"{k}.npy", scan)
+    (folder / "7.npy").write_bytes(b"broken")
+    teacher = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})
+    job = LabelJob(ScanSequenceDataset(folder, sensor_height=0.0), teacher, tmp_path / "labels", "x")
+    job.out_dir.mkdir()
+    with caplog.at_level("WARNING", logger="label"):
+        summary = drive_trajectory(job, progress=False)
+    said = [record.getMessage() for record in caplog.records]
+    assert summary == {"steps": 8, "reused": 0, "lost": 3}
+    assert len(said) == 2 and said[0].startswith("5.npy: the odometry lost track") and "7.npy: skipped" in said[1]
+    truth = [pair.ego1_from_ego0 for pair in pairs[:4]] + [None, others[0].ego1_from_ego0, None, None]
+    for k, expected in enumerate(truth):
+        if expected is None:  # the splice; the broken scan's pairs fail on reading it first
+            reason = "5.npy: no ego motion from 4.npy" if k == 4 else "7.npy: not a .npy file"
+            with pytest.raises(FramePairError, match=reason):
+                job.dataset.pair(k)
+        else:
+            assert pose_error(job.dataset.pair(k).ego1_from_ego0, expected)[0] < 0.02, k
+    path = job.out_dir / NAME
+    stored = path.read_bytes()
+    identity = str(np.load(path)["identity"])
+    motions, done = read_trajectory(path, identity)
+    assert done == 8 and np.array_equal(motions, job.dataset._motions, equal_nan=True)
+
+    # a rerun reuses it; a run stopped after step 3 goes on from there (its track starting again at scan 3)
+    rerun = LabelJob(ScanSequenceDataset(folder, sensor_height=0.0), teacher, job.out_dir, "x")
+    assert drive_trajectory(rerun, progress=False)["reused"] == 8 and path.read_bytes() == stored
+    partial = motions.copy()
+    partial[3:] = np.nan
+    write_trajectory(path, identity, partial, 3)
+    resumed = LabelJob(ScanSequenceDataset(folder, sensor_height=0.0), teacher, job.out_dir, "x")
+    assert drive_trajectory(resumed, progress=False) == {"steps": 8, "reused": 3, "lost": 3}
+    np.testing.assert_allclose(resumed.dataset._motions[:3], motions[:3])
+    assert pose_error(resumed.dataset.pair(3).ego1_from_ego0, pairs[3].ego1_from_ego0)[0] < 0.02
+    # other settings: estimated again
+    other = LabelJob(ScanSequenceDataset(folder, sensor_height=0.0), teacher.replace(**{"ground.margin": 0.2}),
+                     job.out_dir, "x")  # fmt: skip
+    assert drive_trajectory(other, progress=False)["reused"] == 0
