@@ -4,19 +4,25 @@ Predictor, the stream and ``label.py``'s trajectory of a drive without poses).
 A sequence of scans in, one ``ego1_from_ego0`` per step out: :class:`Odometry` takes each scan (N, 3) float32 in one
 height frame (``icpflow.preprocess``) with its (N,) bool ground mask (``icpflow.ground``) and returns the transform
 (4, 4) float64 from the previous scan's frame into this one's. A pair is a two-scan sequence
-(:func:`estimate_ego_motion`); a drive is the whole sequence (:func:`drive_motions`).
+(:func:`estimate_ego_motion`); ``label.py`` runs one over a whole drive (``icpflow.labelling.trajectory``).
 
-Each step: KISS-ICP (``kiss-icp`` 1.x, one instance across the track: its local map and constant-velocity model)
-on the non-ground points gives a start, refined point-to-plane (open3d ``registration_icp``) on ``VOXEL`` m clouds
-of the two scans' non-ground points, with a robust (Tukey) kernel that leaves moving objects out; the target's
-normals come from one estimate (:func:`target_cloud`: ``icpflow.geometry.plane_normals`` of each target point's
-``NORMAL_NEIGHBOURS`` nearest points). The first step of a track has no motion model and a one-scan map: it is
-refined from several starts (:func:`_first_step`). The refinement's fitness says whether the track holds; a step
-under ``min_fitness`` is estimated afresh from its two scans (a new track); if that fits no better, the step has no
-estimate (``OdometryStep.ego1_from_ego0`` None), never a silent wrong pose.
+Each step: KISS-ICP (``kiss-icp`` 1.x, one instance across the track: its local map and constant-velocity model) on
+the non-ground points gives a start (on every point, the ground's rings, drawn by the sensor, hold KISS-ICP near the
+identity); it is refined point-to-plane (open3d ``registration_icp``) on ``VOXEL`` m clouds of the two whole scans
+(the ground's planes fix roll, pitch and height) with a robust (Tukey) kernel that leaves moving objects out; the
+target's normals come from one estimate (:class:`TargetPlanes`: ``icpflow.geometry.plane_normals`` of a target
+point's ``NORMAL_NEIGHBOURS`` nearest). The first step of a track (a pair: no motion model, a one-scan map) is
+refined coarse to fine and, when it fits poorly, from other starts too (:meth:`Odometry._first_step`).
+
+Whether the track holds: the step's fitness (the share of the previous scan's non-ground points with a point of
+this scan within twice the voxel). Under ``min_fitness`` the step is estimated afresh from its two scans (a new
+track); if that fits under ``LOST_FITNESS`` too (another place: 0.03-0.18 on spliced synthetic drives, where the
+correct steps of the hardest drives fit 0.42-0.44), the step has no estimate (``OdometryStep.ego1_from_ego0`` None),
+never a silent wrong pose.
 
 Settings: the ``ego_motion`` block (``icpflow.teacher.config.EgoMotionConfig``: KISS-ICP's voxel and range), or a
-``Preprocessing`` or teacher config holding it (:func:`ego_settings`).
+``Preprocessing`` or teacher config holding it (:func:`ego_settings`). Measured: BENCHMARKS.md, "One odometry"
+(``benchmarks/bench_ego_motion.py``).
 """
 
 from __future__ import annotations
@@ -31,12 +37,14 @@ from icpflow.teacher.config import EgoMotionConfig
 
 #: fewer points than this in either scan: no estimate
 MIN_EGO_POINTS = 100
-#: metres: the voxel of the refinement clouds (non-ground points). Finer than KISS-ICP's: a voxel grid fixed in each
-#: scan's frame pulls a slow motion towards the identity (BENCHMARKS.md, issue 33)
+#: metres: the voxel of the refinement clouds. Finer than KISS-ICP's: a voxel grid fixed in each scan's frame pulls a
+#: slow motion towards the identity (BENCHMARKS.md, issue 33)
 VOXEL = 0.15
+#: a step that fits under ``Odometry.min_fitness`` is estimated afresh from its two scans; under this after that, the
+#: track is lost (module docstring)
+LOST_FITNESS = 0.3
 #: a step's refinement: at most this many source points (an even subsample of the previous scan's cloud) and
-#: iterations (it starts from KISS-ICP's estimate, centimetres away). 2,500 rather than 4,000: 6-7 ms less per frame,
-#: synthetic median 0.22 instead of 0.18 cm (BENCHMARKS.md, issue 33)
+#: iterations (it starts from KISS-ICP's estimate, centimetres away; BENCHMARKS.md, issue 33)
 SOURCE_POINTS, ITERATIONS = 2500, 10
 #: metres: the width of the refinement's robust (Tukey) kernel: the moving traffic of a fast drive pulled the plain
 #: least squares by 2-3 cm (synthetic, 9.6 m/s: 2.20 -> 0.20 cm median, BENCHMARKS.md, issue 33)
@@ -119,37 +127,6 @@ class TargetPlanes:
         return cloud, distance[:, 0], self.points[neighbours[:, 0]], normals[back]
 
 
-def target_cloud(points: np.ndarray, source: np.ndarray | None = None, transform: np.ndarray | None = None):
-    """The open3d cloud, with normals (:class:`TargetPlanes`), of the target points (M, 3) a refinement will match:
-    all of them (``source`` None), or those nearest to the ``source`` points (K, 3) moved by ``transform``."""
-    moved = None if source is None else transform_points(transform, np.asarray(source, np.float64))
-    return TargetPlanes(points).near(moved)[0]
-
-
-def refine_clouds(
-    source, target, transform: np.ndarray, voxel: float, iterations: int = 50, tukey: float | None = None
-) -> tuple[np.ndarray, float]:
-    """Point-to-plane ICP of the open3d cloud ``source`` onto ``target`` (with normals, :func:`target_cloud`), both of
-    ``voxel`` m, from ``transform`` (correspondences within twice the voxel, at most ``iterations``): the refined
-    transform (``transform`` itself when under 30 % of the source finds a correspondence) and that fraction (the
-    fitness). ``tukey``: a robust Tukey kernel of that width (m), which leaves moving objects out of the fit."""
-    import open3d as o3d
-
-    registration = o3d.pipelines.registration
-    result = registration.registration_icp(
-        source,
-        target,
-        2.0 * voxel,
-        transform,
-        registration.TransformationEstimationPointToPlane(
-            *([] if tukey is None else [registration.TukeyLoss(k=tukey)])
-        ),
-        registration.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=iterations),
-    )
-    refined = np.asarray(result.transformation, dtype=np.float64) if result.fitness > 0.3 else transform
-    return refined, float(result.fitness)
-
-
 @dataclasses.dataclass(frozen=True)
 class OdometryStep:
     """One step of :class:`Odometry`: ``ego1_from_ego0`` (4, 4) float64 from the previous scan's frame into this
@@ -165,18 +142,21 @@ class OdometryStep:
 
 @dataclasses.dataclass
 class _Scan:
-    points: np.ndarray  # (N, 3) float64, the whole scan
+    ground: np.ndarray  # (G, 3) float64 ground points
     kept: np.ndarray  # (M, 3) float64 non-ground points
     cloud: object  # their VOXEL cloud
     source: object  # its subsample, the next step's source
     kiss_pose: np.ndarray  # (4, 4) KISS-ICP's pose of the scan in its track
-    whole: np.ndarray | None = None  # (K, 3) the whole scan's VOXEL cloud, for a first step (made when needed)
+    whole: np.ndarray | None = None  # (K, 3) the whole scan's cloud (made when needed)
 
     def whole_cloud(self) -> np.ndarray:
+        """The non-ground cloud with the ground's (``VOXEL`` m): what a step is refined on (the ground's planes fix
+        roll, pitch and height; a coarser ground, 0.5 m, left a 12 cm vertical error on a 32-beam drive)."""
         if self.whole is None:
             from kiss_icp.voxelization import voxel_down_sample
 
-            self.whole = voxel_down_sample(self.points, VOXEL)
+            ground = voxel_down_sample(self.ground, VOXEL) if len(self.ground) else np.zeros((0, 3))
+            self.whole = np.concatenate([np.asarray(self.cloud.points), ground])
         return self.whole
 
 
@@ -184,7 +164,8 @@ class Odometry:
     """Ego motion along a sequence of scans (N, 3) in one frame (the height frame); see the module docstring.
 
     :meth:`step` returns None for the first scan after a start or :meth:`reset`, else an :class:`OdometryStep`.
-    ``refine=False``: KISS-ICP alone (the fitness is still measured)."""
+    ``min_fitness``: under it a step is estimated afresh from its two scans. ``refine=False``: KISS-ICP alone (the
+    fitness is still measured)."""
 
     def __init__(self, cfg, min_fitness: float = 0.5, refine: bool = True, voxel: float = VOXEL):
         self.settings = ego_settings(cfg)
@@ -198,17 +179,16 @@ class Odometry:
         self._steps = 0  # steps of this track: its first has no motion model yet (KISS-ICP starts at the identity)
 
     def step(self, points: np.ndarray, ground: np.ndarray | None = None) -> OdometryStep | None:
-        """Register the scan ``points`` (N, 3) (``ground``: its (N,) bool ground mask, left out); see the class
-        docstring."""
+        """Register the scan ``points`` (N, 3) (``ground``: its (N,) bool ground mask); see the class docstring."""
         points = np.asarray(points, np.float64)
-        kept = points if ground is None else points[~np.asarray(ground, bool)]
-        kept = kept if len(kept) >= MIN_EGO_POINTS else points
+        ground = np.zeros(len(points), bool) if ground is None else np.asarray(ground, bool)
+        kept = points[~ground] if (~ground).sum() >= MIN_EGO_POINTS else points
         if self._kiss is None:
             self._kiss = kiss_odometry(self.settings)
         self._kiss.register_frame(kept, np.zeros(0))
         cloud = voxel_cloud(kept, self.voxel)
         source = cloud.uniform_down_sample(max(1, len(cloud.points) // SOURCE_POINTS))
-        current = _Scan(points, kept, cloud, source, np.asarray(self._kiss.last_pose, np.float64))
+        current = _Scan(points[ground], kept, cloud, source, np.asarray(self._kiss.last_pose, np.float64))
         previous, self._previous = self._previous, current
         if previous is None:
             return None
@@ -217,45 +197,47 @@ class Odometry:
         if self._steps == 1:
             transform, fitness = self._first_step(previous, current, start)
         else:
-            transform, fitness = self._aligned(previous, current, start)
+            transform, fitness = self._aligned(previous, current, self._refined(previous, current, start))
         if fitness >= self.min_fitness:
             return OdometryStep(transform, fitness)
-        # lost: the two scans alone, a new track from this pair
-        self._kiss = kiss_odometry(self.settings)
-        self._kiss.register_frame(previous.kept, np.zeros(0))
-        self._kiss.register_frame(kept, np.zeros(0))
-        current.kiss_pose = np.asarray(self._kiss.last_pose, np.float64)
-        transform, fitness = self._first_step(previous, current, invert(current.kiss_pose))
-        if fitness >= self.min_fitness:
+        if self._steps > 1:  # the two scans alone, a new track from this pair
+            self._kiss = kiss_odometry(self.settings)
+            self._kiss.register_frame(previous.kept, np.zeros(0))
+            self._kiss.register_frame(kept, np.zeros(0))
+            current.kiss_pose = np.asarray(self._kiss.last_pose, np.float64)
             self._steps = 1
+            transform, fitness = self._first_step(previous, current, invert(current.kiss_pose))
+        if fitness >= LOST_FITNESS:
             return OdometryStep(transform, fitness, restarted=True)
         self.reset()
         self.step(points, ground)  # this scan starts the new track
         return OdometryStep(None, fitness, restarted=True)
 
-    def _aligned(
-        self, previous: _Scan, current: _Scan, transform: np.ndarray, refine: bool = True
-    ) -> tuple[np.ndarray, float]:
-        """``transform`` refined from the previous scan's non-ground points onto this one's (when ``refine``), and
-        its fitness."""
+    def _refined(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> np.ndarray:
+        """``transform`` (KISS-ICP's, centimetres off) refined point-to-plane from the previous whole scan onto this
+        one (``SOURCE_POINTS``, reach twice the voxel, ``TUKEY``, ``ITERATIONS``), when ``refine``."""
+        if not self.refine or not len(previous.source.points) or not len(current.cloud.points):
+            return transform
+        source = previous.whole_cloud()
+        source = source[:: max(1, len(source) // SOURCE_POINTS)]
+        return _staged(source, TargetPlanes(current.whole_cloud()), transform, ((2 * self.voxel, TUKEY, ITERATIONS),))
+
+    def _aligned(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> tuple[np.ndarray, float]:
+        """``transform`` and its fitness (module docstring)."""
         import open3d as o3d
 
         if not len(previous.source.points) or not len(current.cloud.points):
             return transform, 0.0
-        if self.refine and refine:
-            local = target_cloud(np.asarray(current.cloud.points), np.asarray(previous.source.points), transform)
-            return refine_clouds(previous.source, local, transform, self.voxel, ITERATIONS, TUKEY)
         result = o3d.pipelines.registration.evaluate_registration(
             previous.source, current.cloud, 2.0 * self.voxel, transform
         )
         return transform, float(result.fitness)
 
     def _first_step(self, previous: _Scan, current: _Scan, start: np.ndarray) -> tuple[np.ndarray, float]:
-        """The first step of a track (a pair: no motion model, a one-scan map), from KISS-ICP's estimate on the
-        non-ground points (on every point, the ground's rings, drawn by the sensor, hold a single pair's KISS-ICP
-        near the identity). Refined point-to-plane on the whole scans (``FIRST_STAGES``, the target's normals
-        where the source lands); a poor fit, or a result far from the start, is also refined from the identity and
-        from KISS-ICP's reverse registration, and the best fit wins. Returns it and its fitness."""
+        """The first step of a track, from KISS-ICP's estimate on the non-ground points of a one-scan map: refined
+        point-to-plane on the whole scans through ``FIRST_STAGES`` (a wide one, then a fine one); a poor fit, or a
+        result far from the start, is also refined from the identity and from KISS-ICP's reverse registration, and
+        the best fit wins. Returns it and its fitness."""
         if not self.refine or not len(previous.source.points) or not len(current.cloud.points):
             return self._aligned(previous, current, start)
         source = previous.whole_cloud()
@@ -271,17 +253,17 @@ class Odometry:
                 refined_fit = _fit(source, target, refined)
                 if refined_fit > fit:
                     transform, fit = refined, refined_fit
-        return self._aligned(previous, current, transform, refine=False)
+        return self._aligned(previous, current, transform)
 
 
-def _staged(source: np.ndarray, target: TargetPlanes, transform: np.ndarray) -> np.ndarray:
-    """``transform`` refined point-to-plane from ``source`` (K, 3) onto ``target`` through ``FIRST_STAGES``, each
-    with the normals of the target points nearest the source moved by its start."""
+def _staged(source: np.ndarray, target: TargetPlanes, transform: np.ndarray, stages=FIRST_STAGES) -> np.ndarray:
+    """``transform`` refined point-to-plane from ``source`` (K, 3) onto ``target`` through ``stages`` ((reach m, Tukey
+    width m, iterations) each), each with the normals of the target points nearest the source moved by its start."""
     import open3d as o3d
 
     registration = o3d.pipelines.registration
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
-    for reach, tukey, iterations in FIRST_STAGES:
+    for reach, tukey, iterations in stages:
         result = registration.registration_icp(
             cloud,
             target.near(transform_points(transform, source))[0],
@@ -331,7 +313,5 @@ __all__ = [
     "estimate_ego_motion",
     "kiss_odometry",
     "TargetPlanes",
-    "refine_clouds",
-    "target_cloud",
     "voxel_cloud",
 ]

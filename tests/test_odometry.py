@@ -8,7 +8,7 @@ import pytest
 
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert, pose_error, smallest_axes
-from icpflow.odometry import NORMAL_NEIGHBOURS, Odometry, estimate_ego_motion, target_cloud, voxel_cloud
+from icpflow.odometry import NORMAL_NEIGHBOURS, Odometry, TargetPlanes, estimate_ego_motion, voxel_cloud
 from icpflow.teacher.config import ICPFlowConfig
 
 EGO = ICPFlowConfig.preset("waymo").ego_motion
@@ -71,15 +71,15 @@ def test_the_target_normals_are_the_nearest_points_planes(moving):
     points = np.asarray(target.points)
     source = np.asarray(voxel_cloud(scans[0], 0.15).points)[::7]
     transform = pairs[0].ego1_from_ego0
-    local = target_cloud(points, source, transform)
     moved = source @ transform[:3, :3].T + transform[:3, 3]
+    local = TargetPlanes(points).near(moved)[0]
     expected = np.unique(cKDTree(points).query(moved)[1])
     np.testing.assert_array_equal(np.asarray(local.points), points[expected])
     whole = o3d.geometry.PointCloud(target)
     whole.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
     agree = np.abs((np.asarray(local.normals) * np.asarray(whole.normals)[expected]).sum(axis=1))
     assert np.median(agree) > 0.999 and np.mean(agree > 0.95) > 0.95
-    everything = target_cloud(points)
+    everything = TargetPlanes(points).near()[0]
     np.testing.assert_array_equal(np.asarray(everything.points), points)
     agree = np.abs((np.asarray(everything.normals) * np.asarray(whole.normals)).sum(axis=1))
     assert np.median(agree) > 0.999 and np.mean(agree > 0.95) > 0.95
