@@ -42,7 +42,7 @@ VARIANTS = {
     # the dataset's ground masks withheld: the teacher's own ground (icpflow.ground), with the given ego motion or
     # with its own (the pair's odometry) too; "older ground": the same with the ground of every release before
     "own ground": {OWN_GROUND: True},
-    "own ground, older method": {OWN_GROUND: True, "ground.method": "both"},
+    "own ground (older method)": {OWN_GROUND: True, "ground.method": "both"},
     "nothing given": {OWN_GROUND: True, "ego_motion": {"method": "kiss_icp"}},
     "zero flow": None,
 }

@@ -17,9 +17,9 @@ What the pairwise call recomputes for every pair, the stream keeps:
 Bad streams never give a silent wrong flow: a missing or unreadable scan (:meth:`FlowStream.skip`), a time gap longer
 than ``max_gap_s`` or a timestamp that does not increase restart the odometry with a warning (the pair across the gap
 is estimated from its two scans alone); a scan with too few points keeps the motion model's prediction and gets the
-ego flow only; a lost track (the refinement's fitness under ``min_fitness``) is estimated afresh, and where that fits
-no better the pair gets no flow (``StreamStep.prediction`` None) and a new track starts. Each case is one
-:class:`StreamWarning`; the other frames keep their flow.
+ego flow only; a step whose fitness is under ``min_fitness`` is estimated afresh (``icpflow.odometry``), and where
+that fits under ``LOST_FITNESS`` too the pair gets no flow (``StreamStep.prediction`` None) and a new track starts.
+Each case is one :class:`StreamWarning`; the other frames keep their flow.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import warnings
 import numpy as np
 
 from fastflow3d.predictor import Prediction, Predictor, PredictorWarning, as_points
-from icpflow.odometry import MIN_EGO_POINTS, Odometry
+from icpflow.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
 from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
 
 
@@ -66,7 +66,8 @@ class _Scan:
 
 class FlowStream:
     """See the module docstring. ``max_gap_s``: a larger time between two scans restarts the odometry (default
-    0.25 s: 2.5 frames at 10 Hz); ``min_fitness``: below it the track is lost; ``check_every``: scans between
+    0.25 s: 2.5 frames at 10 Hz); ``min_fitness``: below it a step is estimated afresh from its two scans (under
+    ``icpflow.odometry.LOST_FITNESS`` after that, the track is lost); ``check_every``: scans between
     checks of the height frame; ``refine``: refine each odometry step (off: KISS-ICP alone)."""
 
     def __init__(
@@ -145,7 +146,7 @@ class FlowStream:
         if step.ego1_from_ego0 is None:
             self._warn(
                 f"{source or 'scan'}: lost track (fitness {step.fitness:.2f} after a fresh estimate, under "
-                f"{self.odometry.min_fitness}); no flow for this pair, a new track starts here"
+                f"{LOST_FITNESS}); no flow for this pair, a new track starts here"
             )
             self._pose = np.eye(4)
             return StreamStep(None, source, previous.source, None, step.fitness, True)

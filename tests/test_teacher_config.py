@@ -166,7 +166,10 @@ def test_defaults_and_presets_are_the_previous_releases():
     for name, old in OLD_PRESETS.items():
         assert _quiet(lambda old=old: ICPFlowConfig.from_dict({**OLD_DEFAULTS, **old}, warn=False)) == (
             ICPFlowConfig.preset(
-                name, histogram={"axis_min_extent": 0.0}, merging={"distance": 0.0}, ground={"method": "both"}
+                name,
+                histogram={"axis_min_extent": 0.0},
+                merging={"distance": 0.0, "static_iou": 0.0},
+                ground={"method": "both"},
             )
         )
         assert ICPFlowConfig.preset(name).ground.method == "local"
@@ -441,7 +444,7 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
         ground={"sensor_height": 1.9, "method": "both"},
         clustering={"voxel_size": 0.1},
         histogram={"axis_min_extent": 0.0},
-        merging={"distance": 0.0},
+        merging={"distance": 0.0, "static_iou": 0.0},
     )
 
 

@@ -191,6 +191,9 @@ class MergingConfig(_Checked):
     gain: float = setting(0.1, "fraction")  # the merged error must be below (1 - gain) x the parts' error
     rounds: int = setting(2, "count")  # merge rounds (a cluster cut in three needs two)
     test_points: int = setting(2000, "count")  # points per cluster in the merge test's registration (<= icp's)
+    # a match at the identity whose IoU ratio is under this is a candidate too (0: never): the halves of a fast long
+    # vehicle cut at a fixed place slide along themselves at the identity with a poor overlap (issue 42)
+    static_iou: float = setting(0.0, "fraction")
 
 
 #: the per-step blocks of ``ICPFlowConfig``: field name -> dataclass
@@ -345,7 +348,7 @@ def _deprecated(message: str) -> None:
 # Issue 30 (every preset): long, fast vehicles. histogram.axis_min_extent 3.0 (the line search along a long
 # cluster's main axis when the vote says it moves) and merging.distance 0.5 (split clusters registered as one):
 # measured with benchmarks/teacher_anatomy.py and eval_teacher.py, see BENCHMARKS.md "Issue 30".
-LONG_VEHICLES = {"histogram": dict(axis_min_extent=3.0), "merging": dict(distance=0.5)}
+LONG_VEHICLES = {"histogram": dict(axis_min_extent=3.0), "merging": dict(distance=0.5, static_iou=0.8)}
 
 PRESETS: dict[str, dict] = {
     # Waymo's vehicle frame has the ground near z = 0: shifted by -sensor_height it sits where Patchwork++ expects.

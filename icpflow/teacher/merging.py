@@ -126,10 +126,11 @@ def merge_split_clusters(
     for _ in range(cfg.rounds):
         moving = {int(s): t for (s, _), t in zip(matches["pairs"], matches["transforms"])}
         partner = {int(s): int(d) for s, d in matches["pairs"]}
-        # unmatched with enough source points to have been paired, or matched with a motion
+        # unmatched with enough source points to have been paired, matched with a motion, or matched at the
+        # identity with a poor overlap (a part of a long vehicle sliding along itself)
         active = src_stats.count >= min_cluster_size
-        for label, t in moving.items():
-            active[label] = not np.array_equal(t, np.eye(4))
+        for label, t, iou in zip(matches["pairs"][:, 0], matches["transforms"], matches["iou_ratios"]):
+            active[label] = not np.array_equal(t, np.eye(4)) or iou < cfg.static_iou
         near = _box_neighbours(src_stats, dst_stats, active, cfg.distance)
         adjacent = adjacent_labels(
             np.concatenate([src, dst]), np.concatenate([src_labels, dst_labels]), cfg.distance, near
