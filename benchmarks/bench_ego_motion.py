@@ -6,7 +6,8 @@
 Sequences: synthetic drives of ``--frames`` frames (the test split; each seed draws the ego's speed, 0-20 m/s, and
 turns) at each beam count, KITTI odometry sequence 01 frames 0-2 (true poses; lifted 1.73 m into the height frame)
 and Argoverse 2's shipped pair (``ego_motion.npz``). Each scan's ground comes from ``icpflow.ground`` with the
-dataset's settings (``--ground estimated``, what a user gets) or from the world's exact masks (``world``,
+dataset's settings (``--ground estimated``: its surface, ``GroundSegmenter.masks``, what a user gets) or from the
+world's exact masks (``world``,
 synthetic only). Methods: ``drive`` (one ``Odometry`` over the whole sequence, as ``label.py`` and a stream run it)
 and ``pair`` (``estimate_ego_motion`` on each consecutive pair alone: no map, no motion model, as the teacher and
 the Predictor run a lone pair). Prints, per sequence and over all synthetic pairs of each beam count, the
@@ -45,7 +46,9 @@ def sequences(args):
             pairs = [data[i] for i in range(len(data))]
             scans = [pairs[0].pc0] + [pair.pc1 for pair in pairs]
             segmenter = GroundSegmenter(Preprocessing())
-            grounds = [pairs[0].ground0] + [p.ground1 for p in pairs] if world else [segmenter(s) for s in scans]
+            grounds = (
+                [pairs[0].ground0] + [p.ground1 for p in pairs] if world else [segmenter.masks(s)[1] for s in scans]
+            )
             yield (
                 f"synthetic {beams} beams, seed {seed}",
                 f"synthetic {beams} beams",
@@ -59,7 +62,7 @@ def sequences(args):
             poses = data["velo_poses_world"]
         segmenter = GroundSegmenter(Preprocessing(HeightFrame(0.0), GroundConfig(sensor_height=1.73)))
         truth = [invert(poses[i + 1]) @ poses[i] for i in range(2)]
-        yield "KITTI seq 01 frames 0-2", "KITTI", scans, [segmenter(s) for s in scans], truth
+        yield "KITTI seq 01 frames 0-2", "KITTI", scans, [segmenter.masks(s)[1] for s in scans], truth
     logs = sorted((DATA / "av2" / "sensor" / "val").glob("*/"))
     if logs:
         import pandas as pd
@@ -68,7 +71,7 @@ def sequences(args):
         scans = [pd.read_feather(s, columns=["x", "y", "z"]).to_numpy().astype(np.float32) for s in sweeps]
         truth = [np.load(logs[0] / "ego_motion.npz")["ego_motion"][0].astype(np.float64)]
         segmenter = GroundSegmenter(ICPFlowConfig.preset("av2"))
-        yield "AV2 sweeps 0-1", "AV2", scans, [segmenter(s) for s in scans], truth
+        yield "AV2 sweeps 0-1", "AV2", scans, [segmenter.masks(s)[1] for s in scans], truth
 
 
 def estimates(method: str, scans, grounds, cfg):

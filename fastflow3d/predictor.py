@@ -283,10 +283,12 @@ class Predictor:
                 stacklevel=2,
             )
             ego_frame, estimated, assumed = np.eye(4), False, True
-        ground0 = self.ground_mask("ground0", lifted[0], ground0)
-        ground1 = self.ground_mask("ground1", lifted[1], ground1)
+        (ground0, surface0), (ground1, surface1) = (
+            self.scan_masks("ground0", lifted[0], ground0),
+            self.scan_masks("ground1", lifted[1], ground1),
+        )
         if estimated:
-            ego_frame = self.estimate_ego_motion(*lifted, *self.odometry_ground(lifted, ground0, ground1))
+            ego_frame = self.estimate_ego_motion(*lifted, surface0, surface1)
         elif not assumed:
             ego_frame = lift_transform(np.asarray(ego1_from_ego0, dtype=np.float64), lift)
         problem = rigid_problem(ego_frame)
@@ -387,16 +389,22 @@ class Predictor:
             )
 
     def ground_mask(self, name: str, points: np.ndarray, given) -> np.ndarray:
-        """(N,) bool mask of the points the network leaves out: none unless the model removes ground; then the
-        given mask, or the teacher's ground segmentation of the (N, 3) scan in the model's height frame."""
-        if not self.remove_ground:
-            return np.zeros(len(points), bool)
-        if given is None:
-            return self.segmenter()(points)
-        mask = np.asarray(given)
-        if mask.dtype != bool or mask.shape != (len(points),):
-            raise PredictorError(f"{name} must be a bool ({len(points)},) mask, got {mask.dtype} {mask.shape}")
-        return mask
+        """(N,) bool mask of the points the network leaves out (:meth:`scan_masks`)."""
+        return self.scan_masks(name, points, given)[0]
+
+    def scan_masks(self, name: str, points: np.ndarray, given) -> tuple[np.ndarray, np.ndarray]:
+        """The (N,) bool masks of the (N, 3) scan in the model's height frame that the network and the odometry leave
+        out: the ``given`` ground mask for both, or the segmentation's with the saved settings
+        (``icpflow.ground.GroundSegmenter.masks``: the ground, objects kept whole, and the ground's surface). The
+        network's is empty for a model that sees ground."""
+        if given is not None:
+            mask = np.asarray(given)
+            if mask.dtype != bool or mask.shape != (len(points),):
+                raise PredictorError(f"{name} must be a bool ({len(points)},) mask, got {mask.dtype} {mask.shape}")
+            surface = mask
+        else:
+            mask, surface = self.segmenter().masks(points)
+        return (mask if self.remove_ground else np.zeros(len(points), bool)), surface
 
     def segmenter(self):
         """The ground segmentation of the model's saved settings (``icpflow.ground.GroundSegmenter``)."""
@@ -431,14 +439,6 @@ class Predictor:
                 PredictorWarning,
                 stacklevel=3,
             )
-
-    def odometry_ground(self, lifted, ground0: np.ndarray, ground1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The ground masks the odometry leaves out of the two scans: those the network leaves out, or (a model that
-        sees ground) the segmentation's with the saved settings."""
-        if self.remove_ground:
-            return ground0, ground1
-        segmenter = self.segmenter()
-        return segmenter(lifted[0]), segmenter(lifted[1])
 
     def estimate_ego_motion(self, pc0: np.ndarray, pc1: np.ndarray, ground0=None, ground1=None) -> np.ndarray:
         """(4, 4) float64 ``ego1_from_ego0`` from the two scans in the height frame, their (N,) bool ground masks

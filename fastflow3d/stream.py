@@ -59,7 +59,7 @@ class _Scan:
     points: np.ndarray  # (N, 3) float32 in the scans' own frame
     lifted: np.ndarray  # (N, 3) float32 in the model's height frame
     ground: np.ndarray  # (N,) bool: left out by the network
-    odometry_ground: np.ndarray  # (N,) bool: left out by the odometry (the ground, whether or not the network sees it)
+    odometry_ground: np.ndarray  # (N,) bool: left out by the odometry (the ground's surface, Predictor.scan_masks)
     timestamp: float | None
     source: str | None
 
@@ -121,8 +121,7 @@ class FlowStream:
                 )
                 self._gap = "a time gap"
         lifted = lift_points(points, self.lift)
-        ground = self.predictor.ground_mask("ground", lifted, None)
-        odometry_ground = ground if self.predictor.remove_ground else self.predictor.segmenter()(lifted)
+        ground, odometry_ground = self.predictor.scan_masks("ground", lifted, None)
         current = _Scan(
             points, lifted, ground, odometry_ground, None if timestamp is None else float(timestamp), source
         )

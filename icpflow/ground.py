@@ -30,6 +30,9 @@ from icpflow.preprocess import Preprocessing
 #: metres: a cell of the ground-height map without ground points takes the height of the nearest cell with some,
 #: at most this far
 FILL_REACH = 4.0
+#: metres: beyond the ground-height map, the odometry's surface mask takes the points up to this far above the frame's
+#: ground plane (the far rings of the ground, which Patchwork++ does not reach, are the sensor's pattern too)
+FAR_SLACK = 0.3
 
 
 class GroundSegmenter:
@@ -88,17 +91,31 @@ class GroundSegmenter:
         ground[np.asarray(patchwork.getGroundIndices(), dtype=np.int64)] = True
         return ground
 
-    def local(self, points: np.ndarray) -> np.ndarray:
-        """(N,) bool mask of the ``local`` method (module docstring)."""
+    def masks(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ground, surface), each (N,) bool, of (N, 3) float32 points: ``ground`` what the teacher and the network
+        leave out (this segmenter's mask); ``surface`` every point of the ground's surface, objects' feet included
+        (the ``local`` method's points at most ``margin`` above the local ground, before the object columns; the
+        ground itself for the other methods), what the odometry leaves out: a ring of ground points at a wall's or
+        a car's foot is drawn by the sensor, and pulls a registration towards the identity (a 64-beam drive along a
+        bare street drifted 30-60 cm with them; BENCHMARKS.md, "One odometry")."""
+        if self.settings.ground.method != "local" or len(points) == 0:
+            ground = self(points)
+            return ground, ground
         settings = self.settings.ground
         seeds = self.patchwork(points)
         height = points[:, 2] - ground_height(
             points, seeds, settings.cell, settings.slope, settings.patchwork_max_range
         )
         known = np.isfinite(height)
-        ground = np.where(known, height <= settings.margin, seeds)
+        surface = np.where(known, height <= settings.margin, seeds)
         height = np.where(known, height, np.inf)  # no ground near: no object column either
-        return ground & ~object_columns(points, ground, height, settings.column_radius, settings.column_gap)
+        ground = surface & ~object_columns(points, surface, height, settings.column_radius, settings.column_gap)
+        # beyond the map (Patchwork++'s range) the surface is also the frame's plane, give or take FAR_SLACK
+        return ground, surface | (~known & (points[:, 2] <= self.settings.frame.ground_z + FAR_SLACK))
+
+    def local(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool mask of the ``local`` method (module docstring)."""
+        return self.masks(points)[0]
 
 
 def ground_height(points: np.ndarray, seeds: np.ndarray, cell: float, slope: float, reach: float) -> np.ndarray:

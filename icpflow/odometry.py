@@ -2,7 +2,8 @@
 Predictor, the stream and ``label.py``'s trajectory of a drive without poses).
 
 A sequence of scans in, one ``ego1_from_ego0`` per step out: :class:`Odometry` takes each scan (N, 3) float32 in one
-height frame (``icpflow.preprocess``) with its (N,) bool ground mask (``icpflow.ground``) and returns the transform
+height frame (``icpflow.preprocess``) with its (N,) bool ground mask (the ground's surface,
+``icpflow.ground.GroundSegmenter.masks``) and returns the transform
 (4, 4) float64 from the previous scan's frame into this one's. A pair is a two-scan sequence
 (:func:`estimate_ego_motion`); ``label.py`` runs one over a whole drive (``icpflow.labelling.trajectory``).
 

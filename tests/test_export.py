@@ -102,10 +102,11 @@ def expected(eager, pairs):
 @pytest.fixture(scope="module")
 def teacher_ego(pairs, export_dir):
     """The teacher's ego-motion estimate (step 1, default settings: the odometry of the two scans without their
-    ground, found with the model's settings) of the smallest pair."""
+    ground's surface, found with the model's settings) of the smallest pair."""
     pair = pairs[1]
     segmenter = GroundSegmenter(Predictor.load(export_dir).preprocessing)
-    return estimate_ego_motion(pair.pc0, pair.pc1, ICPFlowConfig(), segmenter(pair.pc0), segmenter(pair.pc1))
+    surface0, surface1 = segmenter.masks(pair.pc0)[1], segmenter.masks(pair.pc1)[1]
+    return estimate_ego_motion(pair.pc0, pair.pc1, ICPFlowConfig(), surface0, surface1)
 
 
 def test_metadata_describes_the_export(export_dir, checkpoint):

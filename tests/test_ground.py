@@ -114,3 +114,19 @@ def test_semantickitti_ground_agrees_and_cars_stay_whole():
             cars.setdefault(method, []).append(called[labels == 1].mean())
     assert np.mean(agreements["local"]) >= max(0.886, np.mean(agreements["both"])), agreements
     assert np.mean(cars["local"]) < 0.01 < np.mean(cars["both"]), cars
+
+
+def test_the_odometry_leaves_out_the_whole_surface_the_network_sees_objects_whole():
+    """``masks``: the ground (what teacher and network leave out: a foot by a leg goes with the leg) and the ground's
+    surface (what the odometry leaves out: the foot too, and beyond Patchwork++'s range the frame's plane, whose far
+    rings are the sensor's pattern, not the world's)."""
+    pair = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=2, seed=1)[0]
+    segmenter = _with("local")
+    far = np.array([[70.0, 0.0, 0.05], [70.0, 5.0, 1.5]], np.float32)  # beyond the 64 m map: ground, a wall
+    points = np.r_[pair.pc0, far]
+    ground, surface = segmenter.masks(points)
+    np.testing.assert_array_equal(ground, segmenter(points))
+    assert not (ground & ~surface).any() and (surface & ~ground).sum() > 0  # feet of objects: surface, not ground
+    assert surface[-2] and not surface[-1] and not ground[-2]
+    both = _with("both")
+    assert all(np.array_equal(mask, both(points)) for mask in both.masks(points))

@@ -61,19 +61,20 @@ class RawTeacherMethod:
 
         self.teacher, self.horizon = teacher, horizon
         self.odometry = Odometry(teacher.cfg)
-        self._last: tuple[str | None, np.ndarray, np.ndarray] | None = None  # (log, pc1, its ground) of the last pair
+        self._last: tuple | None = None  # (log, pc1, its ground masks) of the last pair
 
     def __call__(self, pair: FramePair, index: int) -> np.ndarray:
         last = self._last
         follows = last is not None and last[0] == pair.log_id and np.array_equal(last[1], pair.pc0)
         self._last = None  # until this pair's odometry step is done
-        ground0 = last[2] if follows else self.teacher.ground(pair.pc0)
-        ground1 = self.teacher.ground(pair.pc1)
+        masks0 = last[2] if follows else self.teacher.ground.masks(pair.pc0)  # (ground, its surface)
+        masks1 = self.teacher.ground.masks(pair.pc1)
         if not follows:
             self.odometry.reset()
-            self.odometry.step(pair.pc0, ground0)
-        step = self.odometry.step(pair.pc1, ground1)
-        self._last = (pair.log_id, pair.pc1, ground1)
+            self.odometry.step(pair.pc0, masks0[1])
+        step = self.odometry.step(pair.pc1, masks1[1])
+        self._last = (pair.log_id, pair.pc1, masks1)
+        ground0, ground1 = masks0[0], masks1[0]
         if step.ego1_from_ego0 is None:
             raise ValueError(f"icpflow-raw: the odometry lost track (fitness {step.fitness:.2f}); no ego motion")
         return self.teacher(

@@ -76,7 +76,7 @@ def drive_trajectory(job, progress: bool = True) -> dict | None:
                     log.warning(f"{names[scan]}: skipped ({error}); the pairs across it get no ego motion")
                     odometry.reset()
                 else:
-                    step = odometry.step(points, segmenter(points))
+                    step = odometry.step(points, segmenter.masks(points)[1])  # the ground's surface left out
                     if step is not None and step.ego1_from_ego0 is None:
                         log.warning(f"{names[scan]}: the odometry lost track (fitness {step.fitness:.2f}): no ego "
                                     f"motion from {names[scan - 1]}, a new track starts here")  # fmt: skip

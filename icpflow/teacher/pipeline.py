@@ -169,8 +169,8 @@ class ICPFlow:
         pc0_ok, pc1_ok = pc0_in[valid0], pc1_in[valid1]
 
         tic = time.perf_counter()
-        g0 = self.ground(pc0_ok) if ground0 is None else ground0[valid0]
-        g1 = self.ground(pc1_ok) if ground1 is None else ground1[valid1]
+        g0, s0 = self.ground.masks(pc0_ok) if ground0 is None else (ground0[valid0], ground0[valid0])
+        g1, s1 = self.ground.masks(pc1_ok) if ground1 is None else (ground1[valid1], ground1[valid1])
         keep0 = ~g0 & (np.abs(pc0_ok[:, :2]) < cfg.crop_xy).all(axis=1)
         keep1 = ~g1 & (np.abs(pc1_ok[:, :2]) < cfg.crop_xy).all(axis=1)
         timings["ground"] = time.perf_counter() - tic
@@ -178,7 +178,7 @@ class ICPFlow:
         tic = time.perf_counter()
         if ego1_from_ego0 is None or cfg.ego_motion.method == "kiss_icp":
             try:
-                ego = estimate_ego_motion(pc0_ok, pc1_ok, cfg, g0, g1)
+                ego = estimate_ego_motion(pc0_ok, pc1_ok, cfg, s0, s1)  # the ground's surface left out
             except (RuntimeError, ValueError, MemoryError) as error:
                 raise ValueError(f"ICPFlow: ego-motion estimation failed ({type(error).__name__}: {error})") from None
             if ego is None:
