@@ -68,7 +68,7 @@ class StepClock:
     def __init__(self, stream: FlowStream):
         self.spent = {"ground (1 scan)": 0.0, "odometry (a step)": 0.0, "network": 0.0}
         predictor = stream.predictor
-        predictor.ground_mask = self.wrap(predictor.ground_mask, "ground (1 scan)")
+        predictor.scan_masks = self.wrap(predictor.scan_masks, "ground (1 scan)")
         stream.odometry.step = self.wrap(stream.odometry.step, "odometry (a step)")
         predictor.network = self.wrap(predictor.network, "network")
 

@@ -167,6 +167,10 @@ def test_label_estimates_a_drive_once_in_order_and_resumes(tmp_path, moving, cap
     identity = str(np.load(path)["identity"])
     motions, done = read_trajectory(path, identity)
     assert done == 8 and np.array_equal(motions, job.dataset._motions, equal_nan=True)
+    with np.load(path) as saved:  # one pose per scan, in its track's first frame; a new track after each break
+        assert saved["track"].tolist() == [0, 0, 0, 0, 0, 1, 1, 2, 3]
+        truth = np.linalg.inv(pairs[1].ego1_from_ego0 @ pairs[0].ego1_from_ego0)  # scan 2 in scan 0's frame
+        assert np.linalg.norm(saved["poses"][2][:3, 3] - truth[:3, 3]) < 0.03
 
     # a rerun reuses it; a run stopped after step 3 goes on from there (its track starting again at scan 3)
     rerun = LabelJob(ScanSequenceDataset(folder, sensor_height=0.0), teacher, job.out_dir, "x")

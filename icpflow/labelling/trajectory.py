@@ -4,11 +4,12 @@ samples are labelled, in order, by one :class:`icpflow.odometry.Odometry` over e
 its own two scans' (a pairwise estimate has no local map and no motion model).
 
 The steps are written beside the shards (``trajectory.npz``: ``ego1_from_ego0`` (T - 1, 4, 4) float64 per
-consecutive scans, NaN where there is none; ``done``, the steps estimated; ``identity``, the scans and settings they
-belong to) every ``SAVE_EVERY`` steps and at the end, atomically: a rerun with the same scans and settings reuses
-them, a stopped run goes on from the last saved step (whose track then starts again from that scan). A lost track
-or an unreadable scan is one warning and a restart; the pairs across it get no ego motion and fail with that reason
-(``failures.jsonl``), never a silent wrong pose.
+consecutive scans, NaN where there is none; ``poses`` (done + 1, 4, 4) one pose per scan, ``track_from_scan``, and
+``track`` its track; ``done``, the steps estimated; ``identity``, the scans and settings they belong to) every
+``SAVE_EVERY`` steps and at the end, atomically: a rerun with the same scans and settings reuses them, a stopped run
+goes on from the last saved step (whose track then starts again from that scan). A lost track or an unreadable scan
+is one warning and a restart; the pairs across it get no ego motion and fail with that reason (``failures.jsonl``),
+never a silent wrong pose.
 """
 
 from __future__ import annotations
@@ -39,9 +40,26 @@ def read_trajectory(path, identity: str) -> tuple[np.ndarray, int] | None:
         return None
 
 
+def track_poses(motions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One pose per scan from the steps ``motions`` (T - 1, 4, 4) (NaN: none): ``poses`` (T, 4, 4) float64, each
+    scan's ``track_from_scan`` (the frame of its track's first scan), and ``track`` (T,) int64, the track of each
+    scan (a step without an estimate starts a new one)."""
+    poses, track = np.tile(np.eye(4), (len(motions) + 1, 1, 1)), np.zeros(len(motions) + 1, np.int64)
+    for step, motion in enumerate(motions):
+        if np.isfinite(motion).all():
+            poses[step + 1], track[step + 1] = poses[step] @ np.linalg.inv(motion), track[step]
+        else:
+            track[step + 1] = track[step] + 1
+    return poses, track
+
+
 def write_trajectory(path, identity: str, motions: np.ndarray, done: int) -> None:
+    """The steps (and, for a reader of the file, :func:`track_poses`) at ``path``, atomically."""
+    poses, track = track_poses(motions[:done])
     with atomic_path(path) as tmp, open(tmp, "wb") as handle:
-        np.savez(handle, identity=np.array(identity), ego1_from_ego0=motions, done=np.array(done))
+        np.savez(
+            handle, identity=np.array(identity), ego1_from_ego0=motions, done=np.array(done), poses=poses, track=track
+        )
 
 
 def drive_trajectory(job, progress: bool = True) -> dict | None:
