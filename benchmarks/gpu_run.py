@@ -6,8 +6,8 @@ and ego-only, and time the network and the teacher's ICP on the GPU (issue 34.4)
     python3 benchmarks/gpu_run.py --smoke --out <dir>    # tiny sizes on the CPU (tests/test_gpu_run.py)
 
 The steps are the project's own command lines, each a subprocess with its log in ``<out>/logs/<step>.log``; a step
-whose output is complete (or that finished, ``<step>.done``) is skipped when the command runs again (an interrupted
-run resumes):
+that finished (exit 0: ``<out>/logs/<step>.done``) is skipped when the command runs again, and an interrupted one runs
+again (labelling and training resume where they stopped; a partial score file is written anew):
 
 1. ``labels``: ``label.py`` on ``--train-sequences`` synthetic sequences of 3 frames (2 pairs each) and the val split,
    with ``--workers`` processes;
@@ -72,8 +72,10 @@ SMOKE_LATENCY_MODEL = [item.removeprefix("model.") for item in SMOKE_MODEL]
 class Step:
     """One command of the run, logged to ``<out>/logs/<name>.log``, skipped where ``done`` exists."""
 
-    def __init__(self, out: Path, name: str, arguments: list[str], done: Path, cpus: int | None = None):
-        self.out, self.name, self.arguments, self.done, self.cpus = out, name, arguments, done, cpus
+    def __init__(self, out: Path, name: str, arguments: list[str], cpus: int | None = None):
+        self.out, self.name, self.arguments, self.cpus = out, name, arguments, cpus
+        #: written once the command exits 0: an output alone (a killed eval.py's partial metrics.json) is no proof
+        self.done = out / "logs" / f"{name}.done"
 
     def run(self, seconds: dict) -> bool:
         """Run it unless done; its wall time goes to ``seconds[name]``; False (said on stderr) when it failed."""
@@ -99,7 +101,7 @@ class Step:
             tail = log.read_text().strip().splitlines()[-3:]
             print(f"gpu_run: {self.name} failed (exit {result.returncode}, {log}): {' | '.join(tail)}", flush=True)
             return False
-        (self.out / "logs" / f"{self.name}.done").touch()
+        self.done.touch()
         print(f"gpu_run: {self.name}: {seconds[self.name]:.0f} s", flush=True)
         return True
 
@@ -151,13 +153,11 @@ def steps(args) -> list[Step]:
             "labels_train",
             ["label.py", f"dataset.reader.num_sequences={args.train_sequences}", "dataset.reader.frames_per_sequence=3"]
             + [f"workers={args.workers}", f"out_dir={labels / 'train'}", *reader[1:]],
-            labels / "train" / "index.json",
         ),
         Step(
             out,
             "labels_val",
             ["label.py", "split=val", *label_common, f"out_dir={labels / 'val'}"],
-            labels / "val" / "index.json",
         ),
     ]
     for name, recipe in train_steps.items():
@@ -166,16 +166,13 @@ def steps(args) -> list[Step]:
             Step(
                 out,
                 f"train_{name}",
-                ["train.py", *recipe, *train_common, f"out_dir={run_dir}"],
-                run_dir / "export" / "metadata.json",
+                ["train.py", *recipe, *train_common, f"out_dir={run_dir}", "ckpt_path=auto"],
             )
         )
     for name, methods in (("paper", "[ego,icpflow,student]"), ("small", "[student]")):
         eval_dir = out / f"eval_{name}"
         arguments = ["eval.py", *test, f"method={methods}", f"checkpoint={out / f'train_{name}' / 'export'}"]
-        result.append(
-            Step(out, f"eval_{name}", [*arguments, f"out_dir={eval_dir}", "bev=0"], eval_dir / "metrics.json")
-        )
+        result.append(Step(out, f"eval_{name}", [*arguments, f"out_dir={eval_dir}", "bev=0"]))
     for name, model in (("paper", "fastflow3d"), ("small", "fastflow3d_small")):
         latency = ["benchmarks/bench_latency.py", "--model", model, "--regimes", "given"]
         if smoke:  # no ONNX rows: the export is the step's costliest part, and on a GPU they need onnxruntime-gpu
@@ -184,14 +181,14 @@ def steps(args) -> list[Step]:
         else:
             latency += ["--device", "cuda", "--runs", "100", "--warmup", "10", "--scans", "kitti,av2"]
             latency += ["--backends", on_gpu]
-        result.append(Step(out, f"latency_{name}", latency, out / "logs" / f"latency_{name}.done"))
+        result.append(Step(out, f"latency_{name}", latency))
     stream = ["benchmarks/bench_stream.py", "latency", "--threads", "2"]
     if smoke:
         stream += ["--regimes", "streamed", "--device", "cpu", "--backends", "eager", "--passes", "1"]
         stream += ["--scans", "kitti"]
     else:
         stream += ["--regimes", "streamed,given", "--device", "cuda", "--backends", on_gpu, "--passes", "34"]
-    result.append(Step(out, "latency_stream", stream, out / "logs" / "latency_stream.done", cpus=2))
+    result.append(Step(out, "latency_stream", stream, cpus=2))
     teacher = ["benchmarks/teacher_backends.py", "--json", str(out / "teacher.json")]
     if smoke:
         teacher += ["--pairs", "1", "--teacher", "icp.max_points=300", "--teacher", "icp.max_iter=3"]
@@ -199,7 +196,7 @@ def steps(args) -> list[Step]:
         teacher += ["--av2", str(args.data / "av2")]
     else:
         teacher += ["--pairs", "8"]
-    result.append(Step(out, "teacher", teacher, out / "teacher.json"))
+    result.append(Step(out, "teacher", teacher))
     return result
 
 

@@ -2,6 +2,7 @@
 (labelling, both recipes' training with their export, scoring beside the teacher and ego-only, the latency tables
 with eager and eager bf16, the stream's, the teacher's two ICP backends) and the report holds each table."""
 
+import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -65,3 +66,18 @@ def test_a_second_run_skips_what_is_done(smoke):
     assert again.returncode == 0, again.stdout[-3000:]
     for step in (*STEPS, "latency_paper", "latency_small", "latency_stream"):
         assert f"gpu_run: {step}: done before" in again.stdout, step
+
+
+def test_a_step_is_done_only_once_its_command_exited_zero(tmp_path):
+    """A killed step (a partial metrics.json on the device, 2026-11-27) runs again on the next call; a finished one
+    is skipped."""
+    spec = importlib.util.spec_from_file_location("gpu_run", REPO / "benchmarks" / "gpu_run.py")
+    gpu_run = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gpu_run)
+    output = tmp_path / "metrics.json"
+    write = f"open({str(output)!r}, 'a').write('x')"
+    seconds = {}
+    assert not gpu_run.Step(tmp_path, "eval", ["-c", f"{write}; raise SystemExit(3)"]).run(seconds)
+    assert output.read_text() == "x" and not (tmp_path / "logs" / "eval.done").exists()
+    assert gpu_run.Step(tmp_path, "eval", ["-c", write]).run(seconds) and output.read_text() == "xx"
+    assert gpu_run.Step(tmp_path, "eval", ["-c", write]).run(seconds) and output.read_text() == "xx"  # skipped

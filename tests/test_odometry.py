@@ -6,24 +6,19 @@ in order, and resumes it."""
 import numpy as np
 import pytest
 
-from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert, pose_error, smallest_axes
 from icpflow.odometry import NORMAL_NEIGHBOURS, Odometry, TargetPlanes, estimate_ego_motion, voxel_cloud
 from icpflow.teacher.config import ICPFlowConfig
 
+from helpers.drives import synthetic_drive
+
 EGO = ICPFlowConfig.preset("waymo").ego_motion
-
-
-def _sequence(seed: int, frames: int, beams: int = 32):
-    data = SyntheticDataset(split="test", num_sequences=1, frames_per_sequence=frames, beams=beams, seed=seed)
-    pairs = [data[i] for i in range(len(data))]
-    return pairs, [pairs[0].pc0] + [pair.pc1 for pair in pairs]
 
 
 @pytest.fixture(scope="module")
 def moving():
     """A sequence of 8 frames whose ego drives (seed 3: about 8 m/s)."""
-    pairs, scans = _sequence(3, 8)
+    pairs, scans = synthetic_drive(3, 8)
     assert np.linalg.norm(pairs[0].ego1_from_ego0[:3, 3]) > 0.3
     return pairs, scans
 
@@ -49,7 +44,7 @@ def test_a_drive_is_exact_on_the_synthetic_world(moving):
 def test_a_pair_is_a_two_scan_sequence_and_is_exact(beams, seed):
     """The pairwise estimate (no map, no motion model: the teacher's and the Predictor's step 1 for a lone pair)
     is the two-scan sequence's, within 5 cm on every pair of a drive, the scans' ground left out."""
-    pairs, _ = _sequence(seed, 5, beams)
+    pairs, _ = synthetic_drive(seed, 5, beams)
     odometry = Odometry(EGO)
     odometry.step(pairs[0].pc0, pairs[0].ground0)
     first = odometry.step(pairs[0].pc1, pairs[0].ground1).ego1_from_ego0
@@ -105,7 +100,7 @@ def test_the_normals_in_closed_form_are_numpys_eigenvectors():
 def test_two_places_spliced_give_no_estimate_then_a_new_exact_track(moving):
     """A jump to another place: no pose for that step (never a wrong one), then the next steps are exact."""
     pairs, scans = moving
-    others, other_scans = _sequence(11, 4)
+    others, other_scans = synthetic_drive(11, 4)
     odometry = Odometry(EGO)
     for scan in scans[:3]:
         odometry.step(scan)
@@ -139,7 +134,7 @@ def test_label_estimates_a_drive_once_in_order_and_resumes(tmp_path, moving, cap
     from icpflow.labelling.trajectory import NAME, drive_trajectory, read_trajectory, write_trajectory
 
     pairs, scans = moving
-    others, other_scans = _sequence(11, 4)
+    others, other_scans = synthetic_drive(11, 4)
     folder = tmp_path / "scans"
     folder.mkdir()
     drive = [*scans[:5], *other_scans]  # 0-4 one place, 5-8 another

@@ -14,26 +14,21 @@ from fastflow3d.stream import FlowStream, StreamWarning
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
 
+from helpers.drives import synthetic_drive
 from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
-
-
-def _sequence(seed: int, frames: int, beams: int = 32):
-    data = SyntheticDataset(split="test", num_sequences=1, frames_per_sequence=frames, beams=beams, seed=seed)
-    pairs = [data[i] for i in range(len(data))]
-    return pairs, [pairs[0].pc0] + [pair.pc1 for pair in pairs]
 
 
 @pytest.fixture(scope="module")
 def moving():
     """A sequence of 8 frames whose ego drives (seed 3: about 8 m/s)."""
-    pairs, scans = _sequence(3, 8)
+    pairs, scans = synthetic_drive(3, 8)
     assert np.linalg.norm(pairs[0].ego1_from_ego0[:3, 3]) > 0.3
     return pairs, scans
 
 
 @pytest.fixture(scope="module")
 def other_place():
-    return _sequence(11, 4)
+    return synthetic_drive(11, 4)
 
 
 @pytest.fixture(scope="module")

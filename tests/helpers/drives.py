@@ -1,0 +1,16 @@
+"""Synthetic drives for the odometry and stream tests: the pairs of one sequence and its scans in order."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.frames import FramePair
+
+
+def synthetic_drive(seed: int, frames: int, beams: int = 32) -> tuple[list[FramePair], list[np.ndarray]]:
+    """One test sequence of ``frames`` scans: its ``frames - 1`` consecutive pairs and the scans (pc0 of the first
+    pair, then every pair's pc1), each (N, 3) float32 in its own ego frame."""
+    data = SyntheticDataset(split="test", num_sequences=1, frames_per_sequence=frames, beams=beams, seed=seed)
+    pairs = [data[i] for i in range(len(data))]
+    return pairs, [pairs[0].pc0] + [pair.pc1 for pair in pairs]
