@@ -2,7 +2,7 @@
 from fastflow3d.eval_method.
 
     python eval.py [dataset=<name>] [split=val]
-        [method=[zero,ego,icpflow,icpflow-raw,student,student+refine,student-stream,shards]]
+        [method=[zero,ego,icpflow,icpflow-raw,student,student+refine,student-stream,student-stream+refine,shards]]
         [checkpoint=...]
         [shards=<label out_dir>] [horizon=k | horizon=[1,2,3,4] | horizon=1..4] [tracker=true | tracker=[false,true]]
         [limit=N] [bev=N] [render=N] [out_dir=...]
@@ -15,7 +15,12 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from fastflow3d.eval_method import refined_student_method, streamed_student_method, student_method
+from fastflow3d.eval_method import (
+    refined_streamed_student_method,
+    refined_student_method,
+    streamed_student_method,
+    student_method,
+)
 from icpflow.console import quiet
 from icpflow.entry import reported, run
 from icpflow.evaluation import run_eval
@@ -32,6 +37,7 @@ def main(cfg: DictConfig) -> None:
             "student": student_method,
             "student+refine": refined_student_method,
             "student-stream": streamed_student_method,  # nothing given: the stream's ego motion and ground
+            "student-stream+refine": refined_streamed_student_method,  # the same, refined (fastflow3d-infer --refine)
         }
         status = run_eval(cfg, extra_methods=methods)
         if status:

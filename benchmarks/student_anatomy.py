@@ -3,6 +3,7 @@ gain, beside the teacher and ego-only on the same pairs (issue 29's anatomy; iss
 
     .venv/bin/python benchmarks/student_anatomy.py --model student=<export dir or .ckpt> [--model NAME=PATH ...]
         [--refine NAME] [--teacher] [--cache teacher_flows.npz] [--set split=test --set dataset.reader.num_sequences=16]
+        [--labels <label.py out_dir>] [--curves <train.py out_dir>]
 
 Every ``--set`` is an ``eval.py`` override: any dataset with ground-truth flow, classes and instance ids works (the
 synthetic world by default, ``eval.py``'s test split of 16 sequences = 64 pairs). Points scored are the paper's
@@ -10,7 +11,8 @@ dynamic foreground of ``eval.py`` (non-ground, inside the dataset's ``eval_crop`
 class > 0). Methods: ``ego`` (ego flow only), ``teacher`` (``--teacher``: the dataset's teacher as ``eval.py`` runs
 it; its flows are kept in ``--cache`` and reused), each ``--model`` (the Predictor on the pair's given ego motion
 and ground, as ``eval.py``'s ``student``), and ``NAME+refine`` for each ``--refine NAME`` (the same model with the
-Predictor's ICP refinement, ``fastflow3d.refine``).
+Predictor's ICP refinement, ``fastflow3d.refine``), and ``labels`` (``--labels``: the pseudo-labels ``label.py``
+stored for these very pairs, e.g. a student's own training pairs with ``--set split=train``; issue 43's fit).
 
 Prints, per method:
 1. per ground-truth class: share of the dynamic points, EPE (m), the median over points of
@@ -19,7 +21,12 @@ Prints, per method:
    motion of the object fitted to the predicted flow (``geometry.kabsch``): what per-object smoothing could gain;
 3. per object (moving instances with >= 5 dynamic points), by true speed and by extent (the object's pc0 points'
    length along their main horizontal axis): objects, share of points, point-weighted EPE and the median over
-   objects of each object's median speed ratio.
+   objects of each object's median speed ratio;
+4. with ``--labels``: the fit, each method against the labels instead of the truth (per class: EPE (m) and the
+   median speed ratio to the labels' own residual motion): how far a student is from reproducing what it was taught,
+   beside how far the labels are from the truth;
+5. with ``--curves``: a training run's curves from its TensorBoard events (the training loss averaged over each
+   validation interval, the validation loss and dynamic-foreground EPE at each validation).
 """
 
 from __future__ import annotations
@@ -93,8 +100,10 @@ def rigid_oracle(points: np.ndarray, flow: np.ndarray) -> np.ndarray:
 class Collector:
     """Per-point and per-object records of every method over the dynamic foreground of the pairs seen."""
 
-    def __init__(self, methods: list[str], crop: float | None):
-        self.methods, self.crop = methods, crop
+    def __init__(self, methods: list[str], crop: float | None, reference: str | None = None):
+        self.methods, self.crop, self.reference = methods, crop, reference
+        self.fit_errors = {name: [] for name in methods}  # against ``reference`` (the labels) instead of the truth
+        self.fit_ratios = {name: [] for name in methods}
         self.points = {key: [] for key in ("classes", "object")}
         self.errors = {name: [] for name in methods}
         self.ratios = {name: [] for name in methods}
@@ -123,11 +132,16 @@ class Collector:
         self.points["object"].append(first + object_of_point)
         gt = truth.gt_flow[dynamic]
         points = np.asarray(pair.pc0, np.float64)[dynamic]
+        taught = None if self.reference is None else np.asarray(flows[self.reference], np.float64)[dynamic]
+        taught_norm = None if taught is None else np.maximum(np.linalg.norm(taught - ego[dynamic], axis=1), 1e-6)
         for name in self.methods:
             flow = np.asarray(flows[name], np.float64)[dynamic]
             self.errors[name].append(np.linalg.norm(flow - gt, axis=1))
             residual = flow - ego[dynamic]
             self.ratios[name].append(np.linalg.norm(residual, axis=1) / true_norm)
+            if taught is not None:
+                self.fit_errors[name].append(np.linalg.norm(flow - taught, axis=1))
+                self.fit_ratios[name].append(np.linalg.norm(residual, axis=1) / taught_norm)
             mean_flow, rigid_flow = np.empty_like(flow), np.empty_like(flow)
             for k in range(len(ids)):
                 members = object_of_point == k
@@ -178,10 +192,58 @@ class Collector:
                 per_object = {n: np.median([np.median(ratios[n][objects == k]) for k in chosen]) for n in self.methods}
                 ratio = " / ".join(f"{per_object[n]:.2f}" for n in self.methods)
                 lines.append(f"| {low:g}-{high:g} | {len(chosen)} | {mask.mean():.0%} | {epe} | {ratio} |")
+        if self.reference is not None:
+            fitted = [n for n in self.methods if n != self.reference]
+            errors = {n: np.concatenate(self.fit_errors[n]) for n in fitted}
+            ratios = {n: np.concatenate(self.fit_ratios[n]) for n in fitted}
+            names = " / ".join(fitted)
+            taught = self.reference
+            lines += ["", f"The fit: against the {taught} instead of the truth, per class: EPE (m) per method;"]
+            lines += [f"median speed ratio to the {taught}' residual motion per method", ""]
+            lines.append(f"| class | EPE to the {taught}: {names} | speed ratio to the {taught}: {names} |")
+            lines.append("|---|---|---|")
+            for cls in [*np.unique(classes), None]:
+                mask = np.ones(len(classes), bool) if cls is None else classes == cls
+                label = "all dynamic" if cls is None else class_names.get(int(cls), str(cls))
+                epe = " / ".join(f"{errors[n][mask].mean():.3f}" for n in fitted)
+                ratio = " / ".join(f"{np.median(ratios[n][mask]):.2f}" for n in fitted)
+                lines.append(f"| {label} | {epe} | {ratio} |")
         timing = [f"{n} {np.median(s) * 1e3:.0f} ms" for n, s in self.seconds.items() if s]
         if timing:
             lines += ["", "Median time per pair (whole call, ego motion and ground given): " + ", ".join(timing)]
         return "\n".join(lines)
+
+
+def curves(run_dir: Path) -> str:
+    """The training run's curves (its ``tensorboard/`` events): per validation, the mean training loss since the
+    previous one, the validation loss and the validation dynamic-foreground EPE."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    files = sorted(run_dir.glob("tensorboard/**/events.out.tfevents.*"))
+    if not files:
+        raise SystemExit(f"--curves {run_dir}: no TensorBoard events under {run_dir / 'tensorboard'}")
+    scalars = {}
+    for file in files:  # a resumed run writes a version per launch; the later steps win
+        events = EventAccumulator(str(file), size_guidance={"scalars": 0})
+        events.Reload()
+        for tag in ("train/loss", "val/loss", "val/dynamic_fg/EPE"):
+            if tag in events.Tags()["scalars"]:
+                scalars.setdefault(tag, {}).update({e.step: e.value for e in events.Scalars(tag)})
+    train = scalars.get("train/loss", {})
+    lines = [f"Curves of {run_dir}", ""]
+    lines.append("| step | training loss (mean since the last validation) | val loss | val dynamic EPE (m) |")
+    lines.append("|---|---|---|---|")
+    previous = -1
+    for step in sorted(scalars.get("val/dynamic_fg/EPE", {})):
+        window = [value for s, value in train.items() if previous < s <= step]
+        mean = f"{np.mean(window):.4f}" if window else "-"
+        val_loss = scalars.get("val/loss", {}).get(step)
+        lines.append(
+            f"| {step} | {mean} | {'-' if val_loss is None else f'{val_loss:.4f}'} | "
+            f"{scalars['val/dynamic_fg/EPE'][step]:.4f} |"
+        )
+        previous = step
+    return "\n".join(lines)
 
 
 def main() -> None:
@@ -191,7 +253,13 @@ def main() -> None:
     parser.add_argument("--teacher", action="store_true", help="score the dataset's teacher too")
     parser.add_argument("--cache", type=Path, help="npz of the teacher's flows (read, extended, written)")
     parser.add_argument("--set", action="append", default=[], help="an eval.py override (repeatable)")
+    parser.add_argument("--labels", type=Path, help="label.py out_dir holding these pairs: the fit to the labels")
+    parser.add_argument("--curves", type=Path, help="train.py out_dir: print its training and validation curves")
     args = parser.parse_args()
+    if args.curves is not None:
+        print(curves(args.curves), end="\n\n")
+        if not args.model and not args.teacher and args.labels is None:
+            return
     from fastflow3d.predictor import Predictor
     from fastflow3d.refine import RefineConfig
 
@@ -204,13 +272,20 @@ def main() -> None:
         if name in args.refine:
             predictors[f"{name}+refine"] = Predictor.load(path, refine=RefineConfig())
     teacher = teacher_flows(dataset, cfg, args.cache) if args.teacher else {}
-    methods = ["ego", *(["teacher"] if args.teacher else []), *predictors]
-    collector = Collector(methods, cfg.crop)
+    labels = None
+    if args.labels is not None:
+        from icpflow.evaluation.methods import ShardMethod
+
+        labels = ShardMethod(args.labels)
+    methods = ["ego", *(["teacher"] if args.teacher else []), *(["labels"] if labels else []), *predictors]
+    collector = Collector(methods, cfg.crop, "labels" if labels else None)
     for index in range(len(dataset)):
         pair = dataset[index]
         flows = {"ego": ego_flow(pair.pc0, pair.ego1_from_ego0)}
         if args.teacher:
             flows["teacher"] = teacher[dataset.sample_id(index)]
+        if labels is not None:
+            flows["labels"] = labels(pair, index)
         for name, predictor in predictors.items():
             tic = time.perf_counter()
             flows[name] = predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1)

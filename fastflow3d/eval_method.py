@@ -2,7 +2,9 @@
 ``extra_methods`` (``eval.py`` adds it as ``student``), ``refined_student_method(cfg)``, the same model with the
 Predictor's ICP refinement (``fastflow3d.refine``; ``eval.py`` method ``student+refine``), and
 ``streamed_student_method(cfg)`` (``student-stream``): the same model fed the dataset's scans as a stream
-(``fastflow3d.stream.FlowStream``), nothing given: the ego motion and ground masks are the stream's own."""
+(``fastflow3d.stream.FlowStream``), nothing given: the ego motion and ground masks are the stream's own, and
+``refined_streamed_student_method(cfg)`` (``student-stream+refine``): that stream with the refinement, as
+``fastflow3d-infer MODEL DIR --refine`` runs it."""
 
 from __future__ import annotations
 
@@ -31,10 +33,10 @@ class StreamedStudentMethod:
     pc0 is the previous pair's pc1, same log) continue the stream; any other pair starts a new one. A pair the
     stream gives no flow (a lost track) gets the pairwise Predictor's, nothing given, with the stream's warning."""
 
-    def __init__(self, path, sensor_height=None):
+    def __init__(self, path, sensor_height=None, refine=None):
         from fastflow3d.stream import FlowStream
 
-        self.predictor = Predictor.load(path, sensor_height=sensor_height)
+        self.predictor = Predictor.load(path, refine=refine, sensor_height=sensor_height)
         self.stream = FlowStream(self.predictor)
         self._last: tuple[str | None, np.ndarray] | None = None  # (log, pc1) of the previous pair
 
@@ -53,6 +55,11 @@ class StreamedStudentMethod:
 def streamed_student_method(cfg) -> StreamedStudentMethod:
     """The student of ``cfg.checkpoint`` in streaming mode (``StreamedStudentMethod``)."""
     return StreamedStudentMethod(_checkpoint(cfg), cfg.get("sensor_height"))
+
+
+def refined_streamed_student_method(cfg) -> StreamedStudentMethod:
+    """``streamed_student_method`` with the default ICP refinement (``fastflow3d.refine.RefineConfig()``)."""
+    return StreamedStudentMethod(_checkpoint(cfg), cfg.get("sensor_height"), refine=True)
 
 
 def _checkpoint(cfg) -> str:

@@ -6,13 +6,17 @@
         [--metadata FILE | --remove-ground yes|no]
     python -m fastflow3d.infer MODEL DIR|'GLOB' [--out OUT_DIR] [--rerun FILE.rrd] [...]
 
-Stream mode (one argument after MODEL: a folder of scans, read in name order, or a quoted glob): the scans are one
-stream (``fastflow3d.stream.FlowStream``: nothing given, the ego motion and ground kept across frames), and each
-consecutive pair's flow is written to ``OUT_DIR/<first scan's name>.npz`` (default ``outputs/infer/<folder>``),
-holding what a pair's ``.npz`` holds; a progress bar shows frames per second. An unreadable scan is skipped with a
-warning naming it (the pair across it is estimated from its two scans); a pair the stream cannot estimate (a lost
-track) gets no file and a warning. ``--rerun`` records the whole stream (points coloured by speed, flow arrows,
-the estimated trajectory) on one timeline.
+Stream mode (one argument after MODEL: a folder of scans or a quoted glob, in natural name order, ``2.bin`` before
+``10.bin``: ``icpflow.datasets.io.list_scans``, as ``dataset=sequence`` reads them; two scans of one name stem are
+refused): the scans are one stream (``fastflow3d.stream.FlowStream``: nothing given, the ego motion and ground kept
+across frames), and each consecutive pair's flow is written to ``OUT_DIR/<first scan's stem>.npz`` (default
+``outputs/infer/<folder>``), holding what a pair's ``.npz`` holds; a progress bar shows frames per second. An
+unreadable scan is skipped with a warning naming it (the pair across it is estimated from its two scans); a pair
+the stream cannot estimate (a lost track) gets no file and a warning; a stream that gives no flow at all is an error.
+``OUT_DIR/stream.json`` (the manifest) says which scans, which model and options, and which outputs: a rerun of the
+same stream into OUT_DIR replaces its own outputs; OUT_DIR holding anything else (another run's flows, files
+without a manifest, or the input scans themselves) is refused before any work. ``--rerun`` records the whole
+stream (points coloured by speed, flow arrows, the estimated trajectory) on one timeline.
 
 MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz``
 (array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
@@ -28,18 +32,19 @@ removal gets the non-ground points of each scan, found with the teacher's ground
 saved with the model; ground points of scan0 move with the ego motion. A bare ``.onnx`` / ``.pt2`` without its
 ``metadata.json`` is refused unless ``--metadata FILE`` (an export's metadata.json) or ``--remove-ground yes|no``
 (the synthetic frame and settings, with or without ground removal) says how it was trained.
-Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow`` is in
-scan1's frame), ``residual`` (ego-compensated), ``in_grid`` (the network predicted the point), ``ground0``
-(left out as ground), ``ego1_from_ego0``, ``ego_estimated``; a ``.npy`` output holds the flow alone. Errors are one
-line on stderr, exit status 2 (130 / 143 when Ctrl-C / SIGTERM stops it: ``icpflow.entry``); a scan none of whose
-points the network sees (outside its grid), a frame converted without being told, or an implausible preprocessing
-(over 85 % ground, under 20 % of scan0 in the grid) gets a one-line warning.
+Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FULL flow (``pc0 + flow`` is in scan1's
+frame), ``residual`` (ego-compensated), ``in_grid`` (the network predicted the point), ``ground0`` (left out as
+ground), ``ego1_from_ego0``, ``ego_estimated``; a ``.npy`` output holds the flow alone; an output (or picture, or
+recording) that is one of the input files is refused. Errors are one line on stderr, exit status 2 (130 / 143 when
+Ctrl-C / SIGTERM stops it: ``icpflow.entry``); a scan none of whose points the network sees (outside its grid), a
+frame converted without being told, or an implausible preprocessing (over 85 % ground, under 20 % of scan0 in the
+grid) gets a one-line warning.
 """
 
 from __future__ import annotations
 
 import argparse
-import glob
+import json
 import sys
 import warnings
 from pathlib import Path
@@ -47,14 +52,16 @@ from pathlib import Path
 import numpy as np
 
 from fastflow3d.artifact import FORMATS, LEGACY_FORMATS
-from icpflow.atomic import atomic_path
+from icpflow.atomic import atomic_path, write_text_atomic
 from icpflow.console import quiet
-from icpflow.datasets.io import SCAN_SUFFIXES, fail, load_npz, read_poses, read_scan
+from icpflow.datasets.io import SCAN_SUFFIXES, fail, list_scans, load_npz, read_poses, read_scan
 from icpflow.entry import exit_status, one_line, stop_on_signals
 from icpflow.frames import FramePair, check_points
 from icpflow.geometry import relative_transform
 
 NPZ_KEYS = ("points", "pc")
+#: a stream's manifest in its output folder (``MANIFEST_VERSION``: its layout)
+MANIFEST, MANIFEST_VERSION = "stream.json", 1
 
 
 def read_raw_scan(path: Path, bin_columns: int | None = None) -> np.ndarray:
@@ -197,6 +204,10 @@ def infer(args) -> tuple[Path, Path | None]:
     out = args.out or Path("outputs/infer") / f"{args.scan0.stem}_flow.npz"
     if out.suffix not in (".npz", ".npy"):
         raise ValueError(f"{out}: output must end in .npz or .npy")
+    inputs = [args.scan0, args.scan1, args.model, args.poses, args.ego, args.metadata]
+    bev = None if args.no_bev else args.bev or out.with_suffix(".png")
+    for output in (out, bev, args.rerun):
+        refuse_input_as_output(output, inputs)
     pc0, pc1 = read_raw_scan(args.scan0, args.bin_columns), read_raw_scan(args.scan1, args.bin_columns)
     ego = None
     if args.poses is not None:
@@ -229,9 +240,7 @@ def infer(args) -> tuple[Path, Path | None]:
         ground0 = prediction.ground0 if predictor.remove_ground else None
         scans = FramePair(pc0=pc0, pc1=pc1, ego1_from_ego0=prediction.ego1_from_ego0, ground0=ground0)
         record_pair(args.rerun, scans, {"fastflow3d": prediction.flow}, prediction.in_grid)
-    bev = None
-    if not args.no_bev:
-        bev = args.bev or out.with_suffix(".png")
+    if bev is not None:
         pair = FramePair(
             pc0=pc0,
             pc1=pc1,
@@ -252,19 +261,82 @@ def infer(args) -> tuple[Path, Path | None]:
     return out, bev
 
 
+def refuse_input_as_output(output: Path | None, inputs) -> None:
+    """ValueError (one line) where ``output`` is one of the ``inputs`` (paths or None; the same file by any name)."""
+    if output is None:
+        return
+    for given in inputs:
+        if given is not None and (output.resolve() == given.resolve()):
+            raise ValueError(f"{output}: is an input of this run; writing there would destroy it (give another --out)")
+
+
 def stream_files(where: Path) -> list[Path]:
-    """The scans of a stream: the scan files of a folder, or the files a glob matches, in name order."""
-    suffixes = {".npz", *SCAN_SUFFIXES}
-    if where.is_dir():
-        files = sorted(path for path in where.iterdir() if path.suffix.lower() in suffixes and path.is_file())
-    elif any(char in str(where) for char in "*?["):
-        files = sorted(Path(name) for name in glob.glob(str(where)) if Path(name).is_file())
-    else:
+    """The scans of a stream (``icpflow.datasets.io.list_scans``: a folder or a glob, natural order, one scan per
+    name stem)."""
+    suffixes = (".npz", *SCAN_SUFFIXES)
+    if not where.is_dir() and not any(char in str(where) for char in "*?["):
         raise ValueError(f"{where}: give two scans (a pair), or a folder or glob of scans (a stream)")
+    files = list_scans(where, suffixes)
     if len(files) < 2:
-        kinds = ", ".join(sorted(suffixes))
-        raise ValueError(f"{where}: a stream needs at least two scans ({kinds}), found {len(files)}")
+        raise ValueError(f"{where}: a stream needs at least two scans ({', '.join(suffixes)}), found {len(files)}")
     return files
+
+
+def stream_manifest(args, files: list[Path]) -> dict:
+    """What identifies a stream's run (``MANIFEST``): its scans, model and the options that change its flows."""
+    options = {name: getattr(args, name) for name in ("backend", "bin_columns", "refine", "sensor_height")}
+    return {
+        "version": MANIFEST_VERSION,
+        "model": str(args.model.resolve()),
+        "scans": [str(path.resolve()) for path in files],
+        "options": {
+            name: value if isinstance(value, (int, float, str, type(None))) else str(value)
+            for name, value in options.items()
+        },
+    }
+
+
+def claim_output_folder(out: Path, manifest: dict, files: list[Path]) -> None:
+    """Make ``out`` this stream's before any work: refused (ValueError, one line) where it holds an input scan, or
+    anything but the outputs of this very stream (the same manifest: a rerun, said on stderr, replaces them); then
+    its manifest, marked incomplete until the run ends."""
+    resolved = out.resolve()
+    for path in files:
+        if path.resolve().parent == resolved:
+            raise ValueError(
+                f"{out}: holds the input scans ({path.name}); the flows would replace them (give another --out)"
+            )
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: --out of a stream is a folder, and this is a file")
+    present = sorted(out.iterdir()) if out.is_dir() else []
+    if present:
+        earlier = read_manifest(out / MANIFEST)
+        if earlier is None or {k: earlier.get(k) for k in manifest} != manifest:
+            what = "another stream's flows" if earlier is not None else f"{len(present)} file(s) of no stream of ours"
+            raise ValueError(f"{out}: holds {what}; give an empty or new --out (outputs are never mixed)")
+        own = set(earlier.get("outputs", [])) | {MANIFEST}
+        foreign = [path.name for path in present if path.name not in own and not path.name.endswith(".npz")]
+        if foreign:
+            raise ValueError(f"{out}: holds {foreign[0]}, not an output of this stream; give an empty or new --out")
+        print(
+            f"infer: {out}: a rerun of the same stream; its {len(present) - 1} earlier output(s) are replaced",
+            file=sys.stderr,
+        )
+        for path in present:
+            if path.name != MANIFEST:
+                path.unlink()
+    write_text_atomic(
+        out / MANIFEST, json.dumps({**manifest, "complete": False, "outputs": []}, indent=1), make_parents=True
+    )
+
+
+def read_manifest(path: Path) -> dict | None:
+    """A stream's manifest, or None where there is none or it is not one of ours."""
+    try:
+        document = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return document if isinstance(document, dict) and document.get("version") == MANIFEST_VERSION else None
 
 
 def infer_stream(args) -> tuple[Path, int, int]:
@@ -278,7 +350,11 @@ def infer_stream(args) -> tuple[Path, int, int]:
     out = args.out or Path("outputs/infer") / (args.scan0.name if args.scan0.is_dir() else "stream")
     if out.suffix in (".npz", ".npy"):
         raise ValueError(f"{out}: --out of a stream is a folder (one .npz per pair)")
+    refuse_input_as_output(args.rerun, [*files, args.model, args.metadata])
     predictor = load_predictor(args)
+    manifest = stream_manifest(args, files)
+    claim_output_folder(out, manifest, files)
+    outputs = []
     stream = FlowStream(predictor)
     recording = None
     if args.rerun is not None:
@@ -299,7 +375,9 @@ def infer_stream(args) -> tuple[Path, int, int]:
             for warning in caught:
                 bar.write(f"infer: warning: {str(warning.message).split(': ', 1)[-1]}", file=sys.stderr)
             if step is not None and step.prediction is not None:
-                write_flow(out / f"{Path(step.previous).stem}.npz", step.prediction)
+                name = f"{Path(step.previous).stem}.npz"
+                write_flow(out / name, step.prediction)
+                outputs.append(name)
                 written += 1
                 if recording is not None:
                     pair = FramePair(
@@ -319,6 +397,12 @@ def infer_stream(args) -> tuple[Path, int, int]:
             bar.update(1)
     if recording is not None:
         recording.close()
+    document = {**manifest, "complete": True, "outputs": outputs}
+    write_text_atomic(out / MANIFEST, json.dumps(document, indent=1))
+    if not written:
+        raise ValueError(
+            f"{args.scan0}: no flow: the stream gave none of its {len(files)} scans a pair (see the warnings)"
+        )
     return out, written, len(files)
 
 

@@ -12,6 +12,11 @@ point's sample; ``valid`` (P,) bool marks the points that count (e.g. inside the
   bucket's mean), and the few moving points get buckets of their own instead of drowning in the static majority.
 
 Every loss is a per-sample value averaged over the samples that have valid points.
+
+``object_loss`` (``loss.object_weight`` > 0 adds it, times that weight): per sample, the mean over the teacher's
+clusters (``cluster`` (P,) int, -1 = none; the shards hold them) of the EPE between the cluster's mean predicted and
+mean target flow. Every object counts alike whatever its point count, and its bias (a whole object moved too little)
+is what it measures; the per-point loss lets the static majority drown a small, slow object's few points.
 """
 
 from __future__ import annotations
@@ -53,6 +58,30 @@ def grouped_mean_sum(
     means = sums[..., 0] / sums[..., 1].clamp(min=1.0)
     has_points = sums[..., 1].sum(dim=1) > 0
     return means.sum(dim=1).sum() / has_points.sum().clamp(min=1)
+
+
+def object_loss(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    cluster: torch.Tensor,
+    batch: torch.Tensor,
+    valid: torch.Tensor,
+    batch_size: int,
+) -> torch.Tensor:
+    """The module docstring's object term: the mean over samples with clustered valid points of the mean over their
+    clusters of ``|mean pred - mean target|``; 0 where no sample has one."""
+    keep = valid & (cluster >= 0)
+    if not bool(keep.any()):
+        return pred.new_zeros(()).float()
+    key = batch[keep] * (int(cluster[keep].max()) + 1) + cluster[keep].long()
+    groups, slot = torch.unique(key, return_inverse=True)
+    values = torch.cat([pred[keep].float(), target[keep].float(), torch.ones_like(pred[keep, :1]).float()], dim=1)
+    sums = scatter_sum(values, slot, len(groups))
+    error = torch.linalg.vector_norm((sums[:, :3] - sums[:, 3:6]) / sums[:, 6:], dim=1)
+    sample = groups // (int(cluster[keep].max()) + 1)
+    per_sample = scatter_sum(torch.stack([error, torch.ones_like(error)], dim=1), sample, batch_size)
+    present = per_sample[:, 1] > 0
+    return (per_sample[present, 0] / per_sample[present, 1]).mean()
 
 
 def flow_loss(

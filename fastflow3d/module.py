@@ -31,7 +31,7 @@ import torch
 
 from fastflow3d.contract import InputContract
 from fastflow3d.data import split_samples
-from fastflow3d.loss import flow_loss
+from fastflow3d.loss import flow_loss, object_loss
 from fastflow3d.model import FastFlow3D
 from icpflow import metrics as metrics_module
 from icpflow.frames import FramePair
@@ -49,8 +49,9 @@ class StudentModule(L.LightningModule):
     ``module`` node (``fastflow3d.training.build_module``), as in lightning-hydra-template.
 
     ``model``: the network (``fastflow3d.checkpoint.build_student`` of ``conf/model``); ``loss``: ``name``,
-    ``weighting``, ``bucket_edges``, ``background_weight`` (``fastflow3d.loss``); ``optimiser``: ``optimiser(params)``
-    and ``scheduler``: ``scheduler(optimiser, total_steps=...)``, Hydra ``_partial_`` targets (``conf/optim``,
+    ``weighting``, ``bucket_edges``, ``background_weight``, ``object_weight`` (``fastflow3d.loss``); ``optimiser``:
+    ``optimiser(params)`` and ``scheduler``: ``scheduler(optimiser, total_steps=...)``, Hydra ``_partial_`` targets
+    (``conf/optim``,
     ``conf/scheduler``); ``contract``: the input contract (``fastflow3d.contract``); ``metrics``: ``crop`` and
     ``bev_every``; ``out_dir``: where BEV images go (``<out_dir>/bev``). ``fastflow3d.training.build_module`` also
     saves the whole resolved training config as ``hparams.cfg`` (export, evaluation and resume need only a
@@ -102,7 +103,8 @@ class StudentModule(L.LightningModule):
     def loss(self, pred: torch.Tensor, valid: torch.Tensor, batch: dict) -> torch.Tensor:
         """The configured loss of residual predictions (P0, 3) on the points the network predicted (``valid``):
         against the pseudo-labels (``distillation``) or the ground truth (``supervised``, background points
-        weighted by ``background_weight``), weighted as ``loss.weighting`` says (``fastflow3d.loss``)."""
+        weighted by ``background_weight``), weighted as ``loss.weighting`` says, plus ``object_weight`` times the
+        object term on the teacher's clusters (``fastflow3d.loss``)."""
         options, size = self.loss_options, batch["batch_size"]
         dt = batch["dt"].float()[batch["batch0"]]  # speeds in float32, also under bf16 autocast
         weighting = {"weighting": options["weighting"], "dt": dt, "bucket_edges": options["bucket_edges"]}
@@ -111,10 +113,16 @@ class StudentModule(L.LightningModule):
                 raise ValueError(f"loss.name=supervised needs ground truth, but samples {batch['sample_id']} have none")
             background = torch.full_like(pred[:, 0], float(options["background_weight"]))
             weight = torch.where(batch["gt_classes"] > 0, torch.ones_like(background), background)
-            return flow_loss(
-                pred, batch["gt"], batch["batch0"], valid & batch["gt_valid"], size, **weighting, point_weight=weight
+            target, valid = batch["gt"], valid & batch["gt_valid"]
+            loss = flow_loss(pred, target, batch["batch0"], valid, size, **weighting, point_weight=weight)
+        else:
+            target = batch["pseudo"]
+            loss = flow_loss(pred, target, batch["batch0"], valid, size, **weighting)
+        if options.get("object_weight", 0.0) > 0:  # older checkpoints' configs have no object_weight
+            loss = loss + options["object_weight"] * object_loss(
+                pred, target, batch["cluster"], batch["batch0"], valid, size
             )
-        return flow_loss(pred, batch["pseudo"], batch["batch0"], valid, size, **weighting)
+        return loss
 
     def training_step(self, batch: dict, batch_index: int) -> torch.Tensor:
         pred, valid = self(batch)

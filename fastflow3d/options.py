@@ -57,6 +57,7 @@ class LossOptions:
     weighting: str = setting("buckets", choices=WEIGHTINGS)
     bucket_edges: list[float] = setting([0.4, 1.0])
     background_weight: float = setting(1.0, "non_negative")
+    object_weight: float = setting(0.0, "non_negative")
 
 
 @dataclass

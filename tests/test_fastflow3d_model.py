@@ -8,7 +8,7 @@ import torch
 import yaml
 from torch.export.passes import move_to_device_pass
 
-from fastflow3d.loss import flow_loss, speed_weight
+from fastflow3d.loss import flow_loss, object_loss, speed_weight
 from fastflow3d.model import FastFlow3D, compensate, local_correlation
 from fastflow3d.scatter import scatter_mean, scatter_sum
 from fastflow3d.voxelize import Grid, voxelize
@@ -226,6 +226,27 @@ def test_flow_loss_hand_cases():
     assert empty.item() == pytest.approx(plain.item())
     with pytest.raises(ValueError, match="loss.weighting must be one of"):
         flow_loss(pred, pseudo, batch, valid, batch_size=2, weighting="chamfer")
+
+
+def test_object_loss_hand_cases():
+    """Each teacher cluster's mean-flow EPE, every cluster alike, a sample's clusters averaged, then the samples; the
+    same cluster id in two samples is two objects; unclustered and invalid points do not count."""
+    pred = torch.tensor([[1.0, 0, 0], [3.0, 0, 0], [0, 0, 0], [5.0, 5, 5], [0, 0, 0], [0, 4.0, 0], [7.0, 7, 7]])
+    target = torch.zeros(7, 3)
+    cluster = torch.tensor([0, 0, 5, 5, -1, 0, 0])
+    batch = torch.tensor([0, 0, 0, 0, 0, 1, 1])
+    valid = torch.tensor([True, True, True, False, True, True, False])
+    # sample 0: cluster 0 mean (2, 0, 0) -> 2; cluster 5 (its valid point) -> 0; mean 1. sample 1: cluster 0 -> 4
+    assert object_loss(pred, target, cluster, batch, valid, 2).item() == pytest.approx((1 + 4) / 2)
+    # a bias is an error, scatter about the right mean is not
+    scatter = torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]])
+    two = torch.tensor([0, 0])
+    assert object_loss(scatter, torch.zeros(2, 3), two, two, torch.ones(2, dtype=bool), 1).item() == 0.0
+    assert object_loss(
+        scatter + 0.5, torch.zeros(2, 3), two, two, torch.ones(2, dtype=bool), 1
+    ).item() == pytest.approx(0.5 * 3**0.5)
+    nothing = object_loss(pred, target, torch.full((7,), -1), batch, valid, 2)
+    assert nothing.item() == 0.0 and nothing.dtype == torch.float32
 
 
 def test_bucket_loss_speeds_use_each_points_dt():

@@ -117,3 +117,33 @@ def test_refinement_of_degenerate_scans():
     same = np.ones((500, 3), np.float32)
     refined, replaced = refine_residual(same, np.full((500, 3), 0.3, np.float32), same, RefineConfig())
     assert replaced.all() and np.abs(refined).max() < 1e-6
+
+
+def test_an_accepted_motion_moves_only_the_points_it_fits():
+    """A post that the occupancy grid joins to a passing bus (0.3 m apart: one component) keeps the student's
+    flow; the bus gets its full motion (issue 44: the refinement must not make static points worse than the network
+    alone). Where the student smears some of the bus's motion onto the post, the points that the bus's motion fits
+    as well (within ``point_slack``) may take it: a few, never the post."""
+    from teacher_scenes import box_surface  # tests/ is on sys.path (pytest's prepend import mode)
+
+    rng = np.random.default_rng(0)
+    # sparse enough to enter ICP whole (max_points): pc1 holds the very points of pc0, moved or not
+    bus = box_surface((10.0, 2.5, 3.0), rng, spacing=0.5) + np.float64([5.0, 3.0, 0.2])
+    parked = box_surface((0.6, 0.6, 1.5), rng, spacing=0.2) + np.float64([7.0, 1.15, 0.0])  # 0.3 m beside the bus
+    motion = np.float64([1.5, 0.0, 0.0])
+    pc0 = np.concatenate([bus, parked]).astype(np.float32)
+    pc1 = np.concatenate([bus + motion, parked]).astype(np.float32)
+    on_bus = np.arange(len(pc0)) < len(bus)
+    assert components(pc0, RefineConfig().cell)[1] == 1
+    truth = np.where(on_bus[:, None], motion, 0.0).astype(np.float32)
+    for smear in (0.0, 0.2):
+        student = np.where(on_bus[:, None], 0.6 * motion, smear * motion).astype(np.float32)
+        refined, replaced = refine_residual(pc0, student, pc1, RefineConfig())
+        assert replaced[on_bus].mean() > 0.9 and epe(refined, truth, on_bus) < 0.05
+        if smear == 0:
+            assert not replaced[~on_bus].any() and np.array_equal(refined[~on_bus], student[~on_bus])
+        else:
+            assert replaced[~on_bus].mean() < 0.1 and epe(refined, truth, ~on_bus) < 1.1 * epe(student, truth, ~on_bus)
+        # without the per-point rule the post was carried along with the bus
+        carried, _ = refine_residual(pc0, student, pc1, RefineConfig(point_slack=np.inf))
+        assert epe(carried, truth, ~on_bus) > 1.0

@@ -3,11 +3,14 @@ the flow of a stream is the Predictor's with the stream's ego motion and masks; 
 synthetic world; every bad stream (a gap, a skipped scan, time going backwards, too few points, a lost track,
 another frame) is one warning and never a silent wrong flow, and the other frames keep theirs."""
 
+import json
 import re
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
+from omegaconf import OmegaConf
 
 from fastflow3d.predictor import Predictor
 from fastflow3d.stream import FlowStream, StreamWarning
@@ -154,7 +157,10 @@ def test_infer_streams_a_folder_and_bridges_a_broken_scan(predictor_path, moving
     assert infer_main([str(predictor_path), str(folder), "--out", str(out), "--rerun", str(recording)]) == 0
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("infer: warning")]
     assert len(err) == 1 and "000002.npy: skipped" in err[0] and "the next pair spans the gap" in err[0], err
-    assert sorted(path.name for path in out.iterdir()) == ["000000.npz", "000001.npz", "000003.npz"]
+    outputs = ["000000.npz", "000001.npz", "000003.npz"]
+    assert sorted(path.name for path in out.iterdir()) == [*outputs, "stream.json"]
+    manifest = json.loads((out / "stream.json").read_text())
+    assert manifest["complete"] and manifest["outputs"] == outputs and len(manifest["scans"]) == 5
     with np.load(out / "000001.npz") as bridged:  # 000001 -> 000003
         truth = pairs[2].ego1_from_ego0 @ pairs[1].ego1_from_ego0
         assert _errors(truth, bridged["ego1_from_ego0"])[0] < 0.03 and bool(bridged["ego_estimated"])
@@ -176,6 +182,75 @@ def test_infer_stream_needs_a_folder_or_glob_of_two_scans(predictor_path, tmp_pa
     assert "--poses / --ego give a pair's ego motion" in capsys.readouterr().err
 
 
+def test_infer_stream_reads_natural_order_and_refuses_two_scans_of_one_stem(predictor_path, moving, tmp_path, capsys):
+    """1, 2, 10 (not 1, 10, 2: every flow between the wrong scans) as dataset=sequence reads them; 1.bin beside
+    1.npy, or one name in two folders of a glob, would write one output for two pairs: refused, nothing written."""
+    from fastflow3d.infer import main as infer_main
+
+    _, scans = moving
+    folder, out = tmp_path / "scans", tmp_path / "out"
+    folder.mkdir()
+    for name, scan in zip(("1", "2", "10"), scans):
+        np.save(folder / f"{name}.npy", scan)
+    assert infer_main([str(predictor_path), str(folder), "--out", str(out)]) == 0
+    manifest = json.loads((out / "stream.json").read_text())
+    assert [Path(name).name for name in manifest["scans"]] == ["1.npy", "2.npy", "10.npy"]
+    assert manifest["outputs"] == ["1.npz", "2.npz"]
+    with np.load(out / "2.npz") as flow:  # scan 2 -> scan 10 is the stream's second step
+        assert flow["flow"].shape == scans[1].shape
+    scans[0].astype(np.float32).tofile(folder / "1.bin")
+    assert infer_main([str(predictor_path), str(folder), "--out", str(tmp_path / "other")]) == 2
+    assert "two scans named '1'" in capsys.readouterr().err and not (tmp_path / "other").exists()
+    (folder / "1.bin").unlink()
+    second = tmp_path / "second"
+    second.mkdir()
+    np.save(second / "2.npy", scans[2])
+    glob = str(tmp_path / "*" / "*.npy")
+    assert infer_main([str(predictor_path), glob, "--out", str(tmp_path / "other")]) == 2
+    assert "two scans named '2'" in capsys.readouterr().err
+
+
+def test_infer_outputs_never_replace_inputs_nor_mix_runs(predictor_path, moving, tmp_path, capsys):
+    """An OUT that holds the input scans (.npz scans would become flows), a pair's output or picture that is an
+    input scan, another run's OUT or a folder of other files: each refused in one line, inputs untouched. A rerun of
+    the same stream replaces its own outputs (said); a stream without a single flow is an error, not '0 flows'."""
+    from fastflow3d.infer import main as infer_main
+
+    _, scans = moving
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for k, scan in enumerate(scans[:3]):
+        np.savez(folder / f"{k}.npz", points=scan)
+    before = {path.name: path.read_bytes() for path in folder.iterdir()}
+    assert infer_main([str(predictor_path), str(folder), "--out", str(folder)]) == 2
+    assert "holds the input scans" in capsys.readouterr().err
+    s0, s1 = folder / "0.npz", folder / "1.npz"
+    for option in (["--out", str(s0)], ["--out", str(tmp_path / "f.npz"), "--bev", str(s1)]):
+        assert infer_main([str(predictor_path), str(s0), str(s1), *option]) == 2
+        assert "is an input of this run" in capsys.readouterr().err
+    assert {path.name: path.read_bytes() for path in folder.iterdir()} == before
+    out = tmp_path / "out"
+    assert infer_main([str(predictor_path), str(folder), "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert infer_main([str(predictor_path), str(folder), "--out", str(out)]) == 0  # the same stream again
+    assert "a rerun of the same stream; its 2 earlier output(s) are replaced" in capsys.readouterr().err
+    assert sorted(path.name for path in out.iterdir()) == ["0.npz", "1.npz", "stream.json"]
+    (folder / "2.npz").unlink()  # another stream (two scans) into the same OUT
+    assert infer_main([str(predictor_path), str(folder), "--out", str(out)]) == 2
+    assert "holds another stream's flows" in capsys.readouterr().err
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "notes.txt").write_text("mine")
+    assert infer_main([str(predictor_path), str(folder), "--out", str(tmp_path / "used")]) == 2
+    assert "holds 1 file(s) of no stream of ours" in capsys.readouterr().err
+    assert (tmp_path / "used" / "notes.txt").read_text() == "mine"
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for name in ("a.npy", "b.npy"):
+        (broken / name).write_bytes(b"not a scan")
+    assert infer_main([str(predictor_path), str(broken), "--out", str(tmp_path / "none")]) == 2
+    assert "no flow: the stream gave none of its 2 scans a pair" in capsys.readouterr().err
+
+
 def test_eval_student_stream_continues_a_sequence_and_restarts_on_the_next(predictor_path):
     """eval.py method student-stream: the pairs of one sequence are one stream (the same flows as a FlowStream fed
     the scans), a pair of another sequence starts a new one."""
@@ -195,3 +270,21 @@ def test_eval_student_stream_continues_a_sequence_and_restarts_on_the_next(predi
         for k in range(start, start + 3):
             np.testing.assert_allclose(flows[k], stream.push(pairs[k].pc1).prediction.flow, atol=1e-6)
     assert pairs[3].log_id != first
+
+
+def test_eval_student_stream_refine_is_the_refined_stream(predictor_path):
+    """eval.py method student-stream+refine: the stream of a refining Predictor (what ``fastflow3d-infer MODEL DIR
+    --refine`` runs), each pair's flow with its refinement mask."""
+    from fastflow3d.eval_method import StreamedStudentMethod, refined_streamed_student_method
+    from fastflow3d.refine import RefineConfig
+
+    pairs, _ = synthetic_drive(3, 4)
+    method = refined_streamed_student_method(OmegaConf.create({"checkpoint": str(predictor_path)}))
+    assert method.predictor.refine == RefineConfig()
+    assert StreamedStudentMethod(predictor_path).predictor.refine is None
+    stream = FlowStream(Predictor.load(predictor_path, refine=True))
+    stream.push(pairs[0].pc0)
+    for index, pair in enumerate(pairs):
+        step = stream.push(pair.pc1)
+        assert step.prediction.refined is not None
+        np.testing.assert_allclose(method(pair, index), step.prediction.flow, atol=1e-6)

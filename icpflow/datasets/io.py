@@ -20,8 +20,39 @@ SCAN_SUFFIXES = (".bin", ".npy", ".ply", ".pcd")
 
 
 def natural_key(path: Path) -> list:
-    """Sort key that orders ``2.bin`` before ``10.bin``."""
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+    """Sort key that orders ``2.bin`` before ``10.bin`` (and, for paths of several folders, folder by folder)."""
+    return [[int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)] for name in path.parts]
+
+
+def list_scans(where: Path, suffixes=SCAN_SUFFIXES, one_format: bool = False) -> list[Path]:
+    """The scan files of a sequence, for every entry point that reads one (``dataset=sequence``, a stream of
+    ``fastflow3d-infer``): the regular files of the folder ``where`` whose suffix is one of ``suffixes``, or the
+    files a glob (``*``, ``?``, ``[``) matches, in natural order (``2.bin`` before ``10.bin``). Two scans of one
+    name stem (``1.bin`` and ``1.npy``, or one name in two folders of a glob) are refused in one line: their outputs
+    and sample ids would collide. ``one_format``: scans of several suffixes are refused too."""
+    import glob
+
+    wanted = {suffix.lower() for suffix in suffixes}
+    if where.is_dir():
+        found = [path for path in where.iterdir() if path.suffix.lower() in wanted and path.is_file()]
+    elif any(char in str(where) for char in "*?["):
+        found = [Path(name) for name in glob.glob(str(where)) if Path(name).is_file()]
+    else:
+        raise fail(where, "not a folder of scans, nor a glob")
+    scans = sorted(found, key=natural_key)
+    formats = sorted({path.suffix.lower() for path in scans})
+    if one_format and len(formats) > 1:
+        raise fail(where, f"need scans of one format, found {', '.join(formats)}")
+    first: dict[str, Path] = {}
+    for path in scans:
+        other = first.setdefault(path.stem, path)
+        if other is not path:
+            raise fail(
+                where,
+                f"two scans named {path.stem!r} ({other} and {path}): rename one (outputs and sample ids are named "
+                "by the stem)",
+            )
+    return scans
 
 
 def fail(path, message: str) -> FramePairError:

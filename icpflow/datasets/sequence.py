@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from icpflow.datasets.base import PairDataset
-from icpflow.datasets.io import SCAN_SUFFIXES, fail, natural_key, read_poses, read_scan
+from icpflow.datasets.io import SCAN_SUFFIXES, fail, list_scans, read_poses, read_scan
 from icpflow.frames import FramePair, FramePairError
 from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points, lift_pose
 
@@ -52,11 +52,11 @@ class ScanSequenceDataset(PairDataset):
         self.bin_columns = bin_columns
         self.frequency_hz = float(frequency_hz)
         self.max_horizon = int(max_horizon)
-        scans = [p for p in self.root.iterdir() if p.suffix.lower() in SCAN_SUFFIXES] if self.root.is_dir() else []
-        formats = sorted({p.suffix.lower() for p in scans})
-        if len(formats) != 1:
-            raise fail(self.root, f"need scans of one format ({', '.join(SCAN_SUFFIXES)}), found {formats or 'none'}")
-        self.scans = sorted(scans, key=natural_key)
+        if not self.root.is_dir():
+            raise fail(self.root, "not a folder of scans")
+        self.scans = list_scans(self.root, one_format=True)
+        if not self.scans:
+            raise fail(self.root, f"need scans of one format ({', '.join(SCAN_SUFFIXES)}), found none")
         if len(self.scans) <= self.max_horizon:
             raise fail(self.root, f"{len(self.scans)} scans make no pair at horizon {self.max_horizon}")
         if poses_file is None and (self.root / "poses.txt").is_file():
