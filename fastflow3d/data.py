@@ -34,7 +34,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
 
-import h5py
 import lightning as L
 import numpy as np
 import torch
@@ -49,6 +48,7 @@ from fastflow3d.model import compensate
 from fastflow3d.voxelize import Grid
 from icpflow.entry import one_line
 from icpflow.geometry import full_to_residual
+from icpflow.shards.access import open_shard
 from icpflow.shards.reader import ShardDataset
 
 GT_KEYS = ("gt", "gt_valid", "gt_classes")
@@ -202,7 +202,7 @@ def labeller_contract(shard_dir, remove_ground: bool, grid: Grid) -> InputContra
     would say the height frame the student learns in."""
     shards = StudentDataset(shard_dir).shards
     first = shards.root / shards.entries[0][0]
-    with h5py.File(first, "r") as handle:
+    with open_shard(first) as handle:
         text = handle.attrs.get("config")
     try:
         content = yaml.safe_load(text) if isinstance(text, str) else None

@@ -42,6 +42,12 @@ class FramePairError(ValueError):
 
 #: an array with more columns than this, and more columns than rows, is a transposed scan ((3, N) or (4, N))
 MAX_POINT_COLUMNS = 8
+#: the most points a scan (or a shard's cloud) may hold, checked by every reader against what a file claims before
+#: anything is allocated: about 25 times the densest scans of the field (64-beam sweeps of 1-2e5 points); a small
+#: file can claim far more (a 233 KB .npz of zeros claims 2e7 points, 4.8 GB)
+MAX_POINTS = 5_000_000
+#: the most values of one array a reader allocates (a scan of ``MAX_POINTS`` rows of 16 values)
+MAX_ARRAY_VALUES = 16 * MAX_POINTS
 
 
 def check_points(
@@ -72,6 +78,8 @@ def check_points(
     if array.ndim != 2 or array.shape[1] < 3 or not numeric:
         raise FramePairError(f"{source}: {name} must be a numeric (N, 3) array, got {array.dtype} {array.shape}")
     rows = len(array)
+    if rows > MAX_POINTS:
+        raise FramePairError(f"{source}: {name} holds {rows} points, over the cap of {MAX_POINTS} (icpflow.frames)")
     if schema and array.dtype != np.float32:
         raise FramePairError(f"{source}: {name} must be float32, got {array.dtype}")
     if not allow_empty and rows == 0:

@@ -518,3 +518,64 @@ def test_a_broken_checkpoint_to_resume_from_loses_nothing(labels, tmp_path, form
         fit(train_cfg(tmp_path, labels, labels, "trainer.max_steps=2", f"ckpt_path={broken}"))
     _one_line_naming(str(caught.value), broken)
     assert {path: path.read_bytes() for path in checkpoints.iterdir()} == before
+
+
+def _bomb(folder: Path, suffix: str) -> Path:
+    """A small scan file that claims 6e6 points (over icpflow.frames.MAX_POINTS): a zip of zeros, a bare header, a
+    PLY whose vertices hold a list (sizes vary: it could claim anything), a PCD header."""
+    import zipfile
+
+    path = folder / f"bomb{suffix}"
+    header = np.lib.format.header_data_from_array_1_0(np.zeros((1, 3), np.float32))
+    header["shape"] = (6_000_000, 3)
+    if suffix == ".npz":
+        with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive, archive.open("points.npy", "w") as member:
+            np.lib.format.write_array_header_1_0(member, header)
+            zeros = bytes(12_000_000)
+            for _ in range(6):
+                member.write(zeros)
+    elif suffix == ".npy":
+        with open(path, "wb") as handle:
+            np.lib.format.write_array_header_1_0(handle, header)
+            handle.write(bytes(1000))
+    elif suffix == ".ply":
+        path.write_bytes(
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty float x\nproperty float y\n"
+            b"property float z\nproperty list uchar int ids\nend_header\n" + bytes(100)
+        )
+    else:  # .pcd
+        path.write_text(
+            "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 6000000\nHEIGHT 1\n"
+            "POINTS 6000000\nDATA binary\n"
+        )
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".npz", ".npy", ".ply", ".pcd"])
+def test_a_scan_that_claims_more_than_it_holds_is_refused_before_allocating(export_dir, pair, tmp_path, capsys, suffix):
+    """Issue 45's resource bombs: each refused in one line naming the file, by the inference CLI and by a scan
+    folder's reader (label.py dataset=sequence), the process's peak memory grown by less than 200 MB."""
+    import resource
+
+    from icpflow.datasets.sequence import ScanSequenceDataset
+    from icpflow.frames import FramePairError
+
+    bomb = _bomb(tmp_path, suffix)
+    good = _scan_file(tmp_path, ".npy", pair.pc1)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    out = tmp_path / "flow.npz"
+    status = infer_main([str(export_dir), str(bomb), str(good), "--out", str(out), "--no-bev"])
+    err = capsys.readouterr().err
+    assert status == 2 and not out.exists(), err
+    lines = [line for line in err.strip().splitlines() if line.startswith("infer:")]
+    assert len(lines) == 1 and bomb.name in lines[0], err
+    assert "over the cap" in lines[0] or "not a point cloud of fixed-size rows" in lines[0], err
+    if suffix != ".npz":  # a scan folder holds .bin, .npy, .ply or .pcd
+        folder = tmp_path / "folder"
+        folder.mkdir()
+        bomb.rename(folder / f"000001{suffix}")
+        _scan_file(folder, suffix, pair.pc0).rename(folder / f"000000{suffix}")
+        with pytest.raises(FramePairError, match=r"000001.* (over the cap|more than|list)") as error:
+            ScanSequenceDataset(folder, sensor_height=0.0).pair(0)
+        assert "\n" not in str(error.value)
+    assert (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak) * 1024 < 200e6

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from icpflow.entry import one_line
-from icpflow.frames import FramePairError, check_points
+from icpflow.frames import MAX_ARRAY_VALUES, MAX_POINTS, FramePairError, check_points
 from icpflow.geometry import rigid_problem
 
 SCAN_SUFFIXES = (".bin", ".npy", ".ply", ".pcd")
@@ -76,15 +76,49 @@ def load_npz(path: Path, required: tuple[str, ...], optional: tuple[str, ...] | 
     try:
         with np.load(path, allow_pickle=False) as data:
             wanted = data.files if optional is None else [k for k in data.files if k in (*required, *optional)]
+            for key in wanted:  # what each member claims, before it is inflated (a zip of zeros is tiny)
+                shape, itemsize = _npz_member_shape(data.zip, key)
+                check_claim(path, key, shape, data.zip.getinfo(f"{key}.npy").file_size, itemsize)
             arrays = {key: data[key] for key in wanted}
     except FileNotFoundError:
         raise fail(path, "file not found") from None
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as error:
-        raise fail(path, f"cannot read .npz (truncated or damaged?): {error}") from None
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, MemoryError, OverflowError) as error:
+        if isinstance(error, FramePairError):
+            raise
+        raise fail(path, f"cannot read .npz (truncated or damaged?): {type(error).__name__}: {error}") from None
     missing = [key for key in required if key not in arrays]
     if missing:
         raise fail(path, f"missing key(s) {', '.join(missing)}; has {', '.join(sorted(arrays)) or 'none'}")
     return arrays
+
+
+def check_claim(path: Path, name: str, shape: tuple, available: int | None = None, itemsize: int = 1) -> None:
+    """Refuse (one line naming ``path`` and ``name``) an array whose ``shape`` claims more than ``MAX_POINTS`` rows
+    or ``MAX_ARRAY_VALUES`` values, or, where ``available`` bytes are known, more bytes (``itemsize`` per value)
+    than that: checked by every reader before it allocates."""
+    values = int(np.prod(shape, dtype=object)) if len(shape) else 1
+    if len(shape) and shape[0] > MAX_POINTS:  # rows are points (scans, per-point arrays)
+        raise fail(path, f"{name} claims {shape[0]} rows (points), over the cap of {MAX_POINTS} (icpflow.frames)")
+    if values > MAX_ARRAY_VALUES:
+        cap = f"over the cap of {MAX_ARRAY_VALUES} values (icpflow.frames.MAX_POINTS)"
+        raise fail(path, f"{name} claims shape {tuple(shape)}, {cap}")
+    if available is not None and values * itemsize > available:
+        raise fail(path, f"{name} claims shape {tuple(shape)}, more than the file's {available} bytes (truncated?)")
+
+
+def _npy_header(handle) -> tuple[tuple, np.dtype]:
+    """(shape, dtype) of the ``.npy`` header at ``handle``'s position (left just after it)."""
+    version = np.lib.format.read_magic(handle)
+    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+    shape, _, dtype = read(handle)
+    return tuple(shape), dtype
+
+
+def _npz_member_shape(archive: zipfile.ZipFile, key: str) -> tuple[tuple, int]:
+    """(shape, bytes per value) an ``.npz`` member's ``.npy`` header declares (nothing inflated but the header)."""
+    with archive.open(f"{key}.npy") as member:
+        shape, dtype = _npy_header(member)
+    return shape, dtype.itemsize
 
 
 def load_npy(path: Path) -> np.ndarray:
@@ -98,8 +132,16 @@ def load_npy(path: Path) -> np.ndarray:
     if start != b"\x93NUMPY":
         raise fail(path, "not a .npy file (no NumPy header)" if start else "empty file")
     try:
+        with open(path, "rb") as handle:
+            shape, dtype = _npy_header(handle)
+            header = handle.tell()
+        if dtype.hasobject:
+            raise ValueError("Object arrays cannot be loaded when allow_pickle=False")
+        check_claim(path, "the array", shape, path.stat().st_size - header, dtype.itemsize)
         return np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as error:
+        if isinstance(error, FramePairError):
+            raise
         raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
 
 
@@ -138,6 +180,7 @@ def read_bin(path: Path, columns: int | None = None) -> np.ndarray:
     width = columns or BIN_COLUMNS
     if size % (4 * width):
         raise fail(path, f"size {size} bytes is not a whole number of {width}-float32 rows (truncated?){ask}")
+    check_claim(path, "the rows", (size // (4 * width), width))
     values = np.fromfile(path, dtype=np.float32).reshape(-1, width)
     if columns is None and len(values):
         with np.errstate(invalid="ignore"):
@@ -154,7 +197,16 @@ def read_bin(path: Path, columns: int | None = None) -> np.ndarray:
 
 
 def read_scan(path: Path, bin_columns: int | None = None) -> np.ndarray:
-    """One scan from ``.bin`` (float32 rows, :func:`read_bin`), ``.npy`` (N, >= 3), ``.ply`` or ``.pcd`` (open3d)."""
+    """One scan from ``.bin`` (float32 rows, :func:`read_bin`), ``.npy`` (N, >= 3), ``.ply`` or ``.pcd`` (open3d);
+    what a file claims is bounded (:func:`check_claim`), and a reader that still runs out of memory or range is one
+    line naming the file."""
+    try:
+        return _read_scan(path, bin_columns)
+    except (MemoryError, OverflowError) as error:
+        raise fail(path, f"too large to read ({type(error).__name__}: {error})") from None
+
+
+def _read_scan(path: Path, bin_columns: int | None) -> np.ndarray:
     suffix = path.suffix.lower()
     if suffix == ".bin":
         return read_bin(path, bin_columns)
@@ -163,13 +215,15 @@ def read_scan(path: Path, bin_columns: int | None = None) -> np.ndarray:
     if suffix in (".ply", ".pcd"):
         if not path.is_file():
             raise fail(path, "file not found")
-        (check_ply_complete if suffix == ".ply" else check_pcd_complete)(path)
+        declared = (check_ply_complete if suffix == ".ply" else check_pcd_complete)(path)
         import open3d as o3d  # imported here: only these two formats need it
 
         cloud = o3d.io.read_point_cloud(str(path), format="auto")
         points = np.asarray(cloud.points)
         if len(points) == 0:
             raise fail(path, "no points read (empty, truncated or not a point cloud)")
+        if declared is not None and len(points) != declared:  # open3d pads or cuts a file it failed to read
+            raise fail(path, f"open3d read {len(points)} points of the {declared} its header declares (damaged?)")
         return check_points(points, path, "scan", allow_empty=False)
     raise fail(path, f"unsupported scan format {suffix!r}; use one of {', '.join(SCAN_SUFFIXES)}")
 
@@ -180,8 +234,10 @@ PLY_SIZES = {
 }  # fmt: skip
 
 
-def check_ply_complete(path: Path) -> None:
-    """Raise if a PLY file holds fewer vertex bytes or lines than its header declares.
+def check_ply_complete(path: Path) -> int:
+    """The vertex count a PLY file's header declares; raise if the file holds fewer vertex bytes or lines than that,
+    if it claims more than ``MAX_POINTS``, or if its vertices hold list or unknown properties (their sizes vary: a
+    280-byte file could claim gigabytes).
 
     open3d reads a truncated PLY without an error (it pads the missing vertices), so the header is checked first.
     """
@@ -196,6 +252,7 @@ def check_ply_complete(path: Path) -> None:
     if not elements or elements[0][:2] != ["element", "vertex"] or not elements[0][2:3] or not elements[0][2].isdigit():
         raise fail(path, "PLY header has no leading 'element vertex N'")
     count = int(elements[0][2])
+    check_claim(path, "the PLY header", (count, 3))
     properties = []
     for entry in elements[1:]:
         if entry[0] == "element":
@@ -205,15 +262,18 @@ def check_ply_complete(path: Path) -> None:
         available = len([line for line in body.splitlines() if line.strip()])
         needed = count
     elif any(entry[1] == "list" or entry[1] not in PLY_SIZES for entry in properties):
-        return  # list or unknown vertex properties: sizes vary, leave it to open3d
+        kinds = sorted({entry[1] for entry in properties if entry[1] == "list" or entry[1] not in PLY_SIZES})
+        raise fail(path, f"its vertices have {', '.join(kinds)} properties: not a point cloud of fixed-size rows")
     else:
         available, needed = len(body), count * sum(PLY_SIZES[entry[1]] for entry in properties)
     if available < needed:
         raise fail(path, f"truncated: header declares {count} vertices, the file holds less")
+    return count
 
 
-def check_pcd_complete(path: Path) -> None:
-    """Raise if a PCD file holds fewer points than its header declares (``POINTS``, else ``WIDTH x HEIGHT``).
+def check_pcd_complete(path: Path) -> int | None:
+    """The point count a PCD file's header declares (None for ``binary_compressed``); raise if the file holds fewer
+    points than that (``POINTS``, else ``WIDTH x HEIGHT``) or claims more than ``MAX_POINTS``.
 
     open3d reads a truncated PCD without an error (the points present), as it does a PLY (:func:`check_ply_complete`).
     ``DATA binary_compressed`` is left to open3d (its sizes are in the compressed block)."""
@@ -235,14 +295,16 @@ def check_pcd_complete(path: Path) -> None:
         counts = [int(v) for v in fields.get("COUNT", ["1"] * len(sizes))]
     except (KeyError, IndexError, ValueError):
         raise fail(path, "PCD header lacks POINTS (or WIDTH and HEIGHT) and SIZE") from None
+    check_claim(path, "the PCD header", (count, 3))
     if kind == "ascii":
         available, needed = len([line for line in body.splitlines() if line.strip()]), count
     elif kind == "binary":
         available, needed = len(body), count * sum(size * n for size, n in zip(sizes, counts))
     else:
-        return
+        return None
     if available < needed:
         raise fail(path, f"truncated: header declares {count} points, the file holds less")
+    return count
 
 
 def read_pose_lines(path: Path) -> np.ndarray:

@@ -9,6 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from icpflow.shards.access import ShardError, open_shard, shard_array, shard_group
 from icpflow.shards.schema import OPTIONAL, REQUIRED, group_name
 from icpflow.shards.verify import verify_shard
 
@@ -19,7 +20,8 @@ class ShardDataset:
     ``ds[i]`` is a dict of numpy arrays (``pc0``, ``pc1``, ``ground0``, ``ground1``, ``ego1_from_ego0``, ``flow``,
     ``confidence``, ``cluster`` and any ``gt_*`` present) plus ``sample_id``, ``log_id``, ``dt``. Files are opened
     lazily and cached per process (the cache is dropped on pickling and after a fork), so it is safe in a torch
-    DataLoader with workers.
+    DataLoader with workers; each file and array through ``icpflow.shards.access`` (no read outside the label
+    folder, sizes bounded before allocation: :class:`~icpflow.shards.access.ShardError` otherwise).
     """
 
     def __init__(self, out_dir):
@@ -54,15 +56,19 @@ class ShardDataset:
         if self._pid != os.getpid():
             self._files, self._pid = {}, os.getpid()
         if name not in self._files:
-            self._files[name] = h5py.File(self.root / name, "r")
+            self._files[name] = open_shard(self.root / name)
         return self._files[name]
 
     def __getitem__(self, index: int) -> dict:
         if not 0 <= index < len(self):
             raise IndexError(f"{self.root}: index {index} outside 0..{len(self) - 1}")
         name, position = self.entries[index]
-        group = self._file(name)[group_name(position)]
-        sample = {key: np.asarray(group[key][()]) for key in (*REQUIRED, *OPTIONAL) if key in group}
+        path = self.root / name
+        group = shard_group(path, self._file(name), group_name(position))
+        if group is None:
+            raise ShardError(f"{path}: group {group_name(position)} missing")
+        arrays = {key: shard_array(path, group, key) for key in (*REQUIRED, *OPTIONAL)}
+        sample = {key: np.asarray(data[()]) for key, data in arrays.items() if data is not None}
         sample.update(
             sample_id=str(group.attrs["sample_id"]), log_id=str(group.attrs["log_id"]), dt=float(group.attrs["dt"])
         )
@@ -82,6 +88,9 @@ class ShardDataset:
 
 def read_shard_samples(path) -> list[dict]:
     """Every sample of one shard file as ``write_shard`` takes them (arrays by name plus an ``attrs`` dict)."""
-    with h5py.File(path, "r") as f:
-        groups = [f[group_name(position)] for position in range(int(f.attrs["num_samples"]))]
-        return [{**{key: group[key][()] for key in group}, "attrs": dict(group.attrs)} for group in groups]
+    with open_shard(path) as f:
+        groups = [shard_group(path, f, group_name(position)) for position in range(int(f.attrs["num_samples"]))]
+        return [
+            {**{key: shard_array(path, group, key)[()] for key in group}, "attrs": dict(group.attrs)}
+            for group in groups
+        ]

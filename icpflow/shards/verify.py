@@ -2,16 +2,13 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
-import h5py
 import numpy as np
 
+from icpflow.shards.access import ShardError, open_shard, shard_array, shard_group
 from icpflow.shards.schema import CLOUD, FILE_ATTRS, OPTIONAL, REQUIRED, SAMPLE_ATTRS, SCHEMA_VERSION, group_name
-
-
-class ShardError(ValueError):
-    """A shard is missing, truncated, corrupt or made by another config. The message is one line."""
 
 
 def _check_array(path, name, key, data, spec, counts):
@@ -37,10 +34,10 @@ def verify_shard(path: Path, config_hash: str | None = None, num_samples: int | 
     Returns the number of samples.
     """
     path = Path(path)
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise ShardError(f"{path}: missing")
     try:
-        with h5py.File(path, "r") as f:
+        with open_shard(path) as f:
             missing = [a for a in FILE_ATTRS if a not in f.attrs]
             if missing:
                 raise ShardError(f"{path}: file attributes missing: {', '.join(missing)}")
@@ -53,19 +50,20 @@ def verify_shard(path: Path, config_hash: str | None = None, num_samples: int | 
                 raise ShardError(f"{path}: holds {count} samples, expected {num_samples}")
             for position in range(count):
                 name = group_name(position)
-                if name not in f:
+                group = shard_group(path, f, name)
+                if group is None:
                     raise ShardError(f"{path}: group {name} missing")
-                group = f[name]
+                arrays = {key: shard_array(path, group, key) for key in (*REQUIRED, *OPTIONAL)}
                 for key in REQUIRED:
-                    if key not in group:
+                    if arrays[key] is None:
                         raise ShardError(f"{path}: {name}/{key} missing")
                 lost = [a for a in SAMPLE_ATTRS if a not in group.attrs]
                 if lost:
                     raise ShardError(f"{path}: {name} attributes missing: {', '.join(lost)}")
-                counts = {"pc0": group["pc0"].shape[0], "pc1": group["pc1"].shape[0]}
+                counts = {"pc0": arrays["pc0"].shape[0], "pc1": arrays["pc1"].shape[0]}
                 for key, spec in {**REQUIRED, **OPTIONAL}.items():
-                    if key in group:
-                        _check_array(path, name, key, group[key], spec, counts)
+                    if arrays[key] is not None:
+                        _check_array(path, name, key, arrays[key], spec, counts)
             return count
     except ShardError:
         raise
