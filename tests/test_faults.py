@@ -379,3 +379,23 @@ def test_the_summary_says_how_many_failures_it_does_not_list(tmp_path, capsys):
     assert len(err) == 11 and err[9].startswith("  failed synthetic-train-0-32b/000009+1 (/data/000009.bin)")
     assert err[10] == f"  ... and 4 more (all in {tmp_path / 'failures.jsonl'})"
     assert len((tmp_path / "failures.jsonl").read_text().splitlines()) == 14
+
+
+def test_a_bin_scan_in_another_dtype_or_unit_is_refused_whatever_the_column_count(scan, model, tmp_path, capsys):
+    """Issue 45.8: float64 rows read as the float32 rows the column count says gave points of 1e19 m (the range
+    check was skipped with --bin-columns); a scan in millimetres or centimetres is told so, not asked for a column
+    count. Each is one line naming the file, exit 2, for every column count."""
+    good = tmp_path / "good.npy"
+    np.save(good, scan)
+    doubles = tmp_path / "doubles.bin"
+    np.column_stack([scan, np.ones(len(scan))]).astype(np.float64).tofile(doubles)
+    for columns in ([], ["--bin-columns", "4"], ["--bin-columns", "8"]):
+        status, err = _infer([model, doubles, good, "--out", tmp_path / "flow.npz", *columns], capsys)
+        assert status == 2 and len(err) == 1 and "values are implausible for float32 rows" in err[0], err
+    for unit, factor in (("millimetres", 1000), ("centimetres", 100)):
+        path = tmp_path / f"{unit}.bin"
+        np.column_stack([scan * factor, np.ones(len(scan))]).astype(np.float32).tofile(path)
+        for columns in ([], ["--bin-columns", "4"]):
+            status, err = _infer([model, path, good, "--out", tmp_path / "flow.npz", *columns], capsys)
+            assert status == 2 and len(err) == 1 and f"the coordinates look like {unit}" in err[0], err
+    assert not (tmp_path / "flow.npz").exists()

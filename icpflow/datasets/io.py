@@ -161,16 +161,20 @@ def read_feather(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
 
 #: KITTI's ``.bin`` layout: float32 rows of x, y, z, reflectance
 BIN_COLUMNS = 4
-#: coordinates beyond this many metres in a ``.bin`` read with the default layout mean another layout
+#: coordinates beyond this many metres in a ``.bin`` mean another layout, dtype or unit
 BIN_MAX_RANGE = 10_000.0
+#: a scan's median range (m) beyond which its coordinates are not metres (a LiDAR's median return is 5-40 m)
+BIN_PLAUSIBLE_MEDIAN = 500.0
 
 
 def read_bin(path: Path, columns: int | None = None) -> np.ndarray:
     """Raw ``.bin``: float32 rows of ``columns`` values, x, y, z first -> (N, 3) float32.
 
-    ``columns`` None: the KITTI layout (x, y, z, reflectance), checked for plausibility (a file of another layout
-    read as 4 columns gives non-finite or huge coordinates or negative reflectance); an implausible file is an
-    error asking for the column count (``bin_columns`` / ``--bin-columns``), which is then taken as given.
+    ``columns`` None: the KITTI layout (x, y, z, reflectance). Whatever the layout, the values are checked for
+    plausibility: non-finite or huge coordinates (beyond ``BIN_MAX_RANGE`` m: float64 values or another layout read
+    as float32 rows) and, in the default layout, negative reflectance are an error; without ``columns`` it asks for
+    the column count (``bin_columns`` / ``--bin-columns``). Coordinates that are metres a thousand (or a hundred)
+    times over (a median range of kilometres) are said to look like millimetres (or centimetres): convert them.
     """
     try:
         size = path.stat().st_size
@@ -182,16 +186,29 @@ def read_bin(path: Path, columns: int | None = None) -> np.ndarray:
         raise fail(path, f"size {size} bytes is not a whole number of {width}-float32 rows (truncated?){ask}")
     check_claim(path, "the rows", (size // (4 * width), width))
     values = np.fromfile(path, dtype=np.float32).reshape(-1, width)
-    if columns is None and len(values):
-        with np.errstate(invalid="ignore"):
-            implausible = (
-                not np.isfinite(values).all() or np.abs(values[:, :3]).max() > BIN_MAX_RANGE or values[:, 3].min() < 0
+    if len(values):
+        with np.errstate(invalid="ignore", over="ignore"):
+            finite = bool(np.isfinite(values[:, :3]).all())
+            ranges = np.linalg.norm(values[:, :3].astype(np.float64), axis=1) if finite else None
+            median = float(np.median(ranges)) if finite else np.inf
+        if finite and median > BIN_PLAUSIBLE_MEDIAN:  # the unit whose median range is nearest a LiDAR's (10 m)
+            unit, factor = min(
+                (("millimetres", 1000.0), ("centimetres", 100.0)), key=lambda u: abs(np.log10(median / u[1] / 10))
             )
-        if implausible:
+            if median / factor <= BIN_PLAUSIBLE_MEDIAN and ranges.max() / factor <= BIN_MAX_RANGE:
+                raise fail(
+                    path,
+                    f"its median range is {median:.0f} m: the coordinates look like {unit} (median "
+                    f"{median / factor:.1f} m in metres); convert the scan to metres",
+                )
+        reflectance = columns is None and bool((values[:, 3] < 0).any())
+        if not finite or ranges.max() > BIN_MAX_RANGE or reflectance:
+            layout = "x, y, z, r" if columns is None else f"{width} values, x, y, z first"
             raise fail(
                 path,
-                f"values are implausible for float32 rows of x, y, z, r (NaN or Inf, beyond "
-                f"{BIN_MAX_RANGE:.0f} m, or negative reflectance){ask}",
+                f"values are implausible for float32 rows of {layout} (NaN or Inf, beyond {BIN_MAX_RANGE:.0f} m"
+                f"{', or negative reflectance' if columns is None else ''}): float64 values, another layout or "
+                f"another unit?{ask}",
             )
     return check_points(values, path, "scan", allow_empty=False)
 
