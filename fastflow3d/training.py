@@ -73,6 +73,8 @@ def check_data(cfg: DictConfig) -> None:
                 f"data.{key}: {error}; rerun the label.py command that wrote it (same out_dir={path}): "
                 "it redoes damaged shards"
             ) from None
+        if dataset.shards.incomplete():  # trained on as it is, but said: a stopped label.py is no silent subset
+            log.warning("data.%s: %s", key, dataset.shards.incomplete())
         if key == "train" and cfg.loss.name == "supervised" and "gt" not in dataset[0]:
             raise TrainError(f"loss.name=supervised needs ground truth, but data.train={path} has none")
         ids[key] = set(dataset.shards.sample_ids)

@@ -1,6 +1,7 @@
 """The labelling stage end to end: the real teacher on a small synthetic world (32 beams, 2 deg azimuth)."""
 
 import json
+import logging
 import multiprocessing
 import os
 import re
@@ -16,6 +17,7 @@ import numpy as np
 import pytest
 import yaml
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.frames import FramePairError
@@ -150,6 +152,8 @@ def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
     assert process.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err
     assert 2 <= all_valid(tmp_path) < 5
+    index = json.loads((tmp_path / "index.json").read_text())
+    assert not index["complete"] and index["planned"] == 5 and 2 <= index["labelled"] < 5
 
 
 def test_other_config_is_refused_unless_overwrite(reference, tmp_path):
@@ -245,11 +249,30 @@ def test_failures_are_recorded_and_the_run_goes_on(tmp_path, capsys):
     assert after["shard_000000.h5"] != before["shard_000000.h5"] and all_valid(tmp_path) == 3
 
 
-def test_shard_split_jobs_add_up_to_the_whole(reference, tmp_path):
+def test_shard_split_jobs_add_up_to_the_whole(reference, tmp_path, caplog, capsys):
+    """The union of the jobs is the whole; the index says how complete the folder is after each (issue 45: a
+    stopped or partial labelling was trained on without a word), and train.py and eval.py say it."""
+    from fastflow3d.training import check_data
+    from icpflow.evaluation.methods import ShardMethod
+
     assert label(label_cfg(tmp_path, "shard_index=1", "num_shards=2"), progress=False) == 0
     assert sorted(p.name for p in tmp_path.glob("shard_*.h5")) == ["shard_000001.h5"]
+    index = json.loads((tmp_path / "index.json").read_text())
+    assert (index["complete"], index["labelled"], index["failed"], index["planned"]) == (False, 2, 0, 5)
+    said = f"{tmp_path}: label.py did not finish this folder: 2 of 5 samples labelled; rerun the label.py command"
+    assert ShardDataset(tmp_path).incomplete().startswith(said)
+    with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
+        check_data(OmegaConf.create({"data": {"train": str(tmp_path), "val": str(reference)}, "loss": {"name": "x"}}))
+    assert [r.getMessage() for r in caplog.records if "did not finish" in r.getMessage()][0].startswith(
+        f"data.train: {said}"
+    )
+    ShardMethod(tmp_path)
+    assert f"eval: warning: shards={said}" in capsys.readouterr().err
     assert label(label_cfg(tmp_path, "shard_index=0", "num_shards=2"), progress=False) == 0
     assert_same(reference, tmp_path)
+    index = json.loads((tmp_path / "index.json").read_text())
+    assert (index["complete"], index["labelled"], index["planned"]) == (True, 5, 5)
+    assert ShardDataset(tmp_path).incomplete() is None
 
 
 def test_ray_runner_matches_local(reference, tmp_path):

@@ -19,6 +19,7 @@ so this package never imports the student.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -103,6 +104,8 @@ class ShardMethod:
         self.by_id = {sample_id: i for i, sample_id in enumerate(self.shards.sample_ids)}
         if not self.by_id:
             raise EvaluationError(f"shards={out_dir}: the shards hold no samples")
+        if self.shards.incomplete():  # its missing pairs are skipped and listed; why, said once here
+            print(f"eval: warning: shards={self.shards.incomplete()}", file=sys.stderr)
 
     def __call__(self, pair: FramePair, index: int) -> np.ndarray:
         position = self.by_id.get(pair.sample_id)

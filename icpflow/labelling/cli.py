@@ -83,7 +83,10 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
             )
             plan = plan_shards(len(dataset), int(cfg.shard_size), cfg.limit, int(cfg.shard_index), int(cfg.num_shards))
             ensure_compiled("label")  # once per environment, here rather than in every worker's first sample
-            summary = run_labelling(job, plan, workers, cfg.runner, cfg.ray.address, bool(cfg.overwrite), progress)
+            planned = len(dataset) if cfg.limit is None else min(len(dataset), int(cfg.limit))
+            summary = run_labelling(
+                job, plan, workers, cfg.runner, cfg.ray.address, bool(cfg.overwrite), progress, planned
+            )
         except WriteError as error:  # disk full, no permission: the file and the cause
             print(
                 f"label: {error}; complete shards are kept in {cfg.out_dir}, fix this and rerun the same command to "

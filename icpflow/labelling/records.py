@@ -159,24 +159,31 @@ def prepare(job: LabelJob, plan: list[tuple[int, list[int]]], overwrite: bool) -
     write_text_atomic(marker, job.config_yaml)
 
 
-def write_manifests(job: LabelJob) -> list[dict]:
+def write_manifests(job: LabelJob, planned: int | None = None, stopped: bool = False) -> list[dict]:
     """``index.json`` and ``failures.jsonl`` from every finished shard of this config in ``out_dir``.
 
     Reads all shard records, so concurrent jobs (one per SLURM array task) each leave a complete index behind
-    when they finish last. Returns the failures.
+    when they finish last. The index says how complete the folder is: ``planned`` samples (the whole dataset or
+    ``limit``), ``labelled`` and ``failed`` ones, and ``complete`` (every planned sample tried and the run not
+    stopped), which ``train.py`` and ``eval.py`` read and say. Returns the failures.
     """
     records = []
     for state in sorted(job.out_dir.glob("shard_*.h5.json")):
         record = json.loads(state.read_text())
         if record.get("config_hash") == job.hash:
             records.append(record)
+    failures = [f for r in records for f in r["failures"]]
+    labelled = sum(len(r["samples"]) for r in records)
     write_index(
         job.out_dir / "index.json",
         {
             "config_hash": job.hash,
             "shards": [{"file": r["file"], "samples": r["samples"]} for r in records if r["samples"]],
+            "planned": planned,
+            "labelled": labelled,
+            "failed": len(failures),
+            "complete": bool(not stopped and planned is not None and labelled + len(failures) >= planned),
         },
     )
-    failures = [f for r in records for f in r["failures"]]
     write_failures(job.out_dir / "failures.jsonl", failures)
     return failures

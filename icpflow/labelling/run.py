@@ -56,6 +56,7 @@ def run_labelling(
     ray_address: str | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    planned: int | None = None,
 ) -> dict:
     """Label every sample of ``plan`` not already labelled; then write ``index.json`` and ``failures.jsonl``.
 
@@ -68,7 +69,8 @@ def run_labelling(
     ``{"done", "skipped", "failed", "seconds_per_sample", "seconds", "failures"}``: samples labelled now, samples
     labelled by an earlier run, failed samples of this plan, mean reader + teacher seconds per labelled sample in a
     worker, wall-clock seconds. ``index.json`` is written on every exit (also on Ctrl-C or an error), from the
-    shards then on disk.
+    shards then on disk, with its completeness (``planned``: the samples of the whole labelling, every job of an
+    array included; default: this plan's).
     """
     from icpflow.console import Progress
 
@@ -125,7 +127,8 @@ def run_labelling(
         stream.close()
         bar.close()
         try:
-            write_manifests(job)
+            total = sum(len(indices) for _, indices in plan) if planned is None else planned
+            write_manifests(job, total, stopped)
         except OSError:
             if not stopped:
                 raise  # else (e.g. the disk is full) the error that stopped the run is the one to report

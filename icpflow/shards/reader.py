@@ -38,6 +38,12 @@ class ShardDataset:
             self.entries = [(shard["file"], position) for shard in shards for position in range(len(shard["samples"]))]
             #: sample id of each entry, in order (from the index, without opening a shard)
             self.sample_ids = [sample["sample_id"] for shard in shards for sample in shard["samples"]]
+            #: (complete, labelled, failed, planned) as label.py wrote them; None: an older index without them
+            self.completeness = (
+                (bool(index["complete"]), index.get("labelled"), index.get("failed"), index.get("planned"))
+                if "complete" in index
+                else None
+            )
         except (ValueError, KeyError, TypeError) as error:
             raise ValueError(f"{index_path}: not a labelling index ({type(error).__name__}: {error})") from None
         for name, _ in self.shard_sizes:  # shards live in the label folder: an index cannot send reads elsewhere
@@ -48,6 +54,17 @@ class ShardDataset:
 
     def __len__(self) -> int:
         return len(self.entries)
+
+    def incomplete(self) -> str | None:
+        """What a reader says of a label folder that ``label.py`` did not finish (None: finished, or an older index
+        that does not say): how many of the planned samples it holds."""
+        if self.completeness is None or self.completeness[0]:
+            return None
+        _, labelled, failed, planned = self.completeness
+        return (
+            f"{self.root}: label.py did not finish this folder: {labelled} of {planned} samples labelled"
+            f"{f', {failed} failed' if failed else ''}; rerun the label.py command that wrote it to finish"
+        )
 
     def __getstate__(self):
         return {**self.__dict__, "_files": {}}
