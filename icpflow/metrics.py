@@ -124,6 +124,11 @@ class PairTruth:
         """The truth of a FramePair holding ground truth (flow, classes, ego1_from_ego0); ValueError otherwise."""
         if not pair.has_ground_truth or pair.classes is None:
             raise ValueError(f"{pair.source}: metrics need ground-truth flow and classes")
+        if pair.ego1_from_ego0 is None:  # the splits are by motion beyond the ego's: no estimate stands in for it
+            raise ValueError(
+                f"{pair.source}: has ground-truth flow but no ego motion (ego1_from_ego0, or pose0 and pose1): the "
+                "metrics split points into static and dynamic by their motion beyond the ego's; add it to score"
+            )
         return cls(
             pair.pc0, pair.flow, pair.ego1_from_ego0, pair.classes, pair.ground0, pair.flow_valid, include_ground
         )

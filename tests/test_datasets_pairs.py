@@ -146,3 +146,17 @@ def test_half_a_pose(tmp_path):
 def test_float_labels_are_refused(tmp_path):
     write(tmp_path, classes=np.full(120, 1.5))
     assert "classes must hold integers or booleans, got float64" in _error(tmp_path)
+
+
+def test_ground_truth_without_the_ego_motion_is_refused_by_the_metrics_in_one_line(tmp_path):
+    """Issue 45.6: the ego motion is optional for labelling (the teacher estimates it) but the metrics split points
+    by their motion beyond the ego's: a pair with ground truth and no ego motion was an IndexError in eval.py."""
+    from icpflow.datasets.synthetic import SyntheticDataset
+    from icpflow.metrics import PairTruth
+
+    pair = SyntheticDataset(split="test", num_sequences=1, frames_per_sequence=2, beams=32)[0]
+    (tmp_path / "pairs").mkdir()
+    np.savez(tmp_path / "pairs" / "0.npz", pc0=pair.pc0, pc1=pair.pc1, flow=pair.flow, classes=pair.classes)
+    loaded = NpzPairsDataset(tmp_path / "pairs")[0]
+    with pytest.raises(ValueError, match=r"0.npz: has ground-truth flow but no ego motion \(ego1_from_ego0, or pose0"):
+        PairTruth.of_pair(loaded)

@@ -5,7 +5,8 @@ Files: ``<root>/<split>/*.npz`` if that folder exists, else ``<root>/*.npz`` (so
 * required ``pc0`` (N0, 3), ``pc1`` (N1, 3): metres, each scan in its own ego frame (more columns are allowed: the
   first three are x, y, z; see ``icpflow.frames.check_points``);
 * optional ``ego1_from_ego0`` (4, 4), or ``pose0`` and ``pose1`` (4, 4, world_from_ego) -- without either the
-  teacher estimates ego motion;
+  teacher estimates ego motion; ``eval.py`` needs it to score ground truth (the splits are by motion beyond the
+  ego's), and says so for each such pair;
 * optional ``ground0`` (N0,), ``ground1`` (N1,) bool;
 * optional ground truth for pc0: ``flow`` (N0, 3) FULL flow (``pc0 + flow`` in pc1's frame), ``flow_valid``,
   ``dynamic`` (N0,) bool, ``classes``, ``instance`` (N0,) integers with 0 = background;
