@@ -18,6 +18,7 @@ are never gathered per point; the embedder's BatchNorm skips its masked copy whe
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from fastflow3d.scatter import scatter_mean, to_pseudo_image
 from fastflow3d.voxelize import Grid, voxelize
@@ -146,7 +147,8 @@ class UNet(nn.Module):
 
 class PillarEmbedder(nn.Module):
     """Per-point Linear(9 -> C, no bias) + norm (BatchNorm1d(eps 1e-3, momentum 0.01), or a per-point GroupNorm)
-    + ReLU, mean per pillar."""
+    + ReLU, mean per pillar. A training batch with fewer than two points in the grid is normalised with the running
+    statistics (batch statistics of one value do not exist); ``StudentModule`` says which samples."""
 
     def __init__(self, channels: int, norm: str = "batch"):
         super().__init__()
@@ -157,7 +159,12 @@ class PillarEmbedder(nn.Module):
         """Pillar rows (num_slots, C) and per-point embeddings (P, C) from point features (P, 9); batch statistics
         use in-range points only."""
         h = self.linear(features)
-        if self.training and isinstance(self.norm, nn.BatchNorm1d) and not bool(valid.all()):
+        batch_norm = self.training and isinstance(self.norm, nn.BatchNorm1d)
+        if batch_norm and int(valid.sum()) < 2:  # batch statistics need two values: a degenerate batch (one point
+            # in the grid, issue 45) is normalised with the running ones, as in evaluation, instead of failing
+            norm = self.norm
+            normed = F.batch_norm(h, norm.running_mean, norm.running_var, norm.weight, norm.bias, False, 0.0, norm.eps)
+        elif batch_norm and not bool(valid.all()):
             normed = torch.zeros_like(h)
             normed[valid] = self.norm(h[valid])
         else:

@@ -22,6 +22,7 @@ image every ``bev_every`` validations (also written to ``<out_dir>/bev/``).
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from pathlib import Path
 
@@ -38,6 +39,9 @@ from icpflow.frames import FramePair
 from icpflow.geometry import residual_to_full
 
 LOSSES = ("distillation", "supervised")
+
+
+log = logging.getLogger(__name__)
 
 
 class NonFiniteLoss(RuntimeError):
@@ -126,6 +130,14 @@ class StudentModule(L.LightningModule):
 
     def training_step(self, batch: dict, batch_index: int) -> torch.Tensor:
         pred, valid = self(batch)
+        if int(valid.sum()) < 2:  # the network normalised them with its running statistics (model.PillarEmbedder)
+            log.warning(
+                "step %d: samples %s hold %d point(s) of pc0 in the network's grid: too few for batch statistics; "
+                "trained on with the running ones (check these samples)",
+                self.global_step,
+                ", ".join(map(str, batch["sample_id"])),
+                int(valid.sum()),
+            )
         loss = self.loss(pred, valid, batch)
         if not torch.isfinite(loss):  # stop at once: a NaN step poisons the weights and every checkpoint after it
             raise NonFiniteLoss(

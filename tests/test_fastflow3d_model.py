@@ -435,3 +435,21 @@ def test_correlation_is_an_option_and_off_is_zeroflows_network():
         both = model(pc0, b0, pc1, b1, 2)[0]
         alone = model(pc0[:300], b0[:300], pc1[:300], b1[:300], 1)[0]
     torch.testing.assert_close(alone, both[:300], atol=1e-5, rtol=0)
+
+
+def test_a_training_batch_with_one_point_in_the_grid_trains_on_the_running_statistics():
+    """Issue 45.7: BatchNorm cannot take batch statistics of one value ("unexpected ValueError"); such a batch is
+    normalised with the running statistics (as in evaluation: the same output), never a failure."""
+    model = FastFlow3D(**SMALL_MODEL).train()
+    one = torch.tensor([[1.0, 2.0, 0.5]])
+    outside = torch.tensor([[1.0, 2.0, 0.5], [500.0, 0.0, 0.0]])  # one point in the grid, one far outside it
+    zeros = torch.zeros(1, dtype=torch.long)
+    for pc0 in (one, outside):
+        residual, valid = model(pc0, torch.zeros(len(pc0), dtype=torch.long), one, zeros)
+        assert int(valid.sum()) == 1 and torch.isfinite(residual).all()
+        evaluated, _ = model.eval()(pc0, torch.zeros(len(pc0), dtype=torch.long), one, zeros)
+        model.train()
+        embedder = model.embedder.norm
+        assert embedder.running_mean.abs().max() == 0  # no batch statistics were taken from one value
+        # the BatchNorm layers of the UNet still train on batch statistics (a pseudo-image has many cells)
+        assert evaluated.shape == residual.shape

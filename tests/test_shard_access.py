@@ -128,3 +128,23 @@ def test_a_sound_shard_still_reads(labels):
     sample = ShardDataset(labels)[0]
     assert sample["pc0"].shape == (300, 3) and verify_shard(labels / NAME, "h", 1) == 1
     assert np.array_equal(read_shard_samples(labels / NAME)[0]["flow"], sample["flow"])
+
+
+@pytest.mark.parametrize("version", [99, None])
+def test_every_reader_refuses_a_shard_of_another_schema_version(labels, version):
+    """Issue 45.7: eval.py method=shards read a shard of an unknown schema version without a word."""
+    from icpflow.evaluation.methods import ShardMethod
+
+    with h5py.File(labels / NAME, "a") as handle:
+        if version is None:
+            del handle.attrs["schema_version"]
+        else:
+            handle.attrs["schema_version"] = version
+    expected = "schema version 99, expected 1" if version else "no schema version"
+    readers = _every_reader(labels)
+    method = ShardMethod(labels)
+    readers["eval.py method=shards"] = lambda: method.shards[0]
+    for reader, call in readers.items():
+        with pytest.raises(ShardError, match=rf"{NAME}: {expected}"):
+            call()
+            pytest.fail(reader)

@@ -17,6 +17,7 @@ from pathlib import Path
 import h5py
 
 from icpflow.frames import MAX_POINTS
+from icpflow.shards.schema import SCHEMA_VERSION
 
 
 class ShardError(ValueError):
@@ -24,14 +25,26 @@ class ShardError(ValueError):
 
 
 def open_shard(path: str | os.PathLike) -> h5py.File:
-    """``path`` opened read-only, after the file checks of the module docstring (FileNotFoundError: none)."""
+    """``path`` opened read-only, after the file checks of the module docstring and of its schema version (a shard
+    of another version of ``label.py`` is refused by every reader; FileNotFoundError: none)."""
     path = Path(path)
     info = os.lstat(path)
     if stat.S_ISLNK(info.st_mode):
         raise ShardError(f"{path}: a symbolic link (to {os.readlink(path)}); a shard is a file of its label folder")
     if not stat.S_ISREG(info.st_mode):
         raise ShardError(f"{path}: not a regular file (a FIFO, device or folder); a shard is a file")
-    return h5py.File(path, "r")
+    handle = h5py.File(path, "r")
+    version = handle.attrs.get("schema_version")
+    if version is None:
+        handle.close()
+        raise ShardError(f"{path}: no schema version: not a shard written by label.py")
+    if version != SCHEMA_VERSION:
+        handle.close()
+        raise ShardError(
+            f"{path}: schema version {version}, expected {SCHEMA_VERSION} (written by another version of label.py); "
+            "relabel it with this one"
+        )
+    return handle
 
 
 def _member(path: Path, parent: h5py.Group, key: str, where: str):
