@@ -117,6 +117,8 @@ def check_config(cfg, prefix: str = "") -> None:
             check_config(child, f"{prefix}{key}.")
     kind = OmegaConf.get_type(cfg)
     if not dataclasses.is_dataclass(kind):
+        if "_target_" in cfg:
+            check_target_arguments(cfg, prefix)
         return
     known = {f.name: f for f in dataclasses.fields(kind)}
     hints = typing.get_type_hints(kind)
@@ -133,6 +135,73 @@ def check_config(cfg, prefix: str = "") -> None:
         problem = broken_rule(f, value)
         if problem:
             raise OptionError(f"{prefix}{key} {problem}")
+
+
+#: Hydra's own keys of a ``_target_`` node
+HYDRA_KEYS = ("_target_", "_partial_", "_convert_", "_recursive_", "_args_")
+#: the kinds of value an argument takes, and how to say them: (types of the default or annotation, accepted, words)
+_KINDS = (
+    ((bool,), (bool,), "true or false"),
+    ((int, float), (int, float), "a number"),
+    ((str,), (str,), "a text"),
+    ((list, tuple), (), "a list, e.g. [a,b]"),
+)
+
+
+def _argument_kind(parameter, hint):
+    """(accepted types (empty: a list), words, None allowed) of an argument, from its annotation (every member of a
+    union) or else its default; None where neither says (an object, ``Any``)."""
+    members = typing.get_args(hint) if _is_union(hint) else (typing.get_origin(hint) or hint,)
+    if hint is None or hint is typing.Any:
+        default = parameter.default
+        members = () if default is inspect.Parameter.empty or default is None else (type(default),)
+    found = [
+        entry
+        for entry in _KINDS
+        if any(isinstance(m, type) and issubclass(m, entry[0]) for m in members if m is not type(None))
+    ]
+    if not found:
+        return None  # nothing a config value can be checked against (an object): leave the value to the target
+    accepted = tuple(t for entry in found for t in entry[1])
+    lists = any(not entry[1] for entry in found)
+    return accepted, lists, " or ".join(entry[2] for entry in found), type(None) in members
+
+
+def check_target_arguments(node, prefix: str) -> None:
+    """The arguments of a ``_target_`` node (``model``, ``optim``, ``scheduler``, ...) against its target's
+    signature, before it is built: a name it does not take (``+model.correlation_levls=[1]``) is refused with the
+    nearest it does take; a value of another kind than the argument's annotation (or default) asks for (a number
+    for a list, text for a number) names the argument. :class:`OptionError`, one line; a target that cannot be
+    imported is left to Hydra."""
+    from hydra.utils import get_object
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    try:
+        target = get_object(str(node["_target_"]))
+        parameters = inspect.signature(target).parameters
+        hints = typing.get_type_hints(target.__init__ if inspect.isclass(target) else target)
+    except Exception:  # noqa: BLE001 - an unknown target is Hydra's error to report, with its own words
+        return
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+        return
+    taken = [name for name in parameters if name not in ("self", "params")]
+    for key in node:
+        if key in HYDRA_KEYS:
+            continue
+        if key not in parameters:
+            raise OptionError(f"{unknown_words(key, taken, prefix)} of {node['_target_']}")
+        kind = _argument_kind(parameters[key], hints.get(key))
+        if kind is None or OmegaConf.is_missing(node, key) or node._get_node(key)._is_interpolation():
+            continue
+        accepted, lists, words, optional = kind
+        value = node[key]
+        if (value is None and (optional or parameters[key].default is None)) or isinstance(value, DictConfig):
+            continue  # a block builds an object of its own (a nested _target_)
+        ok = (lists and isinstance(value, ListConfig)) or isinstance(value, accepted)
+        if isinstance(value, bool) and bool not in accepted:
+            ok = False
+        if not ok:
+            raise OptionError(f"{prefix}{key}={value}: expected {words}, got {value!r}")
 
 
 def unknown_words(key: str, known, prefix: str) -> str:
@@ -179,7 +248,14 @@ def type_error_line(error) -> str | None:
     override = _override_of(str(error))
     kind = getattr(cause, "object_type", None)
     full_key, key = getattr(cause, "full_key", None), getattr(cause, "key", None)
-    if override is None or not dataclasses.is_dataclass(kind) or full_key is None:
+    if override is None or full_key is None:
+        return None
+    if not dataclasses.is_dataclass(kind):  # a plain block (a _target_ node: model, optim, ...): its own keys
+        parent = getattr(cause, "parent_node", None)
+        if isinstance(cause, (ConfigAttributeError, ConfigKeyError)) and parent is not None:
+            prefix = full_key[: -len(str(key))] if str(full_key).endswith(str(key)) else ""
+            known = [name for name in parent.keys() if name not in HYDRA_KEYS]
+            return f"{override}: {unknown_words(str(key), known, prefix)}"
         return None
     given = override.split("=", 1)[1] if "=" in override else ""
     if isinstance(cause, (ConfigAttributeError, ConfigKeyError)):

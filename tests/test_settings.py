@@ -101,6 +101,10 @@ def test_a_value_breaking_any_rule_is_one_line_naming_the_option(name):
         ("train", "export.formats=onnx", "export.formats=onnx: expected a list, e.g. [a,b], got 'onnx'"),
         ("train", "loss=speed", "loss=speed: loss is a block of settings, give one of its fields"),
         ("export", "format=3", None),  # an int is a text's value: accepted
+        # the _target_ groups (issue 45.5): their own keys, with the nearest one
+        ("train", "model.correlation_levls=[1]", "model.correlation_levls is not an option (did you mean model.corr"),
+        ("train", "optim.lrr=0.1", "optim.lrr is not an option (did you mean optim.lr?)"),
+        ("train", "scheduler.warmup_fractio=0.1", "scheduler.warmup_fractio is not an option (did you mean"),
     ],
 )
 def test_a_wrong_type_or_an_unknown_key_is_refused_while_composing(name, override, words):
@@ -119,6 +123,28 @@ def test_a_key_added_with_plus_is_refused_before_any_work(name):
     cfg = _compose(name, "+limt=3", "+data.batch_sise=2" if name == "train" else "+ray.port=1")
     with pytest.raises(OptionError, match="is not an option"):
         check_config(cfg)
+
+
+@pytest.mark.parametrize(
+    "override, words",
+    [
+        ("+model.correlation_levls=[1]", "model.correlation_levls is not an option (did you mean model.correlation_"),
+        ("+optim.lrr=0.1", "optim.lrr is not an option (did you mean optim.lr?) of torch.optim.Adam"),
+        ("model.correlation_levels=abc", "model.correlation_levels=abc: expected a list, e.g. [a,b], got 'abc'"),
+        ("model.correlation_levels=7", "model.correlation_levels=7: expected a list, e.g. [a,b], got 7"),
+        ("model.cell=abc", "model.cell=abc: expected a number, got 'abc'"),
+        ("model.cell=true", "model.cell=True: expected a number, got True"),
+        ("model.decoder=3", "model.decoder=3: expected a text, got 3"),
+        ("optim.lr=abc", "optim.lr=abc: expected a number, got 'abc'"),
+    ],
+)
+def test_a_target_groups_arguments_are_checked_against_its_signature(override, words):
+    """model, optim, scheduler, ... are _target_ nodes: an argument added with + or of the wrong kind was an
+    "unexpected TypeError" when the class was built (issue 45.5); now one line naming it, before any work."""
+    cfg = _compose("train", override)
+    with pytest.raises(OptionError) as refused:
+        check_config(cfg)
+    assert words in str(refused.value) and "\n" not in str(refused.value), refused.value
 
 
 def test_the_trainer_schema_is_lightnings_signature():
