@@ -41,17 +41,22 @@ class TrainError(RuntimeError):
     """A training run cannot start, or its final export failed. The message is one line."""
 
 
-def check_data(cfg: DictConfig) -> None:
+def check_data(cfg: DictConfig) -> dict[str, int]:
     """Both shard directories hold samples (else one line saying how to create them), every shard they list is
     complete and valid (else one line naming it: the checks ``label.py`` makes before it skips a shard);
-    supervised needs gt."""
+    supervised needs gt; ``out_dir`` is not one of them. Returns the samples of each (``train``, ``val``)."""
+    if (Path(cfg.out_dir) / "index.json").is_file():  # data.train itself, or another label folder
+        raise TrainError(
+            f"out_dir={cfg.out_dir} holds label.py's shards (index.json): checkpoints would go among the labels; "
+            "give another folder"
+        )
     for key in ("train", "val"):
         if not cfg.data[key]:
             raise TrainError(f"data.{key} is empty; give a label folder (a path)")
     same = Path(cfg.data.train).resolve() == Path(cfg.data.val).resolve()
     if same:
         log.warning("data.val is data.train (%s): validation scores the training samples", cfg.data.train)
-    ids = {}
+    ids, counts = {}, {}
     for key, split in (("train", "train"), ("val", "val")):
         path = cfg.data[key]
         try:
@@ -78,6 +83,7 @@ def check_data(cfg: DictConfig) -> None:
         if key == "train" and cfg.loss.name == "supervised" and "gt" not in dataset[0]:
             raise TrainError(f"loss.name=supervised needs ground truth, but data.train={path} has none")
         ids[key] = set(dataset.shards.sample_ids)
+        counts[key] = len(dataset)
     shared = ids["train"] & ids["val"]
     if shared and not same:
         log.warning(
@@ -86,6 +92,7 @@ def check_data(cfg: DictConfig) -> None:
             len(ids["val"]),
             sorted(shared)[0],
         )
+    return counts
 
 
 def training_contract(cfg: DictConfig) -> InputContract:
@@ -276,6 +283,24 @@ def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -
     return out_dir
 
 
+def check_sizes(cfg: DictConfig, trainer: L.Trainer, counts: dict[str, int], effective: int) -> None:
+    """What the data cannot give, refused in one line before any process starts: fewer samples than processes
+    (each process of a DDP run needs one of train and of val), or an ``effective_batch`` set larger than the
+    training samples (each step would see fewer than it says)."""
+    processes = int(trainer.num_devices) * int(trainer.num_nodes)
+    for key in ("train", "val"):
+        if counts[key] < processes:
+            raise TrainError(
+                f"data.{key} holds {counts[key]} sample(s), fewer than the {processes} processes (trainer.devices x "
+                "trainer.num_nodes): each needs one; use fewer devices or label more samples"
+            )
+    if cfg.get("effective_batch") and effective > counts["train"]:
+        raise TrainError(
+            f"effective_batch={effective} is more than the {counts['train']} training samples: each step would see "
+            f"{counts['train']}; choose effective_batch <= {counts['train']} or label more samples"
+        )
+
+
 def kept_checkpoint(cfg: DictConfig) -> str:
     """What a run stopped at once leaves to resume from, in words."""
     last = Path(cfg.checkpoint_dir) / "last.ckpt"
@@ -358,6 +383,13 @@ def check_resume_settings(ours: dict, checkpoint: dict, value: str, path: Path) 
             f"ckpt_path={value}: {path} was trained with other settings: {'; '.join(differ)}; resume with its "
             "settings, or leave ckpt_path unset to start afresh"
         )
+    moved = [
+        f"data.{key}={(saved.get('data') or {}).get(key)} (this run: {(ours.get('data') or {}).get(key)})"
+        for key in ("train", "val")
+        if (saved.get("data") or {}).get(key) != (ours.get("data") or {}).get(key)
+    ]
+    if moved:  # allowed (a folder moved, a cluster's other mount), but never silent
+        log.warning("resuming %s with other data than it was trained on: %s", path.name, "; ".join(moved))
     kept = _differences(saved.get("optim") or {}, ours.get("optim") or {}, "optim")
     kept += _differences(saved.get("scheduler") or {}, ours.get("scheduler") or {}, "scheduler")
     if kept:
@@ -379,7 +411,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
     check_config(cfg)  # the schema's rules (fastflow3d.options.TrainOptions)
     check_length(cfg)
     with stop_on_signals(), run_folder(cfg):
-        check_data(cfg)
+        counts = check_data(cfg)
         formats = export_formats(cfg)
         plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
         contract = training_contract(cfg)
@@ -394,6 +426,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
         datamodule = ShardDataModule.from_config(data, module.contract, int(cfg.seed))
         trainer = build_trainer(cfg)
         effective, line = settle_batch(cfg, trainer)
+        check_sizes(cfg, trainer, counts, effective)
         module.hparams["cfg"]["effective_batch"] = effective  # the logged and saved config say it
         if trainer.is_global_zero:
             log.info(line)

@@ -106,9 +106,12 @@ def _allows_none(hint) -> bool:
 def check_config(cfg, prefix: str = "") -> None:
     """Check every field of the composed config ``cfg`` (and of its typed sub-blocks) that has a rule or choices,
     and refuse keys its dataclass does not have (``+limt=3``): :class:`OptionError`, e.g. ``workers must be an
-    integer >= 1, got 0``. None passes where the field's type allows it (null: the default's meaning)."""
+    integer >= 1, got 0``. None passes where the field's type allows it (null: the default's meaning). Paths given
+    as ``~/...`` are expanded first (:func:`expand_home`)."""
     from omegaconf import DictConfig, OmegaConf
 
+    if not prefix:
+        expand_home(cfg)
     for key in cfg:  # the blocks first: a value that others interpolate (dataset.eval_crop) is named where it is set
         if OmegaConf.is_missing(cfg, key):
             continue
@@ -334,7 +337,31 @@ def signature_schema(target, name: str, exclude: tuple[str, ...] = ()) -> type:
 
 def store(name: str, node, group: str | None = None) -> None:
     """Register the dataclass ``node`` in Hydra's ConfigStore as ``name`` (in ``group``), for a config's defaults
-    list to extend. Idempotent."""
+    list to extend, and the ``home`` resolver (``${home:${out_dir}}``: ``~`` expanded, for the folders Hydra makes
+    before any code of ours runs). Idempotent."""
+    import os
+
     from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
 
     ConfigStore.instance().store(name=name, node=node, group=group)
+    if not OmegaConf.has_resolver("home"):
+        OmegaConf.register_new_resolver("home", lambda path: os.path.expanduser(str(path)))
+
+
+def expand_home(cfg) -> None:
+    """Every text option of ``cfg`` (not an interpolation) that starts with ``~``, expanded to the home folder in
+    place: quoted (``out_dir='~/x'``) no shell expands it, and it became a literal ``./~/x`` folder."""
+    import os
+
+    from omegaconf import DictConfig, ListConfig
+
+    for key in list(cfg.keys()) if isinstance(cfg, DictConfig) else range(len(cfg)):
+        node = cfg._get_node(key)
+        if node is None or node._is_interpolation() or node._is_missing():
+            continue
+        value = node._value()
+        if isinstance(node, (DictConfig, ListConfig)):
+            expand_home(node)
+        elif isinstance(value, str) and value.startswith("~"):
+            cfg[key] = os.path.expanduser(value)

@@ -262,7 +262,8 @@ def test_shard_split_jobs_add_up_to_the_whole(reference, tmp_path, caplog, capsy
     said = f"{tmp_path}: label.py did not finish this folder: 2 of 5 samples labelled; rerun the label.py command"
     assert ShardDataset(tmp_path).incomplete().startswith(said)
     with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
-        check_data(OmegaConf.create({"data": {"train": str(tmp_path), "val": str(reference)}, "loss": {"name": "x"}}))
+        data = {"train": str(tmp_path), "val": str(reference)}
+        check_data(OmegaConf.create({"data": data, "loss": {"name": "x"}, "out_dir": str(tmp_path / "run")}))
     assert [r.getMessage() for r in caplog.records if "did not finish" in r.getMessage()][0].startswith(
         f"data.train: {said}"
     )

@@ -131,3 +131,22 @@ def test_validation_samples_that_are_training_samples_are_said(shards, tmp_path,
     with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
         fit(train_cfg(tmp_path, shards, copy, "trainer.fast_dev_run=true"))
     assert "data.val shares 2 of its 2 sample ids with data.train" in caplog.text
+
+
+def test_what_the_data_or_the_folder_cannot_give_is_refused_before_any_work(shards, tmp_path, caplog):
+    """Issue 45.5: out_dir a label folder; '~' that no shell expanded; more processes than samples (an "unexpected
+    AssertionError" and gloo noise); an effective batch larger than the data (it said 64 and stepped on 2); a
+    resume on other data (it was silent)."""
+    with pytest.raises(TrainError, match=r"out_dir=.* holds label.py's shards \(index.json\)"):
+        fit(train_cfg(tmp_path, shards, shards, f"out_dir={shards}"))
+    with pytest.raises(TrainError, match=r"data.train holds 2 sample\(s\), fewer than the 3 processes"):
+        fit(_cfg(tmp_path, shards, "trainer=ddp_cpu", "trainer.devices=3"))
+    with pytest.raises(TrainError, match=r"effective_batch=64 is more than the 2 training samples"):
+        fit(_cfg(tmp_path, shards, "effective_batch=64", "data.batch_size=2"))
+    assert not (tmp_path / "run" / "checkpoints").exists()
+    fit(_cfg(tmp_path, shards))
+    other = tmp_path / "moved"
+    other.symlink_to(shards)
+    with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
+        fit(_cfg(tmp_path, shards, "ckpt_path=auto", "trainer.max_steps=4", f"data.train={other}"))
+    assert "with other data than it was trained on: data.train=" in caplog.text

@@ -185,3 +185,17 @@ def test_signature_schema_types():
 )
 def test_rules(rule, good, bad):
     assert accepts(rule, good) and not accepts(rule, bad) and not accepts(rule, True if rule != "flag" else 1)
+
+
+def test_a_path_given_as_tilde_is_the_home_folder_not_a_folder_named_tilde(monkeypatch, tmp_path):
+    """out_dir='~/x' (quoted: no shell expands it) made a literal ./~/x folder and printed a path that read as the
+    home (issue 45.5): the folders Hydra makes and those our code makes are under the home."""
+    monkeypatch.setenv("HOME", str(tmp_path))
+    cfg = _compose("train", "out_dir='~/x'", "data.train='~/labels'")
+    assert cfg.hydra_dir == f"{tmp_path}/x/hydra"  # Hydra's run folder, made before any code of ours
+    check_config(cfg)
+    assert (cfg.out_dir, cfg.checkpoint_dir, cfg.data.train) == (
+        f"{tmp_path}/x",
+        f"{tmp_path}/x/checkpoints",
+        f"{tmp_path}/labels",
+    )
