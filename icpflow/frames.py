@@ -27,6 +27,7 @@ produces the pair (t, t + k) with exact ground truth for any gap k (the long-hor
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
@@ -44,8 +45,9 @@ class FramePairError(ValueError):
 MAX_POINT_COLUMNS = 8
 #: the most points a scan (or a shard's cloud) may hold, checked by every reader against what a file claims before
 #: anything is allocated: about 25 times the densest scans of the field (64-beam sweeps of 1-2e5 points); a small
-#: file can claim far more (a 233 KB .npz of zeros claims 2e7 points, 4.8 GB)
-MAX_POINTS = 5_000_000
+#: file can claim far more (a 233 KB .npz of zeros claims 2e7 points, 4.8 GB). A sensor of denser scans sets the
+#: environment variable ICPFLOW_MAX_POINTS (read when the package is imported).
+MAX_POINTS = int(os.environ.get("ICPFLOW_MAX_POINTS", 5_000_000))
 #: the most values of one array a reader allocates (a scan of ``MAX_POINTS`` rows of 16 values)
 MAX_ARRAY_VALUES = 16 * MAX_POINTS
 

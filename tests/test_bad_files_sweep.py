@@ -579,3 +579,23 @@ def test_a_scan_that_claims_more_than_it_holds_is_refused_before_allocating(expo
             ScanSequenceDataset(folder, sensor_height=0.0).pair(0)
         assert "\n" not in str(error.value)
     assert (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak) * 1024 < 200e6
+
+
+def test_the_cap_is_the_environments_where_it_says_one(tmp_path):
+    """ICPFLOW_MAX_POINTS raises (or lowers) the cap for a denser sensor: the 6e6-point claim then passes the cap
+    and is refused for what the file holds, still one line naming it, nothing allocated."""
+    import os
+    import subprocess
+    import sys
+
+    bomb = _bomb(tmp_path, ".npy")
+    code = "import sys; from icpflow.datasets.io import load_npy; load_npy(__import__('pathlib').Path(sys.argv[1]))"
+    for cap, words in (("7000000", "more than the file's"), ("1000", "over the cap of 1000")):
+        result = subprocess.run(
+            [sys.executable, "-c", code, str(bomb)],
+            env={**os.environ, "ICPFLOW_MAX_POINTS": cap},
+            capture_output=True,
+            text=True,
+            cwd=REPO,
+        )
+        assert result.returncode != 0 and words in result.stderr.strip().splitlines()[-1], result.stderr
