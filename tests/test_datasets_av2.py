@@ -218,3 +218,24 @@ def test_longer_horizon(log_copy):
     assert 1.7 < np.median(ratio) < 2.3
     with pytest.raises(IndexError):
         dataset.pair(0, horizon=3)
+
+
+def test_a_sweep_that_claims_more_rows_than_the_cap_is_refused_before_it_is_decompressed(tmp_path):
+    """Issue 45.1: an LZ4 feather of 6e6 rows of zeros is 120 KB; its rows are read from the batches' metadata and
+    refused in one line before pyarrow decompresses a byte (peak memory barely grown)."""
+    import resource
+
+    import pyarrow as pa
+    import pyarrow.feather as feather
+
+    from icpflow.datasets.io import read_feather
+
+    zeros = np.zeros(6_000_000, np.float16)
+    path = tmp_path / "bomb.feather"
+    feather.write_feather(pa.table({"x": zeros, "y": zeros, "z": zeros}), str(path), compression="lz4")
+    del zeros
+    assert path.stat().st_size < 1_000_000
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(FramePairError, match=r"bomb.feather: its record batches claims 6000000 rows .* over the cap"):
+        read_feather(path, ("x", "y", "z"))
+    assert (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak) * 1024 < 50e6

@@ -129,7 +129,7 @@ class AV2Dataset(IndexedDataset):
     def _points(self, log_dir: Path, stamp: int) -> tuple[np.ndarray, np.ndarray | None]:
         """(N, 3) float32 x, y, z of one sweep (ego frame) and (N,) float32 capture times (s) or None."""
         path = self._lidar_path(log_dir, stamp)
-        frame = read_feather(path, LIDAR_COLUMNS)
+        frame = read_feather(path, LIDAR_COLUMNS, optional=("offset_ns",))
         xyz = frame[["x", "y", "z"]].to_numpy()
         if xyz.dtype == np.float16:  # AV2's own storage type: converted here, no per-sweep warning (check_points')
             xyz = xyz.astype(np.float32)

@@ -145,18 +145,63 @@ def load_npy(path: Path) -> np.ndarray:
         raise fail(path, f"cannot read .npy (truncated or damaged?): {error}") from None
 
 
-def read_feather(path: Path, columns: tuple[str, ...]) -> pd.DataFrame:
-    """The given columns of a feather file; a missing file or column or a damaged file raises."""
+def read_feather(path: Path, columns: tuple[str, ...], optional: tuple[str, ...] = ()) -> pd.DataFrame:
+    """The given ``columns`` of a feather file (Arrow IPC) and those of ``optional`` it has; a missing file or column
+    or a damaged file raises. The rows its record batches claim are bounded (:func:`check_claim`) before pyarrow
+    decompresses any of them, and only these columns are read."""
+    import pyarrow as pa
+
     try:
-        frame = pd.read_feather(path)
+        rows, names = _feather_rows(path)
+        check_claim(path, "its record batches", (rows, max(1, len(columns))))
+        missing = [column for column in columns if column not in names]
+        if missing:
+            raise fail(path, f"missing column(s) {', '.join(missing)}; has {', '.join(map(str, names))}")
+        return pd.read_feather(path, columns=[*columns, *(column for column in optional if column in names)])
+    except FramePairError:
+        raise
     except FileNotFoundError:
         raise fail(path, "file not found") from None
-    except Exception as error:  # pyarrow raises several unrelated types for damaged files
+    except (Exception, pa.ArrowException) as error:  # pyarrow raises several unrelated types for damaged files
         raise fail(path, f"cannot read feather (truncated or damaged?): {type(error).__name__}: {error}") from None
-    missing = [column for column in columns if column not in frame.columns]
-    if missing:
-        raise fail(path, f"missing column(s) {', '.join(missing)}; has {', '.join(map(str, frame.columns))}")
-    return frame
+
+
+def _feather_rows(path: Path) -> tuple[int, list[str]]:
+    """(rows of every record batch, column names) of an Arrow IPC file, read from its messages' metadata: each
+    batch's compressed body is read (no more than the file holds), none is decompressed."""
+    import struct
+
+    import pyarrow as pa
+
+    def field(buffer: bytes, table: int, index: int) -> int | None:  # a flatbuffer table's field position
+        vtable = table - struct.unpack_from("<i", buffer, table)[0]
+        if 4 + 2 * index >= struct.unpack_from("<H", buffer, vtable)[0]:
+            return None
+        offset = struct.unpack_from("<H", buffer, vtable + 4 + 2 * index)[0]
+        return table + offset if offset else None
+
+    with pa.OSFile(str(path)) as handle:
+        names = pa.ipc.open_file(handle).schema.names
+        handle.seek(8)  # the file's magic, then the stream of messages
+        reader, rows = pa.ipc.MessageReader.open_stream(handle), 0
+        while (message := _next_message(reader)) is not None:
+            if message.type != "record batch":
+                continue
+            meta = message.metadata.to_pybytes()  # a Message table: its header (field 2) is the RecordBatch
+            root = struct.unpack_from("<I", meta, 0)[0]
+            header = field(meta, root, 2)
+            batch = header + struct.unpack_from("<I", meta, header)[0]
+            length = field(meta, batch, 0)
+            rows += struct.unpack_from("<q", meta, length)[0] if length is not None else 0
+    return rows, names
+
+
+def _next_message(reader):
+    """The next message of an Arrow IPC stream, None at its end."""
+    try:
+        return reader.read_next_message()
+    except StopIteration:
+        return None
 
 
 #: KITTI's ``.bin`` layout: float32 rows of x, y, z, reflectance
