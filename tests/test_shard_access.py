@@ -67,6 +67,10 @@ def _bomb_raw(group, key, like, folder):  # uncompressed, chunks never written: 
     group.create_dataset(key, shape=(MAX_POINTS,), dtype=like.dtype, chunks=(100_000,))
 
 
+def _wide_values(group, key, like, folder):  # 1 MB per value: a few thousand "points" are gigabytes
+    group.create_dataset(key, shape=(4096,), dtype=np.dtype((np.uint8, (1 << 20,))), compression="gzip")
+
+
 FORMS = {
     "external link": (_external_link, r"is an external link to .*elsewhere.h5:/data"),
     "soft link": (_soft_link, r"is a link to /"),
@@ -75,6 +79,7 @@ FORMS = {
     "virtual dataset": (_virtual, r"is a virtual dataset over .*source.h5"),
     "compressed bomb": (_bomb_compressed, r"claims \(300000000,\) values, over the cap of 5000000 points"),
     "uncompressed bomb": (_bomb_raw, r"claims \(5000000,\) values, more than the file holds"),
+    "values of a megabyte": (_wide_values, r"holds .* values, not the plain numbers of a shard"),
 }
 
 

@@ -81,6 +81,8 @@ def shard_array(path: Path, group: h5py.Group, key: str) -> h5py.Dataset | None:
         raise ShardError(f"{path}: {where} is a virtual dataset over {', '.join(sources)}; a shard holds its data")
     if data.external:
         raise ShardError(f"{path}: {where} is stored outside the shard, in {data.external[0][0]!r}; refused")
+    if data.dtype.itemsize > 8 or data.dtype.kind not in "biuf":  # shards hold plain numbers (schema.py)
+        raise ShardError(f"{path}: {where} holds {data.dtype} values, not the plain numbers of a shard")
     values = int(data.size)
     if values > 3 * MAX_POINTS:
         raise ShardError(f"{path}: {where} claims {data.shape} values, over the cap of {MAX_POINTS} points")
