@@ -160,11 +160,12 @@ class PillarEmbedder(nn.Module):
         use in-range points only."""
         h = self.linear(features)
         batch_norm = self.training and isinstance(self.norm, nn.BatchNorm1d)
-        if batch_norm and int(valid.sum()) < 2:  # batch statistics need two values: a degenerate batch (one point
+        inside = int(valid.sum()) if batch_norm else 0  # training only: one host sync per step, as before
+        if batch_norm and inside < 2:  # batch statistics need two values: a degenerate batch (one point
             # in the grid, issue 45) is normalised with the running ones, as in evaluation, instead of failing
             norm = self.norm
             normed = F.batch_norm(h, norm.running_mean, norm.running_var, norm.weight, norm.bias, False, 0.0, norm.eps)
-        elif batch_norm and not bool(valid.all()):
+        elif batch_norm and inside < len(valid):
             normed = torch.zeros_like(h)
             normed[valid] = self.norm(h[valid])
         else:

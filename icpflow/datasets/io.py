@@ -149,8 +149,6 @@ def read_feather(path: Path, columns: tuple[str, ...], optional: tuple[str, ...]
     """The given ``columns`` of a feather file (Arrow IPC) and those of ``optional`` it has; a missing file or column
     or a damaged file raises. The rows its record batches claim are bounded (:func:`check_claim`) before pyarrow
     decompresses any of them, and only these columns are read."""
-    import pyarrow as pa
-
     try:
         rows, names = _feather_rows(path)
         check_claim(path, "its record batches", (rows, max(1, len(columns))))
@@ -162,7 +160,7 @@ def read_feather(path: Path, columns: tuple[str, ...], optional: tuple[str, ...]
         raise
     except FileNotFoundError:
         raise fail(path, "file not found") from None
-    except (Exception, pa.ArrowException) as error:  # pyarrow raises several unrelated types for damaged files
+    except Exception as error:  # pyarrow raises several unrelated types for damaged files
         raise fail(path, f"cannot read feather (truncated or damaged?): {type(error).__name__}: {error}") from None
 
 
@@ -235,12 +233,13 @@ def read_bin(path: Path, columns: int | None = None) -> np.ndarray:
         with np.errstate(invalid="ignore", over="ignore"):
             finite = np.isfinite(values[:, :3]).all(axis=1)
             ranges = np.linalg.norm(values[finite, :3].astype(np.float64), axis=1)
-            median = float(np.median(ranges)) if len(ranges) else 0.0
+        farthest = float(ranges.max()) if len(ranges) else 0.0
+        median = float(np.median(ranges)) if farthest > BIN_PLAUSIBLE_MEDIAN else 0.0  # only then can it be
         if median > BIN_PLAUSIBLE_MEDIAN:  # the unit whose median range is nearest a LiDAR's (10 m)
             unit, factor = min(
                 (("millimetres", 1000.0), ("centimetres", 100.0)), key=lambda u: abs(np.log10(median / u[1] / 10))
             )
-            if median / factor <= BIN_PLAUSIBLE_MEDIAN and ranges.max() / factor <= BIN_MAX_RANGE:
+            if median / factor <= BIN_PLAUSIBLE_MEDIAN and farthest / factor <= BIN_MAX_RANGE:
                 raise fail(
                     path,
                     f"its median range is {median:.0f} m: the coordinates look like {unit} (median "
@@ -248,7 +247,7 @@ def read_bin(path: Path, columns: int | None = None) -> np.ndarray:
                 )
         reflectance = columns is None and bool((values[:, 3] < 0).any())
         # without a layout any NaN says "another layout"; with one, a few NaN rows are check_points' to count
-        if (columns is None and not finite.all()) or (len(ranges) and ranges.max() > BIN_MAX_RANGE) or reflectance:
+        if (columns is None and not finite.all()) or farthest > BIN_MAX_RANGE or reflectance:
             layout = "x, y, z, r" if columns is None else f"{width} values, x, y, z first"
             raise fail(
                 path,
