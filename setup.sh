@@ -6,23 +6,21 @@ set -euo pipefail
 cd "$(dirname "$0")"
 python=${PYTHON:-python3}
 
-# open3d needs the system library libusb-1.0 (missing on minimal Debian/Ubuntu images); its offscreen renderer
-# (eval.py render=N) needs Vulkan: the loader and Mesa's drivers (software rendering where there is no GPU).
+# open3d links against the system library libusb-1.0 (missing on minimal Debian/Ubuntu images): as root it is
+# installed here, else the copy that the libusb-package wheel ships (a dependency) serves (icpflow/open3d_loader.py).
+# open3d's offscreen renderer (eval.py render=N) needs Vulkan: the loader and Mesa's drivers (software rendering where
+# there is no GPU).
 has_library() { ldconfig -p | grep -F "$1" >/dev/null; }  # not grep -q: an early exit fails the pipe (pipefail)
-missing=()
+vulkan=()
+has_library libvulkan.so.1 || vulkan+=(libvulkan1)
+has_library libvulkan_lvp.so || vulkan+=(mesa-vulkan-drivers)
+missing=("${vulkan[@]}")
 has_library libusb-1.0.so.0 || missing+=(libusb-1.0-0)
-has_library libvulkan.so.1 || missing+=(libvulkan1)
-has_library libvulkan_lvp.so || missing+=(mesa-vulkan-drivers)
-if [ ${#missing[@]} -gt 0 ]; then
-  if [ "$(id -u)" = 0 ]; then
-    apt-get update -qq && apt-get install -y -qq "${missing[@]}" >/dev/null
-  elif [ "${missing[0]}" = libusb-1.0-0 ]; then
-    echo "setup.sh: open3d needs libusb-1.0; run: sudo apt-get install -y ${missing[*]}" >&2
-    exit 1
-  else
-    echo "setup.sh: open3d's offscreen render (eval.py render=N) needs Vulkan; run: sudo apt-get install -y" \
-      "${missing[*]}" >&2
-  fi
+if [ ${#missing[@]} -gt 0 ] && [ "$(id -u)" = 0 ]; then
+  apt-get update -qq && apt-get install -y -qq "${missing[@]}" >/dev/null
+elif [ ${#vulkan[@]} -gt 0 ]; then
+  echo "setup.sh: open3d's offscreen render (eval.py render=N) needs Vulkan; run: sudo apt-get install -y" \
+    "${vulkan[*]}" >&2
 fi
 
 [ -x .venv/bin/python ] || "$python" -m venv .venv

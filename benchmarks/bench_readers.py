@@ -22,6 +22,7 @@ from icpflow.datasets.pairs import NpzPairsDataset
 from icpflow.datasets.pcaccumulation import PCAccumulationDataset
 from icpflow.datasets.sequence import ScanSequenceDataset
 from icpflow.datasets.zeroflow import ZeroFlowAV2Dataset
+from icpflow.open3d_loader import load_open3d
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 RNG = np.random.default_rng(0)
@@ -84,8 +85,7 @@ def write_scans(root: Path, suffix: str) -> None:
         if suffix == ".npy":
             np.save(root / f"{path.stem}.npy", points)
         else:
-            import open3d as o3d
-
+            o3d = load_open3d()
             cloud3d = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
             o3d.io.write_point_cloud(str(root / f"{path.stem}{suffix}"), cloud3d)
 

@@ -90,8 +90,11 @@ def kiss_odometry(cfg):
 def voxel_cloud(points: np.ndarray, voxel: float):
     """The open3d cloud of ``points`` (N, 3) down-sampled to ``voxel`` m (one measured point per voxel, KISS-ICP's
     voxel grid: 4x quicker than open3d's centroids)."""
-    import open3d as o3d
     from kiss_icp.voxelization import voxel_down_sample
+
+    from icpflow.open3d_loader import load_open3d
+
+    o3d = load_open3d()
 
     kept = voxel_down_sample(np.asarray(points, np.float64), voxel)
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(kept))
@@ -113,9 +116,10 @@ class TargetPlanes:
         """For the (K, 3) ``moved`` source points (None: every target point): the open3d cloud, with normals, of the
         target points nearest to them (once each), and per source point the distance (K,) to its nearest target
         point, that point (K, 3) and its normal (K, 3)."""
-        import open3d as o3d
-
         from icpflow.entry import signals_held
+        from icpflow.open3d_loader import load_open3d
+
+        o3d = load_open3d()
 
         centres = self.points if moved is None else moved
         with signals_held():  # a stop inside the threaded query would free its memory under its threads
@@ -266,8 +270,9 @@ class Odometry:
 def _staged(source: np.ndarray, target: TargetPlanes, transform: np.ndarray, stages=FIRST_STAGES) -> np.ndarray:
     """``transform`` refined point-to-plane from ``source`` (K, 3) onto ``target`` through ``stages`` ((reach m, Tukey
     width m, iterations) each), each with the normals of the target points nearest the source moved by its start."""
-    import open3d as o3d
+    from icpflow.open3d_loader import load_open3d
 
+    o3d = load_open3d()
     registration = o3d.pipelines.registration
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
     for reach, tukey, iterations in stages:

@@ -128,7 +128,10 @@ def _renderer_output():
             print("\n".join(kept), file=sys.stderr, flush=True)
 
 
-_PROBE = "from open3d.visualization import rendering; rendering.OffscreenRenderer(16, 16).render_to_image()"
+_PROBE = (
+    "from icpflow.open3d_loader import load_open3d; "
+    "load_open3d().visualization.rendering.OffscreenRenderer(16, 16).render_to_image()"
+)
 
 
 @functools.cache
@@ -163,9 +166,10 @@ def render_pair(
     y, seen from behind and above the ego vehicle. Unlit, no post-processing: the points have exactly these
     colours on white. Call :func:`offscreen_problem` first (without Vulkan open3d aborts the process).
     """
-    import open3d as o3d
-    from open3d.visualization import rendering
+    from icpflow.open3d_loader import load_open3d
 
+    o3d = load_open3d()
+    rendering = o3d.visualization.rendering
     ego = pair.ego1_from_ego0 if pair.ego1_from_ego0 is not None else np.eye(4)
     flow = predicted if predicted is not None else pair.flow
     clouds = [("pc0", transform_points(ego, pair.pc0), PC0_COLOUR), ("pc1", pair.pc1, PC1_COLOUR)]

@@ -9,6 +9,7 @@ import pytest
 from icpflow.datasets.sequence import ScanSequenceDataset
 from icpflow.frames import FramePairError
 from icpflow.geometry import invert, make_transform, transform_points
+from icpflow.open3d_loader import load_open3d
 
 SCANS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_hdl64_scans"
 RNG = np.random.default_rng(5)
@@ -27,8 +28,7 @@ def write_scans(folder: Path, suffix: str, names=None) -> list[Path]:
         elif suffix == ".npy":
             np.save(path, cloud)
         else:
-            import open3d as o3d
-
+            o3d = load_open3d()
             points = o3d.utility.Vector3dVector(cloud.astype(float))
             o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(points))
         paths.append(path)

@@ -27,6 +27,7 @@ from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, residual_to_full
 from icpflow.ground import GroundSegmenter
 from icpflow.odometry import estimate_ego_motion
+from icpflow.open3d_loader import load_open3d
 from icpflow.preprocess import Preprocessing, lift_points, lift_transform
 from icpflow.teacher.config import ICPFlowConfig
 
@@ -310,8 +311,7 @@ def write_scan(path: Path, points: np.ndarray) -> Path:
     elif suffix == ".npz":
         np.savez(path, points=points)
     else:
-        import open3d as o3d
-
+        o3d = load_open3d()
         o3d.io.write_point_cloud(str(path), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(float))))
     return path
 

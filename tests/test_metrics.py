@@ -18,6 +18,7 @@ from icpflow.metrics import (
     pair_stats,
     threeway_epe,
 )
+from icpflow.open3d_loader import provide_libusb
 
 I4 = np.eye(4)
 
@@ -131,6 +132,7 @@ def _package_mean(evaluator):
 
 
 def test_parity_with_bucketed_scene_flow_eval(tmp_path):
+    provide_libusb()  # the package imports open3d itself
     pytest.importorskip("bucketed_scene_flow_eval", reason="bucketed-scene-flow-eval not installed")
     from bucketed_scene_flow_eval.datasets.argoverse2.argoverse_scene_flow import CATEGORY_MAP
     from bucketed_scene_flow_eval.datasets.argoverse2.av2_metacategories import (

@@ -8,6 +8,7 @@ import pytest
 
 from icpflow.geometry import invert, pose_error, smallest_axes
 from icpflow.odometry import NORMAL_NEIGHBOURS, Odometry, TargetPlanes, estimate_ego_motion, voxel_cloud
+from icpflow.open3d_loader import load_open3d
 from icpflow.teacher.config import ICPFlowConfig
 
 from helpers.drives import synthetic_drive
@@ -60,9 +61,9 @@ def test_the_target_normals_are_the_nearest_points_planes(moving):
     """One normal estimate: for each moved source point its nearest target point (once each), with the normal of
     its NORMAL_NEIGHBOURS nearest target points, as open3d estimates it on the whole cloud; the whole cloud's
     normals (source None) are the same estimate."""
-    import open3d as o3d
     from scipy.spatial import cKDTree
 
+    o3d = load_open3d()
     pairs, scans = moving
     target = voxel_cloud(scans[1], 0.15)
     points = np.asarray(target.points)

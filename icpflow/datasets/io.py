@@ -278,8 +278,9 @@ def _read_scan(path: Path, bin_columns: int | None) -> np.ndarray:
         if not path.is_file():
             raise fail(path, "file not found")
         declared = (check_ply_complete if suffix == ".ply" else check_pcd_complete)(path)
-        import open3d as o3d  # imported here: only these two formats need it
+        from icpflow.open3d_loader import load_open3d
 
+        o3d = load_open3d()  # imported here: only these two formats need it
         cloud = o3d.io.read_point_cloud(str(path), format="auto")
         points = np.asarray(cloud.points)
         if len(points) == 0:
