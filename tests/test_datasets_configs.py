@@ -10,6 +10,7 @@ from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
 from icpflow.datasets.base import PairDataset
+from icpflow.preprocess import Preprocessing
 from icpflow.teacher import ICPFlowConfig
 from icpflow.teacher.config import teacher_config
 
@@ -76,6 +77,28 @@ def test_unknown_teacher_key_is_an_error():
         ValueError, match="dataset kitti: dataset.teacher has keys that are not ICPFlowConfig fields: num_frames"
     ):
         teacher_config(cfg)
+
+
+#: the dataset configs that state one sensor height, the teacher's ground block following it: (its key, its value)
+ONE_HEIGHT = {
+    "kitti": ("dataset.reader.sensor_height", 1.73),
+    "sequence": ("dataset.teacher.ground.sensor_height", 1.723),  # the reader's is auto: this is the av2 preset's
+    "synthetic": ("dataset.reader.sensor_height", 1.9),
+}
+
+
+@pytest.mark.parametrize("name", sorted(ONE_HEIGHT))
+def test_patchwork_offset_follows_the_one_sensor_height(name):
+    """The height is written once; in the height frame (ground near z = 0) Patchwork++ gets that sensor height and
+    the scan shifted down by it (ground at -sensor_height); overriding the height moves both."""
+    key, stated = ONE_HEIGHT[name]
+    assert (CONF / f"{name}.yaml").read_text().count(str(stated)) == 1
+    for overrides, height in (([], stated), ([f"{key}=2.5"], 2.5)):
+        cfg = _composed(f"dataset={name}", "dataset.root=/nowhere", *overrides)
+        assert OmegaConf.select(cfg, key) == height
+        teacher = teacher_config(cfg)
+        assert (teacher.ground.sensor_height, teacher.ground.patchwork_z_offset) == (height, -height)
+        assert Preprocessing.from_teacher(teacher).frame.ground_z == 0.0
 
 
 def test_synthetic_config_instantiates():
