@@ -160,7 +160,7 @@ def steps(args) -> list[Step]:
         Step(
             out,
             "labels_val",
-            ["label.py", "split=val", *label_common, f"out_dir={labels / 'val'}"],
+            ["label.py", "split=val", *label_common, f"out_dir={labels / 'val'}", *(["limit=1"] if smoke else [])],
         ),
     ]
     for name, recipe in train_steps.items():
@@ -188,7 +188,7 @@ def steps(args) -> list[Step]:
     stream = ["-m", "benchmarks.bench_student_latency", "--mode", "stream", "--threads", "2"]
     if smoke:
         stream += ["--regimes", "streamed", "--device", "cpu", "--backends", "eager", "--passes", "1"]
-        stream += ["--scans", "kitti"]
+        stream += ["--scans", "kitti", "--set", *SMOKE_LATENCY_MODEL]
     else:
         stream += ["--regimes", "streamed,given", "--device", "cuda", "--backends", on_gpu, "--passes", "34"]
     result.append(Step(out, "latency_stream", stream, cpus=2))
@@ -276,7 +276,7 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", default=None, help="comma-separated step names to run (default: all)")
     args = parser.parse_args(argv)
     if args.smoke:
-        args.train_sequences, args.test_pairs, args.workers, args.minutes = 2, 2, 1, 0
+        args.train_sequences, args.test_pairs, args.workers, args.minutes = 2, 1, 1, 0
     args.out = args.out.resolve()
     if not args.smoke:
         install_wheels()
