@@ -1,6 +1,6 @@
 """Ego motion from the scans alone (``icpflow.odometry``): its error against true poses, pairwise and per drive.
 
-    .venv/bin/python benchmarks/bench_ego_motion.py [--frames 100] [--seeds 0,1,2] [--beams 64,32]
+    .venv/bin/python -m benchmarks.bench_ego_motion [--frames 100] [--seeds 0,1,2] [--beams 64,32]
         [--ground estimated|world] [--methods drive,pair]
 
 Sequences: synthetic drives of ``--frames`` frames (the test split; each seed draws the ego's speed, 0-20 m/s, and
@@ -20,19 +20,16 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import DATA, SEQ01
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert, pose_error
 from icpflow.ground import GroundSegmenter
 from icpflow.odometry import Odometry, estimate_ego_motion
 from icpflow.preprocess import HeightFrame, Preprocessing
 from icpflow.teacher.config import GroundConfig, ICPFlowConfig
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-SEQ01 = DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"
 
 
 def sequences(args):

@@ -1,6 +1,6 @@
 """Ground removal (``icpflow.ground``): what each method calls ground, by class, against exact masks and labels.
 
-    .venv/bin/python benchmarks/bench_ground.py [--sequences 8] [--methods local,both,patchwork]
+    .venv/bin/python -m benchmarks.bench_ground [--sequences 8] [--methods local,both,patchwork]
 
 * Synthetic world (the test split, ``--sequences`` sequences of 2 frames at 64 and at 32 beams, pc0 of each pair,
   within the 32 m crop; the world's exact masks): the share of the moving points called ground, by class (car,
@@ -18,19 +18,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import DATA, GROUND_CLASSES, SEQ01
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.ground import GroundSegmenter
 from icpflow.preprocess import HeightFrame, Preprocessing, lift_points
 from icpflow.synthetic.scene import CLASSES
 from icpflow.teacher.config import GroundConfig, ICPFlowConfig
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-SEQ01 = DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"
-GROUND_CLASSES = (9, 10, 11, 12, 17)  # SemanticKITTI learning map: road, parking, sidewalk, other-ground, terrain
 
 
 def segmenter(settings: Preprocessing, method: str) -> GroundSegmenter:

@@ -1,6 +1,6 @@
 """Labelling throughput with 1 and 2 workers, and shard size / read speed per compression.
 
-    .venv/bin/python benchmarks/bench_label.py [--repeats 3] [--samples 8] [--shard-size 2] [--pinned] [overrides...]
+    .venv/bin/python -m benchmarks.bench_label [--repeats 3] [--samples 8] [--shard-size 2] [--pinned] [overrides...]
 
 Labels the first ``samples`` samples of the default synthetic world (conf/label.yaml; extra arguments are Hydra
 overrides such as ``dataset.reader.beams=32``) into a temporary folder with 1 and then 2 local workers; samples/s
@@ -29,15 +29,11 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-from hydra import compose, initialize_config_dir
 
-from icpflow import options as icpflow_options
+from benchmarks.common import ROOT, compose
 from icpflow.labelling.cli import label
 from icpflow.shards import ShardDataset, verify_shard, write_shard
 from icpflow.shards.schema import COMPRESSIONS
-
-REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
 
 
 def labelling_rate(overrides: list[str], workers: int, repeats: int, cores: str | None = None) -> tuple[float, float]:
@@ -49,7 +45,7 @@ def labelling_rate(overrides: list[str], workers: int, repeats: int, cores: str 
         with tempfile.TemporaryDirectory() as tmp:
             command = (["taskset", "-c", cores] if cores else []) + [
                 sys.executable,
-                str(REPO / "label.py"),
+                str(ROOT / "label.py"),
                 *overrides,
                 f"out_dir={tmp}/labels",
                 f"workers={workers}",
@@ -93,8 +89,7 @@ def read_rate(out_dir: Path, repeats: int) -> tuple[float, int]:
 def compression_rows(overrides: list[str], repeats: int) -> list[tuple]:
     """(compression, bytes/sample, read samples/s, read MB/s) for each compression setting."""
     rows = []
-    icpflow_options.register()  # the schemas the configs extend, as the entry script stores them
-    with tempfile.TemporaryDirectory() as tmp, initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+    with tempfile.TemporaryDirectory() as tmp:
         source = Path(tmp) / "labels"
         with contextlib.redirect_stdout(io.StringIO()):  # the summary line; errors still reach stderr
             status = label(compose("label", [*overrides, f"out_dir={source}", "workers=2"]), progress=False)

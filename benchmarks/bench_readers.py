@@ -1,7 +1,7 @@
 """Pairs per second of every dataset reader, on real samples where ../shared/data has them, else on files of
 realistic size written in the real layout to a temporary folder.
 
-    .venv/bin/python benchmarks/bench_readers.py [--repeats 5]
+    .venv/bin/python -m benchmarks.bench_readers [--repeats 5]
 
 Each row: median over ``repeats`` runs of reading every pair of the dataset once (AV2: pair read + map ground +
 annotation flow; "cold" builds a new reader per run, so it includes loading the log's tables and ground raster).
@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import DATA
 from icpflow.datasets.kitti import KittiOdometryDataset
 from icpflow.datasets.pairs import NpzPairsDataset
 from icpflow.datasets.pcaccumulation import PCAccumulationDataset
@@ -24,7 +25,6 @@ from icpflow.datasets.sequence import ScanSequenceDataset
 from icpflow.datasets.zeroflow import ZeroFlowAV2Dataset
 from icpflow.open3d_loader import load_open3d
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 RNG = np.random.default_rng(0)
 
 

@@ -1,6 +1,6 @@
 """Time to generate one synthetic pair (world, two scans, ground truth) at 64 and 32 beams; median of runs.
 
-Run from the repository root: ``.venv/bin/python benchmarks/bench_synthetic.py --repeats 5``.
+Run from the repository root: ``.venv/bin/python -m benchmarks.bench_synthetic --repeats 5``.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Wall time and peak memory of the ICP-Flow teacher per frame pair, with a per-stage breakdown.
 
-    .venv/bin/python benchmarks/bench_teacher.py [--repeats 5] [--threads 2] [--kernels-only] [--set F=V ...]
+    .venv/bin/python -m benchmarks.bench_teacher [--repeats 5] [--threads 2] [--kernels-only] [--set F=V ...]
         [--against F=V ...]
 
 Rows (medians over ``repeats`` runs after one warm-up run):
@@ -20,24 +20,21 @@ each case's time ratio (this teacher / the other).
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
 import resource
 import statistics
 import time
-from pathlib import Path
 
 import numba
 import numpy as np
 
+from benchmarks.common import DATA, literal_overrides
 from icpflow.geometry import make_transform, transform_points
 from icpflow.teacher.checks import passes
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.histogram import initial_translations
 from icpflow.teacher.pipeline import STAGES
 from icpflow.teacher.registration import register_clusters
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 def peak_rss_mb() -> float:
@@ -167,10 +164,7 @@ def main() -> None:
     args = parser.parse_args()
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
 
-    def overrides(items):
-        return {k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in items)}
-
-    cfg = ICPFlowConfig.preset("av2", **overrides(args.set))
+    cfg = ICPFlowConfig.preset("av2", **literal_overrides(args.set, parser, "--set"))
     rows = [bench_kernels(args.pairs, cfg, args.repeats)]
     if not args.kernels_only:
         for name, reader in (("av2", read_av2), ("kitti", read_kitti)):
@@ -180,7 +174,7 @@ def main() -> None:
                 continue
             configs = {name: cfg}
             if args.against is not None:
-                configs[f"{name} (against)"] = cfg.replace(**overrides(args.against))
+                configs[f"{name} (against)"] = cfg.replace(**literal_overrides(args.against, parser, "--against"))
             rows += bench_teacher(name, data, configs, args.repeats)
     print(f"numba threads {numba.get_num_threads()}, median of {args.repeats} after a warm-up; seconds")
     print_table(rows)

@@ -1,6 +1,6 @@
 """Quality tables of the ICP-Flow teacher and its ablations: Argoverse 2 pair, KITTI sequence 01, synthetic val split.
 
-    .venv/bin/python benchmarks/eval_teacher.py [--av2 [--av2-ground map|patchwork] [--no-times]] [--kitti]
+    .venv/bin/python -m benchmarks.eval_teacher [--av2 [--av2-ground map|patchwork] [--no-times]] [--kitti]
         [--synthetic N [--split val|test]] [--variants "teacher,own ground,nothing given,kiss-icp ego,zero flow"]
         [--set FIELD=VALUE ...]
 
@@ -18,22 +18,18 @@ not run.
 from __future__ import annotations
 
 import argparse
-import ast
 import time
-from pathlib import Path
 
 import numpy as np
 
+from benchmarks.common import DATA, SEQ01, compose, literal_overrides
 from icpflow import metrics
-from icpflow import options as icpflow_options
 from icpflow.geometry import ego_flow, pose_error, relative_transform
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.config import teacher_config
 
-ROOT = Path(__file__).resolve().parents[1]
 #: a variant key: the dataset's ground masks are not passed to the teacher
 OWN_GROUND = "own ground"
-DATA = ROOT.parent / "shared" / "data"
 VARIANTS = {
     "teacher": {},
     "centroid init": {"histogram.init": "centroid"},
@@ -50,11 +46,7 @@ VARIANTS = {
 
 def dataset_teacher(name: str, fields: dict) -> ICPFlowConfig:
     """The teacher that ``label.py dataset=<name>`` runs (its preset and ``dataset.teacher``), with ``fields``."""
-    from hydra import compose, initialize_config_dir
-
-    icpflow_options.register()  # the schemas the configs extend, as the entry script stores them
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        return teacher_config(compose("label", [f"dataset={name}"])).replace(**fields)
+    return teacher_config(compose("label", [f"dataset={name}"])).replace(**fields)
 
 
 def run_variant(overrides, pairs, dataset: str, crop: float, use_ground: bool, use_times: bool, base: dict):
@@ -106,7 +98,7 @@ def eval_av2(variants, ground: str, use_times: bool, base: dict) -> None:
 
 
 def eval_kitti(base: dict) -> None:
-    data = np.load(DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz")
+    data = np.load(SEQ01)
     poses = data["velo_poses_world"]
     teacher = ICPFlow(
         ICPFlowConfig.preset("waymo", ground={"method": "patchwork", "patchwork_z_offset": 0.0}, crop_xy=51.2, **base)
@@ -163,7 +155,7 @@ def main() -> None:
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         parser.error(f"unknown variants {unknown}; choose from {list(VARIANTS)}")
-    base = {key: ast.literal_eval(value) for key, value in (item.split("=", 1) for item in args.set)}
+    base = literal_overrides(args.set, parser, "--set")
     if args.av2:
         eval_av2(variants, args.av2_ground, not args.no_times, base)
     if args.kitti:

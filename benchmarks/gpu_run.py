@@ -1,9 +1,12 @@
 """One command for a GPU machine: label, train the two students for a fixed time each, score them beside the teacher
 and ego-only, and time the network and the teacher's ICP on the GPU (issue 34.4).
 
-    python3 benchmarks/gpu_run.py [--out outputs/gpu_run] [--minutes 3] [--workers 16] [--train-sequences 256]
+    python3 -m benchmarks.gpu_run [--out outputs/gpu_run] [--minutes 3] [--workers 16] [--train-sequences 256]
         [--test-pairs 64] [--data ../shared/data]
-    python3 benchmarks/gpu_run.py --smoke --out <dir>    # tiny sizes on the CPU (tests/test_gpu_run.py)
+    python3 -m benchmarks.gpu_run --smoke --out <dir>    # tiny sizes on the CPU (tests/test_gpu_run.py)
+
+Run from the checkout's root: ``-m`` puts it first on Python's path, so neither the project nor ``benchmarks`` need
+be installed (the device machine's run: ``run(command="python3 -m benchmarks.gpu_run ...", carry=[".wheels"])``).
 
 The steps are the project's own command lines, each a subprocess with its log in ``<out>/logs/<step>.log``; a step
 that finished (exit 0: ``<out>/logs/<step>.done``) is skipped when the command runs again, and an interrupted one runs
@@ -16,14 +19,14 @@ again (labelling and training resume where they stopped; a partial score file is
    (``trainer.max_time``) on the GPU in bf16-mixed, exported to ONNX;
 3. ``eval``: ``eval.py`` on ``--test-pairs`` synthetic test pairs: ego-only, the teacher and the paper student; the
    small student on the same pairs;
-4. ``latency_paper`` and ``latency_small``: ``benchmarks/bench_latency.py --device cuda`` with backends ``eager``,
-   ``eager-bf16`` and ``onnx`` (ONNX Runtime's CUDA provider, where ``onnxruntime-gpu`` is installed), median of
-   100 calls after 10, on the shipped KITTI and AV2 scans, poses given;
-   ``latency_stream`` (issue 33.7): ``benchmarks/bench_stream.py latency --device cuda``, the small model's network
-   on the GPU with the same backends, the shipped scans played as streams, regimes ``streamed`` (nothing given) and
+4. ``latency_paper`` and ``latency_small``: ``benchmarks.bench_student_latency --device cuda`` (its pair mode)
+   with backends ``eager``, ``eager-bf16`` and ``onnx`` (ONNX Runtime's CUDA provider, where ``onnxruntime-gpu`` is
+   installed), median of 100 calls after 10, on the shipped KITTI and AV2 scans, poses given; ``latency_stream``
+   (issue 33.7): ``benchmarks.bench_student_latency --mode stream --device cuda``, the small model's network on the
+   GPU with the same backends, the shipped scans played as streams, regimes ``streamed`` (nothing given) and
    ``given``, 102 frames each after the first two of each pass, the process held to 2 CPU cores (ground and
    odometry as on the 2-core laptop);
-5. ``teacher``: ``benchmarks/teacher_backends.py --av2 <data>/av2``: ``icp.backend=torch`` (CUDA) against the CPU
+5. ``teacher``: ``benchmarks.teacher_backends --av2 <data>/av2``: ``icp.backend=torch`` (CUDA) against the CPU
    backend on the shipped Argoverse 2 pair: time of each and the largest flow difference (synthetic pairs where the
    AV2 sample is absent).
 
@@ -48,6 +51,7 @@ needs the ``av2`` package.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import subprocess
@@ -157,7 +161,7 @@ def steps(args) -> list[Step]:
         Step(
             out,
             "labels_val",
-            ["label.py", "split=val", *label_common, f"out_dir={labels / 'val'}"],
+            ["label.py", "split=val", *label_common, f"out_dir={labels / 'val'}", *(["limit=1"] if smoke else [])],
         ),
     ]
     for name, recipe in train_steps.items():
@@ -174,7 +178,7 @@ def steps(args) -> list[Step]:
         arguments = ["eval.py", *test, f"method={methods}", f"checkpoint={out / f'train_{name}' / 'export'}"]
         result.append(Step(out, f"eval_{name}", [*arguments, f"out_dir={eval_dir}", "bev=0"]))
     for name, model in (("paper", "fastflow3d"), ("small", "fastflow3d_small")):
-        latency = ["benchmarks/bench_latency.py", "--model", model, "--regimes", "given"]
+        latency = ["-m", "benchmarks.bench_student_latency", "--model", model, "--regimes", "given"]
         if smoke:  # no ONNX rows: the export is the step's costliest part, and on a GPU they need onnxruntime-gpu
             latency += ["--device", "cpu", "--runs", "2", "--warmup", "1", "--scans", "uniform", "--points", "3000"]
             latency += ["--backends", "eager,eager-bf16", "--set", *SMOKE_LATENCY_MODEL]
@@ -182,14 +186,14 @@ def steps(args) -> list[Step]:
             latency += ["--device", "cuda", "--runs", "100", "--warmup", "10", "--scans", "kitti,av2"]
             latency += ["--backends", on_gpu]
         result.append(Step(out, f"latency_{name}", latency))
-    stream = ["benchmarks/bench_stream.py", "latency", "--threads", "2"]
+    stream = ["-m", "benchmarks.bench_student_latency", "--mode", "stream", "--threads", "2"]
     if smoke:
         stream += ["--regimes", "streamed", "--device", "cpu", "--backends", "eager", "--passes", "1"]
-        stream += ["--scans", "kitti"]
+        stream += ["--scans", "kitti", "--set", *SMOKE_LATENCY_MODEL]
     else:
         stream += ["--regimes", "streamed,given", "--device", "cuda", "--backends", on_gpu, "--passes", "34"]
     result.append(Step(out, "latency_stream", stream, cpus=2))
-    teacher = ["benchmarks/teacher_backends.py", "--json", str(out / "teacher.json")]
+    teacher = ["-m", "benchmarks.teacher_backends", "--json", str(out / "teacher.json")]
     if smoke:
         teacher += ["--pairs", "1", "--teacher", "icp.max_points=300", "--teacher", "icp.max_iter=3"]
     elif (args.data / "av2" / "sensor").is_dir():
@@ -212,7 +216,7 @@ def table_lines(log: Path) -> list[str]:
 
 def report(args, seconds: dict, failed: list[str]) -> str:
     """``report.md``: every table of the run."""
-    from student_report import rows  # benchmarks/student_report.py: Python puts this script's folder on sys.path
+    from benchmarks.student_report import rows  # after install_wheels: icpflow.evaluation imports hydra
 
     out = args.out
     lines = [f"# gpu_run ({'smoke, CPU' if args.smoke else 'GPU'}): {time.strftime('%Y-%m-%d %H:%M')}", ""]
@@ -272,8 +276,10 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--steps", default=None, help="comma-separated step names to run (default: all)")
     args = parser.parse_args(argv)
+    if importlib.util.find_spec("benchmarks") is None:  # the report reads the scores through benchmarks.student_report
+        parser.error("run from the checkout's root as: python3 -m benchmarks.gpu_run ...")
     if args.smoke:
-        args.train_sequences, args.test_pairs, args.workers, args.minutes = 2, 2, 1, 0
+        args.train_sequences, args.test_pairs, args.workers, args.minutes = 2, 1, 1, 0
     args.out = args.out.resolve()
     if not args.smoke:
         install_wheels()

@@ -1,6 +1,6 @@
-"""A Lightning callback for ``bench_student.py``: the wall-clock time at the end of every training batch, written as
-JSON (``{"ends": [seconds, ...]}``) when training ends. Loaded by ``train.py`` of any tree through
-``+callbacks.step_timer._target_=step_timer.StepTimer`` with this folder on PYTHONPATH."""
+"""A Lightning callback for ``bench_training_step``: the wall-clock time at the end of every training batch, written
+as JSON (``{"ends": [seconds, ...]}``) when training ends. Loaded by ``train.py`` of any tree through
+``+callbacks.step_timer._target_=benchmarks.step_timer.StepTimer`` with this checkout on PYTHONPATH."""
 
 import json
 import time

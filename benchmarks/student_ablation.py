@@ -1,7 +1,7 @@
 """Recipe ablations of the student over several seeds: each variant (a set of train.py overrides) is trained with
 every seed on the same shards, and scored by eval.py on a held-out split (the 64 test pairs by default).
 
-    .venv/bin/python benchmarks/student_ablation.py --train <shards> --val <shards> [--steps 200] [--seeds 0,1,2]
+    .venv/bin/python -m benchmarks.student_ablation --train <shards> --val <shards> [--steps 200] [--seeds 0,1,2]
         [--variant NAME=OVERRIDE[,OVERRIDE...] ...] [--experiment synthetic_quick] [--score-split test]
         [--score-sequences 16] [--out outputs/ablation]
 
@@ -25,7 +25,8 @@ import argparse
 import statistics
 from pathlib import Path
 
-from studies import CATEGORIES, ROOT, split_overrides, trained_and_scored
+from benchmarks.common import ROOT, split_overrides
+from benchmarks.training_runs import CATEGORIES, trained_and_scored
 
 DEFAULT_VARIANTS = [
     "base=",

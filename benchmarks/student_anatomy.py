@@ -1,7 +1,7 @@
 """Where a student's dynamic error is: per class, per object speed and extent, and what per-object oracles would
 gain, beside the teacher and ego-only on the same pairs (issue 29's anatomy; issue 30's per-extent teacher table).
 
-    .venv/bin/python benchmarks/student_anatomy.py --model student=<export dir or .ckpt> [--model NAME=PATH ...]
+    .venv/bin/python -m benchmarks.student_anatomy --model student=<export dir or .ckpt> [--model NAME=PATH ...]
         [--refine NAME] [--teacher] [--cache teacher_flows.npz] [--set split=test --set dataset.reader.num_sequences=16]
         [--labels <label.py out_dir>] [--curves <train.py out_dir>]
 
@@ -37,26 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow import options as icpflow_options
+from benchmarks.common import open_split
 from icpflow.geometry import ego_flow, kabsch, rigid_flow
 from icpflow.metrics import PairTruth
 
-ROOT = Path(__file__).resolve().parents[1]
 SPEED_BINS = (0.5, 3.0, 8.0, 15.0, 40.0)  # m/s
 EXTENT_BINS = (0.0, 2.0, 5.0, 8.0, 20.0)  # m
 MIN_OBJECT_POINTS = 5
-
-
-def open_split(overrides: list[str]):
-    """(dataset, eval config) of ``eval.py <overrides>``."""
-    from hydra import compose, initialize_config_dir
-
-    from icpflow.datasets.from_config import open_dataset
-
-    icpflow_options.register()  # the schemas the configs extend, as the entry script stores them
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("eval", overrides)
-    return open_dataset(cfg, 1), cfg
 
 
 def teacher_flows(dataset, cfg, cache: Path | None) -> dict[str, np.ndarray]:

@@ -1,12 +1,12 @@
 """The issue-19 table of one ``eval.py`` run: dynamic-foreground, Threeway and static-foreground EPE and the bucketed
 normalised EPE per class of each method, and each method's ratio to the teacher (``icpflow``) and to ego-only.
 
-    .venv/bin/python benchmarks/student_report.py <eval out_dir>/metrics.json
+    .venv/bin/python -m benchmarks.student_report <eval out_dir>/metrics.json
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 from icpflow.evaluation import method_summary, read_metrics
@@ -31,9 +31,9 @@ def rows(metrics_json: Path) -> dict[str, dict[str, float]]:
 
 
 def main() -> None:
-    if len(sys.argv) != 2:
-        raise SystemExit(__doc__)
-    table = rows(Path(sys.argv[1]))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("metrics", type=Path, help="an eval.py out_dir's metrics.json")
+    table = rows(parser.parse_args().metrics)
     columns = list(dict.fromkeys(column for row in table.values() for column in row))
     print("| method | " + " | ".join(columns) + " |")
     print("|---|" + "---|" * len(columns))

@@ -1,7 +1,7 @@
 """Where the teacher's dynamic error is, per moving object, and why: the per-extent table and a diagnosis of every
 moving object through the teacher's steps (issue 30).
 
-    .venv/bin/python benchmarks/teacher_anatomy.py [--set split=test --set dataset.reader.num_sequences=8]
+    .venv/bin/python -m benchmarks.teacher_anatomy [--set split=test --set dataset.reader.num_sequences=8]
         [--teacher FIELD=VALUE ...] [--objects 8] [--list 20]
 
 ``--set``: ``eval.py`` overrides choosing the split (any dataset with ground-truth flow and pc0 instance ids; the
@@ -32,21 +32,18 @@ pc0 + the true flow, in pc1's frame (the teacher's registration frame).
 from __future__ import annotations
 
 import argparse
-import ast
 import time
 from collections import Counter
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from icpflow import options as icpflow_options
+from benchmarks.common import literal_overrides, open_split
 from icpflow.geometry import euler_angles, kabsch, transform_points
 from icpflow.metrics import PairTruth
 from icpflow.teacher.histogram import main_axis
 
-ROOT = Path(__file__).resolve().parents[1]
 EXTENT_BINS = (0.0, 2.0, 5.0, 8.0, 20.0)  # m
 MIN_OBJECT_POINTS = 5
 CAUSES = (
@@ -63,18 +60,6 @@ CAUSES = (
     "other",
     "ok",
 )
-
-
-def open_split(overrides: list[str]):
-    """(dataset, eval config) of ``eval.py <overrides>``."""
-    from hydra import compose, initialize_config_dir
-
-    from icpflow.datasets.from_config import open_dataset
-
-    icpflow_options.register()  # the schemas the configs extend, as the entry script stores them
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("eval", overrides)
-    return open_dataset(cfg, 1), cfg
 
 
 def share_of(labels: np.ndarray) -> Counter:
@@ -257,7 +242,7 @@ def main() -> None:
     args = parser.parse_args()
     overrides = args.set or ["split=test", "dataset.reader.num_sequences=8"]
     dataset, cfg = open_split(overrides)
-    fields = {key: ast.literal_eval(value) for key, value in (item.split("=", 1) for item in args.teacher)}
+    fields = literal_overrides(args.teacher, parser, "--teacher")
     teacher = ICPFlow(teacher_config(cfg).replace(**fields))
     records, seconds = [], []
     for index in range(len(dataset)):

@@ -2,7 +2,7 @@
 ``icp.backend=torch`` (padded batch, ``torch.cdist``; CUDA whenever torch sees a GPU, else the CPU), on the
 synthetic test pairs, with the teacher ``eval.py method=icpflow`` runs for ``dataset=synthetic``.
 
-    .venv/bin/python benchmarks/teacher_backends.py [--pairs 32] [--teacher FIELD=VALUE ...] [--max-seconds S]
+    .venv/bin/python -m benchmarks.teacher_backends [--pairs 32] [--teacher FIELD=VALUE ...] [--max-seconds S]
         [--json OUT] [--av2 ../shared/data/av2]
 
 No Hydra: the reader is ``SyntheticDataset(split="test", ...)`` with conf/dataset/synthetic.yaml's ``reader``
@@ -37,7 +37,6 @@ threads).
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import math
 import statistics
@@ -47,8 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # `python3 benchmarks/teacher_backends.py` from a checkout that is not installed
+from benchmarks.common import ROOT, literal_overrides
 
 SYNTHETIC_YAML = ROOT / "conf" / "dataset" / "synthetic.yaml"
 BACKENDS = ("cpu", "torch")
@@ -262,15 +260,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.pairs < 1:
         parser.error("--pairs must be >= 1")
-    overrides = {}
-    for item in args.teacher:
-        if "=" not in item:
-            parser.error(f"--teacher {item!r}: expected FIELD=VALUE")
-        key, value = item.split("=", 1)
-        try:
-            overrides[key] = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            overrides[key] = value  # a bare word: a string (icp.dof=yaw)
+    overrides = literal_overrides(args.teacher, parser, "--teacher")
     if "icp.backend" in overrides or "icp_backend" in overrides:
         parser.error("--teacher: the backend is what this benchmark varies")
 

@@ -11,7 +11,7 @@
   has it (AVX512-BF16 / AMX), else OpenVINO keeps float32.
 
 ``precision`` is ``f32`` or ``bf16`` (OpenVINO only). Every runtime is checked against eager PyTorch by
-``fastflow3d.export.measure_parity`` in ``tests/test_export.py`` and in ``benchmarks/bench_latency.py``: float32
+``fastflow3d.export.measure_parity`` in ``tests/test_export.py`` and in ``benchmarks/bench_student_latency.py``: float32
 within the export's ``PARITY_TOLERANCE`` (1e-4 m), bf16 within :data:`BF16_TOLERANCE`.
 """
 

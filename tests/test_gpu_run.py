@@ -1,13 +1,14 @@
-"""The GPU run of issue 34.4 (``benchmarks/gpu_run.py``), smoke-tested on the CPU with tiny sizes: every step runs
-(labelling, both recipes' training with their export, scoring beside the teacher and ego-only, the latency tables
-with eager and eager bf16, the stream's, the teacher's two ICP backends) and the report holds each table."""
+"""The GPU run of issue 34.4 (``python -m benchmarks.gpu_run``), smoke-tested on the CPU with tiny sizes: every step
+runs (labelling, both recipes' training with their export, scoring beside the teacher and ego-only, the latency
+tables with eager and eager bf16, the stream's, the teacher's two ICP backends) and the report holds each table."""
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from benchmarks import gpu_run
 
 from helpers.labelling import TESTS_ENV
 
@@ -17,9 +18,9 @@ STEPS = ("labels_train", "labels_val", "train_paper", "train_small", "eval_paper
 
 
 def _smoke(out: Path) -> subprocess.CompletedProcess:
-    """``benchmarks/gpu_run.py --smoke --out <out>``."""
+    """``python -m benchmarks.gpu_run --smoke --out <out>`` in the checkout's root."""
     return subprocess.run(
-        [sys.executable, str(REPO / "benchmarks" / "gpu_run.py"), "--smoke", "--out", str(out)],
+        [sys.executable, "-m", "benchmarks.gpu_run", "--smoke", "--out", str(out)],
         cwd=REPO,
         env=TESTS_ENV,
         capture_output=True,
@@ -54,7 +55,7 @@ def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
 
 
 def test_steps_picks_steps_and_refuses_an_unknown_one(tmp_path):
-    command = [sys.executable, str(REPO / "benchmarks" / "gpu_run.py"), "--smoke", "--out", str(tmp_path)]
+    command = [sys.executable, "-m", "benchmarks.gpu_run", "--smoke", "--out", str(tmp_path)]
     result = subprocess.run([*command, "--steps", "teacher,nope"], cwd=REPO, env=TESTS_ENV, capture_output=True)
     assert result.returncode == 2 and b"--steps: unknown nope; steps: labels_train," in result.stderr
     assert not (tmp_path / "logs").exists()  # nothing ran
@@ -71,9 +72,6 @@ def test_a_second_run_skips_what_is_done(smoke):
 def test_a_step_is_done_only_once_its_command_exited_zero(tmp_path):
     """A killed step (a partial metrics.json on the device, 2026-11-27) runs again on the next call; a finished one
     is skipped."""
-    spec = importlib.util.spec_from_file_location("gpu_run", REPO / "benchmarks" / "gpu_run.py")
-    gpu_run = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gpu_run)
     output = tmp_path / "metrics.json"
     write = f"open({str(output)!r}, 'a').write('x')"
     seconds = {}

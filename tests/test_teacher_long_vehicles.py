@@ -186,11 +186,12 @@ def test_a_bus_cut_in_two_by_the_clustering_is_recombined(synthetic_test):
 
 
 def test_the_anatomy_names_the_step_that_went_wrong():
-    """benchmarks/teacher_anatomy.py on the first test sequence with the issue-30 steps off: the fast bus of pair
-    000001 is diagnosed as a wrong start (the vote 1.8 m short), in the table of long objects."""
+    """``python -m benchmarks.teacher_anatomy`` on the first test sequence with the issue-30 steps off: the fast bus
+    of pair 000001 is diagnosed as a wrong start (the vote 1.8 m short), in the table of long objects."""
     command = [
         sys.executable,
-        str(ROOT / "benchmarks" / "teacher_anatomy.py"),
+        "-m",
+        "benchmarks.teacher_anatomy",
         "--set",
         "split=test",
         "--set",

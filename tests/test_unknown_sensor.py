@@ -3,7 +3,8 @@ without poses and without ground masks, through the Predictor and ``label.py dat
 
 KITTI sequence 01 (``../shared/data/kitti_odometry_seq01``) has exact poses and SemanticKITTI labels: its ground is
 road, parking, sidewalk, other-ground and terrain, and every non-car point is static, so the true flow of the
-static points is the ego flow of the exact poses. Figures: ``benchmarks/unknown_sensor.py`` (BENCHMARKS.md).
+static points is the ego flow of the exact poses. Figures: BENCHMARKS.md, issue 21 (its script, retired in issue 46:
+``git show 28fd404:benchmarks/unknown_sensor.py``).
 """
 
 from pathlib import Path

@@ -1,8 +1,10 @@
+# Frozen study (issue 19, point 4), as of commit 0beb838; figures and steps.png: BENCHMARKS.md, "Third session
+# (2026-11-25, 20:10-23:10): how far steps carry (point 4)".
 """How far optimiser steps carry the student: the recipe trained at 1x, 2x and 4x its steps (each run with its own
 warm-up and cosine schedule, as a user would run it), every run scored on the synthetic test split beside the
 teacher and ego-only flow. Says whether the student is limited by CPU time or by its design.
 
-    .venv/bin/python benchmarks/steps_study.py --train <shards> --val <shards> [--steps 1400] [--factors 1,2,4]
+    .venv/bin/python -m benchmarks.studies.steps_study --train <shards> --val <shards> [--steps 1400] [--factors 1,2,4]
         [--experiment synthetic_cpu] [--test-sequences 16] [--baselines <eval.py metrics.json with ego, icpflow>]
         [--out outputs/steps] [--override KEY=VALUE ...]
 
@@ -17,8 +19,8 @@ import argparse
 import json
 from pathlib import Path
 
-from studies import ROOT, run_python, save_line_plot, scores, trained_and_scored
-
+from benchmarks.common import ROOT
+from benchmarks.training_runs import run_python, save_line_plot, scores, trained_and_scored
 from icpflow.atomic import write_text_atomic
 from icpflow.evaluation import is_complete
 

@@ -1,20 +1,23 @@
 """Steps per minute of the student's training loop as ``train.py`` runs it: two (or more) source trees side by side.
 
 Each run is a subprocess ``<tree>/.venv/bin/python train.py`` in that tree (its own code and configs) on the same
-shards, with validation and export off and ``benchmarks/step_timer.py`` recording the end of every step. A run's
+shards, with validation and export off and ``benchmarks.step_timer`` recording the end of every step. A run's
 figure is taken after ``--warmup`` steps (DataLoader start, first allocations): the median step time and the mean
 (time of the last step minus that of the warm-up step, over the steps between), steps per minute = 60 / mean. Runs
 alternate (A, B, A, B, ...) ``--repeats`` times, so a change of machine load hits both; the table gives each run's
 median over the repeats and the ratio to the first run.
 
 Usage:
-  python benchmarks/bench_student.py --train /work/data/labels/train16 --val /work/data/labels/val \\
+  python -m benchmarks.bench_training_step --train /work/data/labels/train16 --val /work/data/labels/val \\
       --run before=/work/wt/i19-base --run after=. [--run "after-w2=.:data.workers=2"] [--steps 40] [--warmup 10]
 A run is NAME=TREE[:override,override,...] (Hydra overrides added to that tree's train.py command line; an item
 ``env:NAME=VALUE`` sets an environment variable of the run instead, e.g. ``env:OMP_NUM_THREADS=1``).
 
-``--work N`` first prints the CPU work of a step in each run's tree (``benchmarks/student_step_work.py``: one
+``--work N`` first prints the CPU work of a step in each run's tree (``benchmarks.student_step_work``: one
 thread, process time, median of N batches), which holds on a loaded machine where wall-clock step times do not.
+
+The two helpers run inside each tree's process, found through ``PYTHONPATH=<this checkout>`` (after the tree's
+own code, which comes first: ``train.py``'s folder, ``-m``'s working directory).
 """
 
 from __future__ import annotations
@@ -29,9 +32,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from studies import split_overrides
+from benchmarks.common import ROOT, split_overrides
 
-HERE = Path(__file__).resolve().parent
+#: a run's environment: this checkout's ``benchmarks`` importable in the tree's process
+HELPERS = {"PYTHONPATH": str(ROOT)}
 
 
 def parse_run(text: str) -> tuple[str, Path, list[str]]:
@@ -39,7 +43,7 @@ def parse_run(text: str) -> tuple[str, Path, list[str]]:
     name, _, rest = text.partition("=")
     tree, _, extra = rest.partition(":")
     if not name or not tree:
-        raise SystemExit(f"bench_student: --run {text!r}: expected NAME=TREE[:override,...]")
+        raise SystemExit(f"bench_training_step: --run {text!r}: expected NAME=TREE[:override,...]")
     return name, Path(tree).resolve(), split_overrides(extra)
 
 
@@ -64,17 +68,17 @@ def run_once(tree: Path, items: list[str], args, out: Path) -> dict:
         "+trainer.limit_val_batches=0",
         "trainer.num_sanity_val_steps=0",
         "export.formats=[]",
-        "+callbacks.step_timer._target_=step_timer.StepTimer",
+        "+callbacks.step_timer._target_=benchmarks.step_timer.StepTimer",
         f"+callbacks.step_timer.path={timer}",
         *args.common,
         *overrides,
     ]
-    env = {**os.environ, **run_env, "PYTHONPATH": str(HERE)}
+    env = {**os.environ, **run_env, **HELPERS}
     start = time.perf_counter()
     done = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - start
     if done.returncode != 0 or not timer.is_file():
-        raise SystemExit(f"bench_student: run in {tree} failed:\n{done.stderr[-3000:]}")
+        raise SystemExit(f"bench_training_step: run in {tree} failed:\n{done.stderr[-3000:]}")
     ends = json.loads(timer.read_text())["ends"]
     steps = ends[args.warmup - 1 :]
     gaps = [b - a for a, b in zip(steps[:-1], steps[1:])]
@@ -86,7 +90,8 @@ def step_work(tree: Path, items: list[str], args) -> dict:
     overrides, _ = split_env(items)
     command = [
         str(tree / ".venv" / "bin" / "python"),
-        str(HERE / "student_step_work.py"),
+        "-m",
+        "benchmarks.student_step_work",
         str(tree / "conf"),
         str(Path(args.train).resolve()),
         str(Path(args.val).resolve()),
@@ -94,9 +99,9 @@ def step_work(tree: Path, items: list[str], args) -> dict:
         *args.common,
         *overrides,
     ]
-    done = subprocess.run(command, cwd=tree, capture_output=True, text=True)
+    done = subprocess.run(command, cwd=tree, env={**os.environ, **HELPERS}, capture_output=True, text=True)
     if done.returncode != 0:
-        raise SystemExit(f"bench_student: step work in {tree} failed:\n{done.stderr[-3000:]}")
+        raise SystemExit(f"bench_training_step: step work in {tree} failed:\n{done.stderr[-3000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -113,7 +118,7 @@ def main() -> None:
     parser.add_argument("--no-loop", action="store_true", help="only --work, no train.py runs")
     args = parser.parse_args()
     if args.steps - args.warmup < 10:
-        raise SystemExit("bench_student: need >= 10 timed steps (--steps - --warmup)")
+        raise SystemExit("bench_training_step: need >= 10 timed steps (--steps - --warmup)")
     runs = [parse_run(text) for text in args.run]
     if args.work:
         print(f"CPU work per training step, one thread, process time, median of {args.work} batches")
@@ -128,7 +133,7 @@ def main() -> None:
     if args.no_loop:
         return
     figures: dict[str, list[dict]] = {name: [] for name, _, _ in runs}
-    with tempfile.TemporaryDirectory(prefix="bench_student_") as scratch:
+    with tempfile.TemporaryDirectory(prefix="bench_training_step_") as scratch:
         for repeat in range(args.repeats):
             for name, tree, overrides in runs:
                 result = run_once(tree, overrides, args, Path(scratch) / f"{name}-{repeat}")

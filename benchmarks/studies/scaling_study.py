@@ -1,8 +1,9 @@
+# Frozen study (issue 13), as of commit 0beb838; figures and scaling.png: BENCHMARKS.md, "Data-scaling study".
 """Data-scaling study of the student: dynamic-foreground EPE on the synthetic test split against the number of
 labelled training pairs, for pseudo-label (distillation) and ground-truth (supervised) training, with the teacher
 and ego-only flow on the same test pairs as reference lines.
 
-    .venv/bin/python benchmarks/scaling_study.py [--sizes 16,64,256] [--supervision pseudo,gt] [--steps 600]
+    .venv/bin/python -m benchmarks.studies.scaling_study [--sizes 16,64,256] [--supervision pseudo,gt] [--steps 600]
         [--test-sequences 16] [--experiment synthetic_cpu] [--out outputs/scaling]
 
 Every stage is the project's own command line, run as a subprocess: ``label.py`` (sizes/2 independent sequences of
@@ -18,8 +19,8 @@ import argparse
 import json
 from pathlib import Path
 
-from studies import ROOT, run_python, save_line_plot, scores, trained_and_scored
-
+from benchmarks.common import ROOT
+from benchmarks.training_runs import run_python, save_line_plot, scores, trained_and_scored
 from icpflow.atomic import write_text_atomic
 from icpflow.evaluation import is_complete
 

@@ -1,6 +1,7 @@
+# Frozen study (issue 22), as of commit fc2e986; figures: BENCHMARKS.md, "Issue 22: real time on a laptop CPU" (int8).
 """Int8 inference of a trained student: speed and the accuracy it costs on the held-out test split.
 
-    .venv/bin/python benchmarks/int8_study.py --export <a train.py export folder> [--out outputs/int8]
+    .venv/bin/python -m benchmarks.studies.int8_study --export <a train.py export folder> [--out outputs/int8]
         [--calibration-pairs 8] [--test-sequences 16] [--runs 10] [--threads 2]
 
 The export's ``fastflow3d.onnx`` is quantised by ONNX Runtime's static quantisation (QDQ format, per-channel int8
@@ -23,9 +24,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_latency import read_scans
-from studies import ROOT, run_python, scores
 
+from benchmarks.common import ROOT, read_scan_pair
+from benchmarks.training_runs import run_python, scores
 from fastflow3d.artifact import sha256_file
 from fastflow3d.model import compensate
 from icpflow.atomic import write_text_atomic
@@ -83,7 +84,7 @@ def latency(models: dict[str, Path], runs: int, threads: int) -> dict[str, dict[
     sessions = {name: ort.InferenceSession(str(path), options, providers=cpu) for name, path in models.items()}
     result = {}
     for scan in ("kitti", "av2"):
-        scans = read_scans(scan, 0)
+        scans = read_scan_pair(scan)
         if scans is None:
             continue
         ground_z = 0.3 if scan == "av2" else -1.4  # sensor frames: AV2's origin near the ground, KITTI's 1.73 m up

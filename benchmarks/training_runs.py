@@ -1,7 +1,7 @@
-"""What the student studies share (``student_ablation.py``, ``steps_study.py``, ``scaling_study.py``): the project's
-own command lines run as subprocesses, one training run scored on a held-out split (skipped where its output
-exists, so an interrupted study resumes), the scores read from an ``eval.py`` ``metrics.json``, and a line plot.
-Imported by those scripts as ``studies`` (Python puts the script's folder first on ``sys.path``)."""
+"""Training runs scored on a held-out split, for ``student_ablation`` and the frozen student studies
+(``studies/steps_study``, ``studies/scaling_study``): the project's own command lines run as subprocesses in the
+checkout's root, one training run scored by ``eval.py`` (skipped where its output exists, so an interrupted study
+resumes), the scores read from an ``eval.py`` ``metrics.json``, and a line plot."""
 
 from __future__ import annotations
 
@@ -10,24 +10,11 @@ import sys
 import time
 from pathlib import Path
 
+from benchmarks.common import ROOT
 from icpflow.atomic import atomic_path, write_text_atomic
 from icpflow.evaluation import is_complete, method_summary, read_metrics
 
-ROOT = Path(__file__).resolve().parents[1]
 CATEGORIES = ("dynamic_fg", "static_fg", "static_bg")
-
-
-def split_overrides(text: str) -> list[str]:
-    """Hydra overrides from ``a=1,b=[1,2],c=x``: split at the commas outside brackets."""
-    items, depth, current = [], 0, ""
-    for char in text:
-        depth += (char in "[{(") - (char in "]})")
-        if char == "," and depth == 0:
-            items.append(current)
-            current = ""
-        else:
-            current += char
-    return [item for item in [*items, current] if item]
 
 
 def run_python(arguments: list[str]) -> float:

@@ -1,0 +1,483 @@
+"""FastFlow3D inference latency on real scans, in three modes: a frame pair (``pair``), a stream (``stream``) and
+the refinement dial (``refine``).
+
+    .venv/bin/python -m benchmarks.bench_student_latency [--mode pair] [--model fastflow3d_small]
+        [--decoder linear|gru] [--set KEY=VALUE ...] [--threads 2] [--runs 20] [--warmup 3] [--scans kitti,av2]
+        [--regimes given,estimated] [--backends eager,eager-bf16,pt2,onnx,onnx-tuned,openvino,openvino-bf16]
+        [--breakdown] [--device cpu|cuda]
+    .venv/bin/python -m benchmarks.bench_student_latency --mode stream [--backends onnx-tuned,openvino]
+        [--scans kitti,av2] [--passes 5] [--threads 2] [--model fastflow3d_small] [--regimes pairwise,streamed,given]
+        [--device cpu|cuda]
+    .venv/bin/python -m benchmarks.bench_student_latency --mode refine --export <export dir> [--runs 20]
+        [--warmup 3] [--scans kitti,av2]
+
+Scans: KITTI HDL-64E ``000000`` -> ``000001`` (``../shared/data/kitti_hdl64_scans``, ~124k points each) and the
+Argoverse 2 pair (``../shared/data/av2``, ~99k points each); ``uniform`` (pair mode) adds ``--points`` uniform
+random points over the grid (the given regime only, with the identity). In the pair and stream modes the model
+(``conf/model/<model>.yaml``, ``--decoder`` and ``--set key=value`` overriding its fields) has random weights
+(latency does not depend on them) and removes ground (``preprocessing.remove_ground``, as the CPU recipes train
+it) with the teacher settings of the scan's dataset. Backends: ``eager`` PyTorch (``eager-bf16``: under bfloat16
+autocast), ``compile`` (torch.compile, dynamic; its first call takes minutes on a CPU), ``pt2`` (torch.export),
+``onnx`` (ONNX Runtime with its default session, the Predictor's before issue 22; with ``--device cuda`` its CUDA
+provider where ``onnxruntime-gpu`` is installed, else its CPU provider), ``onnx-tuned`` and ``openvino`` /
+``openvino-bf16`` (``fastflow3d.runtime``, the CPU engines; OpenVINO rows need ``pip install 'icpflow[openvino]'``
+and are left out without it).
+
+``pair``: the whole ``Predictor`` call per frame pair, per backend and regime. The model is exported (ONNX +
+torch.export) and checked against eager by ``fastflow3d.export``; every backend is then checked again against eager
+on the export's check clouds (``parity``, metres) and on each real scan (``real``). Regimes: ``given`` (ego motion
+and both ground masks passed in, as from a dataset's poses and labels; they are computed once beforehand, outside
+the timing) and ``estimated`` (none passed: the Predictor finds both scans' ground, ``icpflow.ground``, and the ego
+motion, ``icpflow.odometry``). Prints, per scan, regime and backend: median and p90 of ``--runs`` calls after
+``--warmup`` calls (the backends take turns within each run, so that a change of load on a shared machine hits all
+alike), frames per second (1 / median), speed relative to the first backend, and memory: the process's
+resident-set growth when the backend was built and warmed up (MB). ``--breakdown`` adds what one call's time is
+made of (first backend, per step).
+
+``stream``: streaming inference (``fastflow3d.stream.FlowStream``), per-frame latency. Each scan list is played as
+a stream (KITTI HDL-64E ``000000``-``000005``; the two AV2 sweeps alternate, s0 s1 s0 s1 ..., as the only AV2 stream
+shipped) ``--passes`` times from a fresh stream; the frames after the first two of each pass are timed (the whole
+``push``). Regimes: ``pairwise`` (``Predictor.predict`` on each pair with nothing given), ``streamed`` (nothing
+given) and ``given`` (the ego motion and ground masks passed in, computed beforehand). With ``--device cuda`` only
+the network runs on the GPU: ground, odometry and the rest stay on the CPU's ``--threads``. Prints median / p90 ms,
+Hz, the RSS growth of the stream (and the GPU's peak memory), and the streamed regime's time per step (ground,
+odometry, network, the rest). The ego motion's error against true poses, streamed and pairwise:
+``benchmarks/bench_ego_motion.py``.
+
+``refine``: the refinement dial, whole-call time of a trained student (``--export``) alone, with the Predictor's
+ICP refinement (``fastflow3d.refine``) and of the teacher. Ego motion and ground masks are given (computed once
+beforehand with the student's preprocessing: KISS-ICP and Patchwork++), as in the pair mode's ``given`` regime;
+the teacher gets the same ego motion and masks. The student runs as ``Predictor.load`` picks (ONNX Runtime, tuned,
+on the CPU); the three calls take turns within each run. These scans have no ground-truth flow: the accuracy side
+of the dial is ``eval.py ... method=[ego,icpflow,student,student+refine]`` on the synthetic test split
+(BENCHMARKS.md). Prints median and p90 ms, Hz, and for the refinement the share of the network's points whose flow
+ICP replaced and their median change (m).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import statistics
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+from benchmarks.common import DATA, compose, cpu_name, read_scan_pair, rss_mb, timed
+from fastflow3d.artifact import FILE_NAMES, OnnxRuntimeNetwork, SingleSampleNet, TorchNetwork, load_network
+from fastflow3d.checkpoint import build_student
+from fastflow3d.contract import InputContract
+from fastflow3d.export import PARITY_TOLERANCE, export_model, measure_parity
+from fastflow3d.model import compensate
+from fastflow3d.predictor import Predictor
+from fastflow3d.runtime import BF16_TOLERANCE, runtime_network
+from fastflow3d.stream import FlowStream
+from icpflow.geometry import residual_to_full
+from icpflow.preprocess import Preprocessing, lift_points, lift_transform
+from icpflow.teacher import ICPFlow
+from icpflow.teacher.config import ICPFlowConfig
+
+BACKENDS = ("eager", "eager-bf16", "compile", "pt2", "onnx", "onnx-tuned", "openvino", "openvino-bf16")
+#: teacher settings of each scan's dataset (ground segmentation and ego motion in the ``estimated`` regime)
+TEACHERS = {
+    "kitti": ICPFlowConfig.preset("waymo", ground={"method": "patchwork", "patchwork_z_offset": 0.0}, crop_xy=51.2),
+    "av2": ICPFlowConfig.preset("av2"),
+    "uniform": ICPFlowConfig.preset("av2"),
+}
+STREAM_REGIMES = ("pairwise", "streamed", "given")
+#: metres of each scan's origin above the ground (KITTI's velodyne frame; the AV2 ego frame is the model's own)
+SENSOR_HEIGHTS = {"kitti": 1.73, "av2": None}
+#: each mode's options and their defaults (None: no default); an option of another mode is refused
+MODES = {
+    "pair": {
+        "model": "fastflow3d_small", "decoder": None, "set": [], "device": "cpu", "threads": 2, "runs": 20,
+        "warmup": 3, "scans": "kitti,av2", "points": 80_000, "regimes": "given,estimated",
+        "backends": "onnx,onnx-tuned,openvino,eager", "breakdown": False,
+    },
+    "stream": {
+        "model": "fastflow3d_small", "decoder": None, "set": [], "device": "cpu", "threads": 2,
+        "scans": "kitti,av2", "passes": 5, "regimes": "pairwise,streamed,given", "backends": "onnx-tuned,openvino",
+    },
+    "refine": {"export": None, "runs": 20, "warmup": 3, "scans": "kitti,av2"},
+}  # fmt: skip
+
+
+def model_config(name: str, overrides: list[str]) -> dict:
+    """``conf/model/<name>.yaml`` as train.py composes it, with ``model.<key>=<value>`` overrides."""
+    cfg = compose("train", [f"model={name}", *(f"model.{item}" for item in overrides)])
+    return OmegaConf.to_container(cfg.model, resolve=True)
+
+
+def build_model(args):
+    """(the random-weight student of ``--model``, ``--decoder`` and ``--set``, the overrides applied)."""
+    overrides = ([f"decoder={args.decoder}"] if args.decoder else []) + list(args.set)
+    return build_student(model_config(args.model, overrides)).eval(), overrides
+
+
+def export_formats(backends) -> list[str]:
+    """The export files ``backends`` run from: ``onnx`` (ONNX Runtime and OpenVINO), ``pt2``; none for eager."""
+    return [f for f in ("onnx", "pt2") if any(b.startswith(f) or (f == "onnx" and "openvino" in b) for b in backends)]
+
+
+def build_network(name: str, model, export_dir: Path, device: str, threads: int):
+    """The runnable network of backend ``name`` (numpy in, numpy out); None when its runtime is not installed."""
+    onnx_file = export_dir / FILE_NAMES["onnx"]
+    if name in ("eager", "eager-bf16"):
+        return TorchNetwork(SingleSampleNet(copy.deepcopy(model).to(device)).eval(), device, name == "eager-bf16")
+    if name == "compile":
+        return TorchNetwork(
+            torch.compile(SingleSampleNet(copy.deepcopy(model).to(device)).eval(), dynamic=True), device
+        )
+    if name == "pt2":
+        return load_network(export_dir / FILE_NAMES["pt2"], "pt2", device)
+    if name == "onnx":
+        providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if device == "cuda" else ["CPUExecutionProvider"]
+        return OnnxRuntimeNetwork(onnx_file, providers)
+    if name.startswith("openvino"):
+        try:
+            import openvino  # noqa: F401
+        except ImportError:
+            return None
+        return runtime_network(onnx_file, "openvino", threads, "bf16" if name.endswith("bf16") else "f32")
+    return runtime_network(onnx_file, "onnxruntime", threads)
+
+
+def breakdown(predictor: Predictor, pc0, pc1, runs: int) -> dict[str, float]:
+    """Median seconds of each step of one ``estimated``-regime Predictor call (the steps of ``Predictor.predict``)."""
+    steps = {k: [] for k in ("ground (2 scans)", "ego motion (odometry, a pair)", "network", "the rest")}
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        g0, g1 = predictor.ground_mask("ground0", pc0, None), predictor.ground_mask("ground1", pc1, None)
+        t1 = time.perf_counter()
+        ego = predictor.estimate_ego_motion(pc0, pc1, g0, g1)
+        t2 = time.perf_counter()
+        moved = compensate(pc0[~g0], ego)
+        t3 = time.perf_counter()
+        kept, valid = predictor.network(moved, pc1[~g1])
+        t4 = time.perf_counter()
+        residual = np.zeros((len(pc0), 3), np.float32)
+        residual[~g0] = np.where(valid[:, None], kept, 0.0)
+        residual_to_full(residual, pc0, ego)
+        t5 = time.perf_counter()
+        for key, value in zip(steps, (t1 - t0, t2 - t1, t4 - t3, (t3 - t2) + (t5 - t4))):
+            steps[key].append(value)
+    return {key: statistics.median(values) for key, values in steps.items()}
+
+
+def pair(args) -> None:
+    """The ``pair`` mode (see the module's docstring)."""
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    unknown = sorted(set(backends) - set(BACKENDS))
+    if unknown or not backends:
+        raise SystemExit(
+            f"bench_student_latency: --backends: unknown {', '.join(unknown) or '(none)'}; use {', '.join(BACKENDS)}"
+        )
+    torch.set_num_threads(args.threads)
+    model, overrides = build_model(args)
+    print(
+        f"model {args.model} {' '.join(overrides)} grid {model.grid.nx}x{model.grid.ny}; {args.device}: {cpu_name()}, "
+        f"{os.cpu_count()} logical CPUs, {args.threads} threads, torch {torch.__version__}, load average at start "
+        f"{os.getloadavg()[0]:.2f}"
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        formats = export_formats(backends)
+        if formats:
+            export_model(model, tmp, formats)
+        eager_net = SingleSampleNet(copy.deepcopy(model)).eval()
+        networks, memory, parity = {}, {}, {}
+        for name in backends:
+            before = rss_mb()
+            network = build_network(name, model, Path(tmp), args.device, args.threads)
+            if network is None:
+                print(f"{name}: not installed (pip install 'icpflow[openvino]'); no row")
+                continue
+            parity[name] = measure_parity(eager_net, network) if args.device == "cpu" else float("nan")
+            tolerance = BF16_TOLERANCE if name.endswith("bf16") else PARITY_TOLERANCE
+            if args.device == "cpu" and not parity[name] <= tolerance:  # on CUDA: not measured (nan)
+                print(f"{name}: differs from eager by {parity[name]:.3g} m (> {tolerance:g} m); no row")
+                continue
+            networks[name], memory[name] = network, rss_mb() - before
+        print(
+            "parity, max |backend - eager| on the export's check clouds (m): "
+            + ", ".join(f"{k} {v:.1e}" for k, v in parity.items())
+        )
+        rows = []
+        for scan in [s.strip() for s in args.scans.split(",") if s.strip()]:
+            data = read_scan_pair(scan, args.points)
+            if data is None:
+                print(f"{scan}: no scans under {DATA}; no rows")
+                continue
+            pc0, pc1 = data
+            contract = InputContract(Preprocessing.from_teacher(TEACHERS[scan]), True, model.grid)
+            predictors = {name: Predictor(net, contract, name) for name, net in networks.items()}
+            first = next(iter(predictors.values()))
+            g0, g1 = first.ground_mask("ground0", pc0, None), first.ground_mask("ground1", pc1, None)
+            # the given regime's inputs, outside the timing (uniform points have no surfaces to register: the identity)
+            ego = np.eye(4) if scan == "uniform" else first.estimate_ego_motion(pc0, pc1, g0, g1)
+            reference = predictors.get("eager") or first
+            expected = reference(pc0, pc1, ego, g0, g1)
+            real = {name: float(np.abs(p(pc0, pc1, ego, g0, g1) - expected).max()) for name, p in predictors.items()}
+            kept = int((~g0).sum())
+            for regime in [r.strip() for r in args.regimes.split(",") if r.strip()]:
+                if regime == "estimated" and scan == "uniform":
+                    print("uniform: no estimated regime (random points give the odometry nothing to register)")
+                    continue
+                given = (ego, g0, g1) if regime == "given" else (None, None, None)
+                calls = {name: (lambda p=p, a=pc0, b=pc1, g=given: p(a, b, *g)) for name, p in predictors.items()}
+                for name, times in timed(calls, args.runs, args.warmup).items():
+                    rows.append((scan, f"{len(pc0)} ({kept} non-ground)", regime, name, times, real[name]))
+            if args.breakdown:
+                steps = breakdown(first, pc0, pc1, max(3, args.runs // 2))
+                print(
+                    f"{scan}, {next(iter(predictors))}: one estimated-regime call, median s per step: "
+                    + ", ".join(f"{k} {1000 * v:.1f} ms" for k, v in steps.items())
+                )
+    head = f"| scan | points pc0 | regime | backend | median ms | p90 ms | Hz | vs {backends[0]} | memory MB |"
+    print(head + " real-scan max |d| m |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    base = {}
+    for scan, points, regime, name, times, error in rows:
+        median, p90 = statistics.median(times), float(np.percentile(times, 90))
+        base.setdefault((scan, regime), median)
+        print(
+            f"| {scan} | {points} | {regime} | {name} | {1000 * median:.1f} | {1000 * p90:.1f} | {1 / median:.1f} | "
+            f"{base[(scan, regime)] / median:.2f}x | {memory[name]:.0f} | {error:.1e} |"
+        )
+    print(f"median and p90 of {args.runs} calls after {args.warmup}; load average at the end {os.getloadavg()[0]:.2f}")
+
+
+def stream_scans(name: str) -> list[np.ndarray] | None:
+    """The scans of a shipped stream, in order (the AV2 sweeps alternating), or None where they are absent."""
+    if name == "kitti":
+        files = sorted((DATA / "kitti_hdl64_scans").glob("*.bin"))
+        return [np.fromfile(f, np.float32).reshape(-1, 4)[:, :3].copy() for f in files] or None
+    import pandas as pd
+
+    sweeps = sorted((DATA / "av2" / "sensor" / "val").glob("*/sensors/lidar/*.feather"))
+    scans = [pd.read_feather(s, columns=["x", "y", "z"]).to_numpy().astype(np.float32) for s in sweeps]
+    return [scans[i % len(scans)] for i in range(6)] if len(scans) >= 2 else None
+
+
+class StepClock:
+    """Seconds spent in the stream's steps (ground, odometry, network), by wrapping the callables it calls."""
+
+    def __init__(self, stream: FlowStream):
+        self.spent = {"ground (1 scan)": 0.0, "odometry (a step)": 0.0, "network": 0.0}
+        predictor = stream.predictor
+        predictor.scan_masks = self.wrap(predictor.scan_masks, "ground (1 scan)")
+        stream.odometry.step = self.wrap(stream.odometry.step, "odometry (a step)")
+        predictor.network = self.wrap(predictor.network, "network")
+
+    def wrap(self, function, key):
+        def timed_call(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                self.spent[key] += time.perf_counter() - start
+
+        return timed_call
+
+    def take(self) -> dict[str, float]:
+        spent, self.spent = self.spent, dict.fromkeys(self.spent, 0.0)
+        return spent
+
+
+def stream(args) -> None:
+    """The ``stream`` mode (see the module's docstring)."""
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    regimes = [r.strip() for r in args.regimes.split(",") if r.strip()]
+    unknown = sorted(set(backends) - set(BACKENDS)) + sorted(set(regimes) - set(STREAM_REGIMES))
+    if unknown or not backends or not regimes:
+        raise SystemExit(
+            f"bench_student_latency: unknown {', '.join(unknown) or '(none)'}; backends {BACKENDS}, {STREAM_REGIMES}"
+        )
+    torch.set_num_threads(args.threads)
+    model, overrides = build_model(args)
+    gpu = f", {torch.cuda.get_device_name()}, torch {torch.__version__}" if args.device == "cuda" else ""
+    print(
+        f"model {args.model}{''.join(' ' + item for item in overrides)} grid {model.grid.nx}x{model.grid.ny}; "
+        f"network on {args.device}{gpu}; {cpu_name()}, {os.cpu_count()} logical CPUs, "
+        f"{len(os.sched_getaffinity(0))} usable, {args.threads} threads; load average at start "
+        f"{os.getloadavg()[0]:.2f}"
+    )
+    rows, steps, gpu_memory = [], {}, {}
+    with tempfile.TemporaryDirectory() as tmp:
+        formats = export_formats(backends)
+        if formats:  # the eager backends need no export
+            export_model(model, tmp, formats)
+        for backend in backends:
+            network = build_network(backend, model, Path(tmp), args.device, args.threads)
+            if network is None:
+                print(f"{backend}: not installed; no row")
+                continue
+            if args.device == "cuda":
+                torch.cuda.reset_peak_memory_stats()
+            for scan_name in args.scans.split(","):
+                scans = stream_scans(scan_name)
+                if scans is None:
+                    print(f"{scan_name}: no scans under {DATA}; no rows")
+                    continue
+                contract = InputContract(Preprocessing.from_teacher(TEACHERS[scan_name]), True, model.grid)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # the height-frame lift of velodyne scans, said once per stream
+                    times, memory, spent = play(network, contract, backend, scans, regimes, args.passes)
+                for regime, values in times.items():
+                    rows.append((scan_name, len(scans[0]), regime, backend, values, memory.get(regime)))
+                if spent:
+                    steps[(scan_name, backend)] = spent
+            if args.device == "cuda":
+                gpu_memory[backend] = torch.cuda.max_memory_allocated() / 2**20
+    print(f"| stream | points | regime | engine | median ms | p90 ms | Hz | vs {regimes[0]} | memory MB |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    base = {}
+    for scan_name, points, regime, backend, values, memory in rows:
+        median, p90 = statistics.median(values), float(np.percentile(values, 90))
+        base.setdefault((scan_name, backend), median)
+        shown = "" if memory is None else f"{memory:.0f}"
+        print(
+            f"| {scan_name} | {points} | {regime} | {backend} | {1000 * median:.1f} | {1000 * p90:.1f} | "
+            f"{1 / median:.1f} | {base[(scan_name, backend)] / median:.2f}x | {shown} |"
+        )
+    for (scan_name, backend), spent in steps.items():
+        parts = ", ".join(f"{key} {1000 * value:.1f} ms" for key, value in spent.items())
+        print(f"{scan_name}, {backend}, streamed: median per frame: {parts}")
+    if gpu_memory:
+        print("GPU memory, peak allocated by torch: " + ", ".join(f"{k} {v:.0f} MB" for k, v in gpu_memory.items()))
+    print(
+        f"median and p90 of the frames after the first two of each of {args.passes} passes "
+        f"({len(rows[0][4]) if rows else 0} frames per row); load average at the end "
+        f"{os.getloadavg()[0]:.2f}"
+    )
+
+
+def play(network, contract, backend, scans, regimes, passes):
+    """Per-frame seconds of each of ``regimes`` (pairwise, streamed, given), the streamed regime's RSS growth and
+    its median time per step (empty when it is not played)."""
+    times = {regime: [] for regime in regimes}
+    predictor = Predictor(network, contract, backend)
+    # the given regime's inputs: the stream's own estimates, computed once beforehand
+    if "given" in times:
+        reference = FlowStream(Predictor(network, contract, backend))
+        given = [reference.push(scan).prediction for scan in scans]
+        lift = predictor.frame_lift(scans[0])
+        grounds = [predictor.ground_mask("g", lift_points(scan, lift), None) for scan in scans]
+    memory, per_step = {}, []
+    for _ in range(passes):
+        for k in range(1, len(scans)):
+            if "pairwise" in times:
+                start = time.perf_counter()
+                predictor.predict(scans[k - 1], scans[k])
+                if k > 2:
+                    times["pairwise"].append(time.perf_counter() - start)
+            if "given" in times:
+                start = time.perf_counter()
+                predictor.predict(scans[k - 1], scans[k], given[k].ego1_from_ego0, grounds[k - 1], grounds[k])
+                if k > 2:
+                    times["given"].append(time.perf_counter() - start)
+        if "streamed" not in times:
+            continue
+        before = rss_mb()
+        stream = FlowStream(Predictor(network, contract, backend))
+        clock = StepClock(stream)
+        for k, scan in enumerate(scans):
+            clock.take()
+            start = time.perf_counter()
+            stream.push(scan)
+            seconds = time.perf_counter() - start
+            spent = clock.take()
+            if k > 2:
+                times["streamed"].append(seconds)
+                per_step.append({**spent, "the rest": seconds - sum(spent.values())})
+        memory["streamed"] = max(memory.get("streamed", 0.0), rss_mb() - before)
+    medians = {key: statistics.median(step[key] for step in per_step) for key in per_step[0]} if per_step else {}
+    return times, memory, medians
+
+
+def scan_calls(export: str, scan: str, pc0: np.ndarray, pc1: np.ndarray):
+    """({method: call}, note on the refinement) for one scan pair; ego motion and ground masks computed once."""
+    preprocessing = {"remove_ground": True, "teacher": TEACHERS[scan].to_dict()}
+    options = {"preprocessing": preprocessing, "sensor_height": SENSOR_HEIGHTS[scan]}
+    student = Predictor.load(export, **options)
+    refined = Predictor.load(export, **options, refine=True)
+    estimate = student.predict(pc0, pc1)  # the given regime's inputs, outside the timing
+    ego, g0, lift = estimate.ego1_from_ego0, estimate.ground0, estimate.lift
+    g1 = student.ground_mask("ground1", lift_points(pc1, lift), None)
+    teacher = ICPFlow(TEACHERS[scan])
+    frame0, frame1, frame_ego = lift_points(pc0, lift), lift_points(pc1, lift), lift_transform(ego, lift)
+    calls = {
+        "student": lambda: student.predict(pc0, pc1, ego, g0, g1),
+        "student+refine": lambda: refined.predict(pc0, pc1, ego, g0, g1),
+        "teacher": lambda: teacher(frame0, frame1, frame_ego, g0, g1),
+    }
+    plain, better = calls["student"](), calls["student+refine"]()
+    change = np.linalg.norm(better.flow - plain.flow, axis=1)[better.refined]
+    note = f"{better.refined.sum() / max(1, better.in_grid.sum()):.1%} of the network's points refined"
+    return calls, note + (f", median change {np.median(change):.3f} m" if len(change) else "")
+
+
+def refine(args) -> None:
+    """The ``refine`` mode (see the module's docstring)."""
+    rows = []
+    for scan in [s.strip() for s in args.scans.split(",") if s.strip()]:
+        data = read_scan_pair(scan)
+        if data is None:
+            print(f"{scan}: no scans under ../shared/data; no rows")
+            continue
+        calls, note = scan_calls(args.export, scan, *data)
+        for name, times in timed(calls, args.runs, args.warmup).items():
+            rows.append((scan, len(data[0]), name, times, note if name == "student+refine" else ""))
+    print("| scan | points pc0 | method | median ms | p90 ms | Hz | refinement |")
+    print("|---|---|---|---|---|---|---|")
+    for scan, points, name, times, note in rows:
+        median, p90 = statistics.median(times), float(np.percentile(times, 90))
+        print(f"| {scan} | {points} | {name} | {1000 * median:.1f} | {1000 * p90:.1f} | {1 / median:.1f} | {note} |")
+    print(f"median and p90 of {args.runs} calls after {args.warmup}; load average {os.getloadavg()[0]:.2f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mode", choices=tuple(MODES), default="pair", help="what is timed (default pair)")
+    parser.add_argument("--model", help="a conf/model option (default fastflow3d_small: CPU recipes; pair, stream)")
+    parser.add_argument("--decoder", help="the model's decoder, a model.decoder override (pair, stream)")
+    parser.add_argument("--set", nargs="*", metavar="KEY=VALUE", help="more model.<key> overrides (pair, stream)")
+    parser.add_argument("--export", help="a trained student's export directory (or .ckpt) (refine)")
+    parser.add_argument("--device", choices=("cpu", "cuda"), help="where the network runs (pair, stream)")
+    parser.add_argument("--threads", type=int, help="torch, ONNX Runtime and OpenVINO threads (default 2)")
+    parser.add_argument("--runs", type=int, help="timed calls (default 20; pair, refine)")
+    parser.add_argument("--warmup", type=int, help="calls before (default 3; pair, refine)")
+    parser.add_argument("--passes", type=int, help="passes over each stream (default 5; stream)")
+    parser.add_argument("--scans", help="comma-separated: kitti, av2 (default both), uniform (pair)")
+    parser.add_argument("--points", type=int, help="points per scan of the uniform scans (default 80000; pair)")
+    parser.add_argument(
+        "--regimes", help="comma-separated: given, estimated (pair); pairwise, streamed, given (stream); default all"
+    )
+    parser.add_argument(
+        "--backends", help="comma-separated (default onnx,onnx-tuned,openvino,eager; stream: onnx-tuned,openvino)"
+    )
+    parser.add_argument("--breakdown", action="store_true", default=None, help="time each step of a call (pair)")
+    args = parser.parse_args()
+    defaults = MODES[args.mode]
+    for name, value in vars(args).items():
+        if name == "mode":
+            continue
+        if name not in defaults:
+            if value is not None:
+                parser.error(f"--{name} is not an option of --mode {args.mode}")
+        elif value is None:
+            setattr(args, name, defaults[name])
+    if args.mode == "refine" and args.export is None:
+        parser.error("--mode refine needs --export (a trained student's export directory)")
+    if getattr(args, "device", None) == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("bench_student_latency: --device cuda but torch sees no CUDA device (a CPU build of torch?)")
+    {"pair": pair, "stream": stream, "refine": refine}[args.mode](args)
+
+
+if __name__ == "__main__":
+    main()
