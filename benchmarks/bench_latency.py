@@ -6,11 +6,11 @@
 
 The model (``conf/model/<model>.yaml``, ``--decoder`` and ``--set key=value`` overriding its fields) has random
 weights (latency does not depend on them) and is exported (ONNX + torch.export) and checked against eager by
-``fastflow3d.export``; every backend is then checked again against eager on the export's check clouds (``parity``,
-metres) and on each real scan (``real``). Backends: ``eager`` PyTorch (``eager-bf16``: under bfloat16 autocast),
-``compile`` (torch.compile, dynamic; its first call takes minutes on a CPU), ``pt2`` (torch.export), ``onnx``
+``fastflow3d.artifact.export``; every backend is then checked again against eager on the export's check clouds
+(``parity``, metres) and on each real scan (``real``). Backends: ``eager`` PyTorch (``eager-bf16``: under bfloat16
+autocast), ``compile`` (torch.compile, dynamic; its first call takes minutes on a CPU), ``pt2`` (torch.export), ``onnx``
 (ONNX Runtime with its default session, the Predictor's before this benchmark's issue; with ``--device cuda`` its CUDA
-provider), ``onnx-tuned`` and ``openvino`` / ``openvino-bf16`` (``fastflow3d.runtime``; OpenVINO rows need
+provider), ``onnx-tuned`` and ``openvino`` / ``openvino-bf16`` (``fastflow3d.artifact.engines``; OpenVINO rows need
 ``pip install 'icpflow[openvino]'`` and are left out without it).
 
 Scans: KITTI HDL-64E ``000000`` -> ``000001`` (``../shared/data/kitti_hdl64_scans``, ~124k points each) and the
@@ -43,14 +43,14 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from fastflow3d import options as fastflow3d_options
-from fastflow3d.artifact import FILE_NAMES, OnnxRuntimeNetwork, SingleSampleNet, TorchNetwork, load_network
-from fastflow3d.checkpoint import build_student
-from fastflow3d.contract import InputContract
-from fastflow3d.export import PARITY_TOLERANCE, export_model, measure_parity
-from fastflow3d.model import compensate
-from fastflow3d.predictor import Predictor
-from fastflow3d.runtime import BF16_TOLERANCE, runtime_network
+from fastflow3d.artifact.checkpoint import build_student
+from fastflow3d.artifact.engines import BF16_TOLERANCE, TorchNetwork, load_network
+from fastflow3d.artifact.export import PARITY_TOLERANCE, export_model, measure_parity
+from fastflow3d.artifact.file_format import FILE_NAMES, SingleSampleNet
+from fastflow3d.inference.predictor import Predictor
+from fastflow3d.network.contract import InputContract
+from fastflow3d.network.model import compensate
+from fastflow3d.training import options as fastflow3d_options
 from icpflow.geometry import residual_to_full
 from icpflow.preprocess import Preprocessing
 from icpflow.teacher.config import ICPFlowConfig
@@ -119,7 +119,8 @@ def export_formats(backends) -> list[str]:
 
 
 def build_network(name: str, model, export_dir: Path, device: str, threads: int):
-    """The runnable network of backend ``name`` (numpy in, numpy out); None when its runtime is not installed."""
+    """The runnable network of backend ``name`` (numpy in, numpy out); None when its runtime is not installed. The
+    exported files open through ``fastflow3d.artifact.engines.load_network``, as the Predictor opens them."""
     onnx_file = export_dir / FILE_NAMES["onnx"]
     if name in ("eager", "eager-bf16"):
         return TorchNetwork(SingleSampleNet(copy.deepcopy(model).to(device)).eval(), device, name == "eager-bf16")
@@ -131,14 +132,15 @@ def build_network(name: str, model, export_dir: Path, device: str, threads: int)
         return load_network(export_dir / FILE_NAMES["pt2"], "pt2", device)
     if name == "onnx":
         providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if device == "cuda" else ["CPUExecutionProvider"]
-        return OnnxRuntimeNetwork(onnx_file, providers)
+        return load_network(onnx_file, "onnx", providers=providers)
     if name.startswith("openvino"):
         try:
             import openvino  # noqa: F401
         except ImportError:
             return None
-        return runtime_network(onnx_file, "openvino", threads, "bf16" if name.endswith("bf16") else "f32")
-    return runtime_network(onnx_file, "onnxruntime", threads)
+        precision = "bf16" if name.endswith("bf16") else "f32"
+        return load_network(onnx_file, "onnx", runtime="openvino", threads=threads, precision=precision)
+    return load_network(onnx_file, "onnx", runtime="onnxruntime", threads=threads)
 
 
 def timed(calls: dict, runs: int, warmup: int) -> dict[str, list[float]]:

@@ -1,5 +1,6 @@
 """The refinement dial on real scans: whole-call time of a trained student alone, with the Predictor's ICP
-refinement (``fastflow3d.refine``) and of the teacher, on the shipped KITTI HDL-64 pair and the Argoverse 2 pair.
+refinement (``fastflow3d.inference.refine``) and of the teacher, on the shipped KITTI HDL-64 pair and the Argoverse 2
+pair.
 
     .venv/bin/python benchmarks/bench_refine.py --model <export dir> [--runs 20] [--warmup 3] [--scans kitti,av2]
 
@@ -20,7 +21,7 @@ import statistics
 import numpy as np
 from bench_latency import TEACHERS, read_scans, timed  # this folder is first on sys.path when run as a script
 
-from fastflow3d.predictor import Predictor
+from fastflow3d.inference.predictor import Predictor
 from icpflow.preprocess import lift_points, lift_transform
 from icpflow.teacher import ICPFlow
 

@@ -1,4 +1,4 @@
-"""Streaming inference (``fastflow3d.stream.FlowStream``): per-frame latency on real scans.
+"""Streaming inference (``fastflow3d.inference.stream.FlowStream``): per-frame latency on real scans.
 
     .venv/bin/python benchmarks/bench_stream.py latency [--backends onnx-tuned,openvino] [--scans kitti,av2]
         [--passes 5] [--threads 2] [--model fastflow3d_small] [--regimes pairwise,streamed,given] [--device cpu|cuda]
@@ -8,7 +8,7 @@ alternate, s0 s1 s0 s1 ..., as the only AV2 stream shipped) ``--passes`` times f
 the first two of each pass are timed (the whole ``push``). Regimes: ``pairwise`` (``Predictor.predict`` on each pair
 with nothing given: today's path), ``streamed`` (nothing given) and ``given`` (the ego motion and ground masks passed
 in, computed beforehand). The model has random weights (latency does not depend on them); ``--backends`` are
-``bench_latency.py``'s (``onnx-tuned`` and ``openvino``: ``fastflow3d.runtime``, the CPU engines; ``eager``,
+``bench_latency.py``'s (``onnx-tuned`` and ``openvino``: ``fastflow3d.artifact.engines``, the CPU engines; ``eager``,
 ``eager-bf16``, ``compile``: PyTorch on ``--device``; ``onnx``: ONNX Runtime's CUDA provider with ``--device cuda``
 where ``onnxruntime-gpu`` is installed, else its CPU provider). With ``--device cuda`` only the network runs on the
 GPU: ground, odometry and the rest stay on the CPU's ``--threads``. Prints median / p90 ms, Hz, the RSS growth of the
@@ -40,11 +40,11 @@ from bench_latency import (  # benchmarks/ is the script's folder
     rss_mb,
 )
 
-from fastflow3d.checkpoint import build_student
-from fastflow3d.contract import InputContract
-from fastflow3d.export import export_model
-from fastflow3d.predictor import Predictor
-from fastflow3d.stream import FlowStream
+from fastflow3d.artifact.checkpoint import build_student
+from fastflow3d.artifact.export import export_model
+from fastflow3d.inference.predictor import Predictor
+from fastflow3d.inference.stream import FlowStream
+from fastflow3d.network.contract import InputContract
 from icpflow.preprocess import Preprocessing, lift_points
 
 REGIMES = ("pairwise", "streamed", "given")

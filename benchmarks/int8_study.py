@@ -26,8 +26,8 @@ import numpy as np
 from bench_latency import read_scans
 from studies import ROOT, run_python, scores
 
-from fastflow3d.artifact import sha256_file
-from fastflow3d.model import compensate
+from fastflow3d.artifact.file_format import sha256_file
+from fastflow3d.network.model import compensate
 from icpflow.atomic import write_text_atomic
 from icpflow.datasets.synthetic import SyntheticDataset
 

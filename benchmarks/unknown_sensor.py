@@ -114,7 +114,7 @@ def flow_table(data, export: Path | None, shards: Path | None) -> None:
             (static_epe(result.flow, data, frame), float("nan"), 0, result.ground0.mean(), time.perf_counter() - tic)
         )
     if export is not None:
-        from fastflow3d.predictor import Predictor
+        from fastflow3d.inference.predictor import Predictor
 
         variants = (
             ("raw velodyne frame, sensor_height=0 (before), no poses", 0.0, False),

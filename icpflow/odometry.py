@@ -115,7 +115,7 @@ class TargetPlanes:
         point, that point (K, 3) and its normal (K, 3)."""
         import open3d as o3d
 
-        from icpflow.entry import signals_held
+        from icpflow.errors_and_signals import signals_held
 
         centres = self.points if moved is None else moved
         with signals_held():  # a stop inside the threaded query would free its memory under its threads
