@@ -4,5 +4,5 @@ Four rooms, imports pointing one way (``tests/test_architecture.py``): ``network
 contract) <- ``artifact`` (checkpoints and exported files: format, writers, safe loading, engines, export) <-
 ``inference`` (Predictor, refinement, stream, ``fastflow3d-infer``, the evaluation methods); ``training`` (the
 LightningModule, data, loss, schedules, callbacks, trainer, run folder, options) uses ``network`` and ``artifact``.
-Nothing imports ``training`` but the entry scripts; ``inference`` and ``training`` never import each other.
+``inference`` and ``training`` never import each other; ``network`` and ``artifact`` import neither.
 """
