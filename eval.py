@@ -1,5 +1,5 @@
 """Evaluate scene-flow methods against ground truth (see conf/eval.yaml and icpflow.evaluation); the student comes
-from fastflow3d.eval_method.
+from fastflow3d.inference.eval_methods.
 
     python eval.py [dataset=<name>] [split=val]
         [method=[zero,ego,icpflow,icpflow-raw,student,student+refine,student-stream,student-stream+refine,shards]]
@@ -15,14 +15,14 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from fastflow3d.eval_method import (
+from fastflow3d.inference.eval_methods import (
     refined_streamed_student_method,
     refined_student_method,
     streamed_student_method,
     student_method,
 )
 from icpflow.console import quiet
-from icpflow.entry import reported, run
+from icpflow.errors_and_signals import reported, run
 from icpflow.evaluation import run_eval
 from icpflow.options import register
 

@@ -1,5 +1,5 @@
 """Export a trained FastFlow3D checkpoint for inference outside this code base (see conf/export.yaml and
-fastflow3d.export): ONNX (ONNX Runtime) and/or a torch.export program (.pt2) with dynamic point counts, plus
+fastflow3d.artifact.export): ONNX (ONNX Runtime) and/or a torch.export program (.pt2) with dynamic point counts, plus
 metadata.json.
 
     python export.py checkpoint=<path.ckpt> [format=onnx|pt2|all] [out_dir=<dir>]
@@ -10,10 +10,10 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from fastflow3d.export import run_export
-from fastflow3d.options import register
+from fastflow3d.artifact.export import run_export
+from fastflow3d.training.options import register
 from icpflow.console import quiet
-from icpflow.entry import reported, run
+from icpflow.errors_and_signals import reported, run
 
 register()  # export_schema in Hydra's ConfigStore: the structured config conf/export.yaml extends
 

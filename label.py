@@ -13,7 +13,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from icpflow.console import quiet
-from icpflow.entry import reported, run
+from icpflow.errors_and_signals import reported, run
 from icpflow.labelling.cli import label
 from icpflow.options import register
 

@@ -1,4 +1,4 @@
-"""Train the FastFlow3D student on pseudo-flow shards (see conf/train.yaml and fastflow3d.training).
+"""Train the FastFlow3D student on pseudo-flow shards (see conf/train.yaml and fastflow3d.training.trainer).
 
 python train.py [experiment=synthetic_quick|paper|zeroflow] [data.train=<shard dir>] [data.val=<shard dir>]
     [trainer=cpu|gpu|ddp] [trainer.max_steps=N] [trainer.precision=bf16-mixed] [compile=true]
@@ -8,10 +8,11 @@ python train.py [experiment=synthetic_quick|paper|zeroflow] [data.train=<shard d
 import hydra
 from omegaconf import DictConfig
 
-from fastflow3d.options import register
-from fastflow3d.training import TrainError, fit
+from fastflow3d.training.options import register
+from fastflow3d.training.run_folder import TrainError
+from fastflow3d.training.trainer import fit
 from icpflow.console import quiet
-from icpflow.entry import reported, run
+from icpflow.errors_and_signals import reported, run
 
 register()  # train_schema in Hydra's ConfigStore: the structured config conf/train.yaml extends
 

@@ -20,12 +20,12 @@ it) with the teacher settings of the scan's dataset. Backends: ``eager`` PyTorch
 autocast), ``compile`` (torch.compile, dynamic; its first call takes minutes on a CPU), ``pt2`` (torch.export),
 ``onnx`` (ONNX Runtime with its default session, the Predictor's before issue 22; with ``--device cuda`` its CUDA
 provider where ``onnxruntime-gpu`` is installed, else its CPU provider), ``onnx-tuned`` and ``openvino`` /
-``openvino-bf16`` (``fastflow3d.runtime``, the CPU engines; OpenVINO rows need ``pip install 'icpflow[openvino]'``
-and are left out without it).
+``openvino-bf16`` (``fastflow3d.artifact.engines``, the CPU engines; OpenVINO rows need ``pip install
+'icpflow[openvino]'`` and are left out without it).
 
 ``pair``: the whole ``Predictor`` call per frame pair, per backend and regime. The model is exported (ONNX +
-torch.export) and checked against eager by ``fastflow3d.export``; every backend is then checked again against eager
-on the export's check clouds (``parity``, metres) and on each real scan (``real``). Regimes: ``given`` (ego motion
+torch.export) and checked against eager by ``fastflow3d.artifact.export``; every backend is then checked again against
+eager on the export's check clouds (``parity``, metres) and on each real scan (``real``). Regimes: ``given`` (ego motion
 and both ground masks passed in, as from a dataset's poses and labels; they are computed once beforehand, outside
 the timing) and ``estimated`` (none passed: the Predictor finds both scans' ground, ``icpflow.ground``, and the ego
 motion, ``icpflow.odometry``). Prints, per scan, regime and backend: median and p90 of ``--runs`` calls after
@@ -34,9 +34,9 @@ alike), frames per second (1 / median), speed relative to the first backend, and
 resident-set growth when the backend was built and warmed up (MB). ``--breakdown`` adds what one call's time is
 made of (first backend, per step).
 
-``stream``: streaming inference (``fastflow3d.stream.FlowStream``), per-frame latency. Each scan list is played as
-a stream (KITTI HDL-64E ``000000``-``000005``; the two AV2 sweeps alternate, s0 s1 s0 s1 ..., as the only AV2 stream
-shipped) ``--passes`` times from a fresh stream; the frames after the first two of each pass are timed (the whole
+``stream``: streaming inference (``fastflow3d.inference.stream.FlowStream``), per-frame latency. Each scan list is
+played as a stream (KITTI HDL-64E ``000000``-``000005``; the two AV2 sweeps alternate, s0 s1 s0 s1 ..., as the only AV2
+stream shipped) ``--passes`` times from a fresh stream; the frames after the first two of each pass are timed (the whole
 ``push``). Regimes: ``pairwise`` (``Predictor.predict`` on each pair with nothing given), ``streamed`` (nothing
 given) and ``given`` (the ego motion and ground masks passed in, computed beforehand). With ``--device cuda`` only
 the network runs on the GPU: ground, odometry and the rest stay on the CPU's ``--threads``. Prints median / p90 ms,
@@ -45,8 +45,8 @@ odometry, network, the rest). The ego motion's error against true poses, streame
 ``benchmarks/bench_ego_motion.py``.
 
 ``refine``: the refinement dial, whole-call time of a trained student (``--export``) alone, with the Predictor's
-ICP refinement (``fastflow3d.refine``) and of the teacher. Ego motion and ground masks are given (computed once
-beforehand with the student's preprocessing: KISS-ICP and Patchwork++), as in the pair mode's ``given`` regime;
+ICP refinement (``fastflow3d.inference.refine``) and of the teacher. Ego motion and ground masks are given (computed
+once beforehand with the student's preprocessing: KISS-ICP and Patchwork++), as in the pair mode's ``given`` regime;
 the teacher gets the same ego motion and masks. The student runs as ``Predictor.load`` picks (ONNX Runtime, tuned,
 on the CPU); the three calls take turns within each run. These scans have no ground-truth flow: the accuracy side
 of the dial is ``eval.py ... method=[ego,icpflow,student,student+refine]`` on the synthetic test split
@@ -70,14 +70,14 @@ import torch
 from omegaconf import OmegaConf
 
 from benchmarks.common import DATA, compose, cpu_name, read_scan_pair, rss_mb, timed
-from fastflow3d.artifact import FILE_NAMES, OnnxRuntimeNetwork, SingleSampleNet, TorchNetwork, load_network
-from fastflow3d.checkpoint import build_student
-from fastflow3d.contract import InputContract
-from fastflow3d.export import PARITY_TOLERANCE, export_model, measure_parity
-from fastflow3d.model import compensate
-from fastflow3d.predictor import Predictor
-from fastflow3d.runtime import BF16_TOLERANCE, runtime_network
-from fastflow3d.stream import FlowStream
+from fastflow3d.artifact.checkpoint import build_student
+from fastflow3d.artifact.engines import BF16_TOLERANCE, TorchNetwork, load_network
+from fastflow3d.artifact.export import PARITY_TOLERANCE, export_model, measure_parity
+from fastflow3d.artifact.file_format import FILE_NAMES, SingleSampleNet
+from fastflow3d.inference.predictor import Predictor
+from fastflow3d.inference.stream import FlowStream
+from fastflow3d.network.contract import InputContract
+from fastflow3d.network.model import compensate
 from icpflow.geometry import residual_to_full
 from icpflow.preprocess import Preprocessing, lift_points, lift_transform
 from icpflow.teacher import ICPFlow
@@ -126,7 +126,8 @@ def export_formats(backends) -> list[str]:
 
 
 def build_network(name: str, model, export_dir: Path, device: str, threads: int):
-    """The runnable network of backend ``name`` (numpy in, numpy out); None when its runtime is not installed."""
+    """The runnable network of backend ``name`` (numpy in, numpy out); None when its runtime is not installed. The
+    exported files open through ``fastflow3d.artifact.engines.load_network``, as the Predictor opens them."""
     onnx_file = export_dir / FILE_NAMES["onnx"]
     if name in ("eager", "eager-bf16"):
         return TorchNetwork(SingleSampleNet(copy.deepcopy(model).to(device)).eval(), device, name == "eager-bf16")
@@ -138,14 +139,15 @@ def build_network(name: str, model, export_dir: Path, device: str, threads: int)
         return load_network(export_dir / FILE_NAMES["pt2"], "pt2", device)
     if name == "onnx":
         providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if device == "cuda" else ["CPUExecutionProvider"]
-        return OnnxRuntimeNetwork(onnx_file, providers)
+        return load_network(onnx_file, "onnx", providers=providers)
     if name.startswith("openvino"):
         try:
             import openvino  # noqa: F401
         except ImportError:
             return None
-        return runtime_network(onnx_file, "openvino", threads, "bf16" if name.endswith("bf16") else "f32")
-    return runtime_network(onnx_file, "onnxruntime", threads)
+        precision = "bf16" if name.endswith("bf16") else "f32"
+        return load_network(onnx_file, "onnx", runtime="openvino", threads=threads, precision=precision)
+    return load_network(onnx_file, "onnx", runtime="onnxruntime", threads=threads)
 
 
 def breakdown(predictor: Predictor, pc0, pc1, runs: int) -> dict[str, float]:

@@ -31,7 +31,7 @@ def compose(config: str, overrides: list[str]):
     from hydra import initialize_config_dir
 
     if config in ("train", "export"):
-        from fastflow3d import options
+        from fastflow3d.training import options
     else:
         from icpflow import options
     options.register()

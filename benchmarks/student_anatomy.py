@@ -11,8 +11,9 @@ dynamic foreground of ``eval.py`` (non-ground, inside the dataset's ``eval_crop`
 class > 0). Methods: ``ego`` (ego flow only), ``teacher`` (``--teacher``: the dataset's teacher as ``eval.py`` runs
 it; its flows are kept in ``--cache`` and reused), each ``--model`` (the Predictor on the pair's given ego motion
 and ground, as ``eval.py``'s ``student``), and ``NAME+refine`` for each ``--refine NAME`` (the same model with the
-Predictor's ICP refinement, ``fastflow3d.refine``), and ``labels`` (``--labels``: the pseudo-labels ``label.py``
-stored for these very pairs, e.g. a student's own training pairs with ``--set split=train``; issue 43's fit).
+Predictor's ICP refinement, ``fastflow3d.inference.refine``), and ``labels`` (``--labels``: the pseudo-labels
+``label.py`` stored for these very pairs, e.g. a student's own training pairs with ``--set split=train``; issue 43's
+fit).
 
 Prints, per method:
 1. per ground-truth class: share of the dynamic points, EPE (m), the median over points of
@@ -247,8 +248,8 @@ def main() -> None:
         print(curves(args.curves), end="\n\n")
         if not args.model and not args.teacher and args.labels is None:
             return
-    from fastflow3d.predictor import Predictor
-    from fastflow3d.refine import RefineConfig
+    from fastflow3d.inference.predictor import Predictor
+    from fastflow3d.inference.refine import RefineConfig
 
     overrides = args.set or ["split=test", "dataset.reader.num_sequences=16"]
     dataset, cfg = open_split(overrides)

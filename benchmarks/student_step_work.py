@@ -22,11 +22,11 @@ def main() -> None:
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1, user_api="blas")
-    from fastflow3d import data as data_module
-    from fastflow3d.module import StudentModule
+    from fastflow3d.training import data as data_module
+    from fastflow3d.training.student_module import StudentModule
 
     try:  # the schema conf/train.yaml extends (trees older than issue 32 have none)
-        from fastflow3d.options import register
+        from fastflow3d.training.options import register
     except ImportError:
         pass
     else:
@@ -35,15 +35,15 @@ def main() -> None:
         cfg = compose("train", [f"data.train={train}", f"data.val={val}", *overrides])
     plain = OmegaConf.to_container(cfg, resolve=True)
     torch.manual_seed(0)
-    from fastflow3d import training
+    from fastflow3d.training import trainer
 
-    if hasattr(training, "build_module"):  # a tree with the input contract: the module as train.py builds it
-        from fastflow3d.contract import InputContract, read_grid
+    if hasattr(trainer, "build_module"):  # a tree with the input contract: the module as train.py builds it
+        from fastflow3d.network.contract import InputContract, read_grid
 
         contract = InputContract(
             remove_ground=bool(plain["data"]["remove_ground"]), grid=read_grid(plain["model"], "m")
         )
-        module = training.build_module(cfg, contract, plain).train()
+        module = trainer.build_module(cfg, contract, plain).train()
     else:
         module = StudentModule(plain).train()
     options = plain["data"]

@@ -40,7 +40,7 @@ NOISE_WARNINGS = (
     # Lightning 2.6 calls torch's deprecated LeafSpec in its own pytree helper (torch >= 2.10); nothing to change here
     (r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning),
     # Lightning's guess on a resume inside an epoch; train.py's data module saves and resumes the training order
-    # (fastflow3d.data.ShardDataModule.state_dict), which Lightning does not see
+    # (fastflow3d.training.data.ShardDataModule.state_dict), which Lightning does not see
     (r"You're resuming from a checkpoint that ended before the epoch ended", UserWarning),
 )
 #: loggers that Lightning gives their own console handler (they do not reach the root logger's)

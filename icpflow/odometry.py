@@ -116,7 +116,7 @@ class TargetPlanes:
         """For the (K, 3) ``moved`` source points (None: every target point): the open3d cloud, with normals, of the
         target points nearest to them (once each), and per source point the distance (K,) to its nearest target
         point, that point (K, 3) and its normal (K, 3)."""
-        from icpflow.entry import signals_held
+        from icpflow.errors_and_signals import signals_held
         from icpflow.open3d_loader import load_open3d
 
         o3d = load_open3d()

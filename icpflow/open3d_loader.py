@@ -14,7 +14,7 @@ import ctypes
 import functools
 import sys
 
-from icpflow.entry import one_line
+from icpflow.errors_and_signals import one_line
 
 #: the soname of the system library open3d's ``libOpen3D.so`` needs
 LIBUSB = "libusb-1.0.so.0"

@@ -72,7 +72,7 @@ class EvalOptions:
     split: str = MISSING
     method: Any = MISSING  # a method's name or a list of them
     checkpoint: str | None = None
-    sensor_height: float | str | None = None  # metres, auto or null (fastflow3d.predictor)
+    sensor_height: float | str | None = None  # metres, auto or null (fastflow3d.inference.predictor)
     shards: str | None = None
     horizon: Any = 1  # a gap, a list of gaps or first..last
     tracker: Any = False  # true, false or [false,true]

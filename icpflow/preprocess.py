@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from icpflow.entry import one_line
+from icpflow.errors_and_signals import one_line
 from icpflow.synthetic.lidar import SENSOR_HEIGHT
 from icpflow.teacher.config import EgoMotionConfig, GroundConfig
 

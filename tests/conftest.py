@@ -6,12 +6,12 @@ from pathlib import Path
 import pytest
 import torch
 
-import fastflow3d.options
+import fastflow3d.training.options
 import icpflow.options
 
 # the structured configs conf/*.yaml extend, as the entry points store them before Hydra composes
 icpflow.options.register()
-fastflow3d.options.register()
+fastflow3d.training.options.register()
 
 
 @pytest.fixture(scope="session", autouse=True)

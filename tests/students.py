@@ -19,7 +19,7 @@ def tiny_model(half_width: float, cell: float) -> dict:
     """The config (``conf/model`` form) of a tiny FastFlow3D over ``[-half_width, half_width]^2`` m with ``cell``
     m pillars: 8 pillar channels, encoders of 8 / 16 / 32 channels with one extra conv each."""
     return {
-        "_target_": "fastflow3d.model.FastFlow3D",
+        "_target_": "fastflow3d.network.model.FastFlow3D",
         "x_range": [-half_width, half_width],
         "y_range": [-half_width, half_width],
         "z_range": [-3.0, 3.0],
@@ -41,7 +41,7 @@ def tiny_checkpoint(
     remove_ground: bool = False,
 ) -> Path:
     """A training checkpoint of the FastFlow3D of ``model_cfg`` made by ``train.py``'s own code
-    (``fastflow3d.training.fit``): ``steps`` (>= 1) Adam steps on one shard, in ``label.py``'s layout, whose
+    (``fastflow3d.training.trainer.fit``): ``steps`` (>= 1) Adam steps on one shard, in ``label.py``'s layout, whose
     pseudo-labels are ``pair``'s true flow (on the rows ``keep0`` / ``keep1`` of its scans, all by default), so
     that its weights and BatchNorm statistics are not the initial ones; the run's ``last.ckpt``, moved to ``path``.
 
@@ -50,7 +50,7 @@ def tiny_checkpoint(
     config replaced afterwards (a checkpoint that claims another run's folders, as a downloaded one may).
     ``remove_ground``: the student sees the non-ground points only (``data.remove_ground``; off: every point, so
     that a test's eager reference runs the network on the whole scans). Returns ``path``."""
-    from fastflow3d.training import fit
+    from fastflow3d.training.trainer import fit
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,9 @@
 """The import graph of the two packages (read from the code with ``ast``, imports inside functions included): no
-circle anywhere, and no arrow from the teacher wing (``icpflow``) to the student wing (``fastflow3d``). One way to
-stop (issue 32): signal handlers installed by ``icpflow.entry`` only, every entry point stopping and reporting through
-it, messages folded by ``icpflow.entry.one_line`` only, and ``icpflow.entry`` cheap to import."""
+circle anywhere, no arrow from the teacher wing (``icpflow``) to the student wing (``fastflow3d``), and the student
+wing's rooms importing one way (``ROOMS``; one place opens a model file, ``fastflow3d.artifact.engines``). One way to
+stop (issue 32): signal handlers installed by ``icpflow.errors_and_signals`` only, every entry point stopping and
+reporting through it, messages folded by ``icpflow.errors_and_signals.one_line`` only, and
+``icpflow.errors_and_signals`` cheap to import."""
 
 import ast
 import re
@@ -74,7 +76,10 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def test_the_graph_is_read_from_the_code():
     graph = import_graph()
-    assert {"fastflow3d.artifact"} <= graph["fastflow3d.export"] & graph["fastflow3d.predictor"]
+    assert (
+        "fastflow3d.artifact.engines"
+        in graph["fastflow3d.artifact.export"] & graph["fastflow3d.inference.model_loading"]
+    )
     assert "icpflow.teacher.config" in graph["icpflow.evaluation.cli"]  # a lazy import inside a function counts
     assert "icpflow.frames" in graph["icpflow"]  # the package's __init__
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
@@ -96,9 +101,72 @@ def test_the_teacher_wing_never_imports_the_student():
     assert arrows == []
 
 
+# ------------------------------------------------------------------------------- the student wing's rooms (issue 46)
+
+#: each room of ``fastflow3d`` and the rooms it may import: network <- artifact <- inference, network <- training ->
+#: artifact; inference and training never import each other, network imports no other room
+ROOMS = {
+    "network": set(),
+    "artifact": {"network"},
+    "inference": {"network", "artifact"},
+    "training": {"network", "artifact"},
+}
+
+
+def room_of(module: str) -> str | None:
+    """The room of a ``fastflow3d`` module (``fastflow3d.<room>.<module>``), None for the package itself."""
+    parts = module.split(".")
+    return parts[1] if parts[0] == "fastflow3d" and len(parts) > 1 else None
+
+
+def room_arrows(graph: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """The imports between two rooms of ``fastflow3d`` that ``ROOMS`` does not allow."""
+    return sorted(
+        (source, target)
+        for source, targets in graph.items()
+        for target in targets
+        if room_of(source) and room_of(target) and room_of(source) != room_of(target)
+        if room_of(target) not in ROOMS.get(room_of(source), set())
+    )
+
+
+def test_every_student_module_lives_in_a_room():
+    modules = [name for name in import_graph() if name.startswith("fastflow3d")]
+    assert {room_of(name) for name in modules} - {None} == set(ROOMS)
+    assert [name for name in modules if room_of(name) is None] == ["fastflow3d"]  # the package's docstring only
+
+
+def test_the_rooms_import_one_way():
+    graph = import_graph()
+    assert room_arrows(graph) == []
+    assert room_arrows({"fastflow3d.inference.a": {"fastflow3d.training.b"}, "fastflow3d.network.c": set()}) == [
+        ("fastflow3d.inference.a", "fastflow3d.training.b")
+    ]
+    # the arrows between rooms are read: the trainer exports, a checkpoint builds the network
+    assert "fastflow3d.artifact.export" in graph["fastflow3d.training.trainer"]
+    assert "fastflow3d.network.model" in graph["fastflow3d.artifact.checkpoint"]
+
+
+#: the calls that open a model file in an engine (ONNX Runtime, OpenVINO, torch.export, TorchScript)
+OPENERS = ("InferenceSession", "compile_model", "read_model", "torch.export.load", "torch.jit.load")
+
+
+def test_one_module_opens_model_files():
+    """The Predictor, the export's parity check and the latency benchmark open a model file through
+    ``fastflow3d.artifact.engines.load_network`` only."""
+    found = set()
+    for name, text in sources().items():
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.Call) and ast.unparse(node.func).endswith(OPENERS):
+                found.add(name)
+    assert found == {"fastflow3d/artifact/engines.py"}
+    benchmark = (REPO / "benchmarks" / "bench_student_latency.py").read_text()
+    assert not any(opener in benchmark for opener in OPENERS) and "load_network(" in benchmark
+
+
 # ---------------------------------------------------------------------------------------- one way to stop (issue 32)
 
-#: the scripts a user runs, besides the console script fastflow3d-infer (fastflow3d/infer.py)
+#: the scripts a user runs, besides the console script fastflow3d-infer (fastflow3d/inference/cli.py)
 SCRIPTS = ("label.py", "train.py", "eval.py", "export.py")
 
 
@@ -109,18 +177,19 @@ def sources() -> dict[str, str]:
 
 
 def entry_names(text: str) -> set[str]:
-    """The names a module imports from icpflow.entry."""
+    """The names a module imports from icpflow.errors_and_signals."""
     return {
         alias.name
         for node in ast.walk(ast.parse(text))
-        if isinstance(node, ast.ImportFrom) and node.module == "icpflow.entry"
+        if isinstance(node, ast.ImportFrom) and node.module == "icpflow.errors_and_signals"
         for alias in node.names
     }
 
 
-def test_signal_handlers_are_installed_by_icpflow_entry_only():
+def test_signal_handlers_are_installed_by_errors_and_signals_only():
     """Every entry point and the training callback install their SIGINT/SIGTERM handlers through
-    ``icpflow.entry.on_signals`` (``stop_on_signals``); the one other call: a labelling worker ignoring Ctrl-C."""
+    ``icpflow.errors_and_signals.on_signals`` (``stop_on_signals``); the one other call: a labelling worker ignoring
+    Ctrl-C."""
     calls = []
     for name, text in sources().items():
         for node in ast.walk(ast.parse(text)):
@@ -128,33 +197,35 @@ def test_signal_handlers_are_installed_by_icpflow_entry_only():
                 calls += [(name, f"from signal import {alias.name}") for alias in node.names]
             elif isinstance(node, ast.Call) and ast.unparse(node.func) == "signal.signal":
                 calls.append((name, ast.unparse(node)))
-    outside = [call for call in calls if call[0] != "icpflow/entry.py"]
+    outside = [call for call in calls if call[0] != "icpflow/errors_and_signals.py"]
     assert outside == [("icpflow/labelling/executors.py", "signal.signal(signal.SIGINT, signal.SIG_IGN)")]
-    assert any(name == "icpflow/entry.py" for name, _ in calls)  # the check reads the calls
+    assert any(name == "icpflow/errors_and_signals.py" for name, _ in calls)  # the check reads the calls
 
 
-def test_every_entry_point_stops_and_reports_through_icpflow_entry():
+def test_every_entry_point_stops_and_reports_through_errors_and_signals():
     texts = sources()
     for script in SCRIPTS:
         assert {"reported", "run"} <= entry_names(texts[script]), script
-    assert {"exit_status", "stop_on_signals"} <= entry_names(texts["fastflow3d/infer.py"])
-    assert "exit_status" in entry_names(texts["fastflow3d/export.py"])  # run_export, export.py's body
-    for module in ("icpflow/labelling/cli.py", "icpflow/evaluation/cli.py", "fastflow3d/training.py"):
+    assert {"exit_status", "stop_on_signals"} <= entry_names(texts["fastflow3d/inference/cli.py"])
+    assert "exit_status" in entry_names(texts["fastflow3d/artifact/export.py"])  # run_export, export.py's body
+    for module in ("icpflow/labelling/cli.py", "icpflow/evaluation/cli.py", "fastflow3d/training/trainer.py"):
         assert "stop_on_signals" in entry_names(texts[module]), module
-    assert "on_signals" in entry_names(texts["fastflow3d/callbacks.py"])
+    assert "on_signals" in entry_names(texts["fastflow3d/training/callbacks.py"])
 
 
-def test_messages_are_folded_onto_one_line_by_icpflow_entry_only():
+def test_messages_are_folded_onto_one_line_by_errors_and_signals_only():
     folded = re.compile(r"""(['"]) \1\.join\(str\(""")
     found = [name for name, text in sources().items() if folded.search(text)]
-    assert found == ["icpflow/entry.py"]  # one_line itself
+    assert found == ["icpflow/errors_and_signals.py"]  # one_line itself
 
 
-def test_importing_icpflow_entry_stays_cheap():
-    """Every module may import icpflow.entry (it imports nothing of the packages but icpflow.settings, which imports
-    none): no heavy library comes with it."""
-    code = "import sys, icpflow.entry; print(' '.join(sorted(m for m in sys.modules if '.' not in m)))"
+def test_importing_errors_and_signals_stays_cheap():
+    """Every module may import icpflow.errors_and_signals (it imports nothing of the packages but icpflow.settings,
+    which imports none): no heavy library comes with it."""
+    code = "import sys, icpflow.errors_and_signals; print(' '.join(sorted(m for m in sys.modules if '.' not in m)))"
     loaded = set(subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True).stdout.split())
     assert "icpflow" in loaded and not loaded & {"torch", "lightning", "hydra", "omegaconf", "numba", "scipy"}
-    assert "icpflow.entry" in import_graph() and import_graph()["icpflow.entry"] <= {"icpflow.settings"}
+    assert "icpflow.errors_and_signals" in import_graph() and import_graph()["icpflow.errors_and_signals"] <= {
+        "icpflow.settings"
+    }
     assert not import_graph()["icpflow.settings"]

@@ -1,5 +1,5 @@
-"""The student's input contract (fastflow3d.contract): the rows the network sees, the way back to the input rows,
-and every stored form read by one function."""
+"""The student's input contract (fastflow3d.network.contract): the rows the network sees, the way back to the input
+rows, and every stored form read by one function."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.contract import VERSION, ContractError, InputContract, upgrade
-from fastflow3d.model import compensate
-from fastflow3d.voxelize import Grid
+from fastflow3d.network.contract import VERSION, ContractError, InputContract, upgrade
+from fastflow3d.network.model import compensate
+from fastflow3d.network.voxelize import Grid
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.preprocess import HeightFrame, Preprocessing
 from icpflow.teacher.config import ICPFlowConfig

@@ -1,8 +1,8 @@
-"""icpflow.entry, the one way every entry point stops and reports (issue 32): a signal routed by ``on_signals`` (a
-forked child ignores it; an inherited ignored SIGINT stays ignored; the previous handlers come back), ``Stop``'s
-line and exit status, ``exit_status`` (the report of ``reported`` as a return value), ``one_line``, fastflow3d-infer
-stopped; and a ``Stop`` raised inside label.py's and eval.py's bodies: 143 / 130 with their own lines, in this
-process. The scripts under real signals: test_faults.py (label.py, SIGTERM), test_label.py (label.py, Ctrl-C),
+"""icpflow.errors_and_signals, the one way every entry point stops and reports (issue 32): a signal routed by
+``on_signals`` (a forked child ignores it; an inherited ignored SIGINT stays ignored; the previous handlers come back),
+``Stop``'s line and exit status, ``exit_status`` (the report of ``reported`` as a return value), ``one_line``,
+fastflow3d-infer stopped; and a ``Stop`` raised inside label.py's and eval.py's bodies: 143 / 130 with their own lines,
+in this process. The scripts under real signals: test_faults.py (label.py, SIGTERM), test_label.py (label.py, Ctrl-C),
 test_faults_evaluation.py (eval.py, both), test_faults_training.py (train.py, both)."""
 
 import errno
@@ -15,7 +15,7 @@ from hydra import compose, initialize_config_dir
 
 from icpflow.baselines import ego_only_flow
 from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.entry import (
+from icpflow.errors_and_signals import (
     STOP_SIGNALS,
     Stop,
     exit_status,
@@ -136,10 +136,10 @@ def test_exit_status_is_the_report_of_every_entry_point(monkeypatch, capsys):
 def test_fastflow3d_infer_stops_with_one_line_as_every_entry_point(
     handlers, monkeypatch, capsys, signum, status, words
 ):
-    from fastflow3d import infer
+    from fastflow3d.inference import cli
 
-    monkeypatch.setattr(infer, "infer", lambda args: _signal_self(signum))
-    assert infer.main(["model", "scan0.npy", "scan1.npy"]) == status
+    monkeypatch.setattr(cli, "infer", lambda args: _signal_self(signum))
+    assert cli.main(["model", "scan0.npy", "scan1.npy"]) == status
     assert capsys.readouterr().err == f"infer: {words}\n"
 
 

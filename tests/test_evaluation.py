@@ -14,7 +14,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from fastflow3d.eval_method import student_method
+from fastflow3d.inference.eval_methods import student_method
 from icpflow import metrics
 from icpflow.baselines import ego_only_flow, zero_flow
 from icpflow.datasets.from_config import raise_max_horizon
@@ -327,7 +327,7 @@ def test_readers_taking_max_horizon_get_the_largest_horizon():
 def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
     from icpflow.teacher import ICPFlow
     from icpflow.teacher.config import teacher_config
-    from icpflow.teacher.tracker import sample_tracker_flow
+    from icpflow.teacher.long_horizon import sample_tracker_flow
 
     cfg = _cfg(tmp_path, "method=[zero,icpflow]", "horizon=1..2", "tracker=[false,true]", "bev=1")
     assert run_eval(cfg, progress=False) == 0
@@ -378,13 +378,13 @@ TINY_STUDENT = tiny_model(16.0, 0.5)
 
 
 def tiny_student_checkpoint(path: Path, pair) -> Path:
-    """A training checkpoint (the ``fastflow3d.checkpoint`` contract) of a tiny FastFlow3D after 5 Adam steps
+    """A training checkpoint (the ``fastflow3d.artifact.checkpoint`` contract) of a tiny FastFlow3D after 5 Adam steps
     towards ``pair``'s true residual flow, so that its weights and BatchNorm statistics are not the initial ones."""
     return tiny_checkpoint(path, TINY_STUDENT, pair, 5)
 
 
 def test_student_row_reproduces_the_metrics_module(tmp_path, dataset):
-    from fastflow3d.predictor import Predictor
+    from fastflow3d.inference.predictor import Predictor
 
     checkpoint = tiny_student_checkpoint(tmp_path / "student.ckpt", dataset[0])
     assert (

@@ -29,7 +29,7 @@ from icpflow.labelling.sample import label_sample, thread_limit
 from icpflow.shards import ShardDataset, verify_shard
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.config import teacher_config
-from icpflow.teacher.tracker import long_horizon_flow
+from icpflow.teacher.long_horizon import long_horizon_flow
 
 from helpers.labelling import (
     READER,
@@ -252,7 +252,7 @@ def test_failures_are_recorded_and_the_run_goes_on(tmp_path, capsys):
 def test_shard_split_jobs_add_up_to_the_whole(reference, tmp_path, caplog, capsys):
     """The union of the jobs is the whole; the index says how complete the folder is after each (issue 45: a
     stopped or partial labelling was trained on without a word), and train.py and eval.py say it."""
-    from fastflow3d.training import check_data
+    from fastflow3d.training.trainer import check_data
     from icpflow.evaluation.methods import ShardMethod
 
     assert label(label_cfg(tmp_path, "shard_index=1", "num_shards=2"), progress=False) == 0

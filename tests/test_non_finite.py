@@ -10,14 +10,16 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.export import ExportError, export_model
-from fastflow3d.model import FastFlow3D
-from fastflow3d.predictor import Predictor, PredictorError
-from fastflow3d.training import TrainError, fit
+from fastflow3d.artifact.export import ExportError, export_model
+from fastflow3d.inference.prediction import PredictorError
+from fastflow3d.inference.predictor import Predictor
+from fastflow3d.network.model import FastFlow3D
+from fastflow3d.training.run_folder import TrainError
+from fastflow3d.training.trainer import fit
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.labelling import sample as labelling_sample
 from icpflow.teacher.config import ICPFlowConfig
-from icpflow.teacher.tracker import SampleFlow
+from icpflow.teacher.long_horizon import SampleFlow
 
 from helpers.shards import write_pseudo_labels
 from helpers.training import train_cfg
@@ -55,15 +57,15 @@ def test_the_labeller_fails_a_sample_whose_labels_are_not_finite(pairs, monkeypa
 
 def test_training_stops_at_the_first_non_finite_loss_naming_step_and_samples(pairs, tmp_path, monkeypatch):
     shards = write_pseudo_labels(tmp_path / "shards", pairs)
-    from fastflow3d import module
+    from fastflow3d.training import student_module
 
-    real = module.StudentModule.loss
+    real = student_module.StudentModule.loss
 
     def poisoned(self, pred, valid, batch):
         loss = real(self, pred, valid, batch)
         return loss * float("nan") if self.global_step == 2 else loss
 
-    monkeypatch.setattr(module.StudentModule, "loss", poisoned)
+    monkeypatch.setattr(student_module.StudentModule, "loss", poisoned)
     cfg = train_cfg(
         tmp_path, shards, shards, "trainer.max_steps=5", "data.batch_size=1", "trainer.val_check_interval=5"
     )

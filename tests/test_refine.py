@@ -1,10 +1,10 @@
-"""The Predictor's ICP refinement (``fastflow3d.refine``) on synthetic pairs with exact flow: it recovers motion that a
-student under-predicts, leaves what it cannot improve, and the Predictor runs it on request only."""
+"""The Predictor's ICP refinement (``fastflow3d.inference.refine``) on synthetic pairs with exact flow: it recovers
+motion that a student under-predicts, leaves what it cannot improve, and the Predictor runs it on request only."""
 
 import numpy as np
 import pytest
 
-from fastflow3d.refine import RefineConfig, components, refine_residual
+from fastflow3d.inference.refine import RefineConfig, components, refine_residual
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, transform_points
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fastflow3d.predictor import Predictor
+from fastflow3d.inference.predictor import Predictor
 from icpflow.datasets.synthetic import SyntheticDataset
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "release_0_1"
@@ -40,8 +40,8 @@ def test_the_stored_forms_of_the_previous_release_read_as_one_contract():
 
     import torch
 
-    from fastflow3d.contract import upgrade
-    from fastflow3d.data import labeller_contract
+    from fastflow3d.network.contract import upgrade
+    from fastflow3d.training.data import labeller_contract
 
     checkpoint = torch.load(FIXTURES / "checkpoint" / "last.ckpt", weights_only=True, map_location="cpu")
     from_checkpoint = upgrade(checkpoint["hyper_parameters"]["cfg"])
@@ -49,3 +49,27 @@ def test_the_stored_forms_of_the_previous_release_read_as_one_contract():
     assert from_checkpoint == from_export
     assert from_export.remove_ground and from_export.grid.cell == 1.0
     assert labeller_contract(FIXTURES / "labels", True, from_export.grid) == from_export
+
+
+def test_the_stored_config_names_todays_targets():
+    """The checkpoint's config names its classes by the paths of the code that wrote it (``fastflow3d.model...``);
+    read through ``read_checkpoint``, each ``_target_`` is today's path (``MOVED_TARGETS``) and imports."""
+    import torch
+    from hydra.utils import get_object
+
+    from fastflow3d.artifact.checkpoint import MOVED_TARGETS, read_checkpoint
+
+    def targets(node):
+        if isinstance(node, dict):
+            return [value for key, value in node.items() if key == "_target_"] + sum(map(targets, node.values()), [])
+        return sum(map(targets, node), []) if isinstance(node, list) else []
+
+    stored = torch.load(FIXTURES / "checkpoint" / "last.ckpt", weights_only=True, map_location="cpu")
+    stored = stored["hyper_parameters"]["cfg"]
+    assert stored["model"]["_target_"] == "fastflow3d.model.FastFlow3D"  # as the previous release wrote it
+    read = read_checkpoint(FIXTURES / "checkpoint" / "last.ckpt")["hyper_parameters"]["cfg"]
+    assert read["model"]["_target_"] == "fastflow3d.network.model.FastFlow3D"
+    assert len(targets(read)) == len(targets(stored)) >= 4
+    for target in targets(read):
+        assert target.rpartition(".")[0] not in MOVED_TARGETS
+        get_object(target)

@@ -10,10 +10,11 @@ import subprocess
 import pytest
 from hydra.errors import ConfigCompositionException
 
-from fastflow3d.training import TrainError, fit
+from fastflow3d.training.run_folder import TrainError
+from fastflow3d.training.trainer import fit
 from icpflow.atomic import FolderInUse, folder_lock
 from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.entry import error_line
+from icpflow.errors_and_signals import error_line
 
 from helpers.shards import write_pseudo_labels
 from helpers.training import train_cfg
@@ -110,8 +111,8 @@ def test_a_labeller_config_with_a_python_tag_is_one_line_naming_the_shard(shards
 
     import h5py
 
-    from fastflow3d.data import DataError, labeller_contract
-    from fastflow3d.voxelize import Grid
+    from fastflow3d.network.voxelize import Grid
+    from fastflow3d.training.data import DataError, labeller_contract
 
     copy = tmp_path / "labels"
     shutil.copytree(shards, copy)

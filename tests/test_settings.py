@@ -13,8 +13,8 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
-from fastflow3d.options import ExportOptions, TrainerOptions, TrainOptions
-from icpflow.entry import error_line
+from fastflow3d.training.options import ExportOptions, TrainerOptions, TrainOptions
+from icpflow.errors_and_signals import error_line
 from icpflow.options import DatasetOptions, EvalOptions, LabelOptions
 from icpflow.settings import RULES, OptionError, accepts, check_config, signature_schema
 

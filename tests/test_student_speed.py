@@ -8,13 +8,13 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
-from fastflow3d.contract import InputContract
-from fastflow3d.data import NetworkCrop, init_worker
-from fastflow3d.loss import flow_loss
-from fastflow3d.model import FastFlow3D
-from fastflow3d.module import StudentModule
-from fastflow3d.scatter import scatter_mean
-from fastflow3d.voxelize import Grid, pillar_ids, voxelize
+from fastflow3d.network.contract import InputContract
+from fastflow3d.network.model import FastFlow3D
+from fastflow3d.network.scatter import scatter_mean
+from fastflow3d.network.voxelize import Grid, pillar_ids, voxelize
+from fastflow3d.training.data import NetworkCrop, init_worker
+from fastflow3d.training.loss import flow_loss
+from fastflow3d.training.student_module import StudentModule
 
 RNG = np.random.default_rng(0)
 

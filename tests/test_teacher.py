@@ -16,8 +16,8 @@ from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.clustering import cluster_points, relabel_by_size, voxel_downsample
 from icpflow.teacher.config import from_hydra
 from icpflow.teacher.flow import match_confidence
+from icpflow.teacher.long_horizon import long_horizon_flow
 from icpflow.teacher.pairing import cluster_stats, plausible
-from icpflow.teacher.tracker import long_horizon_flow
 
 EGO = make_transform(yaw=0.02, translation=(0.8, 0.1, 0.0))
 CFG = ICPFlowConfig.preset(

@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
-from icpflow.entry import error_line
+from icpflow.errors_and_signals import error_line
 from icpflow.teacher.config import (
     BLOCKS,
     ChecksConfig,
@@ -410,8 +410,8 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
     ground and ego settings from it, and the whole teacher rebuilds from it without a warning."""
     import h5py
 
-    from fastflow3d.data import labeller_contract
-    from fastflow3d.voxelize import Grid
+    from fastflow3d.network.voxelize import Grid
+    from fastflow3d.training.data import labeller_contract
     from icpflow.preprocess import Preprocessing
     from icpflow.shards.schema import shard_name
     from icpflow.shards.writer import write_index, write_shard
@@ -450,8 +450,9 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
 
 def test_older_checkpoints_and_exports_still_load():
     """Checkpoints (``data.teacher``) and exports (``preprocessing.teacher``) of the previous releases carry the
-    flat ground and ego-motion fields: both read silently as the same input contract (``fastflow3d.contract``)."""
-    from fastflow3d.contract import upgrade
+    flat ground and ego-motion fields: both read silently as the same input contract
+    (``fastflow3d.network.contract``)."""
+    from fastflow3d.network.contract import upgrade
     from icpflow.preprocess import Preprocessing
 
     old = {key: {**OLD_DEFAULTS, **OLD_PRESETS["av2"]}[key] for key in PREPROCESSING}

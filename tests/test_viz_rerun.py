@@ -106,7 +106,7 @@ def test_eval_viewer_rerun_records_every_method(pairs, tmp_path, capsys):
 
 @pytest.mark.skipif(not (KITTI / "000001.bin").is_file(), reason=f"shipped KITTI scans absent: {KITTI}")
 def test_infer_rerun_on_kitti_scans(pairs, tmp_path):
-    from fastflow3d.infer import main as infer_main
+    from fastflow3d.inference.cli import main as infer_main
 
     checkpoint = tiny_checkpoint(tmp_path / "tiny.ckpt", TINY, pairs[0], 1)
     out, recording = tmp_path / "flow.npz", tmp_path / "kitti.rrd"
@@ -133,7 +133,16 @@ def test_a_recording_on_a_full_or_read_only_place_is_one_line_naming_it(pairs, t
     disk = mount_tmpfs(tmp_path / "disk", "64k", read_only=place == "read-only")
     recording = disk / "pair.rrd"
     scans = [str(KITTI / "000000.bin"), str(KITTI / "000001.bin"), "--sensor-height", "1.73"]
-    command = [sys.executable, "-m", "fastflow3d.infer", str(checkpoint), *scans, "--no-bev", "--rerun", str(recording)]
+    command = [
+        sys.executable,
+        "-m",
+        "fastflow3d.inference.cli",
+        str(checkpoint),
+        *scans,
+        "--no-bev",
+        "--rerun",
+        str(recording),
+    ]
     result = subprocess.run(command + ["--out", str(tmp_path / "f.npz")], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2, result.stderr
     assert result.stderr.startswith(f"infer: {recording}: cannot write ("), result.stderr

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from icpflow.entry import one_line
+from icpflow.errors_and_signals import one_line
 from icpflow.frames import MAX_ARRAY_VALUES, MAX_POINTS, FramePairError, check_points
 from icpflow.geometry import rigid_problem
 

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from icpflow.atomic import WriteError, write_text_atomic
-from icpflow.entry import Stop, one_line, stop_on_signals, stop_signum
+from icpflow.errors_and_signals import Stop, one_line, stop_on_signals, stop_signum
 from icpflow.evaluation.methods import EvaluationError, MethodFactory, build_methods, parse_horizons
 from icpflow.evaluation.report import check_writable, format_table, metrics_json, table_rows, write_results
 from icpflow.evaluation.run import Evaluation, PairHook, PairPredictions, signals_held
@@ -35,7 +35,7 @@ SHOWN_FAILURES = 10
 def end_child_processes() -> None:
     """End the helper processes a library started for this run (a multiprocessing or joblib pool), which would
     otherwise outlive it with their resource trackers: SIGTERM, then SIGKILL for one still there after 5 s (a
-    process forked from this one ignores SIGTERM, ``icpflow.entry.on_signals``)."""
+    process forked from this one ignores SIGTERM, ``icpflow.errors_and_signals.on_signals``)."""
     for child in multiprocessing.active_children():
         child.terminate()
     for child in multiprocessing.active_children():
@@ -101,7 +101,7 @@ def run_eval(
     ``extra_methods``: methods of other packages by name, each ``factory(cfg) -> method`` (``eval.py`` gives
     ``student``); ``hooks``: more per-pair hooks. Returns the exit status (see the module docstring).
     """
-    with stop_on_signals():  # SIGTERM and Ctrl-C raise icpflow.entry.Stop
+    with stop_on_signals():  # SIGTERM and Ctrl-C raise icpflow.errors_and_signals.Stop
         try:
             return _run_eval(cfg, progress, extra_methods, hooks)
         except (Stop, KeyboardInterrupt) as stop:  # before the scoring began: nothing to keep

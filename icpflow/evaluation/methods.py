@@ -4,7 +4,7 @@ A method is a callable ``method(pair, index) -> (N0, 3) float32 FULL flow`` (pro
 of t -> positions in the ego frame of t + dt). This package's own methods:
 
 - ``zero``: zero full flow; ``ego``: ego flow only (every point static in the world);
-- ``icpflow``: the teacher (``conf/icpflow``) through :func:`icpflow.teacher.tracker.teacher_on_sample` (the call
+- ``icpflow``: the teacher (``conf/icpflow``) through :func:`icpflow.teacher.long_horizon.teacher_on_sample` (the call
   labelling makes); ``tracker=true`` chains it through the intermediate frames (``tracker=[false,true]``: one row
   each, ``icpflow`` and ``icpflow+tracker``);
 - ``icpflow-raw``: the teacher on the raw scans, nothing taken from the dataset: its own ground (``icpflow.ground``)
@@ -13,8 +13,8 @@ of t -> positions in the ego frame of t + dt). This package's own methods:
   own scans cost;
 - ``shards``: the pseudo-labels a ``label.py`` run wrote (``shards=<out_dir>``), matched by sample id.
 
-Other methods come in as factories by name (``extra``): ``eval.py`` adds ``student`` (``fastflow3d.eval_method``),
-so this package never imports the student.
+Other methods come in as factories by name (``extra``): ``eval.py`` adds ``student``
+(``fastflow3d.inference.eval_methods``), so this package never imports the student.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ class TeacherMethod:
         self.teacher, self.dataset, self.horizon, self.tracker = teacher, dataset, horizon, tracker
 
     def __call__(self, pair: FramePair, index: int) -> np.ndarray:
-        from icpflow.teacher.tracker import teacher_on_sample
+        from icpflow.teacher.long_horizon import teacher_on_sample
 
         return teacher_on_sample(self.teacher, self.dataset, index, pair, self.horizon, self.tracker).flow
 

@@ -9,8 +9,8 @@ Per-pair hooks (BEV pictures, renders, a viewer) get every method's prediction o
 :class:`PairPredictions`; a hook that cannot write its file (disk full, no permission) is reported in one line and
 dropped, the scoring goes on.
 
-The loop can be stopped at any point (SIGTERM or Ctrl-C, turned into ``icpflow.entry.Stop`` by ``eval.py``, or a
-bare ``KeyboardInterrupt``): the pairs scored so far stay consistent (a pair is added to every method and gap at
+The loop can be stopped at any point (SIGTERM or Ctrl-C, turned into ``icpflow.errors_and_signals.Stop`` by ``eval.py``,
+or a bare ``KeyboardInterrupt``): the pairs scored so far stay consistent (a pair is added to every method and gap at
 once, with the signals held), and :meth:`Evaluation.result` gives a partial result that says why it stopped.
 """
 

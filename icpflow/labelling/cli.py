@@ -12,7 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from icpflow.atomic import WriteError
 from icpflow.datasets.from_config import dataset_root, open_dataset
-from icpflow.entry import Stop, one_line, stop_on_signals, stop_signum
+from icpflow.errors_and_signals import Stop, one_line, stop_on_signals, stop_signum
 from icpflow.labelling.executors import available_cores
 from icpflow.labelling.job import LabelError, LabelJob
 from icpflow.labelling.plan import plan_shards

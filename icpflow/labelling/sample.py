@@ -9,9 +9,9 @@ from contextlib import contextmanager
 import numpy as np
 
 from icpflow.datasets.base import sample_id_or_index
-from icpflow.entry import Stop
+from icpflow.errors_and_signals import Stop
 from icpflow.frames import FramePairError
-from icpflow.teacher.tracker import SampleFlow, teacher_on_sample
+from icpflow.teacher.long_horizon import SampleFlow, teacher_on_sample
 
 
 @contextmanager
@@ -124,9 +124,9 @@ def label_sample(job, index: int, threads: int) -> dict:
 
 
 def interrupt_behind(error: BaseException) -> BaseException | None:
-    """The stop (``icpflow.entry.Stop`` on SIGTERM or Ctrl-C, or a bare KeyboardInterrupt) that ``error`` was raised
-    over, if any: a signal that arrives while a numba kernel runs surfaces as ``SystemError(... returned a result
-    with an exception set)`` whose cause is the stop; it must stop the run, not fail the sample."""
+    """The stop (``icpflow.errors_and_signals.Stop`` on SIGTERM or Ctrl-C, or a bare KeyboardInterrupt) that ``error``
+    was raised over, if any: a signal that arrives while a numba kernel runs surfaces as ``SystemError(... returned a
+    result with an exception set)`` whose cause is the stop; it must stop the run, not fail the sample."""
     seen = set()
     while error is not None and id(error) not in seen:
         if isinstance(error, (Stop, KeyboardInterrupt)):

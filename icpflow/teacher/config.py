@@ -235,7 +235,7 @@ class ICPFlowConfig(_Checked):
     association: AssociationConfig = _block(AssociationConfig)
     merging: MergingConfig = _block(MergingConfig)
     flow: FlowConfig = _block(FlowConfig)
-    # step 11: long horizon (teacher.tracker: direct (t, t + k) pairs or the tracker, chosen by the caller)
+    # step 11: long horizon (teacher.long_horizon: direct (t, t + k) pairs or the tracker, chosen by the caller)
     seed: int = setting(0, "integer")  # seed of the histogram's and ICP's subsamples
 
     def __post_init__(self):

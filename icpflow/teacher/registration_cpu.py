@@ -24,9 +24,9 @@ _GRID_CELL = 0.3
 
 def grid_cell(max_corr: float) -> float:
     """Cells (m) of the neighbour grid for ICP truncated at ``max_corr``: ``_GRID_CELL``, or ``max_corr / 2`` for
-    a truncation beyond twice it (coarse-to-fine ICP, ``fastflow3d.refine``), so that a query with nothing within
-    reach stops within the grid search's shells instead of scanning every point. The neighbours are the same at any
-    cell size; the teacher's 0.1 m truncation keeps 0.3 m cells."""
+    a truncation beyond twice it (coarse-to-fine ICP, ``fastflow3d.inference.refine``), so that a query with nothing
+    within reach stops within the grid search's shells instead of scanning every point. The neighbours are the same at
+    any cell size; the teacher's 0.1 m truncation keeps 0.3 m cells."""
     return max(_GRID_CELL, float(max_corr) / 2)
 
 

@@ -36,8 +36,8 @@ def student_module(cfg: dict):
     config's ground removal and grid."""
     from omegaconf import OmegaConf
 
-    from fastflow3d.contract import InputContract, read_grid
-    from fastflow3d.training import build_module
+    from fastflow3d.network.contract import InputContract, read_grid
+    from fastflow3d.training.trainer import build_module
 
     contract = InputContract(remove_ground=bool(cfg["data"]["remove_ground"]), grid=read_grid(cfg["model"], "model"))
     parts = {"loss": cfg["loss"], "optimiser": cfg["optim"], "scheduler": cfg["scheduler"], "metrics": cfg["metrics"]}

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import torch
 
-from fastflow3d.scatter import scatter_sum
+from fastflow3d.network.scatter import scatter_sum
 
 WEIGHTINGS = ("uniform", "speed", "buckets")
 

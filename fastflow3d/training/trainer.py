@@ -5,14 +5,13 @@ Everything a run writes lands under ``out_dir``: ``checkpoints/`` (best on valid
 ``last.ckpt``), ``tensorboard/``, ``bev/``, ``export/`` and ``hydra/``. ``ckpt_path=last`` resumes from
 ``<checkpoint_dir>/last.ckpt`` (optimiser, schedule, step count and the position in the training order included),
 ``ckpt_path=auto`` does so where it exists and starts afresh otherwise (a cluster job's requeue); any other value is a
-checkpoint file.
-The saved config's ``input`` holds the input contract (``fastflow3d.contract``: the height frame, ground removal and
-its settings, the ego-motion settings, the grid) that the Predictor uses on raw scans.
+checkpoint file (the run folder's rules: ``fastflow3d.training.run_folder``).
+The saved config's ``input`` holds the input contract (``fastflow3d.network.contract``: the height frame, ground removal
+and its settings, the ego-motion settings, the grid) that the Predictor uses on raw scans.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 from pathlib import Path
 
@@ -22,23 +21,25 @@ from lightning.fabric.plugins.environments import SLURMEnvironment
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import DictConfig, OmegaConf
 
-from fastflow3d.artifact import FORMATS
-from fastflow3d.callbacks import AtomicCheckpointIO, LastCheckpoint, ModelSize, TrainingStopped, progress_bar
-from fastflow3d.checkpoint import CheckpointError, build_student, read_checkpoint
-from fastflow3d.contract import ContractError, InputContract, read_grid
-from fastflow3d.data import DataError, ShardDataModule, StudentDataset, labeller_contract
-from fastflow3d.export import export_checkpoint
-from fastflow3d.module import NonFiniteLoss, StudentModule
-from icpflow.atomic import FolderInUse, folder_lock
-from icpflow.entry import Stop, launching_process, one_line, os_error_line, signal_words, stop_on_signals
+from fastflow3d.artifact.checkpoint import build_student
+from fastflow3d.artifact.export import export_checkpoint
+from fastflow3d.artifact.file_format import FORMATS
+from fastflow3d.network.contract import ContractError, InputContract, read_grid
+from fastflow3d.training.callbacks import AtomicCheckpointIO, LastCheckpoint, ModelSize, TrainingStopped, progress_bar
+from fastflow3d.training.data import DataError, ShardDataModule, StudentDataset, labeller_contract
+from fastflow3d.training.run_folder import (
+    TrainError,
+    check_fresh_start,
+    kept_checkpoint,
+    resolve_ckpt_path,
+    run_folder,
+)
+from fastflow3d.training.student_module import NonFiniteLoss, StudentModule
+from icpflow.errors_and_signals import Stop, one_line, os_error_line, signal_words, stop_on_signals
 from icpflow.settings import check_config
 from icpflow.shards.verify import ShardError
 
-log = logging.getLogger(__name__)
-
-
-class TrainError(RuntimeError):
-    """A training run cannot start, or its final export failed. The message is one line."""
+log = logging.getLogger(__package__)  # the training room's logger: its console lines read "training: ..."
 
 
 def check_data(cfg: DictConfig) -> dict[str, int]:
@@ -96,9 +97,9 @@ def check_data(cfg: DictConfig) -> dict[str, int]:
 
 
 def training_contract(cfg: DictConfig) -> InputContract:
-    """The input contract saved with the model (``fastflow3d.contract``): the height frame, ground and ego-motion
-    settings of the teacher that labelled ``data.train`` (its shards' labeller config), ``data.remove_ground`` and
-    the grid of ``model``."""
+    """The input contract saved with the model (``fastflow3d.network.contract``): the height frame, ground and
+    ego-motion settings of the teacher that labelled ``data.train`` (its shards' labeller config),
+    ``data.remove_ground`` and the grid of ``model``."""
     try:
         grid = read_grid(OmegaConf.to_container(cfg.model, resolve=True), "model")
         return labeller_contract(cfg.data.train, bool(cfg.data.remove_ground), grid)
@@ -124,52 +125,6 @@ def build_module(cfg: DictConfig, contract: InputContract, config: dict) -> Stud
         raise TrainError(one_line(error)) from None
     module.save_hyperparameters({"cfg": config})
     return module
-
-
-def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
-    """The checkpoint to resume from: None, ``<checkpoint_dir>/last.ckpt`` for ``last`` (and for ``auto`` where it
-    exists: a job a cluster requeues after a pre-emption runs the same command, first afresh, then resuming), or the
-    given file; it must hold weights of ``module``'s network (same names and shapes), else one line naming the
-    settings that differ."""
-    value = cfg.get("ckpt_path")
-    if value == "auto":
-        value = "last" if (Path(cfg.checkpoint_dir) / "last.ckpt").is_file() else None
-        if launching_process():
-            log.info(
-                "ckpt_path=auto: %s", f"resuming from {cfg.checkpoint_dir}/last.ckpt" if value else "starting afresh"
-            )
-    if not value:
-        return None
-    path = Path(cfg.checkpoint_dir) / "last.ckpt" if value == "last" else Path(value)
-    if not path.is_file():
-        raise TrainError(
-            f"ckpt_path={value}: {path} does not exist (nothing to resume; leave ckpt_path unset to start afresh)"
-        )
-    try:
-        checkpoint = read_checkpoint(path)
-    except CheckpointError as error:
-        raise TrainError(
-            f"ckpt_path={value}: {error}; give another checkpoint, or leave ckpt_path unset to start afresh"
-        ) from None
-    expected = {name: tuple(tensor.shape) for name, tensor in module.state_dict().items()}
-    state = checkpoint.get("state_dict")
-    found = {name: tuple(tensor.shape) for name, tensor in state.items()} if isinstance(state, dict) else {}
-    if found != expected:
-        hparams = checkpoint.get("hyper_parameters")
-        saved = (hparams.get("cfg") or {}).get("model") if isinstance(hparams, dict) else None
-        ours = OmegaConf.to_container(cfg.model, resolve=True)
-        differ = [
-            f"model.{key}={saved.get(key)} (this run: {ours.get(key)})"
-            for key in sorted(set(saved or {}) | set(ours))
-            if isinstance(saved, dict) and saved.get(key) != ours.get(key)
-        ]
-        what = ", ".join(differ) if differ else "its weights have other names or shapes"
-        raise TrainError(
-            f"ckpt_path={value}: {path} holds another network: {what}; resume with the model settings it was "
-            "trained with, or leave ckpt_path unset to start afresh"
-        )
-    check_resume_settings(module.hparams["cfg"], checkpoint, value, path)
-    return str(path)
 
 
 def check_length(cfg: DictConfig) -> None:
@@ -205,7 +160,7 @@ def build_trainer(cfg: DictConfig) -> L.Trainer:
     for name, ours in (("enable_progress_bar", True), ("enable_model_summary", False)):
         if trainer_kwargs.get(name) is None:  # Lightning's default (None): ours
             trainer_kwargs[name] = ours
-    if trainer_kwargs["enable_progress_bar"]:  # the console: icpflow.console, fastflow3d.callbacks
+    if trainer_kwargs["enable_progress_bar"]:  # the console: icpflow.console, fastflow3d.training.callbacks
         callbacks.append(progress_bar())
     if not trainer_kwargs["enable_model_summary"]:
         callbacks.append(ModelSize())
@@ -301,114 +256,16 @@ def check_sizes(cfg: DictConfig, trainer: L.Trainer, counts: dict[str, int], eff
         )
 
 
-def kept_checkpoint(cfg: DictConfig) -> str:
-    """What a run stopped at once leaves to resume from, in words."""
-    last = Path(cfg.checkpoint_dir) / "last.ckpt"
-    try:
-        step = read_checkpoint(last).get("global_step")
-    except CheckpointError:
-        return "nothing saved; rerun the same command"
-    return f"{last} (step {step}) is kept; to resume, rerun the same command with ckpt_path=last"
-
-
-@contextlib.contextmanager
-def run_folder(cfg: DictConfig):
-    """One run per ``out_dir``: its lock (``icpflow.atomic.folder_lock``) for the whole run, taken by the launching
-    process only; a second run into the folder is refused in one line naming the holder's pid."""
-    with contextlib.ExitStack() as stack:
-        if launching_process():
-            try:
-                stack.enter_context(folder_lock(cfg.out_dir, "train.py"))
-            except FolderInUse as error:
-                raise TrainError(str(error)) from None
-            except OSError as error:
-                raise TrainError(os_error_line(error)) from None
-        yield
-
-
-def check_fresh_start(cfg: DictConfig) -> None:
-    """A run without ``ckpt_path`` into a folder that holds ``last.ckpt`` would overwrite another run's checkpoints:
-    refused in one line, unless ``overwrite=true`` (then the folder's checkpoints are removed first, said in the
-    log)."""
-    if cfg.get("ckpt_path"):  # auto included: it resumes where last.ckpt exists
-        return
-    folder = Path(cfg.checkpoint_dir)
-    last = folder / "last.ckpt"
-    if not last.is_file():
-        return
-    if not cfg.get("overwrite"):
-        raise TrainError(
-            f"{folder} holds another run's checkpoints ({last.name}); resume it with ckpt_path=last, start afresh "
-            "with overwrite=true (its checkpoints are removed), or give another out_dir"
-        )
-    old = sorted(folder.glob("*.ckpt"))
-    for path in old:
-        path.unlink()
-    log.warning("overwrite=true: removed %d checkpoint(s) of the previous run in %s", len(old), folder)
-
-
-#: data settings that may differ on a resume (where the files are, how they are read)
-RESUME_FREE_DATA = ("train", "val", "workers")
-
-
-def _differences(saved: dict, ours: dict, prefix: str, skip=()) -> list[str]:
-    """``prefix.key=<saved> (this run: <ours>)`` for each key whose value differs (nested dicts flattened)."""
-    out = []
-    for key in sorted(set(saved) | set(ours)):
-        if key in skip:
-            continue
-        a, b = saved.get(key), ours.get(key)
-        if isinstance(a, dict) and isinstance(b, dict):
-            out += _differences(a, b, f"{prefix}.{key}")
-        elif a != b:
-            out.append(f"{prefix}.{key}={a} (this run: {b})")
-    return out
-
-
-def check_resume_settings(ours: dict, checkpoint: dict, value: str, path: Path) -> None:
-    """A resume with other model or data settings than the checkpoint's is refused, one line naming each
-    difference; differing optimiser or schedule settings are not applied (the checkpoint's optimiser and schedule
-    state continue): said in the log, naming them. ``ours``: this run's resolved config as the module holds it
-    (its ``input`` included), compared with the one the checkpoint stores."""
-    hparams = checkpoint.get("hyper_parameters")
-    saved = (hparams.get("cfg") or {}) if isinstance(hparams, dict) else {}
-    if not isinstance(saved, dict) or not saved:
-        return
-    differ = _differences(saved.get("model") or {}, ours.get("model") or {}, "model")
-    differ += _differences(saved.get("data") or {}, ours.get("data") or {}, "data", RESUME_FREE_DATA)
-    if "input" in saved:  # checkpoints of older versions stored it under data (compared above)
-        differ += _differences(saved["input"] or {}, ours.get("input") or {}, "input")
-    if differ:
-        raise TrainError(
-            f"ckpt_path={value}: {path} was trained with other settings: {'; '.join(differ)}; resume with its "
-            "settings, or leave ckpt_path unset to start afresh"
-        )
-    moved = [
-        f"data.{key}={(saved.get('data') or {}).get(key)} (this run: {(ours.get('data') or {}).get(key)})"
-        for key in ("train", "val")
-        if (saved.get("data") or {}).get(key) != (ours.get("data") or {}).get(key)
-    ]
-    if moved:  # allowed (a folder moved, a cluster's other mount), but never silent
-        log.warning("resuming %s with other data than it was trained on: %s", path.name, "; ".join(moved))
-    kept = _differences(saved.get("optim") or {}, ours.get("optim") or {}, "optim")
-    kept += _differences(saved.get("scheduler") or {}, ours.get("scheduler") or {}, "scheduler")
-    if kept:
-        log.warning(
-            "resuming %s: the optimiser and schedule state continue from the checkpoint; not applied: %s",
-            path.name,
-            "; ".join(kept),
-        )
-
-
 def fit(cfg: DictConfig) -> L.Trainer:
     """Train the student as ``cfg`` says, then export its best checkpoint; returns the Trainer after ``fit``.
 
     Raises TrainError (one line) if it cannot start, if a file cannot be written (a full or read-only disk: the
-    checkpoints already written are kept) or if the export fails; ``icpflow.entry.Stop`` on SIGTERM or SIGINT: in
-    the training loop after saving ``last.ckpt`` at the current step (``fastflow3d.callbacks.LastCheckpoint``),
-    elsewhere at once; its message says what was kept and how to resume.
+    checkpoints already written are kept) or if the export fails; ``icpflow.errors_and_signals.Stop`` on SIGTERM or
+    SIGINT: in the training loop after saving ``last.ckpt`` at the current step
+    (``fastflow3d.training.callbacks.LastCheckpoint``), elsewhere at once; its message says what was kept and how to
+    resume.
     """
-    check_config(cfg)  # the schema's rules (fastflow3d.options.TrainOptions)
+    check_config(cfg)  # the schema's rules (fastflow3d.training.options.TrainOptions)
     check_length(cfg)
     with stop_on_signals(), run_folder(cfg):
         counts = check_data(cfg)

@@ -1,8 +1,8 @@
 """The student as an evaluation method: ``student_method(cfg)`` for ``icpflow.evaluation.run_eval``'s
 ``extra_methods`` (``eval.py`` adds it as ``student``), ``refined_student_method(cfg)``, the same model with the
-Predictor's ICP refinement (``fastflow3d.refine``; ``eval.py`` method ``student+refine``), and
+Predictor's ICP refinement (``fastflow3d.inference.refine``; ``eval.py`` method ``student+refine``), and
 ``streamed_student_method(cfg)`` (``student-stream``): the same model fed the dataset's scans as a stream
-(``fastflow3d.stream.FlowStream``), nothing given: the ego motion and ground masks are the stream's own, and
+(``fastflow3d.inference.stream.FlowStream``), nothing given: the ego motion and ground masks are the stream's own, and
 ``refined_streamed_student_method(cfg)`` (``student-stream+refine``): that stream with the refinement, as
 ``fastflow3d-infer MODEL DIR --refine`` runs it."""
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fastflow3d.predictor import Predictor
+from fastflow3d.inference.predictor import Predictor
 from icpflow.evaluation import EvaluationError
 from icpflow.frames import FramePair
 
@@ -34,7 +34,7 @@ class StreamedStudentMethod:
     stream gives no flow (a lost track) gets the pairwise Predictor's, nothing given, with the stream's warning."""
 
     def __init__(self, path, sensor_height=None, refine=None):
-        from fastflow3d.stream import FlowStream
+        from fastflow3d.inference.stream import FlowStream
 
         self.predictor = Predictor.load(path, refine=refine, sensor_height=sensor_height)
         self.stream = FlowStream(self.predictor)
@@ -58,7 +58,7 @@ def streamed_student_method(cfg) -> StreamedStudentMethod:
 
 
 def refined_streamed_student_method(cfg) -> StreamedStudentMethod:
-    """``streamed_student_method`` with the default ICP refinement (``fastflow3d.refine.RefineConfig()``)."""
+    """``streamed_student_method`` with the default ICP refinement (``fastflow3d.inference.refine.RefineConfig()``)."""
     return StreamedStudentMethod(_checkpoint(cfg), cfg.get("sensor_height"), refine=True)
 
 
@@ -78,5 +78,6 @@ def student_method(cfg, refine=None) -> StudentMethod:
 
 
 def refined_student_method(cfg) -> StudentMethod:
-    """The student of ``cfg.checkpoint`` with the default ICP refinement (``fastflow3d.refine.RefineConfig()``)."""
+    """The student of ``cfg.checkpoint`` with the default ICP refinement
+    (``fastflow3d.inference.refine.RefineConfig()``)."""
     return student_method(cfg, refine=True)

@@ -1,6 +1,6 @@
 """Learning-rate schedules counted in optimiser steps, for ``conf/scheduler/*.yaml`` (Hydra ``_partial_`` targets).
 
-Each takes the optimiser and ``total_steps`` (filled in by ``fastflow3d.module`` from the Trainer's
+Each takes the optimiser and ``total_steps`` (filled in by ``fastflow3d.training.student_module`` from the Trainer's
 ``estimated_stepping_batches``, so a schedule keeps its shape whatever the dataset size) and returns a
 ``torch.optim.lr_scheduler.LambdaLR`` stepped once per optimiser step. Factors multiply each group's base lr.
 """

@@ -1,10 +1,10 @@
 """Flow of a LiDAR stream: scans in one at a time, the flow of each scan to the next out, nothing else given.
 
-``FlowStream(predictor)`` wraps a :class:`fastflow3d.predictor.Predictor`; :meth:`FlowStream.push` takes the next
-scan (N, 3) (with an optional timestamp in seconds) and returns the :class:`StreamStep` of the previous scan to this
-one: the same :class:`~fastflow3d.predictor.Prediction` as ``predictor.predict(previous, scan)`` would give with
-the ego motion and ground masks the stream estimated (FULL flow, project convention, in the previous scan's frame).
-What the pairwise call recomputes for every pair, the stream keeps:
+``FlowStream(predictor)`` wraps a :class:`fastflow3d.inference.predictor.Predictor`; :meth:`FlowStream.push` takes the
+next scan (N, 3) (with an optional timestamp in seconds) and returns the :class:`StreamStep` of the previous scan to
+this one: the same :class:`~fastflow3d.inference.prediction.Prediction` as ``predictor.predict(previous, scan)`` would
+give with the ego motion and ground masks the stream estimated (FULL flow, project convention, in the previous scan's
+frame). What the pairwise call recomputes for every pair, the stream keeps:
 
 * the height frame: found on the first scan (``Predictor.frame_lift``) and checked every ``check_every`` scans
   (the ground below the sensor); a scan whose ground moved by more than ``FRAME_TOLERANCE`` (another sensor or
@@ -29,7 +29,8 @@ import warnings
 
 import numpy as np
 
-from fastflow3d.predictor import Prediction, Predictor, PredictorWarning, as_points
+from fastflow3d.inference.prediction import Prediction, PredictorWarning, as_points
+from fastflow3d.inference.predictor import Predictor
 from icpflow.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
 from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
 

@@ -15,11 +15,11 @@ from typing import Any
 import lightning as L
 from omegaconf import MISSING
 
-from fastflow3d.loss import WEIGHTINGS
-from fastflow3d.module import LOSSES
+from fastflow3d.training.loss import WEIGHTINGS
+from fastflow3d.training.student_module import LOSSES
 from icpflow.settings import setting, signature_schema, store
 
-#: ``lightning.Trainer``'s keyword arguments, less those ``fastflow3d.training.build_trainer`` passes itself
+#: ``lightning.Trainer``'s keyword arguments, less those ``fastflow3d.training.trainer.build_trainer`` passes itself
 TrainerOptions = signature_schema(
     L.Trainer, "TrainerOptions", exclude=("logger", "callbacks", "plugins", "default_root_dir")
 )
@@ -27,7 +27,7 @@ TrainerOptions = signature_schema(
 
 @dataclass
 class AugmentOptions:
-    """``data.augment`` (``fastflow3d.augment``): training samples only; null = none."""
+    """``data.augment`` (``fastflow3d.training.augment``): training samples only; null = none."""
 
     yaw_deg: float = setting(20.0, "non_negative")
     flip: bool = True
@@ -37,7 +37,7 @@ class AugmentOptions:
 
 @dataclass
 class DataOptions:
-    """``data`` (``conf/data/shards.yaml``, ``fastflow3d.data.ShardDataModule``)."""
+    """``data`` (``conf/data/shards.yaml``, ``fastflow3d.training.data.ShardDataModule``)."""
 
     train: str = MISSING
     val: str = MISSING
@@ -51,7 +51,7 @@ class DataOptions:
 
 @dataclass
 class LossOptions:
-    """``loss`` (``fastflow3d.loss``)."""
+    """``loss`` (``fastflow3d.training.loss``)."""
 
     name: str = setting("distillation", choices=LOSSES)
     weighting: str = setting("buckets", choices=WEIGHTINGS)
@@ -81,7 +81,7 @@ class TrainOptions:
     """``train.py`` (``conf/train.yaml`` and its groups)."""
 
     data: DataOptions = MISSING
-    model: Any = MISSING  # fastflow3d.model.FastFlow3D's arguments (conf/model)
+    model: Any = MISSING  # fastflow3d.network.model.FastFlow3D's arguments (conf/model)
     trainer: TrainerOptions = field(default_factory=TrainerOptions)
     logger: Any = None
     callbacks: Any = None
@@ -96,7 +96,7 @@ class TrainOptions:
     checkpoint_dir: str = MISSING
     ckpt_path: str | None = None
     # samples per optimiser step over every device and node; set: trainer.accumulate_grad_batches follows from it
-    # (fastflow3d.training.settle_batch); null: data.batch_size x accumulation x devices x nodes as configured
+    # (fastflow3d.training.trainer.settle_batch); null: data.batch_size x accumulation x devices x nodes as configured
     effective_batch: int | None = setting(None, "count")
     overwrite: bool = False
     seed: int = 0

@@ -1,15 +1,15 @@
 """Scene flow of raw scan files with a trained FastFlow3D: a pair (the flow and a bird's-eye-view PNG) or a stream.
 
-    python -m fastflow3d.infer MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
+    python -m fastflow3d.inference.cli MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
         [--bev FILE.png | --no-bev] [--rerun FILE.rrd] [--bin-columns N] [--backend onnx|pt2|torchscript]
         [--device cpu] [--runtime onnxruntime|openvino] [--threads N] [--sensor-height METRES|auto]
         [--metadata FILE | --remove-ground yes|no]
-    python -m fastflow3d.infer MODEL DIR|'GLOB' [--out OUT_DIR] [--rerun FILE.rrd] [...]
+    python -m fastflow3d.inference.cli MODEL DIR|'GLOB' [--out OUT_DIR] [--rerun FILE.rrd] [...]
 
 Stream mode (one argument after MODEL: a folder of scans or a quoted glob, in natural name order, ``2.bin`` before
 ``10.bin``: ``icpflow.datasets.io.list_scans``, as ``dataset=sequence`` reads them; two scans of one name stem are
-refused): the scans are one stream (``fastflow3d.stream.FlowStream``: nothing given, the ego motion and ground kept
-across frames), and each consecutive pair's flow is written to ``OUT_DIR/<first scan's stem>.npz`` (default
+refused): the scans are one stream (``fastflow3d.inference.stream.FlowStream``: nothing given, the ego motion and ground
+kept across frames), and each consecutive pair's flow is written to ``OUT_DIR/<first scan's stem>.npz`` (default
 ``outputs/infer/<folder>``), holding what a pair's ``.npz`` holds; a progress bar shows frames per second. An
 unreadable scan is skipped with a warning naming it (the pair across it is estimated from its two scans); a pair
 the stream cannot estimate (a lost track) gets no file and a warning; a stream that gives no flow at all is an error.
@@ -18,14 +18,14 @@ same stream into OUT_DIR replaces its own outputs; OUT_DIR holding anything else
 without a manifest, or the input scans themselves) is refused before any work. ``--rerun`` records the whole
 stream (points coloured by speed, flow arrows, the estimated trajectory) on one timeline.
 
-MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.predictor``). Scans: ``.npz``
-(array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
+MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.inference.predictor``). Scans:
+``.npz`` (array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
 ``--bin-columns N`` values, x, y, z first), ``.ply`` or ``.pcd``; the first three columns are x, y, z in metres
 in the sensor's own frame (``icpflow.frames.check_points``: a transposed (3, N) array is an error). Ego motion:
 ``--poses`` (two world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a
 (2, 4, 4) ``.npy``), ``--ego`` (one (4, 4) ``ego1_from_ego0``: 12 or 16 values, or a ``.npy``), or neither
 (estimated by KISS-ICP).
-Height frame (``fastflow3d.predictor``): ``--sensor-height H`` says the scans' origin is H m above the ground
+Height frame (``fastflow3d.inference.predictor``): ``--sensor-height H`` says the scans' origin is H m above the ground
 (1.73 for KITTI's velodyne frame), ``auto`` estimates it from scan0; without it, scans whose ground lies more than
 0.5 m from where the model's frame has it are lifted into that frame with a warning. A model trained with ground
 removal gets the non-ground points of each scan, found with the teacher's ground segmentation and the settings
@@ -36,9 +36,9 @@ Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FU
 frame), ``residual`` (ego-compensated), ``in_grid`` (the network predicted the point), ``ground0`` (left out as
 ground), ``ego1_from_ego0``, ``ego_estimated``; a ``.npy`` output holds the flow alone; an output (or picture, or
 recording) that is one of the input files is refused. Errors are one line on stderr, exit status 2 (130 / 143 when
-Ctrl-C / SIGTERM stops it: ``icpflow.entry``); a scan none of whose points the network sees (outside its grid), a
-frame converted without being told, or an implausible preprocessing (over 85 % ground, under 20 % of scan0 in the
-grid) gets a one-line warning.
+Ctrl-C / SIGTERM stops it: ``icpflow.errors_and_signals``); a scan none of whose points the network sees (outside its
+grid), a frame converted without being told, or an implausible preprocessing (over 85 % ground, under 20 % of scan0 in
+the grid) gets a one-line warning.
 """
 
 from __future__ import annotations
@@ -51,65 +51,18 @@ from pathlib import Path
 
 import numpy as np
 
-from fastflow3d.artifact import FORMATS, LEGACY_FORMATS
-from icpflow.atomic import atomic_path, write_text_atomic
+from fastflow3d.artifact.file_format import FORMATS, LEGACY_FORMATS
+from fastflow3d.inference.scan_files import read_raw_scan, read_transforms, refuse_input_as_output, write_flow
+from fastflow3d.inference.stream_folder import MANIFEST, claim_output_folder, stream_files, stream_manifest
+from icpflow.atomic import write_text_atomic
 from icpflow.console import quiet
-from icpflow.datasets.io import SCAN_SUFFIXES, fail, list_scans, load_npz, read_poses, read_scan
-from icpflow.entry import exit_status, one_line, stop_on_signals
-from icpflow.frames import FramePair, check_points
+from icpflow.errors_and_signals import exit_status, one_line, stop_on_signals
+from icpflow.frames import FramePair
 from icpflow.geometry import relative_transform
-
-NPZ_KEYS = ("points", "pc")
-#: a stream's manifest in its output folder (``MANIFEST_VERSION``: its layout)
-MANIFEST, MANIFEST_VERSION = "stream.json", 1
-
-
-def read_raw_scan(path: Path, bin_columns: int | None = None) -> np.ndarray:
-    """(N, 3) float32 points of one scan file (see the module docstring for the formats; ``bin_columns``: float32
-    values per row of a ``.bin``, see ``icpflow.datasets.io.read_bin``)."""
-    suffix = path.suffix.lower()
-    if suffix != ".npz":
-        if suffix not in SCAN_SUFFIXES:
-            raise fail(path, f"unsupported scan format {suffix!r}; use one of .npz, {', '.join(SCAN_SUFFIXES)}")
-        return read_scan(path, bin_columns)
-    arrays = load_npz(path, required=(), optional=NPZ_KEYS)
-    key = next((name for name in NPZ_KEYS if name in arrays), None)
-    if key is None:
-        raise fail(path, f"no array named {' or '.join(NPZ_KEYS)}")
-    return check_points(arrays[key], path, key, allow_empty=False)
-
-
-def read_transforms(path: Path, count: int) -> np.ndarray:
-    """Exactly ``count`` rigid (4, 4) float64 transforms from text (12 or 16 values a line) or ``.npy``
-    (``read_poses``, which checks each one rigid)."""
-    transforms = read_poses(path)
-    if len(transforms) != count:
-        raise fail(path, f"holds {len(transforms)} transform(s), expected {count}")
-    return transforms
-
-
-def write_flow(path: Path, prediction) -> None:
-    """``.npy``: the full flow; ``.npz``: flow, residual, in_grid, ground0, ego1_from_ego0, ego_estimated (and
-    ``refined`` with ``--refine``). Atomic."""
-    with atomic_path(path, make_parents=True) as tmp, open(tmp, "wb") as handle:
-        if path.suffix == ".npy":
-            np.save(handle, prediction.flow)
-        else:
-            np.savez(
-                handle,
-                flow=prediction.flow,
-                residual=prediction.residual,
-                in_grid=prediction.in_grid,
-                ground0=prediction.ground0,
-                ego1_from_ego0=prediction.ego1_from_ego0,
-                ego_estimated=np.bool_(prediction.ego_estimated),
-                ego_assumed=np.bool_(prediction.ego_assumed),
-                **({} if prediction.refined is None else {"refined": prediction.refined}),
-            )
 
 
 def parse_args(argv):
-    parser = argparse.ArgumentParser(prog="python -m fastflow3d.infer", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m fastflow3d.inference.cli", description=__doc__.splitlines()[0])
     parser.add_argument("model", type=Path, help="export directory, .onnx, .pt2, .pt (older TorchScript) or .ckpt")
     parser.add_argument(
         "scan0", type=Path, help="scan at t (.npz, .npy, .bin, .ply, .pcd); or a folder / glob of scans: a stream"
@@ -134,11 +87,15 @@ def parse_args(argv):
     parser.add_argument("--backend", choices=(*FORMATS, *LEGACY_FORMATS), help="format of an export directory")
     parser.add_argument("--device", default="cpu", help="torch device for .pt2, .pt and checkpoints")
     parser.add_argument(
-        "--runtime", choices=("onnxruntime", "openvino"), help="CPU engine for the ONNX file (fastflow3d.runtime)"
+        "--runtime",
+        choices=("onnxruntime", "openvino"),
+        help="CPU engine for the ONNX file (fastflow3d.artifact.engines)",
     )
     parser.add_argument("--threads", type=int, help="inference threads of --runtime (default: the usable cores)")
     parser.add_argument(
-        "--refine", action="store_true", help="refine the flow per object with the teacher's ICP (fastflow3d.refine)"
+        "--refine",
+        action="store_true",
+        help="refine the flow per object with the teacher's ICP (fastflow3d.inference.refine)",
     )
     parser.add_argument(
         "--sensor-height",
@@ -182,7 +139,7 @@ def given_preprocessing(args):
 
 def load_predictor(args):
     """The Predictor the options ask for (model, engine, height frame, preprocessing, refinement)."""
-    from fastflow3d.predictor import Predictor
+    from fastflow3d.inference.predictor import Predictor
 
     return Predictor.load(
         args.model,
@@ -198,7 +155,7 @@ def load_predictor(args):
 
 def infer(args) -> tuple[Path, Path | None]:
     """Read, predict, write; returns the flow path and the picture path (or None)."""
-    from fastflow3d.predictor import PredictorWarning
+    from fastflow3d.inference.prediction import PredictorWarning
     from icpflow.viz import plot_bev
 
     out = args.out or Path("outputs/infer") / f"{args.scan0.stem}_flow.npz"
@@ -261,87 +218,9 @@ def infer(args) -> tuple[Path, Path | None]:
     return out, bev
 
 
-def refuse_input_as_output(output: Path | None, inputs) -> None:
-    """ValueError (one line) where ``output`` is one of the ``inputs`` (paths or None; the same file by any name)."""
-    if output is None:
-        return
-    for given in inputs:
-        if given is not None and (output.resolve() == given.resolve()):
-            raise ValueError(f"{output}: is an input of this run; writing there would destroy it (give another --out)")
-
-
-def stream_files(where: Path) -> list[Path]:
-    """The scans of a stream (``icpflow.datasets.io.list_scans``: a folder or a glob, natural order, one scan per
-    name stem)."""
-    suffixes = (".npz", *SCAN_SUFFIXES)
-    if not where.is_dir() and not any(char in str(where) for char in "*?["):
-        raise ValueError(f"{where}: give two scans (a pair), or a folder or glob of scans (a stream)")
-    files = list_scans(where, suffixes)
-    if len(files) < 2:
-        raise ValueError(f"{where}: a stream needs at least two scans ({', '.join(suffixes)}), found {len(files)}")
-    return files
-
-
-def stream_manifest(args, files: list[Path]) -> dict:
-    """What identifies a stream's run (``MANIFEST``): its scans, model and the options that change its flows."""
-    options = {name: getattr(args, name) for name in ("backend", "bin_columns", "refine", "sensor_height")}
-    return {
-        "version": MANIFEST_VERSION,
-        "model": str(args.model.resolve()),
-        "scans": [str(path.resolve()) for path in files],
-        "options": {
-            name: value if isinstance(value, (int, float, str, type(None))) else str(value)
-            for name, value in options.items()
-        },
-    }
-
-
-def claim_output_folder(out: Path, manifest: dict, files: list[Path]) -> None:
-    """Make ``out`` this stream's before any work: refused (ValueError, one line) where it holds an input scan, or
-    anything but the outputs of this very stream (the same manifest: a rerun, said on stderr, replaces them); then
-    its manifest, marked incomplete until the run ends."""
-    resolved = out.resolve()
-    for path in files:
-        if path.resolve().parent == resolved:
-            raise ValueError(
-                f"{out}: holds the input scans ({path.name}); the flows would replace them (give another --out)"
-            )
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: --out of a stream is a folder, and this is a file")
-    present = sorted(out.iterdir()) if out.is_dir() else []
-    if present:
-        earlier = read_manifest(out / MANIFEST)
-        if earlier is None or {k: earlier.get(k) for k in manifest} != manifest:
-            what = "another stream's flows" if earlier is not None else f"{len(present)} file(s) of no stream of ours"
-            raise ValueError(f"{out}: holds {what}; give an empty or new --out (outputs are never mixed)")
-        own = set(earlier.get("outputs", [])) | {MANIFEST}
-        foreign = [path.name for path in present if path.name not in own and not path.name.endswith(".npz")]
-        if foreign:
-            raise ValueError(f"{out}: holds {foreign[0]}, not an output of this stream; give an empty or new --out")
-        print(
-            f"infer: {out}: a rerun of the same stream; its {len(present) - 1} earlier output(s) are replaced",
-            file=sys.stderr,
-        )
-        for path in present:
-            if path.name != MANIFEST:
-                path.unlink()
-    write_text_atomic(
-        out / MANIFEST, json.dumps({**manifest, "complete": False, "outputs": []}, indent=1), make_parents=True
-    )
-
-
-def read_manifest(path: Path) -> dict | None:
-    """A stream's manifest, or None where there is none or it is not one of ours."""
-    try:
-        document = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return document if isinstance(document, dict) and document.get("version") == MANIFEST_VERSION else None
-
-
 def infer_stream(args) -> tuple[Path, int, int]:
     """Stream mode (module docstring): returns the output folder, the flows written and the scans read."""
-    from fastflow3d.stream import FlowStream
+    from fastflow3d.inference.stream import FlowStream
     from icpflow.console import Progress
 
     if args.poses is not None or args.ego is not None:
@@ -408,7 +287,8 @@ def infer_stream(args) -> tuple[Path, int, int]:
 
 def main(argv=None) -> int:
     """Command-line entry; returns the exit status (0 written; 2 an error, one line on stderr; 130 / 143 stopped by
-    Ctrl-C / SIGTERM) as ``icpflow.entry`` reports it for every entry point. A bad option exits (argparse)."""
+    Ctrl-C / SIGTERM) as ``icpflow.errors_and_signals`` reports it for every entry point. A bad option exits
+    (argparse)."""
     quiet()
     args = parse_args(argv)
     return exit_status("infer", lambda: _main(args), ValueError, RuntimeError)

@@ -1,7 +1,8 @@
-"""Export a trained FastFlow3D (``fastflow3d.artifact``: ONNX and a ``torch.export`` program, plus metadata) and
-check the parity of each exported file against eager PyTorch before it is kept.
+"""Export a trained FastFlow3D (``fastflow3d.artifact.file_format``: ONNX and a ``torch.export`` program, plus
+metadata) and check the parity of each exported file against eager PyTorch before it is kept.
 
-Every export is loaded back through ``fastflow3d.artifact`` (as the predictor loads it) and run on random clouds of
+Every export is loaded back through ``fastflow3d.artifact.engines.load_network`` (the opener the predictor uses; ONNX
+in ONNX Runtime's default CPU session) and run on random clouds of
 several sizes; one that differs from eager by more than :data:`PARITY_TOLERANCE` metres, or whose validity mask
 differs, is refused. ONNX uses the dynamo exporter: the legacy exporter mis-exports scatter ops without a warning.
 """
@@ -19,24 +20,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fastflow3d.artifact import (
+from fastflow3d.artifact.checkpoint import load_student
+from fastflow3d.artifact.engines import load_network
+from fastflow3d.artifact.file_format import (
     FILE_NAMES,
     FORMATS,
     LEGACY_FILE_NAMES,
     METADATA_NAME,
-    WRITERS,
-    OnnxRuntimeNetwork,
     SingleSampleNet,
-    load_network,
     network_metadata,
-    onnx_opset,
     sha256_file,
     write_metadata,
 )
-from fastflow3d.contract import ContractError, InputContract, upgrade
-from fastflow3d.model import FastFlow3D
+from fastflow3d.artifact.writers import WRITERS, onnx_opset
+from fastflow3d.network.contract import ContractError, InputContract, upgrade
+from fastflow3d.network.model import FastFlow3D
 from icpflow.atomic import atomic_directory
-from icpflow.entry import Stop, exit_status, one_line, os_error_line, signal_words, stop_on_signals
+from icpflow.errors_and_signals import Stop, exit_status, one_line, os_error_line, signal_words, stop_on_signals
 
 PARITY_TOLERANCE = 1e-4  # metres, max abs difference between an export and eager
 
@@ -136,9 +136,7 @@ def export_model(
                     raise ExportError(
                         "ONNX export needs onnx, onnxscript and onnxruntime: pip install 'icpflow[export]'"
                     ) from None
-                runner = (
-                    OnnxRuntimeNetwork(path, ["CPUExecutionProvider"]) if name == "onnx" else load_network(path, name)
-                )
+                runner = load_network(path, name, providers=["CPUExecutionProvider"] if name == "onnx" else None)
                 error = measure_parity(net, runner, contract)
             if not error <= tolerance:
                 raise ExportError(
@@ -194,10 +192,8 @@ def default_export_dir(checkpoint: Path, cfg: dict) -> Path:
 
 
 def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None, formats=FORMATS) -> Path:
-    """Export a training checkpoint (``fastflow3d.checkpoint.load_student``) to ``out_dir`` (default:
+    """Export a training checkpoint (``fastflow3d.artifact.checkpoint.load_student``) to ``out_dir`` (default:
     :func:`default_export_dir`). Returns the export directory."""
-    from fastflow3d.checkpoint import load_student
-
     checkpoint = Path(checkpoint)
     if not checkpoint.is_file():
         raise ExportError(f"{checkpoint}: checkpoint not found")
@@ -224,16 +220,16 @@ def parse_formats(value: str) -> tuple[str, ...]:
     return FORMATS if names == ["all"] else tuple(names)
 
 
-#: errors whose message is the line ``export.py`` prints (``icpflow.entry.reported``)
+#: errors whose message is the line ``export.py`` prints (``icpflow.errors_and_signals.reported``)
 EXPECTED = (ValueError, RuntimeError)
 
 
 def run_export(cfg) -> int:
     """``export.py``: export ``cfg.checkpoint`` in ``cfg.format`` to ``cfg.out_dir``; print what was written.
 
-    Returns the exit status (``icpflow.entry.exit_status``, the report every entry point makes): 0 exported, 2 could
-    not export (one line on stderr: the file, the cause, the fix), 143 / 130 on SIGTERM / SIGINT (the line says that
-    the existing export is unchanged).
+    Returns the exit status (``icpflow.errors_and_signals.exit_status``, the report every entry point makes): 0
+    exported, 2 could not export (one line on stderr: the file, the cause, the fix), 143 / 130 on SIGTERM / SIGINT (the
+    line says that the existing export is unchanged).
     """
     return exit_status("export", lambda: _run_export(cfg), *EXPECTED)
 

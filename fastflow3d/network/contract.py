@@ -8,13 +8,13 @@ model's height frame, with pc0 moved by the ego motion into the ego frame of t +
   sits in the frame the network saw), the teacher's ground settings (Patchwork++'s z offset follows from the frame
   and the sensor height, never stored) and its ego-motion settings;
 - ``remove_ground``: the network sees only the non-ground points of each scan (ZeroFlow's input);
-- ``grid`` (``fastflow3d.voxelize.Grid``): the pillar grid; a point outside it is not the network's (None: unknown,
-  for a bare exported file without its metadata: every point goes in and the network's own validity decides).
+- ``grid`` (``fastflow3d.network.voxelize.Grid``): the pillar grid; a point outside it is not the network's (None:
+  unknown, for a bare exported file without its metadata: every point goes in and the network's own validity decides).
 
 :meth:`InputContract.prepare` turns a pair into the network's input (lift into the height frame, compensate pc0,
 drop ground, crop to the grid) and :meth:`InputContract.restore` puts the network's residual back on the input rows;
 :meth:`InputContract.network_mask` is the row test itself, for a flat batch of points (training, validation).
-Training (``fastflow3d.data.NetworkCrop``), validation (``StudentModule.forward``), the ``Predictor`` and the
+Training (``fastflow3d.training.data.NetworkCrop``), validation (``StudentModule.forward``), the ``Predictor`` and the
 export's parity check all call them.
 
 Stored form (:meth:`InputContract.to_dict`, version :data:`VERSION`): ``input`` of a checkpoint's saved config and
@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from fastflow3d.model import compensate
-from fastflow3d.voxelize import Grid, pillar_ids
-from icpflow.entry import one_line
+from fastflow3d.network.model import compensate
+from fastflow3d.network.voxelize import Grid, pillar_ids
+from icpflow.errors_and_signals import one_line
 from icpflow.preprocess import VERSION as PREPROCESSING_VERSION
 from icpflow.preprocess import Preprocessing, PreprocessingError, lift_points, lift_transform
 
@@ -89,7 +89,7 @@ class InputContract:
     # ------------------------------------------------------------------------------------------------ rows
     def network_mask(self, points, ground=None):
         """(N,) bool: the rows of (N, 3) ``points`` (pc1, or pc0 already compensated; numpy or torch, any number of
-        samples concatenated) that the network sees: inside the grid (``fastflow3d.voxelize.pillar_ids``, the
+        samples concatenated) that the network sees: inside the grid (``fastflow3d.network.voxelize.pillar_ids``, the
         network's own test) and, with ``remove_ground``, not in the (N,) bool ``ground``. Same type as ``points``."""
         as_numpy = isinstance(points, np.ndarray)
         tensor = torch.from_numpy(points) if as_numpy else points

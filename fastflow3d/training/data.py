@@ -3,23 +3,24 @@
 One sample (``StudentDataset[i]``) holds torch tensors:
 
 - ``pc0`` (N0, 3) float32, ego frame of t (as stored); ``pc0_compensated`` (N0, 3): the same points moved into the
-  ego frame of t + dt (``fastflow3d.model.compensate``), the network's input; ``pc1`` (N1, 3) float32, ego frame of
-  t + dt; ``ego1_from_ego0`` (4, 4) float64; ``dt`` float64 seconds; ``ground0`` (N0,) / ``ground1`` (N1,) bool (the
-  shards' masks; with ``data.remove_ground`` the network sees only the other points, see ``fastflow3d.module``);
+  ego frame of t + dt (``fastflow3d.network.model.compensate``), the network's input; ``pc1`` (N1, 3) float32, ego frame
+  of t + dt; ``ego1_from_ego0`` (4, 4) float64; ``dt`` float64 seconds; ``ground0`` (N0,) / ``ground1`` (N1,) bool (the
+  shards' masks; with ``data.remove_ground`` the network sees only the other points, see
+  ``fastflow3d.training.student_module``);
 - ``pseudo`` (N0, 3) float32: the teacher's RESIDUAL (ego-compensated) flow, the distillation target;
   ``confidence`` (N0,) float32; ``cluster`` (N0,) int32 (teacher cluster id, -1 = none);
 - when the shard has ground truth: ``gt`` (N0, 3) float32 RESIDUAL flow, ``gt_valid`` (N0,) bool, ``gt_classes``
   (N0,) int32 (0 = background);
 - ``sample_id`` str.
 
-:func:`collate` concatenates samples into one flat batch (the model's input layout, see ``fastflow3d.voxelize``):
-per-point tensors are concatenated (P0 rows, or P1 for ``pc1`` and ``ground1``), ``batch0`` / ``batch1`` (P0,) /
-(P1,) int64 give each point's sample, ``ego1_from_ego0`` is (B, 4, 4), ``dt`` (B,), ``sample_id`` a list and
-``batch_size`` an int.
+:func:`collate` concatenates samples into one flat batch (the model's input layout, see
+``fastflow3d.network.voxelize``): per-point tensors are concatenated (P0 rows, or P1 for ``pc1`` and ``ground1``),
+``batch0`` / ``batch1`` (P0,) / (P1,) int64 give each point's sample, ``ego1_from_ego0`` is (B, 4, 4), ``dt`` (B,),
+``sample_id`` a list and ``batch_size`` an int.
 
 Training samples are cropped to what the network sees (``NetworkCrop``, in the DataLoader workers): the pc0 / pc1
-rows of the input contract (``fastflow3d.contract``: inside the grid and, with ground removal, off the ground); the
-batch then says
+rows of the input contract (``fastflow3d.network.contract``: inside the grid and, with ground removal, off the
+ground); the batch then says
 ``network_points=True`` and the module runs the network on it as it is. The loss is the same as on the whole
 scans (points outside the grid or on the ground never count), and the main process neither copies nor masks them.
 ``NetworkCrop.max_points`` (``data.train_points``) then keeps at most that many random points per scan: an inexact
@@ -42,11 +43,11 @@ from lightning.fabric.utilities.seed import pl_worker_init_function
 from threadpoolctl import threadpool_limits
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 
-from fastflow3d.augment import Augmentation
-from fastflow3d.contract import ContractError, InputContract, upgrade
-from fastflow3d.model import compensate
-from fastflow3d.voxelize import Grid
-from icpflow.entry import one_line
+from fastflow3d.network.contract import ContractError, InputContract, upgrade
+from fastflow3d.network.model import compensate
+from fastflow3d.network.voxelize import Grid
+from fastflow3d.training.augment import Augmentation
+from icpflow.errors_and_signals import one_line
 from icpflow.geometry import full_to_residual
 from icpflow.shards.access import open_shard
 from icpflow.shards.reader import ShardDataset
@@ -63,8 +64,8 @@ class DataError(ValueError):
 @dataclass(frozen=True)
 class NetworkCrop:
     """The rows of a sample the network sees in training: those of the input ``contract``
-    (``fastflow3d.contract.InputContract.network_mask``: inside the grid and, with ground removal, off the ground);
-    then at most ``max_points`` random rows per scan (None = all)."""
+    (``fastflow3d.network.contract.InputContract.network_mask``: inside the grid and, with ground removal, off the
+    ground); then at most ``max_points`` random rows per scan (None = all)."""
 
     contract: InputContract
     max_points: int | None = None
@@ -105,11 +106,11 @@ class Draw(NamedTuple):
 
 
 class StudentDataset(Dataset):
-    """The samples of one shard directory (a ``label.py`` out_dir) as torch tensors (module docstring); with
-    ``augment`` (training only) each read is a random augmentation (``fastflow3d.augment``); with ``crop`` (training
-    only) each sample is then cut to the network's points. The random choices of ``dataset[Draw(i, (seed, epoch))]``
-    (what :class:`EpochOrder` hands the DataLoader) are those of ``Draw.rng``; a plain ``dataset[i]`` draws fresh
-    ones from torch's random state."""
+    """The samples of one shard directory (a ``label.py`` out_dir) as torch tensors (module docstring); with ``augment``
+    (training only) each read is a random augmentation (``fastflow3d.training.augment``); with ``crop`` (training only)
+    each sample is then cut to the network's points. The random choices of ``dataset[Draw(i, (seed, epoch))]`` (what
+    :class:`EpochOrder` hands the DataLoader) are those of ``Draw.rng``; a plain ``dataset[i]`` draws fresh ones from
+    torch's random state."""
 
     def __init__(self, shard_dir, augment: Augmentation | None = None, crop: NetworkCrop | None = None):
         self.root = Path(shard_dir)
@@ -198,7 +199,7 @@ def labeller_contract(shard_dir, remove_ground: bool, grid: Grid) -> InputContra
     """The input contract of a student trained on ``shard_dir`` with ``remove_ground`` on ``grid``: the teacher's
     part (height frame, ground and ego-motion settings) from the labeller config of its first shard (``label.py``'s
     YAML: its ``preprocessing`` block, or the ``teacher`` fields of older versions), read by
-    ``fastflow3d.contract.upgrade``. Shards whose labeller config holds neither are refused (DataError): nothing
+    ``fastflow3d.network.contract.upgrade``. Shards whose labeller config holds neither are refused (DataError): nothing
     would say the height frame the student learns in."""
     shards = StudentDataset(shard_dir).shards
     first = shards.root / shards.entries[0][0]

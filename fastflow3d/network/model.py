@@ -6,13 +6,13 @@ Input convention: ``pc0`` is the scan at t already moved into the ego frame of t
 applied, see ``compensate``) and ``pc1`` is the scan at t + dt as is. The network predicts the ego-compensated
 (residual) flow of every pc0 point inside the grid (0 outside, with a validity mask); the full flow in the
 project convention is ``residual + ego_flow(pc0, ego1_from_ego0)`` (``icpflow.geometry.residual_to_full``).
-Batches are flat point lists with a sample index per point (see ``fastflow3d.voxelize``).
+Batches are flat point lists with a sample index per point (see ``fastflow3d.network.voxelize``).
 
 Speed (the numbers are those of the plain formulation up to float rounding): pseudo-images are channels_last views
 of the pillar rows (no copy, and the convolutions run in channels_last); the decoders' first layer is split into
 a per-pillar part, computed once per cell of the pseudo-images, and a per-point part, so the three pillar features
 are never gathered per point; the embedder's BatchNorm skips its masked copy when every point is inside the grid
-(training batches are cropped to the grid by ``fastflow3d.data``).
+(training batches are cropped to the grid by ``fastflow3d.training.data``).
 """
 
 import numpy as np
@@ -20,8 +20,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from fastflow3d.scatter import scatter_mean, to_pseudo_image
-from fastflow3d.voxelize import Grid, voxelize
+from fastflow3d.network.scatter import scatter_mean, to_pseudo_image
+from fastflow3d.network.voxelize import Grid, voxelize
 from icpflow.geometry import transform_points
 
 

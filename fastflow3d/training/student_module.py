@@ -3,9 +3,9 @@ metrics.
 
 Its arguments (:class:`StudentModule`) come from ``conf/train.yaml``'s ``module`` node: the network, the loss
 (``name``: ``distillation`` on the teacher's pseudo-labels, or ``supervised`` on ground truth with
-``background_weight``; ``weighting`` and ``bucket_edges``, see ``fastflow3d.loss``), the optimiser and schedule
+``background_weight``; ``weighting`` and ``bucket_edges``, see ``fastflow3d.training.loss``), the optimiser and schedule
 (Hydra ``_partial_`` targets, ``conf/optim``, ``conf/scheduler``; counted in optimiser steps), ``metrics``
-(``crop``, ``bev_every``), the input contract (``fastflow3d.contract``) and ``out_dir``.
+(``crop``, ``bev_every``), the input contract (``fastflow3d.network.contract``) and ``out_dir``.
 
 The network sees the rows of the input contract: with ground removal (ZeroFlow's setting) only the non-ground points
 of pc0 and pc1 (the shards' ``ground0`` / ``ground1``) inside the grid; other pc0 points get residual 0 (full flow =
@@ -30,10 +30,10 @@ import lightning as L
 import numpy as np
 import torch
 
-from fastflow3d.contract import InputContract
-from fastflow3d.data import split_samples
-from fastflow3d.loss import flow_loss, object_loss
-from fastflow3d.model import FastFlow3D
+from fastflow3d.network.contract import InputContract
+from fastflow3d.network.model import FastFlow3D
+from fastflow3d.training.data import split_samples
+from fastflow3d.training.loss import flow_loss, object_loss
 from icpflow import metrics as metrics_module
 from icpflow.frames import FramePair
 from icpflow.geometry import residual_to_full
@@ -41,7 +41,7 @@ from icpflow.geometry import residual_to_full
 LOSSES = ("distillation", "supervised")
 
 
-log = logging.getLogger(__name__)
+log = logging.getLogger(__package__)  # the training room's logger: its console lines read "training: ..."
 
 
 class NonFiniteLoss(RuntimeError):
@@ -50,15 +50,15 @@ class NonFiniteLoss(RuntimeError):
 
 class StudentModule(L.LightningModule):
     """FastFlow3D as ``self.model``, trained as its explicit arguments say; instantiated from ``conf/train.yaml``'s
-    ``module`` node (``fastflow3d.training.build_module``), as in lightning-hydra-template.
+    ``module`` node (``fastflow3d.training.trainer.build_module``), as in lightning-hydra-template.
 
-    ``model``: the network (``fastflow3d.checkpoint.build_student`` of ``conf/model``); ``loss``: ``name``,
-    ``weighting``, ``bucket_edges``, ``background_weight``, ``object_weight`` (``fastflow3d.loss``); ``optimiser``:
-    ``optimiser(params)`` and ``scheduler``: ``scheduler(optimiser, total_steps=...)``, Hydra ``_partial_`` targets
-    (``conf/optim``,
-    ``conf/scheduler``); ``contract``: the input contract (``fastflow3d.contract``); ``metrics``: ``crop`` and
-    ``bev_every``; ``out_dir``: where BEV images go (``<out_dir>/bev``). ``fastflow3d.training.build_module`` also
-    saves the whole resolved training config as ``hparams.cfg`` (export, evaluation and resume need only a
+    ``model``: the network (``fastflow3d.artifact.checkpoint.build_student`` of ``conf/model``); ``loss``: ``name``,
+    ``weighting``, ``bucket_edges``, ``background_weight``, ``object_weight`` (``fastflow3d.training.loss``);
+    ``optimiser``: ``optimiser(params)`` and ``scheduler``: ``scheduler(optimiser, total_steps=...)``, Hydra
+    ``_partial_`` targets (``conf/optim``,
+    ``conf/scheduler``); ``contract``: the input contract (``fastflow3d.network.contract``); ``metrics``: ``crop`` and
+    ``bev_every``; ``out_dir``: where BEV images go (``<out_dir>/bev``). ``fastflow3d.training.trainer.build_module``
+    also saves the whole resolved training config as ``hparams.cfg`` (export, evaluation and resume need only a
     checkpoint); it is never read here."""
 
     def __init__(
@@ -85,8 +85,8 @@ class StudentModule(L.LightningModule):
     def forward(self, batch: dict):
         """(residual (P0, 3), valid (P0,)) of a collated batch; valid = the network predicted the point (its rows in
         the input contract: inside the grid and, with ground removal, not ground); residual is 0 elsewhere. A batch
-        already cut to those rows (``network_points``, ``fastflow3d.data.NetworkCrop``) goes to the network as it
-        is."""
+        already cut to those rows (``network_points``, ``fastflow3d.training.data.NetworkCrop``) goes to the network as
+        it is."""
         if batch.get("network_points"):
             return self.model(
                 batch["pc0_compensated"], batch["batch0"], batch["pc1"], batch["batch1"], batch["batch_size"]
@@ -108,7 +108,7 @@ class StudentModule(L.LightningModule):
         """The configured loss of residual predictions (P0, 3) on the points the network predicted (``valid``):
         against the pseudo-labels (``distillation``) or the ground truth (``supervised``, background points
         weighted by ``background_weight``), weighted as ``loss.weighting`` says, plus ``object_weight`` times the
-        object term on the teacher's clusters (``fastflow3d.loss``)."""
+        object term on the teacher's clusters (``fastflow3d.training.loss``)."""
         options, size = self.loss_options, batch["batch_size"]
         dt = batch["dt"].float()[batch["batch0"]]  # speeds in float32, also under bf16 autocast
         weighting = {"weighting": options["weighting"], "dt": dt, "bucket_edges": options["bucket_edges"]}
@@ -227,7 +227,7 @@ class StudentModule(L.LightningModule):
     # ------------------------------------------------------------------------------------------------ optimiser
 
     def configure_optimizers(self):
-        """The optimiser and its schedule (``fastflow3d.schedules``) from the partials given, stepped every
+        """The optimiser and its schedule (``fastflow3d.training.schedules``) from the partials given, stepped every
         optimiser step."""
         optimiser = self.make_optimiser(self.parameters())
         schedule = self.make_schedule(optimiser, total_steps=int(self.trainer.estimated_stepping_batches))

@@ -1,9 +1,10 @@
 """Student checkpoints: the network from its config, and a trained network back from a Lightning checkpoint.
 
-Contract (``fastflow3d.module.StudentModule`` writes it; export and evaluation read it): the checkpoint's
-``hyper_parameters`` is ``{"cfg": <the full resolved training config as plain dict>}``; ``cfg["model"]`` is
-``{"_target_": "fastflow3d.model.FastFlow3D", <FastFlow3D keyword arguments>}``; the network's weights are the
-``state_dict`` entries ``model.<name>``. Checkpoints are read with ``torch.load(..., weights_only=True)``.
+Contract (``fastflow3d.training.student_module.StudentModule`` writes it; export and evaluation read it): the
+checkpoint's ``hyper_parameters`` is ``{"cfg": <the full resolved training config as plain dict>}``; ``cfg["model"]`` is
+``{"_target_": "fastflow3d.network.model.FastFlow3D", <FastFlow3D keyword arguments>}``; the network's weights are the
+``state_dict`` entries ``model.<name>``. Checkpoints are read with ``torch.load(..., weights_only=True)``, and the
+``_target_``s of their stored config are read as today's paths (:data:`MOVED_TARGETS`).
 """
 
 from __future__ import annotations
@@ -12,9 +13,21 @@ from pathlib import Path
 
 import torch
 
-from fastflow3d.model import FastFlow3D
+from fastflow3d.network.model import FastFlow3D
 
-MODEL_TARGET = "fastflow3d.model.FastFlow3D"
+MODEL_TARGET = "fastflow3d.network.model.FastFlow3D"
+
+#: The modules whose objects a stored training config names as ``_target_`` (``model``, ``module``, ``scheduler``,
+#: ``callbacks``) and that have moved since a release wrote it: old module -> module today (issue 46, the package in
+#: rooms). A checkpoint keeps the paths of the code that wrote it; :func:`read_checkpoint` is the one place a stored
+#: config is read, and reads them as today's (``tests/fixtures/release_0_1``). Export metadata names no module that
+#: is instantiated (its ``model`` entry is a copy of the checkpoint's, for the reader).
+MOVED_TARGETS = {
+    "fastflow3d.model": "fastflow3d.network.model",
+    "fastflow3d.module": "fastflow3d.training.student_module",
+    "fastflow3d.schedules": "fastflow3d.training.schedules",
+    "fastflow3d.callbacks": "fastflow3d.training.callbacks",
+}
 
 
 class CheckpointError(ValueError):
@@ -40,9 +53,26 @@ def _first_line(error: Exception) -> str:
     return lines[0] if lines else type(error).__name__
 
 
+def current_targets(node):
+    """A stored config (dicts, lists, plain values) with each ``_target_`` of a moved module (:data:`MOVED_TARGETS`)
+    named by today's path; everything else as it is."""
+    if isinstance(node, dict):
+        return {
+            key: _current_target(value) if key == "_target_" else current_targets(value) for key, value in node.items()
+        }
+    if isinstance(node, list):
+        return [current_targets(value) for value in node]
+    return node
+
+
+def _current_target(target):
+    module, _, name = target.rpartition(".") if isinstance(target, str) else ("", "", "")
+    return f"{MOVED_TARGETS[module]}.{name}" if module in MOVED_TARGETS else target
+
+
 def read_checkpoint(path, map_location="cpu") -> dict:
-    """The contents of a torch checkpoint file (tensors and plain data only); a missing, truncated or foreign file
-    raises :class:`CheckpointError`."""
+    """The contents of a torch checkpoint file (tensors and plain data only), its stored config's ``_target_``s read
+    as today's paths (:func:`current_targets`); a missing, truncated or foreign file raises :class:`CheckpointError`."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint does not exist")
@@ -54,6 +84,9 @@ def read_checkpoint(path, map_location="cpu") -> dict:
         ) from None
     if not isinstance(checkpoint, dict):
         raise CheckpointError(f"{path}: not a checkpoint (holds a {type(checkpoint).__name__}, not a dict)")
+    hparams = checkpoint.get("hyper_parameters")
+    if isinstance(hparams, dict) and "cfg" in hparams:
+        checkpoint["hyper_parameters"] = {**hparams, "cfg": current_targets(hparams["cfg"])}
     return checkpoint
 
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
-from fastflow3d.scatter import scatter_mean
+from fastflow3d.network.scatter import scatter_mean
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,8 @@ unreadable file, a full or read-only disk); 128 + N stopped by signal N (130 Ctr
   type or an unknown option becomes one line naming it (:func:`error_line`), and so does an
   :class:`~icpflow.settings.OptionError`.
 * One way to stop: :func:`on_signals` is the only place that installs handlers for :data:`STOP_SIGNALS` (the entry
-  points through :func:`stop_on_signals`, training's ``fastflow3d.callbacks.LastCheckpoint`` to note a signal and
-  stop after the current step); :func:`signals_held` only holds them back around a call that must not be
+  points through :func:`stop_on_signals`, training's ``fastflow3d.training.callbacks.LastCheckpoint`` to note a signal
+  and stop after the current step); :func:`signals_held` only holds them back around a call that must not be
   interrupted, and delivers them to those handlers after it. :class:`Stop` is a signal turned into an exception; it
   carries the line that says what was kept and how to go on, and its exit status (:func:`stop_signum` also reads a
   bare ``KeyboardInterrupt``).
@@ -250,8 +250,8 @@ def run(prog: str, hydra_main: Callable[[], object]) -> None:
 
 def exit_status(prog: str, body: Callable[[], int | None], *expected: type[BaseException]) -> int:
     """``body()`` inside :func:`reported` for a command that returns its exit status instead of exiting (the
-    ``fastflow3d-infer`` console script, ``fastflow3d.export.run_export``; tests call them): ``body``'s status (None:
-    0), or the status of the line :func:`reported` printed."""
+    ``fastflow3d-infer`` console script, ``fastflow3d.artifact.export.run_export``; tests call them): ``body``'s status
+    (None: 0), or the status of the line :func:`reported` printed."""
     try:
         with reported(prog, *expected):
             return int(body() or 0)

@@ -1,0 +1,117 @@
+"""How a Predictor opens its model (``Predictor.load``): an export directory, one exported file or a training
+checkpoint, opened in its engine by ``fastflow3d.artifact.engines.load_network``, with the metadata that describes it;
+and the input contract the model was trained with (``fastflow3d.network.contract``: saved in its metadata or
+checkpoint, or given for a bare exported file)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from fastflow3d.artifact.engines import choose_format, load_network
+from fastflow3d.artifact.file_format import (
+    FORMATS,
+    LEGACY_FORMATS,
+    METADATA_NAME,
+    SUFFIX_FORMATS,
+    listed_file,
+    network_metadata,
+    read_metadata,
+    sibling_metadata,
+)
+from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING
+from fastflow3d.inference.prediction import PredictorError
+from fastflow3d.network.contract import ContractError, InputContract, read_grid, upgrade
+from icpflow.errors_and_signals import one_line
+
+
+def open_model(
+    path: Path, backend: str | None, device: str, runtime: str | None, threads: int | None, precision: str
+) -> tuple[object, str, dict]:
+    """``(network, backend, metadata)`` of the model at ``path`` (``Predictor.load``'s arguments): the network
+    numpy in, numpy out; the backend it runs in (a format, ``eager`` for a checkpoint, or the ONNX ``runtime``);
+    the metadata that describes it ({} for a bare exported file without its ``metadata.json``)."""
+    if runtime is not None:
+        if path.is_dir():
+            metadata = read_metadata(path / METADATA_NAME)
+            file = listed_file(path, metadata, "onnx")
+        elif path.suffix.lower() == ".onnx" and path.is_file():
+            file, metadata = path, sibling_metadata(path, "onnx")
+        else:
+            raise PredictorError(f"{path}: runtime {runtime!r} needs an export directory with ONNX or a .onnx")
+        network = load_network(file, "onnx", runtime=runtime, threads=threads, precision=precision)
+        kind = runtime
+    elif path.is_dir():
+        metadata = read_metadata(path / METADATA_NAME)
+        kind = backend or choose_format(metadata["files"], path)
+        if kind not in FORMATS + LEGACY_FORMATS:
+            raise PredictorError(f"{path}: unknown backend {kind!r}; use one of {', '.join(FORMATS)}")
+        network = load_network(listed_file(path, metadata, kind), kind, device)
+    else:
+        kind = "checkpoint" if path.suffix.lower() == ".ckpt" else SUFFIX_FORMATS.get(path.suffix.lower())
+        if kind is None:
+            raise PredictorError(f"{path}: expected an export directory, .onnx, .pt2, .pt (TorchScript) or .ckpt")
+        if not path.is_file():
+            raise PredictorError(f"{path}: file not found")
+        if backend is not None and backend != kind:
+            raise PredictorError(f"{path}: a {path.suffix} file cannot run with backend {backend!r}")
+        if kind in LEGACY_FORMATS and backend is None:
+            raise PredictorError(f"{path}: refused: {TORCHSCRIPT_WARNING}")
+        if kind == "checkpoint":
+            network, kind = load_network(path, "checkpoint", device), "eager"
+            model, cfg = network.module.model, network.config
+            contract = checkpoint_contract(path, cfg, model.grid)
+            metadata = network_metadata(model, dict(cfg.get("model") or {}), path, contract)
+        else:
+            metadata = sibling_metadata(path, kind)
+            network = load_network(path, kind, device)
+    return network, kind, metadata
+
+
+def model_contract(path: Path, metadata: dict, preprocessing) -> InputContract:
+    """The input contract of the model at ``path``: ``preprocessing`` where given (:func:`given_contract`), else the
+    one its ``metadata`` stores; a bare exported file with neither is refused (one line saying what to pass)."""
+    if not metadata and preprocessing is None:
+        raise PredictorError(
+            f"{path}: no {METADATA_NAME} beside it describes this file, so its preprocessing (ground "
+            "removal, height frame) is unknown and running it could silently give wrong flow; load its "
+            "export directory, or pass what the metadata says: preprocessing=<metadata.json> "
+            "(fastflow3d-infer --metadata FILE), or {'remove_ground': False} (--remove-ground no) to run "
+            "it on every point"
+        )
+    if preprocessing is not None:
+        grid = metadata.get("grid") if isinstance(metadata, dict) else None
+        contract = given_contract(preprocessing, read_grid(grid, path) if isinstance(grid, dict) else None)
+    else:
+        try:
+            contract = upgrade(metadata)
+        except ContractError as error:
+            raise PredictorError(f"{path}: metadata: {one_line(error)}") from None
+    return contract
+
+
+def checkpoint_contract(path: Path, cfg: dict, grid) -> InputContract:
+    """The input contract a checkpoint's saved config stores (any version), one line naming it if unreadable."""
+    try:
+        return upgrade(cfg, grid=grid)
+    except ContractError as error:
+        raise PredictorError(f"{path}: {one_line(error)}") from None
+
+
+def given_contract(given, grid) -> InputContract:
+    """The input contract a user passes for a bare exported file (``Predictor.load(preprocessing=...)``): a
+    ``metadata.json`` path or dict, its ``input`` / ``preprocessing`` entry, or ``{"remove_ground": ...}``; the
+    model's ``grid`` (a Grid, or None when unknown) where the given form has none."""
+    if isinstance(given, (str, os.PathLike)):
+        try:
+            given = json.loads(Path(given).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise PredictorError(f"{given}: cannot read preprocessing: {one_line(error)}") from None
+    if not isinstance(given, dict):
+        raise PredictorError(f"preprocessing must be a dict or a JSON file, got {type(given).__name__}")
+    try:
+        contract = upgrade(given)
+    except ContractError as error:
+        raise PredictorError(f"preprocessing: {one_line(error)}") from None
+    return contract if contract.grid is not None else contract.replace(grid=grid)

@@ -1,0 +1,84 @@
+"""The stream mode of ``fastflow3d-infer`` (``fastflow3d.inference.cli``): which scans make the stream, and its
+output folder, claimed before any work through its manifest (``stream.json``: the scans, the model and the options
+of the run that wrote it; a rerun of the same stream replaces its own outputs, anything else is refused)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from icpflow.atomic import write_text_atomic
+from icpflow.datasets.io import SCAN_SUFFIXES, list_scans
+
+#: a stream's manifest in its output folder (``MANIFEST_VERSION``: its layout)
+MANIFEST, MANIFEST_VERSION = "stream.json", 1
+
+
+def stream_files(where: Path) -> list[Path]:
+    """The scans of a stream (``icpflow.datasets.io.list_scans``: a folder or a glob, natural order, one scan per
+    name stem)."""
+    suffixes = (".npz", *SCAN_SUFFIXES)
+    if not where.is_dir() and not any(char in str(where) for char in "*?["):
+        raise ValueError(f"{where}: give two scans (a pair), or a folder or glob of scans (a stream)")
+    files = list_scans(where, suffixes)
+    if len(files) < 2:
+        raise ValueError(f"{where}: a stream needs at least two scans ({', '.join(suffixes)}), found {len(files)}")
+    return files
+
+
+def stream_manifest(args, files: list[Path]) -> dict:
+    """What identifies a stream's run (``MANIFEST``): its scans, model and the options that change its flows."""
+    options = {name: getattr(args, name) for name in ("backend", "bin_columns", "refine", "sensor_height")}
+    return {
+        "version": MANIFEST_VERSION,
+        "model": str(args.model.resolve()),
+        "scans": [str(path.resolve()) for path in files],
+        "options": {
+            name: value if isinstance(value, (int, float, str, type(None))) else str(value)
+            for name, value in options.items()
+        },
+    }
+
+
+def claim_output_folder(out: Path, manifest: dict, files: list[Path]) -> None:
+    """Make ``out`` this stream's before any work: refused (ValueError, one line) where it holds an input scan, or
+    anything but the outputs of this very stream (the same manifest: a rerun, said on stderr, replaces them); then
+    its manifest, marked incomplete until the run ends."""
+    resolved = out.resolve()
+    for path in files:
+        if path.resolve().parent == resolved:
+            raise ValueError(
+                f"{out}: holds the input scans ({path.name}); the flows would replace them (give another --out)"
+            )
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: --out of a stream is a folder, and this is a file")
+    present = sorted(out.iterdir()) if out.is_dir() else []
+    if present:
+        earlier = read_manifest(out / MANIFEST)
+        if earlier is None or {k: earlier.get(k) for k in manifest} != manifest:
+            what = "another stream's flows" if earlier is not None else f"{len(present)} file(s) of no stream of ours"
+            raise ValueError(f"{out}: holds {what}; give an empty or new --out (outputs are never mixed)")
+        own = set(earlier.get("outputs", [])) | {MANIFEST}
+        foreign = [path.name for path in present if path.name not in own and not path.name.endswith(".npz")]
+        if foreign:
+            raise ValueError(f"{out}: holds {foreign[0]}, not an output of this stream; give an empty or new --out")
+        print(
+            f"infer: {out}: a rerun of the same stream; its {len(present) - 1} earlier output(s) are replaced",
+            file=sys.stderr,
+        )
+        for path in present:
+            if path.name != MANIFEST:
+                path.unlink()
+    write_text_atomic(
+        out / MANIFEST, json.dumps({**manifest, "complete": False, "outputs": []}, indent=1), make_parents=True
+    )
+
+
+def read_manifest(path: Path) -> dict | None:
+    """A stream's manifest, or None where there is none or it is not one of ours."""
+    try:
+        document = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return document if isinstance(document, dict) and document.get("version") == MANIFEST_VERSION else None
