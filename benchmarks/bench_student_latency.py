@@ -38,11 +38,12 @@ made of (first backend, per step).
 played as a stream (KITTI HDL-64E ``000000``-``000005``; the two AV2 sweeps alternate, s0 s1 s0 s1 ..., as the only AV2
 stream shipped) ``--passes`` times from a fresh stream; the frames after the first two of each pass are timed (the whole
 ``push``). Regimes: ``pairwise`` (``Predictor.predict`` on each pair with nothing given), ``streamed`` (nothing
-given) and ``given`` (the ego motion and ground masks passed in, computed beforehand). With ``--device cuda`` only
-the network runs on the GPU: ground, odometry and the rest stay on the CPU's ``--threads``. Prints median / p90 ms,
-Hz, the RSS growth of the stream (and the GPU's peak memory), and the streamed regime's time per step (ground,
-odometry, network, the rest). The ego motion's error against true poses, streamed and pairwise:
-``benchmarks/bench_ego_motion.py``.
+given), ``overlapped`` (the same with ``FlowStream(overlap=True)``: each pair's network in a worker thread beside the
+next scan's ground and odometry; a push returns the step before, so a push is a frame) and ``given`` (the ego motion and
+ground masks passed in, computed beforehand). With ``--device cuda`` only the network runs on the GPU: ground, odometry
+and the rest stay on the CPU's ``--threads``. Prints median / p90 ms, Hz, the RSS growth of the stream (and the GPU's
+peak memory), and the streamed regime's time per step (ground, odometry, network, the rest). The ego motion's error
+against true poses, streamed and pairwise: ``benchmarks/bench_ego_motion.py``.
 
 ``refine``: the refinement dial, whole-call time of a trained student (``--export``) alone, with the Predictor's
 ICP refinement (``fastflow3d.inference.refine``) and of the teacher. Ego motion and ground masks are given (computed
@@ -90,7 +91,7 @@ TEACHERS = {
     "av2": ICPFlowConfig.preset("av2"),
     "uniform": ICPFlowConfig.preset("av2"),
 }
-STREAM_REGIMES = ("pairwise", "streamed", "given")
+STREAM_REGIMES = ("pairwise", "streamed", "overlapped", "given")
 #: metres of each scan's origin above the ground (KITTI's velodyne frame; the AV2 ego frame is the model's own)
 SENSOR_HEIGHTS = {"kitti": 1.73, "av2": None}
 #: each mode's options and their defaults (None: no default); an option of another mode is refused
@@ -398,6 +399,15 @@ def play(network, contract, backend, scans, regimes, passes):
                 times["streamed"].append(seconds)
                 per_step.append({**spent, "the rest": seconds - sum(spent.values())})
         memory["streamed"] = max(memory.get("streamed", 0.0), rss_mb() - before)
+    if "overlapped" in times:  # FlowStream(overlap=True): a push returns the step before; per push = per frame
+        for _ in range(passes):
+            stream = FlowStream(Predictor(network, contract, backend), overlap=True)
+            for k, scan in enumerate(scans):
+                start = time.perf_counter()
+                stream.push(scan)
+                if k > 2:
+                    times["overlapped"].append(time.perf_counter() - start)
+            stream.flush()
     medians = {key: statistics.median(step[key] for step in per_step) for key in per_step[0]} if per_step else {}
     return times, memory, medians
 

@@ -127,6 +127,55 @@ def test_splicing_two_places_is_a_lost_track_without_flow(predictor_path, moving
         assert _errors(pair.ego1_from_ego0, steps[k].prediction.ego1_from_ego0)[0] < 0.03, k
 
 
+def test_an_overlapped_stream_gives_the_same_steps_one_push_late(predictor_path, moving, other_place):
+    """overlap=True (the network of a pair beside the next scan's steps, in a worker thread): the very steps of the
+    plain stream, in order, each one push late and the last from flush(), through a scan of too few points, a
+    skipped scan and a lost track, with the refinement on."""
+    _, scans = moving
+    _, other_scans = other_place
+    scans = [scans[0], scans[1], scans[2][:50], *scans[3:6], *other_scans[:3]]
+    sources = [f"s{k}" for k in range(len(scans))]
+
+    def run(overlap):
+        stream = FlowStream(Predictor.load(predictor_path, refine=True), overlap=overlap)
+        steps = []
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            for k, (scan, source) in enumerate(zip(scans, sources)):
+                if k == 5:
+                    stream.skip("gone", "unreadable")
+                steps.append(stream.push(scan, source=source))
+            steps.append(stream.flush())
+        said = [str(w.message) for w in caught if issubclass(w.category, StreamWarning)]
+        return steps, said
+
+    plain, plain_said = run(False)
+    overlapped, overlapped_said = run(True)
+    assert plain[-1] is None and overlapped[0] is None  # plain: flush has nothing; overlapped: the first push
+    assert overlapped_said == plain_said and len(plain_said) == 3, plain_said  # too few, skipped, lost track
+    for expected, step in zip(plain[:-1], overlapped[1:]):
+        assert (step.source, step.previous, step.restarted, step.fitness) == (
+            expected.source,
+            expected.previous,
+            expected.restarted,
+            expected.fitness,
+        )
+        assert (step.pose is None) == (expected.pose is None) and (step.prediction is None) == (
+            expected.prediction is None
+        )
+        # the odometry's threaded reductions (KISS-ICP) may round differently from run to run: 1e-16 m on a pose
+        if step.pose is not None:
+            np.testing.assert_allclose(step.pose, expected.pose, atol=1e-9)
+        if step.prediction is not None:
+            for name in ("in_grid", "ground0", "refined"):
+                np.testing.assert_array_equal(getattr(step.prediction, name), getattr(expected.prediction, name))
+            for name in ("flow", "residual", "ego1_from_ego0"):
+                np.testing.assert_allclose(
+                    getattr(step.prediction, name), getattr(expected.prediction, name), atol=1e-5
+                )
+    assert sum(step.prediction is not None for step in plain[:-1]) >= 5
+
+
 def test_a_scan_from_another_frame_is_caught_by_the_height_check(predictor_path, moving):
     """Scans that suddenly come 1.5 m lower (another sensor's origin): the height check says so, lifts them by their
     own ground, and the pairs keep the right ego motion."""

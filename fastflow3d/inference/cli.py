@@ -234,46 +234,61 @@ def infer_stream(args) -> tuple[Path, int, int]:
     manifest = stream_manifest(args, files)
     claim_output_folder(out, manifest, files)
     outputs = []
-    stream = FlowStream(predictor)
+    stream = FlowStream(predictor, overlap=True)  # each pair's network beside the next scan's steps
     recording = None
     if args.rerun is not None:
         from icpflow.viz_rerun import PairRecording
 
         recording = PairRecording(args.rerun, application="fastflow3d-infer")
-    written, previous, trajectory = 0, None, []
+    trajectory, scans = [], {}  # scans: the points of the scans whose step is not out yet, by name
+
+    def write(step) -> None:
+        """A step of the stream out: its flow file, the recording, the trajectory."""
+        if step.prediction is not None:
+            name = f"{Path(step.previous).stem}.npz"
+            write_flow(out / name, step.prediction)
+            outputs.append(name)
+            if recording is not None:
+                pair = FramePair(
+                    pc0=scans[step.previous],
+                    pc1=scans[step.source],
+                    ego1_from_ego0=step.prediction.ego1_from_ego0,
+                    ground0=step.prediction.ground0 if predictor.remove_ground else None,
+                    source=step.previous,
+                )
+                recording.log_pair(len(outputs), pair, {"fastflow3d": step.prediction.flow}, step.prediction.in_grid)
+        if step.pose is not None:
+            trajectory[:] = [] if step.restarted and step.prediction is None else trajectory
+            trajectory.append(step.pose[:3, 3])
+            if recording is not None:
+                recording.log_trajectory(len(outputs), np.array(trajectory))
+        for name in [name for name in scans if name not in (step.source, *pushed[-2:])]:
+            del scans[name]  # done with: neither this step's pc1 nor a scan whose step is still to come
+
+    pushed = []
     with Progress(total=len(files), unit="frame", desc="infer") as bar:  # its rate: frames per second
-        for path in files:
+        for path in [*files, None]:  # None: the last step out of the stream (flush)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                try:
-                    points = read_raw_scan(path, args.bin_columns)
-                except (ValueError, OSError) as error:
-                    stream.skip(str(path), one_line(error))
-                    points = None
-                step = None if points is None else stream.push(points, source=str(path))
+                points = None
+                if path is not None:
+                    try:
+                        points = read_raw_scan(path, args.bin_columns)
+                    except (ValueError, OSError) as error:
+                        stream.skip(str(path), one_line(error))
+                if points is not None:
+                    scans[str(path)] = points
+                    pushed.append(str(path))
+                    step = stream.push(points, source=str(path))
+                else:
+                    step = stream.flush() if path is None else None
             for warning in caught:
                 bar.write(f"infer: warning: {str(warning.message).split(': ', 1)[-1]}", file=sys.stderr)
-            if step is not None and step.prediction is not None:
-                name = f"{Path(step.previous).stem}.npz"
-                write_flow(out / name, step.prediction)
-                outputs.append(name)
-                written += 1
-                if recording is not None:
-                    pair = FramePair(
-                        pc0=previous,
-                        pc1=points,
-                        ego1_from_ego0=step.prediction.ego1_from_ego0,
-                        ground0=step.prediction.ground0 if predictor.remove_ground else None,
-                        source=step.previous,
-                    )
-                    recording.log_pair(written, pair, {"fastflow3d": step.prediction.flow}, step.prediction.in_grid)
-            if step is not None and step.pose is not None:
-                trajectory = [] if step.restarted and step.prediction is None else trajectory
-                trajectory.append(step.pose[:3, 3])
-                if recording is not None:
-                    recording.log_trajectory(written, np.array(trajectory))
-            previous = points if points is not None else previous
-            bar.update(1)
+            if step is not None:
+                write(step)
+            if path is not None:
+                bar.update(1)
+    written = len(outputs)
     if recording is not None:
         recording.close()
     document = {**manifest, "complete": True, "outputs": outputs}

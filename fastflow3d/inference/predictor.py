@@ -164,16 +164,51 @@ class Predictor(ScanSteps):
         float32 raised by ``lift`` m, ``ego_frame`` (4, 4) in that frame, the ground masks (N,) bool (from
         :meth:`ground_mask`). What :meth:`predict` and a stream (``fastflow3d.inference.stream``) run after their own
         ego motion and ground steps; ``check_ego``: compare the given ego motion with the identity and its inverse;
-        ``run_network`` False: the ego flow only (a stream's pair with too few points)."""
-        pair = self.contract.prepare(*lifted, ego_frame, ground0, ground1)  # already in the height frame
+        ``run_network`` False: the ego flow only (a stream's pair with too few points). The three parts,
+        :meth:`network_input`, :meth:`run_network` and :meth:`finish`, are also called apart (a stream runs the
+        network of one pair while it prepares the next scan)."""
+        pair = self.network_input(lifted, ego_frame, ground0, ground1, check_ego)
+        output = self.run_network(pair) if run_network else None
+        return self.finish(pair, output, ego_frame, lift, estimated, assumed)
+
+    def network_input(
+        self,
+        lifted: tuple[np.ndarray, np.ndarray],
+        ego_frame: np.ndarray,
+        ground0: np.ndarray,
+        ground1: np.ndarray,
+        check_ego: bool = False,
+    ) -> PreparedPair:
+        """The pair as the network takes it (``InputContract.prepare``: the scans already in the height frame)."""
+        pair = self.contract.prepare(*lifted, ego_frame, ground0, ground1)
         if check_ego:
             self.ego_checks_left -= 1
             self.check_given_ego(pair.pc0[~pair.ground0], pair.pc1[~pair.ground1], pair.ego1_from_ego0)
+        return pair
+
+    def run_network(self, pair: PreparedPair) -> tuple[np.ndarray, np.ndarray] | None:
+        """The network's (residual (K0, 3), valid (K0,)) on the pair's input rows; None when a scan has no point
+        for it. Touches nothing else: safe to run in another thread while this Predictor works on other scans."""
+        if not (len(pair.rows0) and len(pair.rows1)):
+            return None
+        return self.network(pair.network0, pair.network1)
+
+    def finish(
+        self,
+        pair: PreparedPair,
+        output: tuple[np.ndarray, np.ndarray] | None,
+        ego_frame: np.ndarray,
+        lift: float,
+        estimated: bool,
+        assumed: bool = False,
+    ) -> Prediction:
+        """The :class:`Prediction` from the network's ``output`` (:meth:`run_network`; None: the ego flow only):
+        the residual restored on pc0's rows, refined when the Predictor refines, checked and made FULL flow."""
         count = len(pair.pc0)
         residual, in_grid = np.zeros((count, 3), np.float32), np.zeros(count, bool)
         refined = np.zeros(count, bool) if self.refine is not None else None
-        if run_network and len(pair.rows0) and len(pair.rows1):  # the network needs points in both scans
-            kept, valid = self.network(pair.network0, pair.network1)
+        if output is not None:
+            kept, valid = output
             if not np.isfinite(kept[valid]).all():
                 raise PredictorError(
                     f"{self.backend} model: the network returned non-finite flow for "

@@ -20,19 +20,27 @@ is estimated from its two scans alone); a scan with too few points keeps the mot
 ego flow only; a step whose fitness is under ``min_fitness`` is estimated afresh (``icpflow.odometry``), and where
 that fits under ``LOST_FITNESS`` too the pair gets no flow (``StreamStep.prediction`` None) and a new track starts.
 Each case is one :class:`StreamWarning`; the other frames keep their flow.
+
+``overlap=True`` uses the second core: the network of one pair runs in a worker thread while the stream prepares
+the next scan (its ground and odometry step; the refinement of a pair runs beside the network of the next). The
+steps are the same, in the same order, one push late: :meth:`FlowStream.push` returns the step of the scan pushed
+before (None for the first) and :meth:`FlowStream.flush` the last one. A caller that reads its scans from files
+(``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps ``overlap=False``.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import warnings
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
 from fastflow3d.inference.prediction import Prediction, PredictorWarning, as_points
 from fastflow3d.inference.predictor import Predictor
+from fastflow3d.network.contract import PreparedPair
 from icpflow.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
-from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
+from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points, lift_transform
 
 
 class StreamWarning(PredictorWarning):
@@ -65,11 +73,31 @@ class _Scan:
     source: str | None
 
 
+@dataclasses.dataclass
+class _Staged:
+    """A pushed scan up to its network: either its finished ``step`` (no network to run: the first scan, a lost
+    track) or the ``pair`` the network takes and what :meth:`Predictor.finish` needs after it."""
+
+    step: StreamStep | None = None
+    pair: PreparedPair | None = None
+    run_network: bool = True
+    ego_frame: np.ndarray | None = None
+    lift: float = 0.0
+    estimated: bool = True
+    assumed: bool = False
+    source: str | None = None
+    previous: str | None = None
+    pose: np.ndarray | None = None
+    fitness: float | None = None
+    restarted: bool = False
+
+
 class FlowStream:
     """See the module docstring. ``max_gap_s``: a larger time between two scans restarts the odometry (default
     0.25 s: 2.5 frames at 10 Hz); ``min_fitness``: below it a step is estimated afresh from its two scans (under
     ``icpflow.odometry.LOST_FITNESS`` after that, the track is lost); ``check_every``: scans between
-    checks of the height frame; ``refine``: refine each odometry step (off: KISS-ICP alone)."""
+    checks of the height frame; ``refine``: refine each odometry step (off: KISS-ICP alone); ``overlap``: run each
+    pair's network beside the next scan's steps, the steps one push late (module docstring)."""
 
     def __init__(
         self,
@@ -78,6 +106,7 @@ class FlowStream:
         min_fitness: float = 0.5,
         check_every: int = 10,
         refine: bool = True,
+        overlap: bool = False,
     ):
         self.predictor = predictor
         self.max_gap_s, self.check_every = float(max_gap_s), int(check_every)
@@ -87,9 +116,16 @@ class FlowStream:
         self._pose = np.eye(4)
         self._since_check = 0
         self._gap: str | None = None  # why the next pair must restart the odometry
+        self.overlap = bool(overlap)
+        self._pending: tuple[_Staged, Future | None] | None = None  # overlap: the last push, its network running
+        self._worker = ThreadPoolExecutor(1, thread_name_prefix="flowstream") if self.overlap else None
 
     def reset(self) -> None:
-        """Start again: the next scan begins a new stream (height frame, odometry, trajectory)."""
+        """Start again: the next scan begins a new stream (height frame, odometry, trajectory). With ``overlap``, a
+        step not yet returned is dropped (call :meth:`flush` first to keep it)."""
+        if self._pending is not None and self._pending[1] is not None:
+            self._pending[1].result()  # let its network finish: the worker is free for the next stream
+        self._pending = None
         self.odometry.reset()
         self.lift, self._previous, self._pose, self._since_check, self._gap = None, None, np.eye(4), 0, None
 
@@ -99,8 +135,42 @@ class FlowStream:
         self._warn(f"{source}: skipped ({reason}); the next pair spans the gap, the odometry restarts")
         self._gap = "a skipped scan"
 
-    def push(self, scan, timestamp: float | None = None, source: str | None = None) -> StreamStep:
-        """Take the next scan (N, 3) (``timestamp`` in seconds, ``source`` its name); see :class:`StreamStep`."""
+    def push(self, scan, timestamp: float | None = None, source: str | None = None) -> StreamStep | None:
+        """Take the next scan (N, 3) (``timestamp`` in seconds, ``source`` its name); see :class:`StreamStep`. With
+        ``overlap``: the step of the scan pushed before this one (None after the first push; :meth:`flush`)."""
+        staged = self._stage(scan, timestamp, source)
+        if not self.overlap:
+            return self._complete(
+                staged, self.predictor.run_network(staged.pair) if self._needs_network(staged) else None
+            )
+        done, self._pending = self._pending, None
+        output = None if done is None or done[1] is None else done[1].result()  # the earlier pair's network
+        future = self._worker.submit(self.predictor.run_network, staged.pair) if self._needs_network(staged) else None
+        self._pending = (staged, future)
+        return None if done is None else self._complete(done[0], output)
+
+    def flush(self) -> StreamStep | None:
+        """With ``overlap``: the step of the last pushed scan (None when there is none left); without, None."""
+        if self._pending is None:
+            return None
+        (staged, future), self._pending = self._pending, None
+        return self._complete(staged, None if future is None else future.result())
+
+    @staticmethod
+    def _needs_network(staged: _Staged) -> bool:
+        return staged.step is None and staged.run_network
+
+    def _complete(self, staged: _Staged, output) -> StreamStep:
+        """The :class:`StreamStep` of a staged scan, from its network's ``output`` (``Predictor.run_network``)."""
+        if staged.step is not None:
+            return staged.step
+        prediction = self.predictor.finish(
+            staged.pair, output, staged.ego_frame, staged.lift, staged.estimated, staged.assumed
+        )
+        return StreamStep(prediction, staged.source, staged.previous, staged.pose, staged.fitness, staged.restarted)
+
+    def _stage(self, scan, timestamp: float | None, source: str | None) -> _Staged:
+        """Everything of a pushed scan up to its pair's network (see :class:`_Staged`), in push order."""
         points = as_points(source or "scan", scan)
         if self.lift is None:
             self.lift = self.predictor.frame_lift(points)
@@ -131,7 +201,7 @@ class FlowStream:
             self.odometry.reset()
             self.odometry.step(lifted, odometry_ground)
             self._pose = np.eye(4)
-            return StreamStep(None, source, None, self._pose.copy(), None, False)
+            return _Staged(StreamStep(None, source, None, self._pose.copy(), None, False))
         if self._gap is not None:
             self.odometry.reset()
             self.odometry.step(previous.lifted, previous.odometry_ground)
@@ -149,17 +219,24 @@ class FlowStream:
                 f"{LOST_FITNESS}); no flow for this pair, a new track starts here"
             )
             self._pose = np.eye(4)
-            return StreamStep(None, source, previous.source, None, step.fitness, True)
+            return _Staged(StreamStep(None, source, previous.source, None, step.fitness, True))
         if step.restarted and not forced:
             self._warn(f"{source or 'scan'}: the odometry lost track and restarted (fitness {step.fitness:.2f})")
-        ego = step.ego1_from_ego0
-        prediction = self.predictor.flow_in_frame(
-            (previous.lifted, lifted), ego, previous.ground, ground, float(self.lift), estimated=True
+        ego, lift = step.ego1_from_ego0, float(self.lift)
+        pair = self.predictor.network_input((previous.lifted, lifted), ego, previous.ground, ground)
+        self._pose = self._pose @ np.linalg.inv(ego if lift == 0 else lift_transform(ego, -lift))  # scans' frame
+        return _Staged(
+            pair=pair,
+            ego_frame=ego,
+            lift=lift,
+            source=source,
+            previous=previous.source,
+            pose=self._pose.copy(),
+            fitness=step.fitness,
+            restarted=restarted,
         )
-        self._pose = self._pose @ np.linalg.inv(prediction.ego1_from_ego0)
-        return StreamStep(prediction, source, previous.source, self._pose.copy(), step.fitness, restarted)
 
-    def _too_few(self, previous: _Scan, current: _Scan) -> StreamStep:
+    def _too_few(self, previous: _Scan, current: _Scan) -> _Staged:
         """A pair with a scan of fewer than ``MIN_EGO_POINTS`` points: the ego flow of the identity; one warning
         for the scan (as pc1 of its first pair; its second pair is said by the first); the next pair restarts the
         odometry."""
@@ -170,17 +247,20 @@ class FlowStream:
                 "restarts"
             )
         self._gap = "too few points"
-        prediction = self.predictor.flow_in_frame(
-            (previous.lifted, current.lifted),
-            np.eye(4),
-            previous.ground,
-            current.ground,
-            float(self.lift),
+        pair = self.predictor.network_input(
+            (previous.lifted, current.lifted), np.eye(4), previous.ground, current.ground
+        )
+        return _Staged(
+            pair=pair,
+            run_network=False,
+            ego_frame=np.eye(4),
+            lift=float(self.lift),
             estimated=False,
             assumed=True,
-            run_network=False,
+            source=current.source,
+            previous=previous.source,
+            restarted=True,
         )
-        return StreamStep(prediction, current.source, previous.source, None, None, True)
 
     def _check_frame(self, points: np.ndarray, source: str | None) -> None:
         """Every ``check_every`` scans: is the ground still where the height frame has it? If not, warn, take
