@@ -38,7 +38,6 @@ from helpers.labelling import (
 )
 from helpers.shards import write_pseudo_labels
 from helpers.training import train_cfg
-from students import tiny_checkpoint, tiny_model
 
 SLOW = ["dataset.reader._target_=helpers.labelling.SlowSynthetic", "workers=2"]
 READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 2.0}
@@ -229,19 +228,12 @@ def scan():
     return SyntheticDataset(**READER).pair(0).pc0
 
 
-@pytest.fixture(scope="module")
-def model(tmp_path_factory):
-    """A tiny student checkpoint after one step (a +-6.4 m grid)."""
-    cfg = tiny_model(6.4, 0.4)
-    return tiny_checkpoint(tmp_path_factory.mktemp("model") / "tiny.ckpt", cfg, SyntheticDataset(**READER).pair(0), 1)
-
-
 def _infer(args, capsys) -> tuple[int, list[str]]:
     status = infer_main([*map(str, args), "--no-bev"])
     return status, capsys.readouterr().err.splitlines()
 
 
-def test_every_malformed_point_file_is_one_line_naming_it(scan, model, tmp_path, capsys):
+def test_every_malformed_point_file_is_one_line_naming_it(scan, tiny_student, tmp_path, capsys):
     good = tmp_path / "good.npy"
     np.save(good, scan)
     cases = {
@@ -255,14 +247,14 @@ def test_every_malformed_point_file_is_one_line_naming_it(scan, model, tmp_path,
     for name, (make, message) in cases.items():
         path = tmp_path / name
         make(path)
-        status, err = _infer([model, path, good, "--out", tmp_path / "flow.npz"], capsys)
+        status, err = _infer([tiny_student, path, good, "--out", tmp_path / "flow.npz"], capsys)
         assert status == 2 and len(err) == 1, err
         assert err[0].startswith(f"infer: {path}: ") and message in err[0], err
     assert not (tmp_path / "flow.npz").exists()
     np.testing.assert_array_equal(read_raw_scan(tmp_path / "xyz.bin", bin_columns=3), scan)  # explicit layout
 
 
-def test_the_same_rule_in_the_readers_the_predictor_and_the_teacher(scan, model, tmp_path):
+def test_the_same_rule_in_the_readers_the_predictor_and_the_teacher(scan, tiny_student, tmp_path):
     folder = tmp_path / "drive"
     folder.mkdir()
     np.save(folder / "0.npy", scan)
@@ -280,7 +272,7 @@ def test_the_same_rule_in_the_readers_the_predictor_and_the_teacher(scan, model,
     with pytest.raises(FramePairError, match="notes.npz: not an .npz file"):
         load_npz(tmp_path / "notes.npz", ("pc0",))
     with pytest.raises(PredictorError, match=r"Predictor: pc0 has shape \(3, \d+\): a transposed scan\?"):
-        Predictor.load(model)(scan.T, scan, np.eye(4))
+        Predictor.load(tiny_student)(scan.T, scan, np.eye(4))
     with pytest.raises(ValueError, match=r"ICPFlow: pc1 has shape \(3, \d+\): a transposed scan\?"):
         ICPFlow()(scan, scan.T, np.eye(4))
 
@@ -296,14 +288,14 @@ def test_integer_coordinates_are_read_with_a_warning(scan, tmp_path, caplog):
     ]
 
 
-def test_a_scan_outside_the_grid_gets_a_warning(scan, model, tmp_path, capsys):
+def test_a_scan_outside_the_grid_gets_a_warning(scan, tiny_student, tmp_path, capsys):
     far = scan + np.float32(1000.0)  # metres away from the sensor: millimetres read as metres, say
     np.save(tmp_path / "far0.npy", far)
     np.save(tmp_path / "far1.npy", far)
     np.savetxt(tmp_path / "ego.txt", np.eye(4).reshape(1, 16))
     status, err = _infer(
         [
-            model,
+            tiny_student,
             tmp_path / "far0.npy",
             tmp_path / "far1.npy",
             "--ego",
@@ -339,10 +331,10 @@ def test_a_corrupt_shard_stops_training_in_one_line_naming_it(pairs, tmp_path):
     assert message.endswith(f"rerun the label.py command that wrote it (same out_dir={bad}): it redoes damaged shards")
 
 
-def test_a_truncated_checkpoint_is_one_line_naming_it(pairs, model, tmp_path):
+def test_a_truncated_checkpoint_is_one_line_naming_it(pairs, tiny_student, tmp_path):
     good = write_pseudo_labels(tmp_path / "good", pairs)
     truncated = tmp_path / "last.ckpt"
-    truncated.write_bytes(model.read_bytes()[:2000])
+    truncated.write_bytes(tiny_student.read_bytes()[:2000])
     with pytest.raises(TrainError) as error:
         fit(train_cfg(tmp_path, good, good, f"ckpt_path={truncated}"))
     message = str(error.value)
@@ -381,7 +373,7 @@ def test_the_summary_says_how_many_failures_it_does_not_list(tmp_path, capsys):
     assert len((tmp_path / "failures.jsonl").read_text().splitlines()) == 14
 
 
-def test_a_bin_scan_in_another_dtype_or_unit_is_refused_whatever_the_column_count(scan, model, tmp_path, capsys):
+def test_a_bin_scan_in_another_dtype_or_unit_is_refused_whatever_the_column_count(scan, tiny_student, tmp_path, capsys):
     """Issue 45.8: float64 rows read as the float32 rows the column count says gave points of 1e19 m (the range
     check was skipped with --bin-columns); a scan in millimetres or centimetres is told so, not asked for a column
     count. Each is one line naming the file, exit 2, for every column count."""
@@ -390,12 +382,12 @@ def test_a_bin_scan_in_another_dtype_or_unit_is_refused_whatever_the_column_coun
     doubles = tmp_path / "doubles.bin"
     np.column_stack([scan, np.ones(len(scan))]).astype(np.float64).tofile(doubles)
     for columns in ([], ["--bin-columns", "4"], ["--bin-columns", "8"]):
-        status, err = _infer([model, doubles, good, "--out", tmp_path / "flow.npz", *columns], capsys)
+        status, err = _infer([tiny_student, doubles, good, "--out", tmp_path / "flow.npz", *columns], capsys)
         assert status == 2 and len(err) == 1 and "values are implausible for float32 rows" in err[0], err
     for unit, factor in (("millimetres", 1000), ("centimetres", 100)):
         path = tmp_path / f"{unit}.bin"
         np.column_stack([scan * factor, np.ones(len(scan))]).astype(np.float32).tofile(path)
         for columns in ([], ["--bin-columns", "4"]):
-            status, err = _infer([model, path, good, "--out", tmp_path / "flow.npz", *columns], capsys)
+            status, err = _infer([tiny_student, path, good, "--out", tmp_path / "flow.npz", *columns], capsys)
             assert status == 2 and len(err) == 1 and f"the coordinates look like {unit}" in err[0], err
     assert not (tmp_path / "flow.npz").exists()

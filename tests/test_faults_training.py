@@ -44,7 +44,7 @@ def shards(tmp_path_factory):
 
 
 def _train(out_dir, shard_dir, *overrides) -> list[str]:
-    """The command line of train.py on the tiny network (tests/test_train.py's TINY)."""
+    """The command line of train.py on the tiny network (helpers.training.TINY)."""
     data = [f"data.train={shard_dir}", f"data.val={shard_dir}", f"out_dir={out_dir}"]
     return [sys.executable, str(REPO / "train.py"), *data, *TINY, *overrides]
 
@@ -258,9 +258,9 @@ def test_a_full_disk_during_training_is_one_line_and_keeps_last_checkpoint(shard
     assert torch.load(last, weights_only=True)["global_step"] == 2 and _no_temporary_files(tmp_path)
 
 
-def test_train_on_a_real_full_disk_is_one_line_and_keeps_last_checkpoint(shards, tmp_path, mount_tmpfs):
-    """Issue 20.6 on a real 14 MB tmpfs: two checkpoints of the tiny network (5.7 MB each) fit, a third does not."""
-    out = mount_tmpfs(tmp_path / "disk", "14m") / "run"
+def test_train_on_a_real_full_disk_is_one_line_and_keeps_last_checkpoint(shards, checkpoint, tmp_path, mount_tmpfs):
+    """Issue 20.6 on a real tmpfs of 2.5 checkpoints of the tiny network: two fit, a third does not."""
+    out = mount_tmpfs(tmp_path / "disk", f"{checkpoint.stat().st_size * 5 // 2 // 1024}k") / "run"
     process = _popen(_train(out, shards, "trainer.max_steps=8", *STEPS), tmp_path)
     _, err = process.communicate(timeout=300)
     assert process.returncode == 2, err[-3000:]
@@ -332,9 +332,9 @@ def test_a_checkpoint_of_another_network_and_a_corrupt_index_are_one_line(shards
     """Issue 20.6: ckpt_path= a checkpoint of another model size (144 lines of traceback before), a shard folder
     whose index.json is corrupt (17 lines)."""
     with pytest.raises(TrainError) as error:
-        fit(train_cfg(tmp_path, shards, shards, f"ckpt_path={checkpoint}", "model.pillar_channels=8"))
+        fit(train_cfg(tmp_path, shards, shards, f"ckpt_path={checkpoint}", "model.pillar_channels=16"))
     assert str(error.value) == (
-        f"ckpt_path={checkpoint}: {checkpoint} holds another network: model.pillar_channels=16 (this run: 8); "
+        f"ckpt_path={checkpoint}: {checkpoint} holds another network: model.pillar_channels=8 (this run: 16); "
         "resume with the model settings it was trained with, or leave ckpt_path unset to start afresh"
     )
     broken = tmp_path / "broken"

@@ -1,16 +1,38 @@
-"""train.py configs of a tiny student (32 x 32 pillars of 1 m, narrow encoders: a training step takes milliseconds)."""
+"""train.py configs of THE tiny student of the tests (32 x 32 pillars of 1 m, narrow encoders: a training step takes
+milliseconds)."""
 
+import json
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
+#: the one tiny FastFlow3D of every test (``conf/model`` form; FastFlow3D's own settings where it says nothing:
+#: ZeroFlow's network): [-16, 16]^2 m in 1 m pillars (32 x 32), 8 pillar channels, encoders of 8 / 16 / 32 channels
+#: with one extra conv each
+TINY_MODEL = {
+    "_target_": "fastflow3d.model.FastFlow3D",
+    "x_range": [-16.0, 16.0],
+    "y_range": [-16.0, 16.0],
+    "z_range": [-3.0, 3.0],
+    "cell": 1.0,
+    "pillar_channels": 8,
+    "stage_channels": [8, 16, 32],
+    "stage_blocks": [1, 1, 1],
+    "norm": "batch",
+    "decoder": "linear",
+    "correlation_levels": [],
+}
+
+
+def tiny_model_overrides(**options) -> list[str]:
+    """train.py's overrides that make its network TINY_MODEL with the model ``options`` changed."""
+    return [f"model.{key}={json.dumps(value)}" for key, value in {**TINY_MODEL, **options}.items() if key != "_target_"]
+
+
+#: train.py overrides of a quick run of TINY_MODEL: no loader workers, no progress bar, no export
 TINY = [
-    "model.x_range=[-16.0,16.0]",
-    "model.y_range=[-16.0,16.0]",
-    "model.cell=1.0",
-    "model.pillar_channels=16",
-    "model.stage_channels=[16,32,64]",
+    *tiny_model_overrides(),
     "data.workers=0",
     "trainer.log_every_n_steps=1",
     "trainer.enable_progress_bar=false",
