@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from tqdm import tqdm
 
 from icpflow.console import ConsoleFormatter, NoiseFilter, Progress, WorkerHandler
@@ -42,6 +43,7 @@ def _lines(output: str) -> list[str]:
     return [line.strip() for line in re.split(r"[\r\n]", output) if line.strip()]
 
 
+@pytest.mark.slow
 def test_tiny_label_and_train_runs_print_no_noise(tmp_path):
     shards = tmp_path / "labels"
     reader = ["dataset.reader.num_sequences=1", "dataset.reader.frames_per_sequence=2", "dataset.reader.beams=32"]

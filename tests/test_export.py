@@ -577,6 +577,7 @@ def test_infer_cli_sensor_height(export_dir, pairs, expected, tmp_path, capsys):
         infer_main([*common, "--sensor-height", "tall"])
 
 
+@pytest.mark.slow
 def test_model_options_export_with_parity_and_the_predictor_runs_them(pairs, tmp_path):
     """The network's options beyond ZeroFlow's, both in one network (DeFlow's GRU decoder; the cost volume at two
     levels): the export keeps parity and the Predictor and the CLI run it."""

@@ -61,8 +61,13 @@ def _start(out_dir, *overrides) -> subprocess.Popen:
     return process
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
+    """SIGKILL or SIGTERM to label.py's main process only (as a supervisor or a job scheduler sends it) while its 2
+    workers label: no process outlives it, whatever has a final name is complete (SIGTERM: exit 143, one line, the
+    index lists exactly the complete shards, no temporary file); the rerun of the same command labels the rest and
+    matches the uninterrupted run."""
     out = tmp_path / "labels"
     out.mkdir()
     process = _start(out, *SLOW)
@@ -79,17 +84,16 @@ def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
         assert all_valid(out) >= 2  # index.json lists exactly the complete shards on disk
         indexed = {s["file"] for s in json.loads((out / "index.json").read_text())["shards"]}
         assert indexed == {p.name for p in out.glob("shard_*.h5")}
+        assert not list(out.glob("*.tmp-*"))
     else:
         assert process.returncode == -signal.SIGKILL
     for shard in out.glob("shard_*.h5"):  # whatever has a final name is complete
         verify_shard(shard)
-    if sig == signal.SIGKILL:
-        return  # the rerun after a SIGKILL: test_label.py::test_resume_after_sigkill_matches_uninterrupted_run
-    assert not list(out.glob("*.tmp-*"))
     run = subprocess.run(label_script(out, *SLOW), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     done, skipped = map(int, SUMMARY.search(run.stdout).groups()[:2])
     assert skipped >= 2 and done + skipped == 5
+    assert all_valid(out) == 5
     assert_same(reference, out)
 
 
@@ -107,6 +111,7 @@ class KillOnceSynthetic(SyntheticDataset):
         return super().pair(index, horizon)
 
 
+@pytest.mark.slow
 def test_a_sample_whose_worker_died_is_filled_in_by_the_rerun(reference, tmp_path, capsys):
     cfg = label_cfg(
         tmp_path / "labels",
@@ -191,6 +196,7 @@ class DiskFullSynthetic(SyntheticDataset):
         os.fsync = fsync  # in the main process of this label.py run only
 
 
+@pytest.mark.slow
 def test_a_full_disk_while_workers_run_is_one_line_and_leaves_no_process(tmp_path):
     out = tmp_path / "labels"
     args = ["dataset.reader._target_=test_faults.DiskFullSynthetic", "workers=2", "shard_size=3"]

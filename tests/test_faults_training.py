@@ -142,6 +142,7 @@ def test_the_best_files_are_set_through_lightnings_public_checkpoint_state(tmp_p
 # ------------------------------------------------------------------------------------------- 2. SIGTERM, SIGINT
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_saves_last_checkpoint_at_the_current_step_and_says_how_to_resume(shards, tmp_path, sig):
     """Issue 20.2: SIGTERM to train.py (a scheduler's pre-emption) or Ctrl-C (SIGINT to its process group, the
@@ -219,6 +220,7 @@ def test_export_is_built_aside_and_swapped_in_whole(checkpoint, tmp_path, monkey
     assert sorted(p.name for p in export.iterdir()) == [FILE_NAMES["pt2"], METADATA_NAME]
 
 
+@pytest.mark.slow
 def test_export_on_a_real_full_disk_keeps_the_existing_export(checkpoint, tmp_path, mount_tmpfs):
     """Issue 20.3 on a real tmpfs that holds one export but not two: export.py over the existing export. It used to
     abort (SIGABRT in torch's file writer) and delete metadata.json; now one line, exit 2, the export intact."""
@@ -258,6 +260,7 @@ def test_a_full_disk_during_training_is_one_line_and_keeps_last_checkpoint(shard
     assert torch.load(last, weights_only=True)["global_step"] == 2 and _no_temporary_files(tmp_path)
 
 
+@pytest.mark.slow
 def test_train_on_a_real_full_disk_is_one_line_and_keeps_last_checkpoint(shards, checkpoint, tmp_path, mount_tmpfs):
     """Issue 20.6 on a real tmpfs of 2.5 checkpoints of the tiny network: two fit, a third does not."""
     out = mount_tmpfs(tmp_path / "disk", f"{checkpoint.stat().st_size * 5 // 2 // 1024}k") / "run"
@@ -278,6 +281,7 @@ def test_train_on_a_real_full_disk_is_one_line_and_keeps_last_checkpoint(shards,
 HELP = "; see `--help` and `--cfg job` for the options"
 
 
+@pytest.mark.slow
 def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path):
     """Issue 20.6: a value of the wrong type (train.py, eval.py), a missing checkpoint (export.py): exit 2, one line,
     before any work, as each script prints it; HYDRA_FULL_ERROR=1 gives the traceback."""
