@@ -336,9 +336,9 @@ def test_a_checkpoint_of_another_network_and_a_corrupt_index_are_one_line(shards
     """Issue 20.6: ckpt_path= a checkpoint of another model size (144 lines of traceback before), a shard folder
     whose index.json is corrupt (17 lines)."""
     with pytest.raises(TrainError) as error:
-        fit(train_cfg(tmp_path, shards, shards, f"ckpt_path={checkpoint}", "model.pillar_channels=16"))
+        fit(train_cfg(tmp_path, shards, shards, f"ckpt_path={checkpoint}", "model.pillar_channels=8"))
     assert str(error.value) == (
-        f"ckpt_path={checkpoint}: {checkpoint} holds another network: model.pillar_channels=8 (this run: 16); "
+        f"ckpt_path={checkpoint}: {checkpoint} holds another network: model.pillar_channels=16 (this run: 8); "
         "resume with the model settings it was trained with, or leave ckpt_path unset to start afresh"
     )
     broken = tmp_path / "broken"

@@ -82,7 +82,8 @@ def synthetic_student(tmp_path_factory):
     pair = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=2, seed=1)[0]
     keep0, keep1 = np.flatnonzero(~pair.ground0), np.flatnonzero(~pair.ground1)
     path = tmp_path_factory.mktemp("student") / "student.ckpt"
-    return tiny_checkpoint(path, pair, 5, keep0, keep1, remove_ground=True)
+    wide = {"x_range": [-32.0, 32.0], "y_range": [-32.0, 32.0]}  # KITTI's scans reach far: the grid over +-32 m
+    return tiny_checkpoint(path, pair, 5, keep0, keep1, options=wide, remove_ground=True)
 
 
 @needs_seq01
