@@ -320,6 +320,7 @@ def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path
     assert "Error merging override data.batch_size=abc" in full.stderr
 
 
+@pytest.mark.slow
 def test_a_read_only_out_dir_is_one_line(shards, tmp_path, mount_tmpfs):
     """Issue 20.6: train.py with a read-only out_dir (it printed 24 lines of traceback from Hydra)."""
     disk = mount_tmpfs(tmp_path / "ro", "1m", read_only=True)

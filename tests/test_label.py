@@ -259,6 +259,7 @@ def test_shard_split_jobs_add_up_to_the_whole(reference, tmp_path, caplog, capsy
     assert ShardDataset(tmp_path).incomplete() is None
 
 
+@pytest.mark.slow
 def test_ray_runner_matches_local(reference, tmp_path):
     ray = pytest.importorskip("ray", reason="ray is not installed (pip install icpflow[test])")
     try:
@@ -556,6 +557,7 @@ def test_a_worker_that_dies_fails_its_sample_only(reference, tmp_path, capsys):
     assert {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("shard_*.json")} == records
 
 
+@pytest.mark.slow
 def test_multirun_jobs_label_the_union(reference, tmp_path):
     flaky = "dataset.reader._target_=test_label.FlakySynthetic"  # samples 1 and 3 fail: each job ends with status 1
     command = label_script(tmp_path / "labels", flaky, "workers=1", "shard_index=0,1", "num_shards=2")
