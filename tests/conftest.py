@@ -69,8 +69,8 @@ def tiny_student(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_pt2_export(tiny_student):
-    """``tiny_student``'s export in the .pt2 format only (its run's ``export`` folder). Tests copy it rather than
-    change it."""
+    """``tiny_student``'s export in the .pt2 format only, in export.py's default folder for it (``export`` beside
+    it). Tests copy it rather than change it."""
     from fastflow3d.export import export_checkpoint
 
     return export_checkpoint(tiny_student, formats=("pt2",))
