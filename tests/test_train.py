@@ -439,6 +439,7 @@ def test_epoch_based_run_validates_its_last_batch(shards, tmp_path):
     assert trainer.global_step == 4 and trainer.current_epoch == 2 and trainer.lightning_module.validations == 2
 
 
+@pytest.mark.slow
 def test_overfit_one_pair_drives_dynamic_epe_down(shards, tmp_path):
     cfg = _cfg(
         tmp_path,
