@@ -6,12 +6,12 @@ from pathlib import Path
 import pytest
 import torch
 
-import fastflow3d.options
+import fastflow3d.training.options
 import icpflow.options
 
 # the structured configs conf/*.yaml extend, as the entry points store them before Hydra composes
 icpflow.options.register()
-fastflow3d.options.register()
+fastflow3d.training.options.register()
 
 
 def pytest_addoption(parser):
@@ -71,7 +71,7 @@ def tiny_student(tmp_path_factory):
 def tiny_pt2_export(tiny_student):
     """``tiny_student``'s export in the .pt2 format only, in export.py's default folder for it (``export`` beside
     it). Tests copy it rather than change it."""
-    from fastflow3d.export import export_checkpoint
+    from fastflow3d.artifact.export import export_checkpoint
 
     return export_checkpoint(tiny_student, formats=("pt2",))
 

@@ -25,14 +25,14 @@ def tiny_checkpoint(
     remove_ground: bool = False,
 ) -> Path:
     """A training checkpoint of the tiny FastFlow3D (``TINY_MODEL`` with the model ``options`` changed) made by
-    ``train.py``'s own code (``fastflow3d.training.fit``): ``steps`` (>= 1) Adam steps on one shard, in
+    ``train.py``'s own code (``fastflow3d.training.trainer.fit``): ``steps`` (>= 1) Adam steps on one shard, in
     ``label.py``'s layout, whose pseudo-labels are ``pair``'s true flow (on the rows ``keep0`` / ``keep1`` of its
     scans, all by default), so that its weights and BatchNorm statistics are not the initial ones; the run's
     ``last.ckpt``, moved to ``path`` (its stored run folders are ``path``'s folder: :func:`place_checkpoint`).
 
     ``remove_ground``: the student sees the non-ground points only (``data.remove_ground``; off: every point, so
     that a test's eager reference runs the network on the whole scans). Returns ``path``."""
-    from fastflow3d.training import fit
+    from fastflow3d.training.trainer import fit
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -87,7 +87,7 @@ def place_checkpoint(source, path, stored: dict | None = None) -> Path:
 
 def tiny_network(**options):
     """The tiny FastFlow3D (``TINY_MODEL`` with ``options`` changed) as built from its config, initial weights."""
-    from fastflow3d.model import FastFlow3D
+    from fastflow3d.network.model import FastFlow3D
 
     return FastFlow3D(**{key: value for key, value in {**TINY_MODEL, **options}.items() if key != "_target_"})
 

@@ -19,11 +19,12 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from fastflow3d.artifact import METADATA_NAME, ArtifactError, sha256_file
-from fastflow3d.export import export_checkpoint
-from fastflow3d.infer import main as infer_main
-from fastflow3d.predictor import Predictor
-from fastflow3d.training import TrainError, fit
+from fastflow3d.artifact.export import export_checkpoint
+from fastflow3d.artifact.file_format import METADATA_NAME, ArtifactError, sha256_file
+from fastflow3d.inference.cli import main as infer_main
+from fastflow3d.inference.predictor import Predictor
+from fastflow3d.training.run_folder import TrainError
+from fastflow3d.training.trainer import fit
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.labelling.cli import label
 
@@ -255,8 +256,8 @@ def test_a_broken_checkpoint_given_to_export_and_the_predictor(tiny_student, tmp
 
     import torch
 
-    from fastflow3d.checkpoint import CheckpointError
-    from fastflow3d.export import ExportError
+    from fastflow3d.artifact.checkpoint import CheckpointError
+    from fastflow3d.artifact.export import ExportError
 
     run = tmp_path / "run" / "checkpoints"
     run.mkdir(parents=True)
@@ -432,8 +433,8 @@ EVAL_SMALL = ["dataset.reader.num_sequences=1", "dataset.reader.frames_per_seque
 
 def _eval(out: Path, capfd, *overrides) -> tuple[int, str]:
     """eval.py's body (``run_eval`` inside ``reported``, as eval.py runs it) on a small synthetic split."""
-    from fastflow3d.eval_method import student_method
-    from icpflow.entry import reported
+    from fastflow3d.inference.eval_methods import student_method
+    from icpflow.errors_and_signals import reported
     from icpflow.evaluation import run_eval
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):

@@ -26,9 +26,9 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-from fastflow3d.augment import Augmentation
-from fastflow3d.data import Draw, EpochOrder, ShardDataModule, StudentDataset
-from fastflow3d.training import fit
+from fastflow3d.training.augment import Augmentation
+from fastflow3d.training.data import Draw, EpochOrder, ShardDataModule, StudentDataset
+from fastflow3d.training.trainer import fit
 from icpflow.datasets.synthetic import SyntheticDataset
 
 from helpers.labelling import TESTS_ENV
@@ -358,8 +358,8 @@ def test_a_two_node_launch_is_read_from_the_launchers_variables(launcher, monkey
     nodes, and not the launching process (which alone takes the run folder's lock and reports a stop)."""
     from lightning.fabric.plugins.environments import SLURMEnvironment, TorchElasticEnvironment
 
-    from fastflow3d.training import build_trainer, settle_batch
-    from icpflow.entry import launching_process
+    from fastflow3d.training.trainer import build_trainer, settle_batch
+    from icpflow.errors_and_signals import launching_process
 
     from helpers.training import compose_train
 

@@ -14,7 +14,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from fastflow3d.eval_method import student_method
+from fastflow3d.inference.eval_methods import student_method
 from icpflow import metrics
 from icpflow.baselines import ego_only_flow, zero_flow
 from icpflow.datasets.from_config import raise_max_horizon
@@ -325,7 +325,7 @@ def test_readers_taking_max_horizon_get_the_largest_horizon():
 def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
     from icpflow.teacher import ICPFlow
     from icpflow.teacher.config import teacher_config
-    from icpflow.teacher.tracker import sample_tracker_flow
+    from icpflow.teacher.long_horizon import sample_tracker_flow
 
     cfg = _cfg(tmp_path, "method=[zero,icpflow]", "horizon=1..2", "tracker=[false,true]", "bev=1")
     assert run_eval(cfg, progress=False) == 0
@@ -373,7 +373,7 @@ def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
 
 
 def test_student_row_reproduces_the_metrics_module(tiny_student, tmp_path, dataset):
-    from fastflow3d.predictor import Predictor
+    from fastflow3d.inference.predictor import Predictor
 
     assert (
         run_eval(

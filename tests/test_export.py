@@ -3,7 +3,7 @@ files, and the CLIs' errors.
 
 The tiny FastFlow3D of the tests (helpers.training.TINY_MODEL: +-16 m, 1 m cells, 32 x 32 grid) is trained a few
 steps on a synthetic pair so that its weights and BatchNorm statistics are not the initial ones, saved as a training
-checkpoint (the checkpoint contract of ``fastflow3d.checkpoint``) and exported once for the whole module.
+checkpoint (the checkpoint contract of ``fastflow3d.artifact.checkpoint``) and exported once for the whole module.
 """
 
 import json
@@ -14,14 +14,15 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.artifact import FILE_NAMES, METADATA_NAME, ArtifactError, SingleSampleNet, sha256_file
-from fastflow3d.checkpoint import load_student
-from fastflow3d.contract import ContractError, upgrade
-from fastflow3d.export import export_checkpoint, run_export
-from fastflow3d.infer import main as infer_main
-from fastflow3d.model import compensate
-from fastflow3d.predictor import Predictor, PredictorError, PredictorWarning
-from fastflow3d.voxelize import Grid
+from fastflow3d.artifact.checkpoint import load_student
+from fastflow3d.artifact.export import export_checkpoint, run_export
+from fastflow3d.artifact.file_format import FILE_NAMES, METADATA_NAME, ArtifactError, SingleSampleNet, sha256_file
+from fastflow3d.inference.cli import main as infer_main
+from fastflow3d.inference.prediction import PredictorError, PredictorWarning
+from fastflow3d.inference.predictor import Predictor
+from fastflow3d.network.contract import ContractError, upgrade
+from fastflow3d.network.model import compensate
+from fastflow3d.network.voxelize import Grid
 from icpflow import __version__
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, residual_to_full
@@ -396,11 +397,11 @@ def test_export_cli(checkpoint, tmp_path, capsys):
 
 @pytest.mark.parametrize("runtime", ["onnxruntime", "openvino"])
 def test_cpu_runtimes_keep_the_export_parity(export_dir, expected, pairs, runtime):
-    """fastflow3d.runtime's engines run the same ONNX file to the export's tolerance (1e-4 m), masks equal; the
+    """fastflow3d.artifact.engines's engines run the same ONNX file to the export's tolerance (1e-4 m), masks equal; the
     default ONNX Predictor on a machine without CUDA runs ONNX Runtime's tuned session."""
     if runtime == "openvino":
         pytest.importorskip("openvino", reason="OpenVINO is an optional extra (icpflow[openvino])")
-    from fastflow3d.runtime import cpu_only
+    from fastflow3d.artifact.engines import cpu_only
 
     predictor = Predictor.load(export_dir, runtime=runtime, threads=1)
     assert predictor.backend == runtime
@@ -417,7 +418,7 @@ def test_onnx_runtime_pillar_sums_are_exact_with_threads_on_crowded_pillars(expo
     """The pillar means are one scatter-add over many points per pillar: a threaded engine that races on repeated
     pillar ids (ONNX Runtime's ScatterND-add did, issue 33) gives sums that change from run to run. 60,000 points
     in 150 pillars, 2 threads, three runs: each equals eager to the export's tolerance."""
-    from fastflow3d.runtime import runtime_network
+    from fastflow3d.artifact.engines import runtime_network
 
     rng = np.random.default_rng(1)
     cells = rng.uniform(-15.0, 15.0, (150, 2))
@@ -434,7 +435,7 @@ def test_onnx_runtime_pillar_sums_are_exact_with_threads_on_crowded_pillars(expo
 
 
 def test_cpu_runtime_rejects_what_it_cannot_run(export_dir):
-    from fastflow3d.runtime import runtime_network
+    from fastflow3d.artifact.engines import runtime_network
 
     with pytest.raises(ArtifactError, match="needs an export directory with ONNX or a .onnx"):
         Predictor.load(export_dir / FILE_NAMES["pt2"], runtime="onnxruntime")

@@ -8,10 +8,10 @@ import torch
 import yaml
 from torch.export.passes import move_to_device_pass
 
-from fastflow3d.loss import flow_loss, object_loss, speed_weight
-from fastflow3d.model import FastFlow3D, compensate, local_correlation
-from fastflow3d.scatter import scatter_mean, scatter_sum
-from fastflow3d.voxelize import Grid, voxelize
+from fastflow3d.network.model import FastFlow3D, compensate, local_correlation
+from fastflow3d.network.scatter import scatter_mean, scatter_sum
+from fastflow3d.network.voxelize import Grid, voxelize
+from fastflow3d.training.loss import flow_loss, object_loss, speed_weight
 from icpflow.geometry import make_transform, residual_to_full, transform_points
 
 #: FastFlow3D's arguments as conf/model/fastflow3d.yaml (the one place of the model's settings) gives them
@@ -251,7 +251,7 @@ def test_object_loss_hand_cases():
 
 def test_bucket_loss_speeds_use_each_points_dt():
     """0.05 m is 0.5 m/s at dt 0.1 s (the middle bucket) but 1 m/s at dt 0.05 s (the fast bucket)."""
-    from fastflow3d.loss import speed_buckets
+    from fastflow3d.training.loss import speed_buckets
 
     target = torch.tensor([[0.05, 0.0, 0.0], [0.05, 0.0, 0.0], [0.01, 0.0, 0.0], [0.2, 0.0, 0.0]])
     dt = torch.tensor([0.1, 0.05, 0.1, 0.1])
@@ -385,10 +385,10 @@ def test_gru_decoder_follows_the_gru_equations():
 
 
 def test_checkpoints_without_decoder_are_zeroflows_head():
-    from fastflow3d.checkpoint import build_student
+    from fastflow3d.artifact.checkpoint import build_student
 
     old = {key: value for key, value in PAPER.items() if not key.startswith(("decoder", "gru_", "correlation_"))}
-    model = build_student({"_target_": "fastflow3d.model.FastFlow3D", **old, **SMALL})
+    model = build_student({"_target_": "fastflow3d.network.model.FastFlow3D", **old, **SMALL})
     assert isinstance(model.head, torch.nn.Sequential) and model.unet.correlation_levels == ()
     assert {k for k in model.state_dict() if k.startswith("head.")} == {
         "head.0.weight",

@@ -14,10 +14,12 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.infer import main as infer_main
-from fastflow3d.infer import read_raw_scan
-from fastflow3d.predictor import Predictor, PredictorError
-from fastflow3d.training import TrainError, fit
+from fastflow3d.inference.cli import main as infer_main
+from fastflow3d.inference.prediction import PredictorError
+from fastflow3d.inference.predictor import Predictor
+from fastflow3d.inference.scan_files import read_raw_scan
+from fastflow3d.training.run_folder import TrainError
+from fastflow3d.training.trainer import fit
 from icpflow.datasets.io import load_npz
 from icpflow.datasets.sequence import ScanSequenceDataset
 from icpflow.datasets.synthetic import SyntheticDataset

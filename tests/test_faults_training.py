@@ -17,10 +17,11 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.artifact import FILE_NAMES, METADATA_NAME, sha256_file
-from fastflow3d.export import export_checkpoint
-from fastflow3d.infer import main as infer_main
-from fastflow3d.training import TrainError, fit
+from fastflow3d.artifact.export import export_checkpoint
+from fastflow3d.artifact.file_format import FILE_NAMES, METADATA_NAME, sha256_file
+from fastflow3d.inference.cli import main as infer_main
+from fastflow3d.training.run_folder import TrainError
+from fastflow3d.training.trainer import fit
 from icpflow.atomic import WriteError
 from icpflow.datasets.synthetic import SyntheticDataset
 
@@ -115,12 +116,12 @@ def test_last_checkpoint_knows_the_best_and_a_resume_keeps_only_the_truly_best(s
 
 
 def test_the_best_files_are_set_through_lightnings_public_checkpoint_state(tmp_path):
-    """Issue 32: the resume's bookkeeping (fastflow3d.callbacks.set_best_checkpoints) sets a ModelCheckpoint's best
-    files through its public state_dict / load_state_dict, the keys BEST_STATE_KEYS; this fails if a Lightning
+    """Issue 32: the resume's bookkeeping (fastflow3d.training.callbacks.set_best_checkpoints) sets a ModelCheckpoint's
+    best files through its public state_dict / load_state_dict, the keys BEST_STATE_KEYS; this fails if a Lightning
     version renames them or stops restoring them."""
     from lightning.pytorch.callbacks import ModelCheckpoint
 
-    from fastflow3d.callbacks import BEST_STATE_KEYS, set_best_checkpoints
+    from fastflow3d.training.callbacks import BEST_STATE_KEYS, set_best_checkpoints
 
     def checkpoint_callback():
         return ModelCheckpoint(dirpath=tmp_path, filename="best-{step}", monitor="val/epe", save_top_k=2)

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.export import export_model
-from fastflow3d.predictor import Predictor, PredictorWarning
+from fastflow3d.artifact.export import export_model
+from fastflow3d.inference.prediction import PredictorWarning
+from fastflow3d.inference.predictor import Predictor
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
 

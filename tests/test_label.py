@@ -29,7 +29,7 @@ from icpflow.labelling.sample import label_sample, thread_limit
 from icpflow.shards import ShardDataset
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.config import teacher_config
-from icpflow.teacher.tracker import long_horizon_flow
+from icpflow.teacher.long_horizon import long_horizon_flow
 
 from helpers.labelling import (
     READER,
@@ -116,8 +116,8 @@ def test_a_worker_runs_hdbscan_on_its_share_of_threads_without_changing_the_hash
 @pytest.mark.slow
 def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
     """A real SIGINT to label.py workers=1 (labelling in its main process, the teacher's threaded calls included: a
-    stop inside scipy's threads once crashed it: icpflow.entry.signals_held): exit 130, one line, the complete shards
-    only, an index that says the run is not complete."""
+    stop inside scipy's threads once crashed it: icpflow.errors_and_signals.signals_held): exit 130, one line, the
+    complete shards only, an index that says the run is not complete."""
     process = subprocess.Popen(
         label_script(tmp_path, "workers=1"),
         cwd=tmp_path,
@@ -235,7 +235,7 @@ def test_failures_are_recorded_and_the_run_goes_on(tmp_path, capsys):
 def test_shard_split_jobs_add_up_to_the_whole(reference, tmp_path, caplog, capsys):
     """The union of the jobs is the whole; the index says how complete the folder is after each (issue 45: a
     stopped or partial labelling was trained on without a word), and train.py and eval.py say it."""
-    from fastflow3d.training import check_data
+    from fastflow3d.training.trainer import check_data
     from icpflow.evaluation.methods import ShardMethod
 
     assert label(label_cfg(tmp_path, "shard_index=1", "num_shards=2"), progress=False) == 0

@@ -10,13 +10,15 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.export import ExportError, export_model
-from fastflow3d.predictor import Predictor, PredictorError
-from fastflow3d.training import TrainError, fit
+from fastflow3d.artifact.export import ExportError, export_model
+from fastflow3d.inference.prediction import PredictorError
+from fastflow3d.inference.predictor import Predictor
+from fastflow3d.training.run_folder import TrainError
+from fastflow3d.training.trainer import fit
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.labelling import sample as labelling_sample
 from icpflow.teacher.config import ICPFlowConfig
-from icpflow.teacher.tracker import SampleFlow
+from icpflow.teacher.long_horizon import SampleFlow
 
 from helpers.shards import write_pseudo_labels
 from helpers.training import TINY_MODEL, train_cfg
@@ -51,7 +53,7 @@ def test_the_labeller_fails_a_sample_whose_labels_are_not_finite(pairs, monkeypa
 
 def test_training_stops_at_the_first_non_finite_loss_naming_step_and_samples(pairs, tmp_path, monkeypatch):
     shards = write_pseudo_labels(tmp_path / "shards", pairs)
-    from fastflow3d import module
+    from fastflow3d.training import student_module as module
 
     real = module.StudentModule.loss
 

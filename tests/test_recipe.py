@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.augment import Augmentation, subsample, transform_sample
-from fastflow3d.schedules import warmup_cosine, warmup_multistep
+from fastflow3d.training.augment import Augmentation, subsample, transform_sample
+from fastflow3d.training.schedules import warmup_cosine, warmup_multistep
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import full_to_residual, transform_points
 
@@ -111,7 +111,7 @@ def test_subsampling_keeps_per_point_values_aligned(sample):
 def test_training_dataset_augments_and_validation_does_not(tmp_path, sample):
     """StudentDataset with an Augmentation draws a new transform per read (torch's random state); without, reads
     are identical. The residual target stays consistent with the ego motion either way."""
-    from fastflow3d.data import StudentDataset
+    from fastflow3d.training.data import StudentDataset
 
     stored = {
         key: sample[key]

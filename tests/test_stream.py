@@ -1,7 +1,7 @@
-"""The streaming Predictor (fastflow3d.stream.FlowStream; its odometry, icpflow.odometry, is tests/test_odometry.py):
-the flow of a stream is the Predictor's with the stream's ego motion and masks; the ego motion is exact on the
-synthetic world; every bad stream (a gap, a skipped scan, time going backwards, too few points, a lost track,
-another frame) is one warning and never a silent wrong flow, and the other frames keep theirs."""
+"""The streaming Predictor (fastflow3d.inference.stream.FlowStream; its odometry, icpflow.odometry, is
+tests/test_odometry.py): the flow of a stream is the Predictor's with the stream's ego motion and masks; the ego motion
+is exact on the synthetic world; every bad stream (a gap, a skipped scan, time going backwards, too few points, a lost
+track, another frame) is one warning and never a silent wrong flow, and the other frames keep theirs."""
 
 import json
 import re
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from fastflow3d.predictor import Predictor
-from fastflow3d.stream import FlowStream, StreamWarning
+from fastflow3d.inference.predictor import Predictor
+from fastflow3d.inference.stream import FlowStream, StreamWarning
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
 
@@ -137,7 +137,7 @@ def test_infer_streams_a_folder_and_bridges_a_broken_scan(tiny_student, moving, 
     a pair's output holds; a broken scan mid-stream is one warning naming it and the next pair spans the gap; the
     recording holds the pairs and the trajectory."""
     pytest.importorskip("rerun", reason="rerun-sdk is an optional dependency (pip install 'icpflow[viz]')")
-    from fastflow3d.infer import main as infer_main
+    from fastflow3d.inference.cli import main as infer_main
 
     from helpers.rerun import read_recording
 
@@ -165,7 +165,7 @@ def test_infer_streams_a_folder_and_bridges_a_broken_scan(tiny_student, moving, 
 
 
 def test_infer_stream_needs_a_folder_or_glob_of_two_scans(tiny_student, tmp_path, capsys):
-    from fastflow3d.infer import main as infer_main
+    from fastflow3d.inference.cli import main as infer_main
 
     (tmp_path / "one").mkdir()
     np.save(tmp_path / "one" / "a.npy", np.zeros((200, 3), np.float32))
@@ -178,7 +178,7 @@ def test_infer_stream_needs_a_folder_or_glob_of_two_scans(tiny_student, tmp_path
 def test_infer_stream_reads_natural_order_and_refuses_two_scans_of_one_stem(tiny_student, moving, tmp_path, capsys):
     """1, 2, 10 (not 1, 10, 2: every flow between the wrong scans) as dataset=sequence reads them; 1.bin beside
     1.npy, or one name in two folders of a glob, would write one output for two pairs: refused, nothing written."""
-    from fastflow3d.infer import main as infer_main
+    from fastflow3d.inference.cli import main as infer_main
 
     _, scans = moving
     folder, out = tmp_path / "scans", tmp_path / "out"
@@ -207,7 +207,7 @@ def test_infer_outputs_never_replace_inputs_nor_mix_runs(tiny_student, moving, t
     """An OUT that holds the input scans (.npz scans would become flows), a pair's output or picture that is an
     input scan, another run's OUT or a folder of other files: each refused in one line, inputs untouched. A rerun of
     the same stream replaces its own outputs (said); a stream without a single flow is an error, not '0 flows'."""
-    from fastflow3d.infer import main as infer_main
+    from fastflow3d.inference.cli import main as infer_main
 
     _, scans = moving
     folder = tmp_path / "scans"
@@ -247,7 +247,7 @@ def test_infer_outputs_never_replace_inputs_nor_mix_runs(tiny_student, moving, t
 def test_eval_student_stream_continues_a_sequence_and_restarts_on_the_next(tiny_student):
     """eval.py method student-stream: the pairs of one sequence are one stream (the same flows as a FlowStream fed
     the scans), a pair of another sequence starts a new one."""
-    from fastflow3d.eval_method import StreamedStudentMethod
+    from fastflow3d.inference.eval_methods import StreamedStudentMethod
 
     data = SyntheticDataset(split="test", num_sequences=2, frames_per_sequence=4, beams=32, seed=3)
     pairs = [data[i] for i in range(len(data))]
@@ -268,8 +268,8 @@ def test_eval_student_stream_continues_a_sequence_and_restarts_on_the_next(tiny_
 def test_eval_student_stream_refine_is_the_refined_stream(tiny_student):
     """eval.py method student-stream+refine: the stream of a refining Predictor (what ``fastflow3d-infer MODEL DIR
     --refine`` runs), each pair's flow with its refinement mask."""
-    from fastflow3d.eval_method import StreamedStudentMethod, refined_streamed_student_method
-    from fastflow3d.refine import RefineConfig
+    from fastflow3d.inference.eval_methods import StreamedStudentMethod, refined_streamed_student_method
+    from fastflow3d.inference.refine import RefineConfig
 
     pairs, _ = synthetic_drive(3, 4)
     method = refined_streamed_student_method(OmegaConf.create({"checkpoint": str(tiny_student)}))

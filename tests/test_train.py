@@ -16,12 +16,13 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from fastflow3d.artifact import FILE_NAMES, METADATA_NAME
-from fastflow3d.checkpoint import CheckpointError, build_student, load_student
-from fastflow3d.data import DataError, StudentDataset, collate
-from fastflow3d.model import FastFlow3D
-from fastflow3d.training import TrainError, accumulation, build_trainer, fit, settle_batch
-from fastflow3d.voxelize import Grid
+from fastflow3d.artifact.checkpoint import CheckpointError, build_student, load_student
+from fastflow3d.artifact.file_format import FILE_NAMES, METADATA_NAME
+from fastflow3d.network.model import FastFlow3D
+from fastflow3d.network.voxelize import Grid
+from fastflow3d.training.data import DataError, StudentDataset, collate
+from fastflow3d.training.run_folder import TrainError
+from fastflow3d.training.trainer import accumulation, build_trainer, fit, settle_batch
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, transform_points
 from icpflow.preprocess import Preprocessing
@@ -54,7 +55,7 @@ def test_every_config_composes(group, option, tmp_path):
     trainer_args = set(inspect.signature(L.Trainer.__init__).parameters)
     assert set(plain["trainer"]) <= trainer_args, set(plain["trainer"]) - trainer_args
     model_args = set(inspect.signature(FastFlow3D.__init__).parameters)
-    assert plain["model"]["_target_"] == "fastflow3d.model.FastFlow3D"
+    assert plain["model"]["_target_"] == "fastflow3d.network.model.FastFlow3D"
     assert set(plain["model"]) - {"_target_"} <= model_args
     callbacks = [instantiate(c) for c in cfg.callbacks.values()]
     assert any(
@@ -279,7 +280,7 @@ def test_teacher_settings_saved_with_the_model(shards, pairs, tmp_path):
     """The input contract saved with the model takes the teacher's part from the shards (here shards of an older
     version: only the teacher's fields, the synthetic frame), ground removal and the grid from the run; shards
     without a labeller config are refused in one line (nothing would say the height frame)."""
-    from fastflow3d.training import training_contract
+    from fastflow3d.training.trainer import training_contract
 
     contract = training_contract(_cfg(tmp_path, shards["gt"], shards["gt"]))
     assert contract.preprocessing == Preprocessing.from_teacher(TEACHER)
@@ -463,7 +464,7 @@ def test_overfit_one_pair_drives_dynamic_epe_down(shards, tmp_path):
 
 
 def _datamodule(cfg):
-    from fastflow3d.data import ShardDataModule
+    from fastflow3d.training.data import ShardDataModule
 
     return ShardDataModule(cfg.data.train, cfg.data.val, cfg.data.batch_size, cfg.data.workers)
 
@@ -553,7 +554,7 @@ def test_load_student_rejects_other_files(tmp_path):
         load_student(plain)
     wrong = tmp_path / "wrong.ckpt"
     model_cfg = {
-        "_target_": "fastflow3d.model.FastFlow3D",
+        "_target_": "fastflow3d.network.model.FastFlow3D",
         "x_range": [-4.0, 4.0],
         "y_range": [-4.0, 4.0],
         "cell": 1.0,
@@ -576,7 +577,7 @@ def test_validation_shares_of_several_processes_hold_each_sample_once(shards, wo
     count twice); shares differ by at most one sample."""
     from types import SimpleNamespace
 
-    from fastflow3d.data import ShardDataModule
+    from fastflow3d.training.data import ShardDataModule
 
     seen = []
     for rank in range(world):

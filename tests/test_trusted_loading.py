@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.artifact import METADATA_NAME, ArtifactError, check_pt2, sha256_file
-from fastflow3d.export import export_checkpoint
-from fastflow3d.predictor import Predictor
+from fastflow3d.artifact.export import export_checkpoint
+from fastflow3d.artifact.file_format import METADATA_NAME, ArtifactError, sha256_file
+from fastflow3d.artifact.safe_loading import check_pt2
+from fastflow3d.inference.predictor import Predictor
 from icpflow.datasets.synthetic import SyntheticDataset
 
 from students import place_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
@@ -161,7 +162,7 @@ def test_the_flow_of_a_checked_export_is_unchanged(export_dir):
 def test_a_checkpoint_cannot_choose_where_export_writes(tiny_student, tmp_path, stored):
     """A checkpoint whose stored config sends ``export.dir`` outside its run folder is refused in one line, and the
     folder it named keeps its files; ``out_dir=`` exports where the user says."""
-    from fastflow3d.export import ExportError
+    from fastflow3d.artifact.export import ExportError
 
     run = tmp_path / "downloads" / "run"
     (run / "checkpoints").mkdir(parents=True)

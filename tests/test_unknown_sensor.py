@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from fastflow3d.predictor import Predictor, PredictorWarning
+from fastflow3d.inference.prediction import PredictorWarning
+from fastflow3d.inference.predictor import Predictor
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import ego_flow, invert, relative_transform
 from icpflow.labelling.cli import label

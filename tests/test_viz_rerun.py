@@ -103,7 +103,7 @@ def test_eval_viewer_rerun_records_every_method(pairs, tmp_path, capsys):
 
 @pytest.mark.skipif(not (KITTI / "000001.bin").is_file(), reason=f"shipped KITTI scans absent: {KITTI}")
 def test_infer_rerun_on_kitti_scans(tiny_student, tmp_path):
-    from fastflow3d.infer import main as infer_main
+    from fastflow3d.inference.cli import main as infer_main
 
     out, recording = tmp_path / "flow.npz", tmp_path / "kitti.rrd"
     scans = [str(KITTI / "000000.bin"), str(KITTI / "000001.bin")]
@@ -131,7 +131,7 @@ def test_a_recording_on_a_full_or_read_only_place_is_one_line_naming_it(tiny_stu
     command = [
         sys.executable,
         "-m",
-        "fastflow3d.infer",
+        "fastflow3d.inference.cli",
         str(tiny_student),
         *scans,
         "--no-bev",

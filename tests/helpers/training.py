@@ -12,7 +12,7 @@ CONF = Path(__file__).resolve().parents[2] / "conf"
 #: with one extra conv each (with 8 pillar channels the network on a masked batch and on its kept rows differ in
 #: the last bit: tests/test_train.py::test_ground_removal_network_sees_non_ground_points_only asks for equality)
 TINY_MODEL = {
-    "_target_": "fastflow3d.model.FastFlow3D",
+    "_target_": "fastflow3d.network.model.FastFlow3D",
     "x_range": [-16.0, 16.0],
     "y_range": [-16.0, 16.0],
     "z_range": [-3.0, 3.0],
@@ -59,8 +59,8 @@ def student_module(cfg: dict):
     config's ground removal and grid."""
     from omegaconf import OmegaConf
 
-    from fastflow3d.contract import InputContract, read_grid
-    from fastflow3d.training import build_module
+    from fastflow3d.network.contract import InputContract, read_grid
+    from fastflow3d.training.trainer import build_module
 
     contract = InputContract(remove_ground=bool(cfg["data"]["remove_ground"]), grid=read_grid(cfg["model"], "model"))
     parts = {"loss": cfg["loss"], "optimiser": cfg["optim"], "scheduler": cfg["scheduler"], "metrics": cfg["metrics"]}
