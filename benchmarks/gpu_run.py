@@ -62,15 +62,18 @@ from pathlib import Path
 from icpflow.atomic import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
-#: the tiny network of --smoke (tests/helpers/training.py's)
-SMOKE_MODEL = [
-    "model.x_range=[-16.0,16.0]",
-    "model.y_range=[-16.0,16.0]",
-    "model.cell=1.0",
-    "model.pillar_channels=16",
-    "model.stage_channels=[16,32,64]",
-]
-SMOKE_LATENCY_MODEL = [item.removeprefix("model.") for item in SMOKE_MODEL]
+#: the tiny network of --smoke, the tests' (conf/model/fastflow3d_tiny.yaml): as bench_student_latency's --model
+SMOKE_LATENCY_MODEL = ["--model", "fastflow3d_tiny"]
+
+
+def smoke_model() -> list[str]:
+    """train.py's overrides that make its network the tiny one (every key of conf/model/fastflow3d_tiny.yaml, so an
+    experiment's own model settings are replaced). PyYAML is read lazily: lightning brings it, the wheels are not
+    installed yet when this script starts."""
+    import yaml
+
+    tiny = yaml.safe_load((ROOT / "conf" / "model" / "fastflow3d_tiny.yaml").read_text())
+    return [f"model.{key}={json.dumps(value)}" for key, value in tiny.items() if key != "defaults"]
 
 
 class Step:
@@ -135,7 +138,7 @@ def steps(args) -> list[Step]:
     on_gpu = "" if smoke else gpu_backends()
     labels = out / "labels"
     trainer = ["trainer=cpu", "trainer.precision=bf16-mixed"] if smoke else ["trainer=gpu"]
-    quick = ["trainer.max_steps=2", "trainer.num_sanity_val_steps=0", "metrics.bev_every=0", *SMOKE_MODEL]
+    quick = ["trainer.max_steps=2", "trainer.num_sanity_val_steps=0", "metrics.bev_every=0", *smoke_model()]
     length = quick if smoke else [f"trainer.max_time=00:00:{args.minutes:02d}:00"]
     reader = ["dataset.reader.num_sequences=1", "dataset.reader.beams=32"] if smoke else []
     label_common = [f"workers={args.workers}", *reader]
@@ -181,7 +184,7 @@ def steps(args) -> list[Step]:
         latency = ["-m", "benchmarks.bench_student_latency", "--model", model, "--regimes", "given"]
         if smoke:  # no ONNX rows: the export is the step's costliest part, and on a GPU they need onnxruntime-gpu
             latency += ["--device", "cpu", "--runs", "2", "--warmup", "1", "--scans", "uniform", "--points", "3000"]
-            latency += ["--backends", "eager,eager-bf16", "--set", *SMOKE_LATENCY_MODEL]
+            latency += ["--backends", "eager,eager-bf16", *SMOKE_LATENCY_MODEL]
         else:
             latency += ["--device", "cuda", "--runs", "100", "--warmup", "10", "--scans", "kitti,av2"]
             latency += ["--backends", on_gpu]
@@ -189,7 +192,7 @@ def steps(args) -> list[Step]:
     stream = ["-m", "benchmarks.bench_student_latency", "--mode", "stream", "--threads", "2"]
     if smoke:
         stream += ["--regimes", "streamed", "--device", "cpu", "--backends", "eager", "--passes", "1"]
-        stream += ["--scans", "kitti", "--set", *SMOKE_LATENCY_MODEL]
+        stream += ["--scans", "kitti", *SMOKE_LATENCY_MODEL]
     else:
         stream += ["--regimes", "streamed,given", "--device", "cuda", "--backends", on_gpu, "--passes", "34"]
     result.append(Step(out, "latency_stream", stream, cpus=2))

@@ -14,6 +14,23 @@ icpflow.options.register()
 fastflow3d.training.options.register()
 
 
+def pytest_addoption(parser):
+    parser.addoption(
+        "--run-slow", action="store_true", help="also run the tests marked slow (skipped by default; .ci/run runs them)"
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``slow`` (whole processes of label.py, train.py under DDP, eval.py; trainings of many steps) are
+    skipped unless ``--run-slow`` is given: ``pytest -q`` stays a few minutes, CI runs everything."""
+    if config.getoption("--run-slow"):
+        return
+    skip = pytest.mark.skip(reason="slow: run with --run-slow (as .ci/run does)")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def one_torch_thread():
     """One torch thread: the test networks are tiny, and on a busy 2-core machine (CI) two threads fighting over
@@ -35,6 +52,28 @@ def reference(tmp_path_factory):
     out = tmp_path_factory.mktemp("reference") / "labels"
     assert label(label_cfg(out), progress=False) == 0
     return out
+
+
+@pytest.fixture(scope="session")
+def tiny_student(tmp_path_factory):
+    """The tiny student (helpers.training.TINY_MODEL) trained once per session, 5 Adam steps towards the true flow of
+    a small synthetic pair (32 beams; every point): ``<session folder>/run/checkpoints/tiny.ckpt``, its stored run
+    folders that folder's. Tests copy it (students.place_checkpoint) rather than change it."""
+    from icpflow.datasets.synthetic import SyntheticDataset
+
+    from students import tiny_checkpoint
+
+    pair = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=2, seed=0)[0]
+    return tiny_checkpoint(tmp_path_factory.mktemp("tiny_student") / "run" / "checkpoints" / "tiny.ckpt", pair, 5)
+
+
+@pytest.fixture(scope="session")
+def tiny_pt2_export(tiny_student):
+    """``tiny_student``'s export in the .pt2 format only, in export.py's default folder for it (``export`` beside
+    it). Tests copy it rather than change it."""
+    from fastflow3d.artifact.export import export_checkpoint
+
+    return export_checkpoint(tiny_student, formats=("pt2",))
 
 
 @pytest.fixture

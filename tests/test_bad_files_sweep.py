@@ -31,7 +31,6 @@ from icpflow.labelling.cli import label
 from helpers.labelling import REPO, read_samples
 from helpers.shards import write_pseudo_labels
 from helpers.training import train_cfg
-from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 
 
 @pytest.fixture(scope="module")
@@ -40,11 +39,8 @@ def pair():
 
 
 @pytest.fixture(scope="module")
-def export_dir(pair, tmp_path_factory):
-    root = tmp_path_factory.mktemp("sweep")
-    (root / "run" / "checkpoints").mkdir(parents=True)
-    checkpoint = tiny_checkpoint(root / "run" / "checkpoints" / "x.ckpt", tiny_model(25.6, 0.8), pair, steps=1)
-    return export_checkpoint(checkpoint, formats=("pt2",))
+def export_dir(tiny_pt2_export):
+    return tiny_pt2_export
 
 
 def _broken_bytes(data: bytes, form: str) -> bytes:
@@ -253,7 +249,7 @@ def test_a_broken_shard_given_to_train(labels, tmp_path, form):
 
 
 @pytest.mark.parametrize("form", ["empty", "truncated", "garbage", "a pickle", "not a training checkpoint"])
-def test_a_broken_checkpoint_given_to_export_and_the_predictor(pair, tmp_path, form):
+def test_a_broken_checkpoint_given_to_export_and_the_predictor(tiny_student, tmp_path, form):
     """export.py (``export_checkpoint``) and ``Predictor.load`` (eval.py's student) on a damaged or foreign
     ``.ckpt``: one line naming it, nothing written beside it, a pickle never run."""
     import pickle
@@ -265,7 +261,6 @@ def test_a_broken_checkpoint_given_to_export_and_the_predictor(pair, tmp_path, f
 
     run = tmp_path / "run" / "checkpoints"
     run.mkdir(parents=True)
-    good = tiny_checkpoint(run / "good.ckpt", tiny_model(25.6, 0.8), pair, steps=1)
     broken = run / "broken.ckpt"
     target = tmp_path / "pwned"
     if form == "a pickle":
@@ -278,7 +273,7 @@ def test_a_broken_checkpoint_given_to_export_and_the_predictor(pair, tmp_path, f
     elif form == "not a training checkpoint":
         torch.save({"weights": torch.zeros(3)}, broken)
     else:
-        broken.write_bytes(_broken_bytes(good.read_bytes(), form))
+        broken.write_bytes(_broken_bytes(tiny_student.read_bytes(), form))
     before = set(tmp_path.rglob("*"))
     for load in (lambda: export_checkpoint(broken, formats=("pt2",)), lambda: Predictor.load(broken)):
         with pytest.raises((CheckpointError, ExportError, ArtifactError)) as caught:

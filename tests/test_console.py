@@ -11,10 +11,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from tqdm import tqdm
 
 from icpflow.console import ConsoleFormatter, NoiseFilter, Progress, WorkerHandler
 from icpflow.viz import _renderer_output
+
+from helpers.training import tiny_model_overrides
 
 REPO = Path(__file__).resolve().parents[1]
 #: what issue 21 found on the console, none of which may come back
@@ -26,13 +29,6 @@ NOISE = {
     "hardware that is absent": r"[GTH]PU available: False",
     "the open3d/Filament banner": r"FEngine|Filament|\[Open3D",
 }
-TINY_MODEL = [
-    "model.x_range=[-16.0,16.0]",
-    "model.y_range=[-16.0,16.0]",
-    "model.cell=1.0",
-    "model.pillar_channels=8",
-    "model.stage_channels=[8,16,32]",
-]
 
 
 def _run(*args, cwd=REPO) -> str:
@@ -47,6 +43,7 @@ def _lines(output: str) -> list[str]:
     return [line.strip() for line in re.split(r"[\r\n]", output) if line.strip()]
 
 
+@pytest.mark.slow
 def test_tiny_label_and_train_runs_print_no_noise(tmp_path):
     shards = tmp_path / "labels"
     reader = ["dataset.reader.num_sequences=1", "dataset.reader.frames_per_sequence=2", "dataset.reader.beams=32"]
@@ -55,9 +52,9 @@ def test_tiny_label_and_train_runs_print_no_noise(tmp_path):
         f"hydra_dir={tmp_path / 'hydra'}",
     )  # fmt: skip
     train = _run(
-        "train.py", f"data.train={shards}", f"data.val={shards}", f"out_dir={tmp_path / 'run'}", *TINY_MODEL,
-        "data.workers=0", "data.batch_size=1", "trainer.max_steps=2", "trainer.val_check_interval=1",
-        "trainer.log_every_n_steps=1", "export.formats=[]",
+        "train.py", f"data.train={shards}", f"data.val={shards}", f"out_dir={tmp_path / 'run'}",
+        *tiny_model_overrides(), "data.workers=0", "data.batch_size=1", "trainer.max_steps=2",
+        "trainer.val_check_interval=1", "trainer.log_every_n_steps=1", "export.formats=[]",
     )  # fmt: skip
     for name, output in (("label.py", label), ("train.py", train)):
         for what, pattern in NOISE.items():

@@ -10,6 +10,8 @@ normalise its own share of the batch, a different computation from one process's
   before step 5; then ``resumed``: ``ckpt_path=last`` as 2 SLURM tasks (the variables ``srun`` sets);
 - ``torchrun``: the same 8 steps from scratch under ``torchrun --nproc_per_node=2``;
 - ``single``: one process (this one), ``data.batch_size=2``, 8 steps.
+
+The tests of these runs are marked slow (``pytest --run-slow``, as CI runs them).
 """
 
 import json
@@ -147,6 +149,7 @@ def _ok(result: subprocess.CompletedProcess) -> None:
     assert result.returncode == 0, result.stderr[-3000:]
 
 
+@pytest.mark.slow
 def test_all_runs_finish(runs):
     for result in (*runs.resumed, runs.elastic_run):
         _ok(result)
@@ -157,6 +160,7 @@ def test_all_runs_finish(runs):
 # ------------------------------------------------------------------------------------ (a) same weights, same order
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("run", ["two", "elastic"])
 def test_two_processes_of_batch_b_learn_what_one_process_of_batch_2b_learns(runs, run):
     """Issue 34.1(a): 2 x batch 1 (stopped by SIGTERM and resumed as SLURM tasks; or under torchrun) and 1 x batch 2
@@ -173,6 +177,7 @@ def test_two_processes_of_batch_b_learn_what_one_process_of_batch_2b_learns(runs
         torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-3)
 
 
+@pytest.mark.slow
 def test_each_step_of_two_ranks_holds_the_samples_of_one_process_step(runs):
     """Issue 34.1(a, b): at every step the two ranks' samples are the one process's batch (same data order), and in
     each epoch every training sample is seen once across the ranks."""
@@ -192,7 +197,7 @@ def test_each_step_of_two_ranks_holds_the_samples_of_one_process_step(runs):
             assert len(seen) == len(set(seen)) == 8
 
 
-def test_the_training_order_splits_one_permutation_among_ranks_and_resumes_inside_an_epoch(runs):
+def test_the_training_order_splits_one_permutation_among_ranks_and_resumes_inside_an_epoch(tmp_path):
     """Issue 34.1(b) without processes: with 9 samples and 2 or 3 ranks, each epoch's permutation is dealt round
     robin, nothing is repeated and only the permutation's last ``9 % ranks`` are left out (other ones each epoch);
     the random draws of a sample depend on the seed, epoch and index only; a resume starts after the batches
@@ -226,10 +231,12 @@ def test_the_training_order_splits_one_permutation_among_ranks_and_resumes_insid
     full.set_epoch(4)
     assert list(order) == list(full)
     assert Draw(3, (7, 1)).rng().random() == Draw(3, (7, 1)).rng().random() != Draw(3, (7, 2)).rng().random()
-    samples = StudentDataset(runs.root / "data" / "train", augment=Augmentation(yaw_deg=20.0))
+    pair = SyntheticDataset(split="train", num_sequences=1, frames_per_sequence=2, beams=32).pair(0)
+    samples = StudentDataset(write_pseudo_labels(tmp_path / "train", [pair] * 4), augment=Augmentation(yaw_deg=20.0))
     assert torch.equal(samples[Draw(3, (7, 1))]["pc0"], samples[Draw(3, (7, 1))]["pc0"])
 
 
+@pytest.mark.slow
 def test_the_data_module_saves_where_the_epoch_stopped(runs):
     """The checkpoint holds the training order's position (epoch, batches of it trained), which ``load_state_dict``
     hands the next ``train_dataloader``."""
@@ -248,6 +255,7 @@ def test_the_data_module_saves_where_the_epoch_stopped(runs):
 # -------------------------------------------------------------------------------------------- (c) validation
 
 
+@pytest.mark.slow
 def test_validation_metrics_are_the_whole_val_sets(runs):
     """Issue 34.1(c): the val metrics 2 processes log (5 samples: shares of 3 and 2, none repeated) equal those of
     one process on the same weights, at every validation."""
@@ -262,6 +270,7 @@ def test_validation_metrics_are_the_whole_val_sets(runs):
 # ------------------------------------------------------------------------------- (d) rank 0 writes, resume
 
 
+@pytest.mark.slow
 def test_only_rank_zero_writes_and_the_resume_continues_the_step_count(runs):
     """Issue 34.1(d): one best checkpoint and last.ckpt, one TensorBoard event file per launch, one BEV image per
     validation, one export said once; the resumed run started at the stopped step and ended at the last."""
@@ -283,6 +292,7 @@ def test_only_rank_zero_writes_and_the_resume_continues_the_step_count(runs):
 # -------------------------------------------------------------------------------------------------- (e) SIGTERM
 
 
+@pytest.mark.slow
 def test_sigterm_to_the_launcher_stops_every_rank_at_one_step_saved_once(runs):
     """Issue 34.1(e): SIGTERM to the launching process (before step 5) lets the step finish on both ranks, saves
     last.ckpt at that step once, says so in one line, exits 143 and leaves no process."""
@@ -308,6 +318,7 @@ def _alive(pid: int) -> bool:
     return True
 
 
+@pytest.mark.slow
 def test_no_process_of_any_run_is_left(runs):
     records = [r for out in (runs.two, runs.elastic) for rank in _records(out).values() for r in rank]
     pids = {record["pid"] for record in records}

@@ -22,8 +22,6 @@ from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.evaluation import MetricOptions, PairScorer, evaluate, method_summary, read_metrics, run_eval
 from icpflow.shards.writer import write_index, write_shard
 
-from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
-
 STUDENT = {"student": student_method}  # what eval.py adds to the teacher package's methods
 
 REPO = Path(__file__).resolve().parents[1]
@@ -374,29 +372,19 @@ def test_long_horizon_table_reproduces_the_metrics_module(tmp_path, capsys):
     )
 
 
-TINY_STUDENT = tiny_model(16.0, 0.5)
-
-
-def tiny_student_checkpoint(path: Path, pair) -> Path:
-    """A training checkpoint (the ``fastflow3d.artifact.checkpoint`` contract) of a tiny FastFlow3D after 5 Adam steps
-    towards ``pair``'s true residual flow, so that its weights and BatchNorm statistics are not the initial ones."""
-    return tiny_checkpoint(path, TINY_STUDENT, pair, 5)
-
-
-def test_student_row_reproduces_the_metrics_module(tmp_path, dataset):
+def test_student_row_reproduces_the_metrics_module(tiny_student, tmp_path, dataset):
     from fastflow3d.inference.predictor import Predictor
 
-    checkpoint = tiny_student_checkpoint(tmp_path / "student.ckpt", dataset[0])
     assert (
         run_eval(
-            _cfg(tmp_path / "eval", "method=[ego,student]", f"checkpoint={checkpoint}", "bev=0"),
+            _cfg(tmp_path / "eval", "method=[ego,student]", f"checkpoint={tiny_student}", "bev=0"),
             progress=False,
             extra_methods=STUDENT,
         )
         == 0
     )
     document = json.loads((tmp_path / "eval" / "metrics.json").read_text())
-    predictor = Predictor.load(checkpoint)
+    predictor = Predictor.load(tiny_student)
     pairs = [dataset[i] for i in range(len(dataset))]
     flows = [predictor(p.pc0, p.pc1, p.ego1_from_ego0) for p in pairs]
     assert_same_numbers(method_summary(document, "student"), expected_summary(dataset, list(zip(pairs, flows))))
@@ -447,8 +435,7 @@ def test_eval_script_runs(tmp_path):
 
 
 @pytest.mark.parametrize("value, expected", [("null", None), ("auto", "auto"), ("1.73", 1.73)])
-def test_the_students_height_frame_is_an_eval_option(tmp_path, dataset, value, expected):
+def test_the_students_height_frame_is_an_eval_option(tiny_student, tmp_path, dataset, value, expected):
     """eval.py sensor_height=... reaches the student's Predictor (the advice its height-frame warning gives)."""
-    checkpoint = tiny_student_checkpoint(tmp_path / "student.ckpt", dataset[0])
-    method = student_method(_cfg(tmp_path / "eval", f"checkpoint={checkpoint}", f"sensor_height={value}"))
+    method = student_method(_cfg(tmp_path / "eval", f"checkpoint={tiny_student}", f"sensor_height={value}"))
     assert method.predictor.sensor_height == expected

@@ -1,9 +1,9 @@
 """Export (ONNX, torch.export) parity with eager, older TorchScript exports, the Predictor on arrays and raw scan
 files, and the CLIs' errors.
 
-One tiny FastFlow3D (+-6.4 m, 0.2 m cells, 64 x 64 grid) is trained a few steps on a synthetic pair so that its
-weights and BatchNorm statistics are not the initial ones, saved as a training checkpoint (the checkpoint contract
-of ``fastflow3d.artifact.checkpoint``) and exported once for the whole module.
+The tiny FastFlow3D of the tests (helpers.training.TINY_MODEL: +-16 m, 1 m cells, 32 x 32 grid) is trained a few
+steps on a synthetic pair so that its weights and BatchNorm statistics are not the initial ones, saved as a training
+checkpoint (the checkpoint contract of ``fastflow3d.artifact.checkpoint``) and exported once for the whole module.
 """
 
 import json
@@ -32,13 +32,14 @@ from icpflow.open3d_loader import load_open3d
 from icpflow.preprocess import Preprocessing, lift_points, lift_transform
 from icpflow.teacher.config import ICPFlowConfig
 
-from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
+from helpers.training import TINY_MODEL
+from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = tiny_model(6.4, 0.2)
+NEAR = TINY_MODEL["x_range"][1] + 0.6  # m: points this far from the sensor (x and y) are near the grid
 TOLERANCE = 1e-4  # metres
 
 
@@ -72,10 +73,10 @@ def checkpoint(tmp_path_factory, pairs):
     """A training checkpoint of the tiny model after 15 Adam steps towards one pair's true residual flow (on 6000
     points of each scan near the grid, to keep it fast)."""
     pair = pairs[0]
-    near0 = np.flatnonzero(np.abs(pair.pc0[:, :2]).max(axis=1) < 7.0)[:6000]
-    near1 = np.flatnonzero(np.abs(pair.pc1[:, :2]).max(axis=1) < 7.0)[:6000]
+    near0 = np.flatnonzero(np.abs(pair.pc0[:, :2]).max(axis=1) < NEAR)[:6000]
+    near1 = np.flatnonzero(np.abs(pair.pc1[:, :2]).max(axis=1) < NEAR)[:6000]
     path = tmp_path_factory.mktemp("run") / "best.ckpt"
-    return tiny_checkpoint(path, TINY, pair, 15, near0, near1)
+    return tiny_checkpoint(path, pair, 15, near0, near1)
 
 
 @pytest.fixture(scope="module")
@@ -115,14 +116,14 @@ def test_metadata_describes_the_export(export_dir, checkpoint):
     assert export_dir == checkpoint.parent / "export"
     metadata = json.loads((export_dir / METADATA_NAME).read_text())
     assert metadata["grid"] == {
-        "x_range": [-6.4, 6.4],
-        "y_range": [-6.4, 6.4],
+        "x_range": [-16.0, 16.0],
+        "y_range": [-16.0, 16.0],
         "z_range": [-3.0, 3.0],
-        "cell": 0.2,
-        "nx": 64,
-        "ny": 64,
+        "cell": 1.0,
+        "nx": 32,
+        "ny": 32,
     }
-    assert metadata["model"].items() >= TINY.items()
+    assert metadata["model"].items() >= TINY_MODEL.items()
     assert metadata["package_version"] == __version__
     assert metadata["source_checkpoint"]["sha256"] == sha256_file(checkpoint)
     assert [entry["name"] for entry in metadata["inputs"]] == ["pc0_compensated", "pc1"]
@@ -132,7 +133,7 @@ def test_metadata_describes_the_export(export_dir, checkpoint):
     contract = upgrade(metadata)
     assert metadata["input"]["version"] == 2 and metadata["input"]["remove_ground"] is False
     assert contract.preprocessing.frame.ground_z == 0.0  # trained in the synthetic frame
-    assert contract.grid == Grid((-6.4, 6.4), (-6.4, 6.4), (-3.0, 3.0), 0.2)
+    assert contract.grid == Grid((-16.0, 16.0), (-16.0, 16.0), (-3.0, 3.0), 1.0)
     for name in ("onnx", "pt2"):
         entry = metadata["files"][name]
         assert entry["path"] == FILE_NAMES[name] and entry["sha256"] == sha256_file(export_dir / entry["path"])
@@ -160,11 +161,11 @@ def test_export_parity_on_synthetic_pairs(export_dir, expected, pairs, backend):
 def test_checkpoint_and_single_files_load(export_dir, checkpoint, expected, pairs):
     pair, (flow, _) = pairs[2], expected[2]
     from_ckpt = Predictor.load(checkpoint)
-    assert from_ckpt.backend == "eager" and from_ckpt.metadata["grid"]["nx"] == 64
+    assert from_ckpt.backend == "eager" and from_ckpt.metadata["grid"]["nx"] == 32
     np.testing.assert_allclose(from_ckpt(pair.pc0, pair.pc1, pair.ego1_from_ego0), flow, atol=1e-6, rtol=0)
     for name, backend in (("fastflow3d.onnx", "onnx"), ("fastflow3d.pt2", "pt2")):
         predictor = Predictor.load(export_dir / name)
-        assert predictor.backend == backend and predictor.metadata["model"].items() >= TINY.items()
+        assert predictor.backend == backend and predictor.metadata["model"].items() >= TINY_MODEL.items()
         assert np.abs(predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0) - flow).max() <= TOLERANCE
 
 
@@ -189,7 +190,7 @@ def test_older_torchscript_exports_load_only_when_asked_for(export_dir, eager, e
     for path in (legacy, legacy / "fastflow3d.pt"):
         with pytest.warns(UserWarning, match="runs code when it is loaded"):
             predictor = Predictor.load(path, backend="torchscript")
-        assert predictor.backend == "torchscript" and predictor.metadata["model"].items() >= TINY.items()
+        assert predictor.backend == "torchscript" and predictor.metadata["model"].items() >= TINY_MODEL.items()
         assert np.abs(predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0) - flow).max() <= TOLERANCE
 
 
@@ -420,7 +421,7 @@ def test_onnx_runtime_pillar_sums_are_exact_with_threads_on_crowded_pillars(expo
     from fastflow3d.artifact.engines import load_network
 
     rng = np.random.default_rng(1)
-    cells = rng.uniform(-3.0, 3.0, (150, 2))
+    cells = rng.uniform(-15.0, 15.0, (150, 2))
     crowded = []
     for count in (60_000, 40_000):
         xy = cells[rng.integers(0, len(cells), count)] + rng.uniform(-0.05, 0.05, (count, 2))
@@ -577,20 +578,21 @@ def test_infer_cli_sensor_height(export_dir, pairs, expected, tmp_path, capsys):
         infer_main([*common, "--sensor-height", "tall"])
 
 
-@pytest.mark.parametrize(
-    "options",
-    [
-        {"decoder": "gru", "gru_iterations": 2, "gru_channels": 8},
-        {"correlation_levels": [0, 2], "correlation_radius": 2},
-    ],
-    ids=["gru", "correlation"],
-)
-def test_model_options_export_with_parity_and_the_predictor_runs_them(pairs, tmp_path, options):
-    variant = {**TINY, **options}
+@pytest.mark.slow
+def test_model_options_export_with_parity_and_the_predictor_runs_them(pairs, tmp_path):
+    """The network's options beyond ZeroFlow's, both in one network (DeFlow's GRU decoder; the cost volume at two
+    levels): the export keeps parity and the Predictor and the CLI run it."""
+    options = {
+        "decoder": "gru",
+        "gru_iterations": 2,
+        "gru_channels": 8,
+        "correlation_levels": [0, 2],
+        "correlation_radius": 2,
+    }
     pair = pairs[0]
-    near0 = np.flatnonzero(np.abs(pair.pc0[:, :2]).max(axis=1) < 7.0)[:3000]
-    near1 = np.flatnonzero(np.abs(pair.pc1[:, :2]).max(axis=1) < 7.0)[:3000]
-    checkpoint = tiny_checkpoint(tmp_path / "variant.ckpt", variant, pair, 5, near0, near1)
+    near0 = np.flatnonzero(np.abs(pair.pc0[:, :2]).max(axis=1) < NEAR)[:3000]
+    near1 = np.flatnonzero(np.abs(pair.pc1[:, :2]).max(axis=1) < NEAR)[:3000]
+    checkpoint = tiny_checkpoint(tmp_path / "variant.ckpt", pair, 5, near0, near1, options=options)
     out_dir = export_checkpoint(checkpoint)
     metadata = json.loads((out_dir / METADATA_NAME).read_text())
     assert all(metadata["model"][key] == value for key, value in options.items())

@@ -275,6 +275,7 @@ def synthetic_pair(seed):
     return pc0, pc1, ego1_from_ego0, residual
 
 
+@pytest.mark.slow
 def test_overfit_one_synthetic_pair():
     torch.manual_seed(0)
     pc0, pc1, ego1_from_ego0, residual = synthetic_pair(0)

@@ -40,7 +40,6 @@ from helpers.labelling import (
 )
 from helpers.shards import write_pseudo_labels
 from helpers.training import train_cfg
-from students import tiny_checkpoint, tiny_model
 
 SLOW = ["dataset.reader._target_=helpers.labelling.SlowSynthetic", "workers=2"]
 READER = {"split": "train", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 2.0}
@@ -64,8 +63,13 @@ def _start(out_dir, *overrides) -> subprocess.Popen:
     return process
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
+    """SIGKILL or SIGTERM to label.py's main process only (as a supervisor or a job scheduler sends it) while its 2
+    workers label: no process outlives it, whatever has a final name is complete (SIGTERM: exit 143, one line, the
+    index lists exactly the complete shards, no temporary file); the rerun of the same command labels the rest and
+    matches the uninterrupted run."""
     out = tmp_path / "labels"
     out.mkdir()
     process = _start(out, *SLOW)
@@ -82,17 +86,16 @@ def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
         assert all_valid(out) >= 2  # index.json lists exactly the complete shards on disk
         indexed = {s["file"] for s in json.loads((out / "index.json").read_text())["shards"]}
         assert indexed == {p.name for p in out.glob("shard_*.h5")}
+        assert not list(out.glob("*.tmp-*"))
     else:
         assert process.returncode == -signal.SIGKILL
     for shard in out.glob("shard_*.h5"):  # whatever has a final name is complete
         verify_shard(shard)
-    if sig == signal.SIGKILL:
-        return  # the rerun after a SIGKILL: test_label.py::test_resume_after_sigkill_matches_uninterrupted_run
-    assert not list(out.glob("*.tmp-*"))
     run = subprocess.run(label_script(out, *SLOW), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     done, skipped = map(int, SUMMARY.search(run.stdout).groups()[:2])
     assert skipped >= 2 and done + skipped == 5
+    assert all_valid(out) == 5
     assert_same(reference, out)
 
 
@@ -110,6 +113,7 @@ class KillOnceSynthetic(SyntheticDataset):
         return super().pair(index, horizon)
 
 
+@pytest.mark.slow
 def test_a_sample_whose_worker_died_is_filled_in_by_the_rerun(reference, tmp_path, capsys):
     cfg = label_cfg(
         tmp_path / "labels",
@@ -194,6 +198,7 @@ class DiskFullSynthetic(SyntheticDataset):
         os.fsync = fsync  # in the main process of this label.py run only
 
 
+@pytest.mark.slow
 def test_a_full_disk_while_workers_run_is_one_line_and_leaves_no_process(tmp_path):
     out = tmp_path / "labels"
     args = ["dataset.reader._target_=test_faults.DiskFullSynthetic", "workers=2", "shard_size=3"]
@@ -231,19 +236,12 @@ def scan():
     return SyntheticDataset(**READER).pair(0).pc0
 
 
-@pytest.fixture(scope="module")
-def model(tmp_path_factory):
-    """A tiny student checkpoint after one step (a +-6.4 m grid)."""
-    cfg = tiny_model(6.4, 0.4)
-    return tiny_checkpoint(tmp_path_factory.mktemp("model") / "tiny.ckpt", cfg, SyntheticDataset(**READER).pair(0), 1)
-
-
 def _infer(args, capsys) -> tuple[int, list[str]]:
     status = infer_main([*map(str, args), "--no-bev"])
     return status, capsys.readouterr().err.splitlines()
 
 
-def test_every_malformed_point_file_is_one_line_naming_it(scan, model, tmp_path, capsys):
+def test_every_malformed_point_file_is_one_line_naming_it(scan, tiny_student, tmp_path, capsys):
     good = tmp_path / "good.npy"
     np.save(good, scan)
     cases = {
@@ -257,14 +255,14 @@ def test_every_malformed_point_file_is_one_line_naming_it(scan, model, tmp_path,
     for name, (make, message) in cases.items():
         path = tmp_path / name
         make(path)
-        status, err = _infer([model, path, good, "--out", tmp_path / "flow.npz"], capsys)
+        status, err = _infer([tiny_student, path, good, "--out", tmp_path / "flow.npz"], capsys)
         assert status == 2 and len(err) == 1, err
         assert err[0].startswith(f"infer: {path}: ") and message in err[0], err
     assert not (tmp_path / "flow.npz").exists()
     np.testing.assert_array_equal(read_raw_scan(tmp_path / "xyz.bin", bin_columns=3), scan)  # explicit layout
 
 
-def test_the_same_rule_in_the_readers_the_predictor_and_the_teacher(scan, model, tmp_path):
+def test_the_same_rule_in_the_readers_the_predictor_and_the_teacher(scan, tiny_student, tmp_path):
     folder = tmp_path / "drive"
     folder.mkdir()
     np.save(folder / "0.npy", scan)
@@ -282,7 +280,7 @@ def test_the_same_rule_in_the_readers_the_predictor_and_the_teacher(scan, model,
     with pytest.raises(FramePairError, match="notes.npz: not an .npz file"):
         load_npz(tmp_path / "notes.npz", ("pc0",))
     with pytest.raises(PredictorError, match=r"Predictor: pc0 has shape \(3, \d+\): a transposed scan\?"):
-        Predictor.load(model)(scan.T, scan, np.eye(4))
+        Predictor.load(tiny_student)(scan.T, scan, np.eye(4))
     with pytest.raises(ValueError, match=r"ICPFlow: pc1 has shape \(3, \d+\): a transposed scan\?"):
         ICPFlow()(scan, scan.T, np.eye(4))
 
@@ -298,14 +296,14 @@ def test_integer_coordinates_are_read_with_a_warning(scan, tmp_path, caplog):
     ]
 
 
-def test_a_scan_outside_the_grid_gets_a_warning(scan, model, tmp_path, capsys):
+def test_a_scan_outside_the_grid_gets_a_warning(scan, tiny_student, tmp_path, capsys):
     far = scan + np.float32(1000.0)  # metres away from the sensor: millimetres read as metres, say
     np.save(tmp_path / "far0.npy", far)
     np.save(tmp_path / "far1.npy", far)
     np.savetxt(tmp_path / "ego.txt", np.eye(4).reshape(1, 16))
     status, err = _infer(
         [
-            model,
+            tiny_student,
             tmp_path / "far0.npy",
             tmp_path / "far1.npy",
             "--ego",
@@ -341,10 +339,10 @@ def test_a_corrupt_shard_stops_training_in_one_line_naming_it(pairs, tmp_path):
     assert message.endswith(f"rerun the label.py command that wrote it (same out_dir={bad}): it redoes damaged shards")
 
 
-def test_a_truncated_checkpoint_is_one_line_naming_it(pairs, model, tmp_path):
+def test_a_truncated_checkpoint_is_one_line_naming_it(pairs, tiny_student, tmp_path):
     good = write_pseudo_labels(tmp_path / "good", pairs)
     truncated = tmp_path / "last.ckpt"
-    truncated.write_bytes(model.read_bytes()[:2000])
+    truncated.write_bytes(tiny_student.read_bytes()[:2000])
     with pytest.raises(TrainError) as error:
         fit(train_cfg(tmp_path, good, good, f"ckpt_path={truncated}"))
     message = str(error.value)
@@ -383,7 +381,7 @@ def test_the_summary_says_how_many_failures_it_does_not_list(tmp_path, capsys):
     assert len((tmp_path / "failures.jsonl").read_text().splitlines()) == 14
 
 
-def test_a_bin_scan_in_another_dtype_or_unit_is_refused_whatever_the_column_count(scan, model, tmp_path, capsys):
+def test_a_bin_scan_in_another_dtype_or_unit_is_refused_whatever_the_column_count(scan, tiny_student, tmp_path, capsys):
     """Issue 45.8: float64 rows read as the float32 rows the column count says gave points of 1e19 m (the range
     check was skipped with --bin-columns); a scan in millimetres or centimetres is told so, not asked for a column
     count. Each is one line naming the file, exit 2, for every column count."""
@@ -392,12 +390,12 @@ def test_a_bin_scan_in_another_dtype_or_unit_is_refused_whatever_the_column_coun
     doubles = tmp_path / "doubles.bin"
     np.column_stack([scan, np.ones(len(scan))]).astype(np.float64).tofile(doubles)
     for columns in ([], ["--bin-columns", "4"], ["--bin-columns", "8"]):
-        status, err = _infer([model, doubles, good, "--out", tmp_path / "flow.npz", *columns], capsys)
+        status, err = _infer([tiny_student, doubles, good, "--out", tmp_path / "flow.npz", *columns], capsys)
         assert status == 2 and len(err) == 1 and "values are implausible for float32 rows" in err[0], err
     for unit, factor in (("millimetres", 1000), ("centimetres", 100)):
         path = tmp_path / f"{unit}.bin"
         np.column_stack([scan * factor, np.ones(len(scan))]).astype(np.float32).tofile(path)
         for columns in ([], ["--bin-columns", "4"]):
-            status, err = _infer([model, path, good, "--out", tmp_path / "flow.npz", *columns], capsys)
+            status, err = _infer([tiny_student, path, good, "--out", tmp_path / "flow.npz", *columns], capsys)
             assert status == 2 and len(err) == 1 and f"the coordinates look like {unit}" in err[0], err
     assert not (tmp_path / "flow.npz").exists()

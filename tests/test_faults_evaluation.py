@@ -64,6 +64,7 @@ class StallAfterFirst(SyntheticDataset):
         return super().pair(index, horizon)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_a_stopped_eval_keeps_the_pairs_scored_and_leaves_no_process(tmp_path, sig):
     out, marker = tmp_path / "eval", tmp_path / "second-sample-started"

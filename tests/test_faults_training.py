@@ -45,7 +45,7 @@ def shards(tmp_path_factory):
 
 
 def _train(out_dir, shard_dir, *overrides) -> list[str]:
-    """The command line of train.py on the tiny network (tests/test_train.py's TINY)."""
+    """The command line of train.py on the tiny network (helpers.training.TINY)."""
     data = [f"data.train={shard_dir}", f"data.val={shard_dir}", f"out_dir={out_dir}"]
     return [sys.executable, str(REPO / "train.py"), *data, *TINY, *overrides]
 
@@ -143,6 +143,7 @@ def test_the_best_files_are_set_through_lightnings_public_checkpoint_state(tmp_p
 # ------------------------------------------------------------------------------------------- 2. SIGTERM, SIGINT
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_saves_last_checkpoint_at_the_current_step_and_says_how_to_resume(shards, tmp_path, sig):
     """Issue 20.2: SIGTERM to train.py (a scheduler's pre-emption) or Ctrl-C (SIGINT to its process group, the
@@ -220,6 +221,7 @@ def test_export_is_built_aside_and_swapped_in_whole(checkpoint, tmp_path, monkey
     assert sorted(p.name for p in export.iterdir()) == [FILE_NAMES["pt2"], METADATA_NAME]
 
 
+@pytest.mark.slow
 def test_export_on_a_real_full_disk_keeps_the_existing_export(checkpoint, tmp_path, mount_tmpfs):
     """Issue 20.3 on a real tmpfs that holds one export but not two: export.py over the existing export. It used to
     abort (SIGABRT in torch's file writer) and delete metadata.json; now one line, exit 2, the export intact."""
@@ -259,9 +261,10 @@ def test_a_full_disk_during_training_is_one_line_and_keeps_last_checkpoint(shard
     assert torch.load(last, weights_only=True)["global_step"] == 2 and _no_temporary_files(tmp_path)
 
 
-def test_train_on_a_real_full_disk_is_one_line_and_keeps_last_checkpoint(shards, tmp_path, mount_tmpfs):
-    """Issue 20.6 on a real 14 MB tmpfs: two checkpoints of the tiny network (5.7 MB each) fit, a third does not."""
-    out = mount_tmpfs(tmp_path / "disk", "14m") / "run"
+@pytest.mark.slow
+def test_train_on_a_real_full_disk_is_one_line_and_keeps_last_checkpoint(shards, checkpoint, tmp_path, mount_tmpfs):
+    """Issue 20.6 on a real tmpfs of 2.5 checkpoints of the tiny network: two fit, a third does not."""
+    out = mount_tmpfs(tmp_path / "disk", f"{checkpoint.stat().st_size * 5 // 2 // 1024}k") / "run"
     process = _popen(_train(out, shards, "trainer.max_steps=8", *STEPS), tmp_path)
     _, err = process.communicate(timeout=300)
     assert process.returncode == 2, err[-3000:]
@@ -279,6 +282,7 @@ def test_train_on_a_real_full_disk_is_one_line_and_keeps_last_checkpoint(shards,
 HELP = "; see `--help` and `--cfg job` for the options"
 
 
+@pytest.mark.slow
 def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path):
     """Issue 20.6: a value of the wrong type (train.py, eval.py), a missing checkpoint (export.py): exit 2, one line,
     before any work, as each script prints it; HYDRA_FULL_ERROR=1 gives the traceback."""
@@ -317,6 +321,7 @@ def test_wrong_types_and_options_are_one_line_naming_the_option(shards, tmp_path
     assert "Error merging override data.batch_size=abc" in full.stderr
 
 
+@pytest.mark.slow
 def test_a_read_only_out_dir_is_one_line(shards, tmp_path, mount_tmpfs):
     """Issue 20.6: train.py with a read-only out_dir (it printed 24 lines of traceback from Hydra)."""
     disk = mount_tmpfs(tmp_path / "ro", "1m", read_only=True)

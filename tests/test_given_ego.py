@@ -10,20 +10,18 @@ import torch
 from fastflow3d.artifact.export import export_model
 from fastflow3d.inference.prediction import PredictorWarning
 from fastflow3d.inference.predictor import Predictor
-from fastflow3d.network.model import FastFlow3D
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
 
-from students import tiny_model  # tests/ is on sys.path (pytest prepend import mode)
-
-CONFIG = tiny_model(25.6, 0.8)
+from helpers.training import TINY_MODEL
+from students import tiny_network  # tests/ is on sys.path (pytest prepend import mode)
 
 
 @pytest.fixture(scope="module")
 def predictor(tmp_path_factory):
     torch.manual_seed(0)
     out = tmp_path_factory.mktemp("export") / "export"
-    export_model(FastFlow3D(**{k: v for k, v in CONFIG.items() if k != "_target_"}), out, ("pt2",), model_config=CONFIG)
+    export_model(tiny_network(), out, ("pt2",), model_config=TINY_MODEL)
     return out
 
 

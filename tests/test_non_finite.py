@@ -13,7 +13,6 @@ import torch
 from fastflow3d.artifact.export import ExportError, export_model
 from fastflow3d.inference.prediction import PredictorError
 from fastflow3d.inference.predictor import Predictor
-from fastflow3d.network.model import FastFlow3D
 from fastflow3d.training.run_folder import TrainError
 from fastflow3d.training.trainer import fit
 from icpflow.datasets.synthetic import SyntheticDataset
@@ -22,11 +21,8 @@ from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.long_horizon import SampleFlow
 
 from helpers.shards import write_pseudo_labels
-from helpers.training import train_cfg
-from students import tiny_model  # tests/ is on sys.path (pytest prepend import mode)
-
-CONFIG = tiny_model(6.4, 0.4)
-SMALL = {key: value for key, value in CONFIG.items() if key != "_target_"}
+from helpers.training import TINY_MODEL, train_cfg
+from students import tiny_network  # tests/ is on sys.path (pytest prepend import mode)
 
 
 @pytest.fixture(scope="module")
@@ -78,17 +74,17 @@ def test_training_stops_at_the_first_non_finite_loss_naming_step_and_samples(pai
 
 def test_the_export_parity_check_fails_on_non_finite_output(tmp_path):
     torch.manual_seed(0)
-    model = FastFlow3D(**SMALL)
+    model = tiny_network()
     with torch.no_grad():
         next(model.parameters()).fill_(float("nan"))
     with pytest.raises(ExportError, match="non-finite flow") as caught:
-        export_model(model, tmp_path / "export", ("pt2",), model_config=CONFIG)
+        export_model(model, tmp_path / "export", ("pt2",), model_config=TINY_MODEL)
     assert "\n" not in str(caught.value) and not (tmp_path / "export").exists()
 
 
 def test_the_predictor_refuses_to_return_non_finite_flow(pairs, tmp_path):
     torch.manual_seed(0)
-    export_model(FastFlow3D(**SMALL), tmp_path / "export", ("pt2",), model_config=CONFIG)
+    export_model(tiny_network(), tmp_path / "export", ("pt2",), model_config=TINY_MODEL)
     predictor = Predictor.load(tmp_path / "export")
     pair = pairs[0]
     assert np.isfinite(predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0)).all()

@@ -4,23 +4,13 @@ import numpy as np
 import pytest
 import torch
 
-from fastflow3d.network.model import FastFlow3D
 from fastflow3d.training.augment import Augmentation, subsample, transform_sample
 from fastflow3d.training.schedules import warmup_cosine, warmup_multistep
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import full_to_residual, transform_points
 
 from helpers.shards import write_labels
-
-SMALL = {
-    "x_range": (-16.0, 16.0),
-    "y_range": (-16.0, 16.0),
-    "z_range": (-3.0, 3.0),
-    "cell": 1.0,
-    "pillar_channels": 16,
-    "stage_channels": (16, 32, 64),
-    "stage_blocks": (1, 1, 1),
-}
+from students import tiny_network
 
 
 def _lrs(make, total: int) -> list[float]:
@@ -153,7 +143,7 @@ def test_training_dataset_augments_and_validation_does_not(tmp_path, sample):
 
 def test_group_norm_student_trains_and_has_no_running_statistics():
     torch.manual_seed(0)
-    model = FastFlow3D(**SMALL, norm="group")
+    model = tiny_network(norm="group")
     assert not any(isinstance(m, torch.nn.modules.batchnorm._BatchNorm) for m in model.modules())
     pc0, pc1 = torch.rand(500, 3) * 20 - 10, torch.rand(400, 3) * 20 - 10
     b0, b1 = torch.zeros(500, dtype=torch.long), torch.zeros(400, dtype=torch.long)
@@ -163,4 +153,4 @@ def test_group_norm_student_trains_and_has_no_running_statistics():
     with torch.no_grad():  # no running statistics: train and eval mode compute the same function
         torch.testing.assert_close(model.eval()(pc0, b0, pc1, b1, 1)[0], model.train()(pc0, b0, pc1, b1, 1)[0])
     with pytest.raises(ValueError, match="norm must be one of"):
-        FastFlow3D(**SMALL, norm="layer")
+        tiny_network(norm="layer")

@@ -18,7 +18,6 @@ from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
 
 from helpers.drives import synthetic_drive
-from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
 
 
 @pytest.fixture(scope="module")
@@ -34,24 +33,18 @@ def other_place():
     return synthetic_drive(11, 4)
 
 
-@pytest.fixture(scope="module")
-def predictor_path(tmp_path_factory, moving):
-    pairs, _ = moving
-    return tiny_checkpoint(tmp_path_factory.mktemp("stream") / "tiny.ckpt", tiny_model(25.6, 0.8), pairs[0], 2)
-
-
 def _errors(truth, estimate):
     delta = invert(truth) @ estimate
     angle = np.degrees(np.arccos(np.clip((np.trace(delta[:3, :3]) - 1) / 2, -1, 1)))
     return float(np.linalg.norm(delta[:3, 3])), float(angle)
 
 
-def test_the_stream_gives_the_predictors_flow_with_its_own_ego_motion(predictor_path, moving):
+def test_the_stream_gives_the_predictors_flow_with_its_own_ego_motion(tiny_student, moving):
     pairs, scans = moving
-    stream = FlowStream(Predictor.load(predictor_path))
+    stream = FlowStream(Predictor.load(tiny_student))
     first = stream.push(scans[0], timestamp=0.0, source="s0")
     assert first.prediction is None and np.array_equal(first.pose, np.eye(4))
-    predictor = Predictor.load(predictor_path)
+    predictor = Predictor.load(tiny_student)
     for k, pair in enumerate(pairs[:4], start=1):
         step = stream.push(scans[k], timestamp=0.1 * k, source=f"s{k}")
         assert (step.source, step.previous, step.restarted) == (f"s{k}", f"s{k - 1}", False)
@@ -78,10 +71,10 @@ def _pushed(stream, scans, times=None, sources=None):
 
 
 @pytest.mark.parametrize("kind", ["gap", "backwards"])
-def test_a_time_gap_or_time_going_backwards_restarts_the_odometry(predictor_path, moving, kind):
+def test_a_time_gap_or_time_going_backwards_restarts_the_odometry(tiny_student, moving, kind):
     pairs, scans = moving
     times = [0.0, 0.1, 0.2, 0.9, 1.0] if kind == "gap" else [0.0, 0.1, 0.2, 0.15, 0.25]
-    steps, said = _pushed(FlowStream(Predictor.load(predictor_path)), scans[:5], times, [f"s{k}" for k in range(5)])
+    steps, said = _pushed(FlowStream(Predictor.load(tiny_student)), scans[:5], times, [f"s{k}" for k in range(5)])
     words = "s after the previous scan" if kind == "gap" else "does not follow"
     assert len(said) == 1 and said[0].startswith("FlowStream: s3: ") and words in said[0], said
     assert [step.restarted for step in steps[1:]] == [False, False, True, False]
@@ -89,9 +82,9 @@ def test_a_time_gap_or_time_going_backwards_restarts_the_odometry(predictor_path
         assert step.prediction is not None and _errors(pair.ego1_from_ego0, step.prediction.ego1_from_ego0)[0] < 0.03
 
 
-def test_a_skipped_scan_is_bridged_by_the_next_pair(predictor_path, moving):
+def test_a_skipped_scan_is_bridged_by_the_next_pair(tiny_student, moving):
     pairs, scans = moving
-    stream = FlowStream(Predictor.load(predictor_path))
+    stream = FlowStream(Predictor.load(tiny_student))
     stream.push(scans[0], source="s0")
     stream.push(scans[1], source="s1")
     with pytest.warns(StreamWarning, match=r"^FlowStream: s2: skipped \(unreadable\); the next pair spans the gap"):
@@ -101,9 +94,9 @@ def test_a_skipped_scan_is_bridged_by_the_next_pair(predictor_path, moving):
     assert step.previous == "s1" and step.restarted and _errors(truth, step.prediction.ego1_from_ego0)[0] < 0.03
 
 
-def test_a_scan_with_too_few_points_gets_ego_only_flow_and_a_warning(predictor_path, moving):
+def test_a_scan_with_too_few_points_gets_ego_only_flow_and_a_warning(tiny_student, moving):
     _, scans = moving
-    stream = FlowStream(Predictor.load(predictor_path))
+    stream = FlowStream(Predictor.load(tiny_student))
     stream.push(scans[0])
     steps, said = _pushed(stream, [scans[1][:50], scans[2], scans[3]], sources=["few", "s2", "s3"])
     assert len(said) == 1 and said[0].startswith("FlowStream: few: 50 points, too few"), said
@@ -113,13 +106,13 @@ def test_a_scan_with_too_few_points_gets_ego_only_flow_and_a_warning(predictor_p
     assert steps[2].restarted and steps[2].prediction.ego_estimated  # then a new track
 
 
-def test_splicing_two_places_is_a_lost_track_without_flow(predictor_path, moving, other_place):
+def test_splicing_two_places_is_a_lost_track_without_flow(tiny_student, moving, other_place):
     """Two unrelated sequences one after the other: the pair across the splice gets no flow and one warning; the
     odometry starts again on the second place and its pairs keep exact ego motion."""
     pairs, scans = moving
     others, other_scans = other_place
     spliced = [*scans[:4], *other_scans[:4]]
-    steps, said = _pushed(FlowStream(Predictor.load(predictor_path)), spliced, sources=[f"s{k}" for k in range(8)])
+    steps, said = _pushed(FlowStream(Predictor.load(tiny_student)), spliced, sources=[f"s{k}" for k in range(8)])
     assert len(said) == 1 and said[0].startswith("FlowStream: s4: lost track"), said
     assert steps[4].prediction is None and steps[4].restarted
     for k, pair in ((1, pairs[0]), (2, pairs[1]), (3, pairs[2]), (5, others[0]), (6, others[1]), (7, others[2])):
@@ -127,7 +120,7 @@ def test_splicing_two_places_is_a_lost_track_without_flow(predictor_path, moving
         assert _errors(pair.ego1_from_ego0, steps[k].prediction.ego1_from_ego0)[0] < 0.03, k
 
 
-def test_an_overlapped_stream_gives_the_same_steps_one_push_late(predictor_path, moving, other_place):
+def test_an_overlapped_stream_gives_the_same_steps_one_push_late(tiny_student, moving, other_place):
     """overlap=True (the network of a pair beside the next scan's steps, in a worker thread): the very steps of the
     plain stream, in order, each one push late and the last from flush(), through a scan of too few points, a
     skipped scan and a lost track, with the refinement on."""
@@ -137,7 +130,7 @@ def test_an_overlapped_stream_gives_the_same_steps_one_push_late(predictor_path,
     sources = [f"s{k}" for k in range(len(scans))]
 
     def run(overlap):
-        stream = FlowStream(Predictor.load(predictor_path, refine=True), overlap=overlap)
+        stream = FlowStream(Predictor.load(tiny_student, refine=True), overlap=overlap)
         steps = []
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -176,19 +169,19 @@ def test_an_overlapped_stream_gives_the_same_steps_one_push_late(predictor_path,
     assert sum(step.prediction is not None for step in plain[:-1]) >= 5
 
 
-def test_a_scan_from_another_frame_is_caught_by_the_height_check(predictor_path, moving):
+def test_a_scan_from_another_frame_is_caught_by_the_height_check(tiny_student, moving):
     """Scans that suddenly come 1.5 m lower (another sensor's origin): the height check says so, lifts them by their
     own ground, and the pairs keep the right ego motion."""
     pairs, scans = moving
     lowered = [scan if k < 4 else scan - np.array([0, 0, 1.5], np.float32) for k, scan in enumerate(scans)]
-    stream = FlowStream(Predictor.load(predictor_path), check_every=1)
+    stream = FlowStream(Predictor.load(tiny_student), check_every=1)
     steps, said = _pushed(stream, lowered, sources=[f"s{k}" for k in range(len(lowered))])
     assert len(said) == 1 and re.match(r"FlowStream: s4: the ground moved by \+1\.[45]\d m", said[0]), said
     for pair, step in zip(pairs[4:], steps[5:]):
         assert _errors(pair.ego1_from_ego0, step.prediction.ego1_from_ego0)[0] < 0.03
 
 
-def test_infer_streams_a_folder_and_bridges_a_broken_scan(predictor_path, moving, tmp_path, capsys):
+def test_infer_streams_a_folder_and_bridges_a_broken_scan(tiny_student, moving, tmp_path, capsys):
     """fastflow3d-infer MODEL DIR --out OUT: one .npz per consecutive pair, named after its first scan, holding what
     a pair's output holds; a broken scan mid-stream is one warning naming it and the next pair spans the gap; the
     recording holds the pairs and the trajectory."""
@@ -203,7 +196,7 @@ def test_infer_streams_a_folder_and_bridges_a_broken_scan(predictor_path, moving
     for k, scan in enumerate(scans[:5]):
         np.save(folder / f"{k:06d}.npy", scan)
     (folder / "000002.npy").write_bytes(b"not a scan")
-    assert infer_main([str(predictor_path), str(folder), "--out", str(out), "--rerun", str(recording)]) == 0
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out), "--rerun", str(recording)]) == 0
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("infer: warning")]
     assert len(err) == 1 and "000002.npy: skipped" in err[0] and "the next pair spans the gap" in err[0], err
     outputs = ["000000.npz", "000001.npz", "000003.npz"]
@@ -220,18 +213,18 @@ def test_infer_streams_a_folder_and_bridges_a_broken_scan(predictor_path, moving
     assert len(entities["pc0"]) == 3
 
 
-def test_infer_stream_needs_a_folder_or_glob_of_two_scans(predictor_path, tmp_path, capsys):
+def test_infer_stream_needs_a_folder_or_glob_of_two_scans(tiny_student, tmp_path, capsys):
     from fastflow3d.inference.cli import main as infer_main
 
     (tmp_path / "one").mkdir()
     np.save(tmp_path / "one" / "a.npy", np.zeros((200, 3), np.float32))
-    assert infer_main([str(predictor_path), str(tmp_path / "one")]) == 2
+    assert infer_main([str(tiny_student), str(tmp_path / "one")]) == 2
     assert "a stream needs at least two scans" in capsys.readouterr().err
-    assert infer_main([str(predictor_path), str(tmp_path / "one"), "--ego", "x.txt"]) == 2
+    assert infer_main([str(tiny_student), str(tmp_path / "one"), "--ego", "x.txt"]) == 2
     assert "--poses / --ego give a pair's ego motion" in capsys.readouterr().err
 
 
-def test_infer_stream_reads_natural_order_and_refuses_two_scans_of_one_stem(predictor_path, moving, tmp_path, capsys):
+def test_infer_stream_reads_natural_order_and_refuses_two_scans_of_one_stem(tiny_student, moving, tmp_path, capsys):
     """1, 2, 10 (not 1, 10, 2: every flow between the wrong scans) as dataset=sequence reads them; 1.bin beside
     1.npy, or one name in two folders of a glob, would write one output for two pairs: refused, nothing written."""
     from fastflow3d.inference.cli import main as infer_main
@@ -241,25 +234,25 @@ def test_infer_stream_reads_natural_order_and_refuses_two_scans_of_one_stem(pred
     folder.mkdir()
     for name, scan in zip(("1", "2", "10"), scans):
         np.save(folder / f"{name}.npy", scan)
-    assert infer_main([str(predictor_path), str(folder), "--out", str(out)]) == 0
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 0
     manifest = json.loads((out / "stream.json").read_text())
     assert [Path(name).name for name in manifest["scans"]] == ["1.npy", "2.npy", "10.npy"]
     assert manifest["outputs"] == ["1.npz", "2.npz"]
     with np.load(out / "2.npz") as flow:  # scan 2 -> scan 10 is the stream's second step
         assert flow["flow"].shape == scans[1].shape
     scans[0].astype(np.float32).tofile(folder / "1.bin")
-    assert infer_main([str(predictor_path), str(folder), "--out", str(tmp_path / "other")]) == 2
+    assert infer_main([str(tiny_student), str(folder), "--out", str(tmp_path / "other")]) == 2
     assert "two scans named '1'" in capsys.readouterr().err and not (tmp_path / "other").exists()
     (folder / "1.bin").unlink()
     second = tmp_path / "second"
     second.mkdir()
     np.save(second / "2.npy", scans[2])
     glob = str(tmp_path / "*" / "*.npy")
-    assert infer_main([str(predictor_path), glob, "--out", str(tmp_path / "other")]) == 2
+    assert infer_main([str(tiny_student), glob, "--out", str(tmp_path / "other")]) == 2
     assert "two scans named '2'" in capsys.readouterr().err
 
 
-def test_infer_outputs_never_replace_inputs_nor_mix_runs(predictor_path, moving, tmp_path, capsys):
+def test_infer_outputs_never_replace_inputs_nor_mix_runs(tiny_student, moving, tmp_path, capsys):
     """An OUT that holds the input scans (.npz scans would become flows), a pair's output or picture that is an
     input scan, another run's OUT or a folder of other files: each refused in one line, inputs untouched. A rerun of
     the same stream replaces its own outputs (said); a stream without a single flow is an error, not '0 flows'."""
@@ -271,48 +264,48 @@ def test_infer_outputs_never_replace_inputs_nor_mix_runs(predictor_path, moving,
     for k, scan in enumerate(scans[:3]):
         np.savez(folder / f"{k}.npz", points=scan)
     before = {path.name: path.read_bytes() for path in folder.iterdir()}
-    assert infer_main([str(predictor_path), str(folder), "--out", str(folder)]) == 2
+    assert infer_main([str(tiny_student), str(folder), "--out", str(folder)]) == 2
     assert "holds the input scans" in capsys.readouterr().err
     s0, s1 = folder / "0.npz", folder / "1.npz"
     for option in (["--out", str(s0)], ["--out", str(tmp_path / "f.npz"), "--bev", str(s1)]):
-        assert infer_main([str(predictor_path), str(s0), str(s1), *option]) == 2
+        assert infer_main([str(tiny_student), str(s0), str(s1), *option]) == 2
         assert "is an input of this run" in capsys.readouterr().err
     assert {path.name: path.read_bytes() for path in folder.iterdir()} == before
     out = tmp_path / "out"
-    assert infer_main([str(predictor_path), str(folder), "--out", str(out)]) == 0
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 0
     capsys.readouterr()
-    assert infer_main([str(predictor_path), str(folder), "--out", str(out)]) == 0  # the same stream again
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 0  # the same stream again
     assert "a rerun of the same stream; its 2 earlier output(s) are replaced" in capsys.readouterr().err
     assert sorted(path.name for path in out.iterdir()) == ["0.npz", "1.npz", "stream.json"]
     (folder / "2.npz").unlink()  # another stream (two scans) into the same OUT
-    assert infer_main([str(predictor_path), str(folder), "--out", str(out)]) == 2
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 2
     assert "holds another stream's flows" in capsys.readouterr().err
     (tmp_path / "used").mkdir()
     (tmp_path / "used" / "notes.txt").write_text("mine")
-    assert infer_main([str(predictor_path), str(folder), "--out", str(tmp_path / "used")]) == 2
+    assert infer_main([str(tiny_student), str(folder), "--out", str(tmp_path / "used")]) == 2
     assert "holds 1 file(s) of no stream of ours" in capsys.readouterr().err
     assert (tmp_path / "used" / "notes.txt").read_text() == "mine"
     broken = tmp_path / "broken"
     broken.mkdir()
     for name in ("a.npy", "b.npy"):
         (broken / name).write_bytes(b"not a scan")
-    assert infer_main([str(predictor_path), str(broken), "--out", str(tmp_path / "none")]) == 2
+    assert infer_main([str(tiny_student), str(broken), "--out", str(tmp_path / "none")]) == 2
     assert "no flow: the stream gave none of its 2 scans a pair" in capsys.readouterr().err
 
 
-def test_eval_student_stream_continues_a_sequence_and_restarts_on_the_next(predictor_path):
+def test_eval_student_stream_continues_a_sequence_and_restarts_on_the_next(tiny_student):
     """eval.py method student-stream: the pairs of one sequence are one stream (the same flows as a FlowStream fed
     the scans), a pair of another sequence starts a new one."""
     from fastflow3d.inference.eval_methods import StreamedStudentMethod
 
     data = SyntheticDataset(split="test", num_sequences=2, frames_per_sequence=4, beams=32, seed=3)
     pairs = [data[i] for i in range(len(data))]
-    method = StreamedStudentMethod(predictor_path)
+    method = StreamedStudentMethod(tiny_student)
     flows = [method(pair, index) for index, pair in enumerate(pairs)]
     for sequence in (pairs[:3], pairs[3:]):
         assert len({pair.log_id for pair in sequence}) == 1
     first = pairs[0].log_id
-    stream = FlowStream(Predictor.load(predictor_path))
+    stream = FlowStream(Predictor.load(tiny_student))
     for start in (0, 3):
         stream.reset()
         stream.push(pairs[start].pc0)
@@ -321,17 +314,17 @@ def test_eval_student_stream_continues_a_sequence_and_restarts_on_the_next(predi
     assert pairs[3].log_id != first
 
 
-def test_eval_student_stream_refine_is_the_refined_stream(predictor_path):
+def test_eval_student_stream_refine_is_the_refined_stream(tiny_student):
     """eval.py method student-stream+refine: the stream of a refining Predictor (what ``fastflow3d-infer MODEL DIR
     --refine`` runs), each pair's flow with its refinement mask."""
     from fastflow3d.inference.eval_methods import StreamedStudentMethod, refined_streamed_student_method
     from fastflow3d.inference.refine import RefineConfig
 
     pairs, _ = synthetic_drive(3, 4)
-    method = refined_streamed_student_method(OmegaConf.create({"checkpoint": str(predictor_path)}))
+    method = refined_streamed_student_method(OmegaConf.create({"checkpoint": str(tiny_student)}))
     assert method.predictor.refine == RefineConfig()
-    assert StreamedStudentMethod(predictor_path).predictor.refine is None
-    stream = FlowStream(Predictor.load(predictor_path, refine=True))
+    assert StreamedStudentMethod(tiny_student).predictor.refine is None
+    stream = FlowStream(Predictor.load(tiny_student, refine=True))
     stream.push(pairs[0].pc0)
     for index, pair in enumerate(pairs):
         step = stream.push(pair.pc1)

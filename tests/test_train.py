@@ -29,7 +29,7 @@ from icpflow.preprocess import Preprocessing
 from icpflow.shards.writer import write_index
 
 from helpers.shards import TEACHER, write_pseudo_labels
-from helpers.training import CONF, TINY, student_module
+from helpers.training import CONF, TINY, TINY_MODEL, student_module
 from helpers.training import compose_train as _compose
 from helpers.training import train_cfg as _cfg
 
@@ -440,6 +440,7 @@ def test_epoch_based_run_validates_its_last_batch(shards, tmp_path):
     assert trainer.global_step == 4 and trainer.current_epoch == 2 and trainer.lightning_module.validations == 2
 
 
+@pytest.mark.slow
 def test_overfit_one_pair_drives_dynamic_epe_down(shards, tmp_path):
     cfg = _cfg(
         tmp_path,
@@ -490,7 +491,7 @@ def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
     expected["effective_batch"] = batch  # what ran: batch x accumulation x 1 device x 1 node
     assert second.lightning_module.contract.preprocessing == Preprocessing.from_teacher(TEACHER)
     assert not model.training and cfg == expected
-    assert cfg["model"]["cell"] == 1.0 and cfg["model"]["stage_channels"] == [16, 32, 64]
+    assert cfg["model"]["cell"] == TINY_MODEL["cell"] and cfg["model"]["stage_channels"] == TINY_MODEL["stage_channels"]
     batch = collate([StudentDataset(shards["gt"])[0]])
     trained = second.lightning_module.model.eval()
     args = (batch["pc0_compensated"], batch["batch0"], batch["pc1"], batch["batch1"], 1)

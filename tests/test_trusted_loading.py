@@ -20,7 +20,7 @@ from fastflow3d.artifact.safe_loading import check_pt2
 from fastflow3d.inference.predictor import Predictor
 from icpflow.datasets.synthetic import SyntheticDataset
 
-from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
+from students import place_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
 
 
 class Payload:
@@ -34,12 +34,8 @@ class Payload:
 
 
 @pytest.fixture(scope="module")
-def export_dir(tmp_path_factory):
-    pair = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=2, seed=0)[0]
-    root = tmp_path_factory.mktemp("trusted")
-    (root / "run" / "checkpoints").mkdir(parents=True)
-    checkpoint = tiny_checkpoint(root / "run" / "checkpoints" / "tiny.ckpt", tiny_model(6.4, 0.4), pair, steps=2)
-    return export_checkpoint(checkpoint, formats=("pt2",))
+def export_dir(tiny_pt2_export):
+    return tiny_pt2_export
 
 
 def _rewrite_pt2(source: Path, target_dir: Path, change) -> Path:
@@ -163,12 +159,11 @@ def test_the_flow_of_a_checked_export_is_unchanged(export_dir):
 
 
 @pytest.mark.parametrize("stored", ["../../victim", "/elsewhere/victim", "../.."])
-def test_a_checkpoint_cannot_choose_where_export_writes(tmp_path, stored):
+def test_a_checkpoint_cannot_choose_where_export_writes(tiny_student, tmp_path, stored):
     """A checkpoint whose stored config sends ``export.dir`` outside its run folder is refused in one line, and the
     folder it named keeps its files; ``out_dir=`` exports where the user says."""
     from fastflow3d.artifact.export import ExportError
 
-    pair = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=2, seed=0)[0]
     run = tmp_path / "downloads" / "run"
     (run / "checkpoints").mkdir(parents=True)
     victim = tmp_path / "victim"
@@ -177,7 +172,7 @@ def test_a_checkpoint_cannot_choose_where_export_writes(tmp_path, stored):
     base = "/remote/run/checkpoints"
     export_dir = stored if stored.startswith("/") else str(Path(base) / stored)
     cfg = {"checkpoint_dir": base, "export": {"dir": export_dir}}
-    checkpoint = tiny_checkpoint(run / "checkpoints" / "x.ckpt", tiny_model(6.4, 0.4), pair, steps=1, stored=cfg)
+    checkpoint = place_checkpoint(tiny_student, run / "checkpoints" / "x.ckpt", stored=cfg)
     with pytest.raises(ExportError, match="outside its run folder") as caught:
         export_checkpoint(checkpoint, formats=("pt2",))
     assert "\n" not in str(caught.value)
@@ -189,10 +184,9 @@ def test_a_checkpoint_cannot_choose_where_export_writes(tmp_path, stored):
     assert (chosen / "fastflow3d.pt2").is_file()
 
 
-def test_a_checkpoints_own_export_dir_inside_its_run_is_kept(tmp_path):
-    pair = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=2, seed=0)[0]
+def test_a_checkpoints_own_export_dir_inside_its_run_is_kept(tiny_student, tmp_path):
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     cfg = {"checkpoint_dir": "/old/place/run/checkpoints", "export": {"dir": "/old/place/run/export"}}
-    checkpoint = tiny_checkpoint(run / "checkpoints" / "x.ckpt", tiny_model(6.4, 0.4), pair, steps=1, stored=cfg)
+    checkpoint = place_checkpoint(tiny_student, run / "checkpoints" / "x.ckpt", stored=cfg)
     assert export_checkpoint(checkpoint, formats=("pt2",)) == run / "export"

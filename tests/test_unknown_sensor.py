@@ -22,7 +22,7 @@ from icpflow.preprocess import estimate_ground_height, lift_transform
 from icpflow.shards import ShardDataset
 from icpflow.teacher.config import ICPFlowConfig
 
-from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
+from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -33,7 +33,6 @@ CAR = 1
 needs_seq01 = pytest.mark.skipif(not SEQ01.is_file(), reason=f"real KITTI sample absent: {SEQ01}")
 needs_scans = pytest.mark.skipif(not SCANS.is_dir(), reason=f"real KITTI scans absent: {SCANS}")
 #: a small network over +-32 m (1 m pillars), the synthetic world's preprocessing block (ground at z = 0)
-MODEL = tiny_model(32.0, 1.0)
 SYNTHETIC = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})  # synthetic.yaml
 
 
@@ -85,7 +84,8 @@ def synthetic_student(tmp_path_factory):
     pair = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=2, seed=1)[0]
     keep0, keep1 = np.flatnonzero(~pair.ground0), np.flatnonzero(~pair.ground1)
     path = tmp_path_factory.mktemp("student") / "student.ckpt"
-    return tiny_checkpoint(path, MODEL, pair, 5, keep0, keep1, remove_ground=True)
+    wide = {"x_range": [-32.0, 32.0], "y_range": [-32.0, 32.0]}  # KITTI's scans reach far: the grid over +-32 m
+    return tiny_checkpoint(path, pair, 5, keep0, keep1, options=wide, remove_ground=True)
 
 
 @needs_seq01

@@ -16,15 +16,12 @@ from icpflow.evaluation import run_eval
 from icpflow.geometry import full_to_residual, transform_points
 from icpflow.viz_rerun import PairRecording, ViewerUnavailable, import_rerun, speed_colours
 
-from students import tiny_checkpoint, tiny_model  # tests/ is on sys.path (pytest prepend import mode)
-
 pytest.importorskip("rerun", reason="rerun-sdk is an optional dependency (pip install 'icpflow[viz]')")
 from helpers.rerun import read_recording  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO.parent / "shared" / "data" / "kitti_hdl64_scans"
 READER = {"split": "val", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 1.0}
-TINY = tiny_model(16.0, 0.5)
 
 
 def rgb(packed: np.ndarray) -> np.ndarray:
@@ -105,13 +102,12 @@ def test_eval_viewer_rerun_records_every_method(pairs, tmp_path, capsys):
 
 
 @pytest.mark.skipif(not (KITTI / "000001.bin").is_file(), reason=f"shipped KITTI scans absent: {KITTI}")
-def test_infer_rerun_on_kitti_scans(pairs, tmp_path):
+def test_infer_rerun_on_kitti_scans(tiny_student, tmp_path):
     from fastflow3d.inference.cli import main as infer_main
 
-    checkpoint = tiny_checkpoint(tmp_path / "tiny.ckpt", TINY, pairs[0], 1)
     out, recording = tmp_path / "flow.npz", tmp_path / "kitti.rrd"
     scans = [str(KITTI / "000000.bin"), str(KITTI / "000001.bin")]
-    assert infer_main([str(checkpoint), *scans, "--out", str(out), "--no-bev", "--rerun", str(recording)]) == 0
+    assert infer_main([str(tiny_student), *scans, "--out", str(out), "--no-bev", "--rerun", str(recording)]) == 0
     entities = read_recording(recording)
     assert {"pc0", "pc1", "flow/fastflow3d/moved", "flow/fastflow3d/vectors", "masks/in_grid"} <= set(entities)
     with np.load(out) as result:
@@ -123,13 +119,12 @@ def test_infer_rerun_on_kitti_scans(pairs, tmp_path):
 
 
 @pytest.mark.parametrize("place", ["full", "read-only"])
-def test_a_recording_on_a_full_or_read_only_place_is_one_line_naming_it(pairs, tmp_path, mount_tmpfs, place):
+def test_a_recording_on_a_full_or_read_only_place_is_one_line_naming_it(tiny_student, tmp_path, mount_tmpfs, place):
     """Issue 31.5: ``fastflow3d-infer --rerun`` where the file cannot be written: one line naming the file asked for
     (not rerun's temporary name), none of rerun's own log lines, exit 2, nothing left there. A process of its own:
     rerun's Rust logging is set when rerun is first imported, which this test module has already done."""
     import subprocess
 
-    checkpoint = tiny_checkpoint(tmp_path / "tiny.ckpt", TINY, pairs[0], 1)
     disk = mount_tmpfs(tmp_path / "disk", "64k", read_only=place == "read-only")
     recording = disk / "pair.rrd"
     scans = [str(KITTI / "000000.bin"), str(KITTI / "000001.bin"), "--sensor-height", "1.73"]
@@ -137,7 +132,7 @@ def test_a_recording_on_a_full_or_read_only_place_is_one_line_naming_it(pairs, t
         sys.executable,
         "-m",
         "fastflow3d.inference.cli",
-        str(checkpoint),
+        str(tiny_student),
         *scans,
         "--no-bev",
         "--rerun",

@@ -1,16 +1,33 @@
-"""train.py configs of a tiny student (32 x 32 pillars of 1 m, narrow encoders: a training step takes milliseconds)."""
+"""train.py configs of the tiny student of the tests (32 x 32 pillars of 1 m, narrow encoders: a training step takes
+milliseconds)."""
 
+import json
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
+#: the one tiny FastFlow3D of every test: ``conf/model/fastflow3d_tiny.yaml`` (its keys, over FastFlow3D's own
+#: settings where it says nothing), as a ``conf/model`` dict
+TINY_MODEL = {
+    "_target_": "fastflow3d.network.model.FastFlow3D",
+    **{
+        key: value
+        for key, value in OmegaConf.to_container(OmegaConf.load(CONF / "model" / "fastflow3d_tiny.yaml")).items()
+        if key != "defaults"
+    },
+}
+
+
+def tiny_model_overrides(**options) -> list[str]:
+    """train.py's overrides that make its network TINY_MODEL with the model ``options`` changed."""
+    return [f"model.{key}={json.dumps(value)}" for key, value in {**TINY_MODEL, **options}.items() if key != "_target_"]
+
+
+#: train.py overrides of a quick run of TINY_MODEL: no loader workers, no progress bar, no export
 TINY = [
-    "model.x_range=[-16.0,16.0]",
-    "model.y_range=[-16.0,16.0]",
-    "model.cell=1.0",
-    "model.pillar_channels=16",
-    "model.stage_channels=[16,32,64]",
+    *tiny_model_overrides(),
     "data.workers=0",
     "trainer.log_every_n_steps=1",
     "trainer.enable_progress_bar=false",
