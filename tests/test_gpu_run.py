@@ -35,6 +35,7 @@ def smoke(tmp_path_factory):
     return out, _smoke(out)
 
 
+@pytest.mark.slow  # about a minute: every step's subprocess imports torch
 def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
     out, result = smoke
     assert result.returncode == 0, result.stdout[-3000:]
@@ -61,6 +62,7 @@ def test_steps_picks_steps_and_refuses_an_unknown_one(tmp_path):
     assert not (tmp_path / "logs").exists()  # nothing ran
 
 
+@pytest.mark.slow
 def test_a_second_run_skips_what_is_done(smoke):
     out, _ = smoke
     again = _smoke(out)
