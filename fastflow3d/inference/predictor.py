@@ -55,6 +55,12 @@ from icpflow.odometry import MIN_EGO_POINTS
 from icpflow.preprocess import implausible, lift_transform
 
 
+def scans_frame_ego(ego_frame: np.ndarray, lift: float) -> np.ndarray:
+    """(4, 4) ``ego1_from_ego0`` in the scans' own frame, from the same motion in the height frame (scans raised by
+    ``lift`` m): what a :class:`Prediction` returns and a stream's trajectory chains."""
+    return ego_frame if lift == 0 else lift_transform(ego_frame, -lift)
+
+
 class Predictor(ScanSteps):
     """A FastFlow3D network behind the project's conventions (see the module docstring); the steps on raw scans
     before the network (height frame, ground masks, ego motion) are those of its base, ``ScanSteps``."""
@@ -223,7 +229,7 @@ class Predictor(ScanSteps):
                 )
         self.check_plausible(pair)
         flow = residual_to_full(residual, pair.pc0, pair.ego1_from_ego0)  # a common lift changes no flow vector
-        ego = ego_frame if lift == 0 else lift_transform(ego_frame, -lift)  # in the scans' own frame
+        ego = scans_frame_ego(ego_frame, lift)
         return Prediction(flow, residual, in_grid, pair.ground0, ego, estimated, float(lift), refined, assumed)
 
     def check_plausible(self, pair: PreparedPair) -> None:

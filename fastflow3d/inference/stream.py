@@ -37,10 +37,10 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 
 from fastflow3d.inference.prediction import Prediction, PredictorWarning, as_points
-from fastflow3d.inference.predictor import Predictor
+from fastflow3d.inference.predictor import Predictor, scans_frame_ego
 from fastflow3d.network.contract import PreparedPair
 from icpflow.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
-from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points, lift_transform
+from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
 
 
 class StreamWarning(PredictorWarning):
@@ -224,7 +224,7 @@ class FlowStream:
             self._warn(f"{source or 'scan'}: the odometry lost track and restarted (fitness {step.fitness:.2f})")
         ego, lift = step.ego1_from_ego0, float(self.lift)
         pair = self.predictor.network_input((previous.lifted, lifted), ego, previous.ground, ground)
-        self._pose = self._pose @ np.linalg.inv(ego if lift == 0 else lift_transform(ego, -lift))  # scans' frame
+        self._pose = self._pose @ np.linalg.inv(scans_frame_ego(ego, lift))
         return _Staged(
             pair=pair,
             ego_frame=ego,
