@@ -10,6 +10,8 @@ the refinement dial (``refine``).
         [--device cpu|cuda]
     .venv/bin/python -m benchmarks.bench_student_latency --mode refine --export <export dir> [--runs 20]
         [--warmup 3] [--scans kitti,av2]
+    .venv/bin/python -m benchmarks.bench_student_latency --mode cli --export <export dir> [--passes 3] [--threads 2]
+        [--scans kitti,av2,synthetic]
 
 Scans: KITTI HDL-64E ``000000`` -> ``000001`` (``../shared/data/kitti_hdl64_scans``, ~124k points each) and the
 Argoverse 2 pair (``../shared/data/av2``, ~99k points each); ``uniform`` (pair mode) adds ``--points`` uniform
@@ -53,6 +55,11 @@ on the CPU); the three calls take turns within each run. These scans have no gro
 of the dial is ``eval.py ... method=[ego,icpflow,student,student+refine]`` on the synthetic test split
 (BENCHMARKS.md). Prints median and p90 ms, Hz, and for the refinement the share of the network's points whose flow
 ICP replaced and their median change (m).
+
+``cli``: the stream as a user runs it, ``fastflow3d-infer EXPORT DIR --out OUT [--refine]`` in a process of its own,
+whole runs (reading, every step and writing), on KITTI (the six HDL-64E scans), AV2 (the two sweeps alternating, 12
+scans) and a synthetic test sequence (40 frames), with and without the refinement. Prints median and p90 ms per
+frame and Hz. The accuracy of the same stream: ``eval.py ... method=[student-stream,student-stream+refine]``.
 """
 
 from __future__ import annotations
@@ -61,6 +68,8 @@ import argparse
 import copy
 import os
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 import warnings
@@ -70,7 +79,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from benchmarks.common import DATA, compose, cpu_name, read_scan_pair, rss_mb, timed
+from benchmarks.common import DATA, compose, cpu_name, open_split, read_scan_pair, rss_mb, timed
 from fastflow3d.artifact.checkpoint import build_student
 from fastflow3d.artifact.engines import BF16_TOLERANCE, TorchNetwork, load_network
 from fastflow3d.artifact.export import PARITY_TOLERANCE, export_model, measure_parity
@@ -106,6 +115,7 @@ MODES = {
         "scans": "kitti,av2", "passes": 5, "regimes": "pairwise,streamed,given", "backends": "onnx-tuned,openvino",
     },
     "refine": {"export": None, "runs": 20, "warmup": 3, "scans": "kitti,av2"},
+    "cli": {"export": None, "threads": 2, "passes": 3, "scans": "kitti,av2,synthetic"},
 }  # fmt: skip
 
 
@@ -453,19 +463,94 @@ def refine(args) -> None:
     print(f"median and p90 of {args.runs} calls after {args.warmup}; load average {os.getloadavg()[0]:.2f}")
 
 
+def cli_streams(names: list[str], folder: Path) -> dict[str, tuple[Path, list[str]]]:
+    """{name: (folder of scans, the CLI options a user of that sensor gives)}: ``kitti`` (the six HDL-64E scans
+    000000-000005 where they lie, ``--sensor-height 1.73``), ``av2`` (the two sweeps alternating, 12 scans written
+    as ``.npy``), ``synthetic`` (the first sequence of the test split, 40 frames, written as ``.npy``); a stream whose
+    data ../shared/data lacks is left out with a line saying so."""
+    streams = {}
+    for name in names:
+        if name == "kitti":
+            scans = DATA / "kitti_hdl64_scans"
+            if len(list(scans.glob("*.bin"))) < 6:
+                print("kitti: no scans under ../shared/data; no rows")
+                continue
+            streams[name] = (scans, ["--sensor-height", str(SENSOR_HEIGHTS["kitti"])])
+            continue
+        target = folder / name
+        target.mkdir()
+        if name == "av2":
+            pair = read_scan_pair("av2")
+            if pair is None:
+                print("av2: no sweeps under ../shared/data; no rows")
+                continue
+            scans = [pair[k % 2] for k in range(12)]
+        else:
+            split = ["split=test", "dataset.reader.num_sequences=1", "dataset.reader.frames_per_sequence=40"]
+            dataset, _ = open_split(split)
+            pairs = [dataset[index] for index in range(len(dataset))]
+            scans = [pair.pc0 for pair in pairs] + [pairs[-1].pc1]
+        for k, scan in enumerate(scans):
+            np.save(target / f"{k:06d}.npy", np.asarray(scan, np.float32))
+        streams[name] = (target, [])
+    return streams
+
+
+def cli(args) -> None:
+    """The ``cli`` mode: ``python -m fastflow3d.inference.cli EXPORT DIR --out OUT [--refine]`` as a user runs it,
+    ``--passes`` whole runs per stream and setting; a frame's time is the time between the outputs of consecutive
+    pairs (their files' modification times: reading, every step and writing included, process start and the first
+    two pairs left out)."""
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, (scans, options) in cli_streams(args.scans.split(","), Path(tmp)).items():
+            for refine in (False, True):
+                times = []
+                for run in range(args.passes):
+                    out = Path(tmp) / f"out_{name}_{refine}_{run}"
+                    command = [
+                        sys.executable,
+                        "-m",
+                        "fastflow3d.inference.cli",
+                        args.export,
+                        str(scans),
+                        "--out",
+                        str(out),
+                    ]
+                    command += [*options, "--threads", str(args.threads), *(["--refine"] if refine else [])]
+                    subprocess.run(command, check=True, capture_output=True)
+                    flows = sorted(out.glob("*.npz"), key=lambda path: path.stem)  # the scans' names: 000000, ...
+                    written = np.array([path.stat().st_mtime_ns for path in flows]) / 1e9
+                    times.extend(np.diff(written)[2:])
+                rows.append((name, len(flows) + 1, refine, times))
+    print("| stream | scans | refinement | median ms | p90 ms | Hz (median) | Hz (p90) |")
+    print("|---|---|---|---|---|---|---|")
+    for name, scans, refine, times in rows:
+        median, p90 = statistics.median(times), float(np.percentile(times, 90))
+        print(
+            f"| {name} | {scans} | {'yes' if refine else 'no'} | {1000 * median:.1f} | {1000 * p90:.1f} | "
+            f"{1 / median:.1f} | {1 / p90:.1f} |"
+        )
+    print(f"{args.passes} runs each, {args.threads} threads; load average {os.getloadavg()[0]:.2f}; {cpu_name()}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mode", choices=tuple(MODES), default="pair", help="what is timed (default pair)")
     parser.add_argument("--model", help="a conf/model option (default fastflow3d_small: CPU recipes; pair, stream)")
     parser.add_argument("--decoder", help="the model's decoder, a model.decoder override (pair, stream)")
     parser.add_argument("--set", nargs="*", metavar="KEY=VALUE", help="more model.<key> overrides (pair, stream)")
-    parser.add_argument("--export", help="a trained student's export directory (or .ckpt) (refine)")
+    parser.add_argument("--export", help="a trained student's export directory (or .ckpt) (refine, cli)")
     parser.add_argument("--device", choices=("cpu", "cuda"), help="where the network runs (pair, stream)")
     parser.add_argument("--threads", type=int, help="torch, ONNX Runtime and OpenVINO threads (default 2)")
     parser.add_argument("--runs", type=int, help="timed calls (default 20; pair, refine)")
     parser.add_argument("--warmup", type=int, help="calls before (default 3; pair, refine)")
-    parser.add_argument("--passes", type=int, help="passes over each stream (default 5; stream)")
-    parser.add_argument("--scans", help="comma-separated: kitti, av2 (default both), uniform (pair)")
+    parser.add_argument(
+        "--passes", type=int, help="passes over each stream (default 5; stream) / runs of the CLI (default 3; cli)"
+    )
+    parser.add_argument(
+        "--scans", help="comma-separated: kitti, av2 (default both), uniform (pair), synthetic (cli; default all three)"
+    )
     parser.add_argument("--points", type=int, help="points per scan of the uniform scans (default 80000; pair)")
     parser.add_argument(
         "--regimes", help="comma-separated: given, estimated (pair); pairwise, streamed, given (stream); default all"
@@ -484,11 +569,11 @@ def main() -> None:
                 parser.error(f"--{name} is not an option of --mode {args.mode}")
         elif value is None:
             setattr(args, name, defaults[name])
-    if args.mode == "refine" and args.export is None:
-        parser.error("--mode refine needs --export (a trained student's export directory)")
+    if args.mode in ("refine", "cli") and args.export is None:
+        parser.error(f"--mode {args.mode} needs --export (a trained student's export directory)")
     if getattr(args, "device", None) == "cuda" and not torch.cuda.is_available():
         raise SystemExit("bench_student_latency: --device cuda but torch sees no CUDA device (a CPU build of torch?)")
-    {"pair": pair, "stream": stream, "refine": refine}[args.mode](args)
+    {"pair": pair, "stream": stream, "refine": refine, "cli": cli}[args.mode](args)
 
 
 if __name__ == "__main__":

@@ -349,3 +349,55 @@ def test_identity_quality_measured_in_the_registration_pass_equals_a_separate_pa
     assert plain.identity_error is None
     np.testing.assert_array_equal(joint.transforms, plain.transforms)  # the registration itself is unchanged
     np.testing.assert_array_equal(joint.mean_error, plain.mean_error)
+
+
+def test_coarse_to_fine_in_one_call_equals_the_stages_run_one_by_one():
+    # register_stages_cpu runs every truncation of a coarse-to-fine ICP in one compiled call: the transforms, the
+    # last stage's quality, the identity's and that of a per-point flow must be those of register_batch_cpu called
+    # stage by stage (each from the last one's transforms), bit for bit, on pairs where the coarse stages matter
+    # (starts 1-2 m short), where ICP makes things worse (the start is kept) and on empty clouds.
+    from icpflow.teacher.registration_cpu import register_batch_cpu, register_stages_cpu
+
+    rng = np.random.default_rng(21)
+    movings, fixeds, givens, starts = [], [], [], []
+    for k in range(6):
+        src = _box_surface(150 + 40 * k, seed=30 + k).astype(np.float64)
+        truth = make_transform(yaw=0.05 * k - 0.1, translation=(1.5 + 0.3 * k, -0.4, 0.02))
+        movings.append(src)
+        fixeds.append(_noisy(transform_points(truth, _box_surface(200, seed=40 + k)), 0.02, 50 + k).astype(np.float64))
+        givens.append(src + truth[:3, 3] + rng.normal(0, 0.1, src.shape))  # a per-point flow near the truth
+        starts.append(make_transform(translation=(0.4 * k, 0.1, 0.0)))  # 1.5-2 m short at first
+    movings.append(np.zeros((0, 3)))
+    fixeds.append(fixeds[0])
+    givens.append(np.zeros((0, 3)))
+    starts.append(np.eye(4))
+    starts = np.stack(starts)
+    stages = (2.0, 1.0, 0.3, 0.1)
+    transforms = starts
+    for index, max_corr in enumerate(stages):
+        last = index == len(stages) - 1
+        params = ICPConfig(max_corr=max_corr, max_iter=40, dof="yaw")
+        transforms, errors, ious, _, still_errors, still_ious, *_ = register_batch_cpu(
+            movings, fixeds, transforms, params, identity=last
+        )
+    measure = ICPConfig(max_corr=stages[-1], max_iter=0)
+    _, given_errors, given_ious, *_ = register_batch_cpu(
+        givens, fixeds, np.tile(np.eye(4), (len(givens), 1, 1)), measure
+    )
+    result = register_stages_cpu(movings, fixeds, givens, starts, stages, 40, ICPConfig().rel_rmse, yaw_only=True)
+    for got, want in zip(result, (transforms, errors, ious, still_errors, still_ious, given_errors, given_ious)):
+        np.testing.assert_array_equal(got, want)
+    assert np.abs(result[0][:6, :3, 3] - starts[:6, :3, 3]).max() > 1.0  # the coarse stages moved the boxes
+
+
+def test_nearest_distances_are_exact():
+    from scipy.spatial import cKDTree
+
+    from icpflow.teacher.neighbours import build_grid, nearest_distances
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-4, 4, (700, 3))
+    query = np.concatenate([rng.uniform(-5, 5, (300, 3)), rng.uniform(20, 30, (20, 3))])  # some far outside
+    for cell in (0.1, 0.3, 2.0):
+        got = nearest_distances(query, points, build_grid(points, cell), cell)
+        np.testing.assert_allclose(got, cKDTree(points).query(query)[0], rtol=1e-12)

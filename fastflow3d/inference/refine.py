@@ -11,9 +11,10 @@ the teacher's ICP is exact where it starts close enough. This stage joins them, 
 3. Registration: the component's points are moved onto the pc1 points near them by point-to-point ICP (the
    teacher's kernel, ``icpflow.teacher.icp``; yaw and 3D translation, ``yaw_only``) from the translation of the
    component's mean predicted residual, with correspondences truncated at each distance of ``max_corr`` in turn
-   (coarse to fine: the student's start may be a metre short). The registration is the teacher's batch
-   (``icpflow.teacher.registration_cpu``, numba, parallel over the components), on at most ``max_points`` points of
-   each component.
+   (coarse to fine: the student's start may be a metre short). The registration is the teacher's kernel run
+   coarse to fine in one compiled call (``icpflow.teacher.registration_cpu.register_stages_cpu``, numba, parallel
+   over the components), which also measures the match of no motion and of the student's own flow, on at most
+   ``max_points`` points of each component.
 4. Checks: the ICP motion replaces the student's flow of the component only when it passes the teacher's checks
    (``icpflow.teacher.checks.passes``: mean error below ``max_error``, IoU ratio at least ``min_iou``, no roll or
    pitch beyond 9 degrees), its match is better than the student's own (pc0 + predicted residual, measured the same
@@ -23,10 +24,10 @@ the teacher's ICP is exact where it starts close enough. This stage joins them, 
    car a little is pulled back to zero, while a fast bus side (which slides along itself, so that no motion fits it
    nearly as well too) keeps its motion.
 5. Points: an accepted motion replaces the student's flow only at the component's points it fits: a point whose
-   nearest pc1 point (within the component's targets) is farther after the ICP motion than after the student's own
-   flow by more than ``point_slack`` keeps the student's flow. A parked car or a wall that the occupancy grid joins
-   to a passing bus is not carried along with it (issue 44: the refinement had made the static foreground 1.4x
-   worse than the network alone; now it is no worse).
+   nearest pc1 point (within the component's targets; exact, ``icpflow.teacher.neighbours``) is farther after the
+   ICP motion than after the student's own flow by more than ``point_slack`` keeps the student's flow. A parked
+   car or a wall that the occupancy grid joins to a passing bus is not carried along with it (issue 44: the
+   refinement had made the static foreground 1.4x worse than the network alone; now it is no worse).
 
 Frames: every array is in the ego frame of t + dt (pc0 already compensated); flows are residual (ego-compensated)
 flows in metres per pair, float32 in and out.
@@ -144,7 +145,8 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
     (ego-compensated) with the student's residual (N0, 3) towards pc1 (N1, 3), all in the ego frame of t + dt."""
     from icpflow.teacher.checks import passes
     from icpflow.teacher.config import ChecksConfig, ICPConfig
-    from icpflow.teacher.registration_cpu import register_batch_cpu
+    from icpflow.teacher.neighbours import build_grid, nearest_distances
+    from icpflow.teacher.registration_cpu import grid_cell, register_stages_cpu
 
     out, refined = np.array(residual, np.float32, copy=True), np.zeros(len(pc0), bool)
     if len(pc0) < cfg.min_points or len(pc1) < cfg.min_points:
@@ -187,36 +189,27 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
     starts = means[kept]  # (K, 3): each candidate's mean predicted residual, ICP's initial translation
     transforms = np.tile(np.eye(4), (len(groups), 1, 1))
     transforms[:, :3, 3] = starts
-    for index, max_corr in enumerate(cfg.max_corr):  # coarse to fine, each stage from the last one's transforms
-        stage = ICPConfig(max_corr=max_corr, max_iter=cfg.max_iter, dof="yaw")
-        last = index == len(cfg.max_corr) - 1  # the last stage also measures no motion at all (the identity)
-        transforms, errors, ious, _, still_errors, still_ious, *_ = register_batch_cpu(
-            movings,
-            fixeds,
-            transforms,
-            stage,
-            identity=last and cfg.static_tolerance > 0,
-        )
+    # every stage of the coarse-to-fine ICP and the quality (at the last truncation) of its motion, of no motion
+    # and of the student's own flow, in one compiled call
+    transforms, errors, ious, still_errors, still_ious, student_errors, _ = register_stages_cpu(
+        movings, fixeds, student_moved, transforms, cfg.max_corr, cfg.max_iter, ICPConfig().rel_rmse, yaw_only=True
+    )
     # the teacher's rule (icp.static_tolerance): what no motion fits nearly as well stays static
     slow = np.linalg.norm(starts, axis=1) <= cfg.static_max_motion
-    static = slow & (still_errors <= errors * (1.0 + cfg.static_tolerance))
+    static = slow & (still_errors <= errors * (1.0 + cfg.static_tolerance)) & (cfg.static_tolerance > 0)
     transforms[static], errors[static], ious[static] = np.eye(4), still_errors[static], still_ious[static]
-    # the student's own flow, measured the same way (no iteration: the quality of the given motion)
-    measure = ICPConfig(max_corr=cfg.max_corr[-1], max_iter=0)
-    identities = np.tile(np.eye(4), (len(groups), 1, 1))
-    _, student_errors, *_ = register_batch_cpu(student_moved, fixeds, identities, measure)
     centroids = np.stack([moving.mean(axis=0) for moving in movings])
     moved_centroids = np.einsum("kij,kj->ki", transforms[:, :3, :3], centroids) + transforms[:, :3, 3]
     change = np.linalg.norm(moved_centroids - centroids - starts, axis=1)
     checks = ChecksConfig(min_iou=cfg.min_iou, max_error=cfg.max_error)
     accepted = passes(transforms, errors, ious, np.inf, checks) & (errors < student_errors) & (change <= cfg.max_change)
-    from scipy.spatial import cKDTree
-
+    cell = grid_cell(cfg.max_corr[-1])
     for k in np.flatnonzero(accepted):
         members, points = groups[k], np.asarray(pc0[groups[k]], np.float64)
         flow = rigid_flow(points, transforms[k])
-        tree = cKDTree(windows[k])
-        fits = tree.query(points + flow)[0] <= tree.query(points + residual[members])[0] + cfg.point_slack
+        grid = build_grid(windows[k], cell)
+        icp_gap = nearest_distances(points + flow, windows[k], grid, cell)
+        fits = icp_gap <= nearest_distances(points + residual[members], windows[k], grid, cell) + cfg.point_slack
         out[members[fits]] = flow[fits]
         refined[members[fits]] = True
     return out, refined

@@ -161,3 +161,12 @@ def nn_stats(query, points, grid, cell, inlier_d2):
         if d2 < inlier_d2:
             inliers += 1
     return total / query.shape[0], inliers
+
+
+@numba.njit(cache=True)
+def nearest_distances(query, points, grid, cell):
+    """(M,) exact distances from each query point (M, 3) to its nearest of points (N, 3) with their ``build_grid``."""
+    out = np.empty(query.shape[0])
+    for i in range(query.shape[0]):
+        out[i] = np.sqrt(nearest(query[i], points, grid, cell, np.inf)[1])
+    return out

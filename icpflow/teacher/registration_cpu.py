@@ -169,3 +169,88 @@ def register_batch_cpu(
     for a, b in zip(result, out):
         a[order] = b
     return result
+
+
+@numba.njit(cache=True)
+def _quality(moved, fixed, fixed_grid, cell, inlier_d2):
+    """(mean error, IoU ratio) of moved (M, 3) on fixed (N, 3), as :func:`_register_one` measures them."""
+    err_fwd, inl_fwd = nn_stats(moved, fixed, fixed_grid, cell, inlier_d2)
+    err_bwd, inl_bwd = nn_stats(fixed, moved, build_grid(moved, cell), cell, inlier_d2)
+    n_all = moved.shape[0] + fixed.shape[0]
+    return min(err_fwd, err_bwd), min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
+
+
+@numba.njit(cache=True, parallel=True)
+def _register_stages_batch(
+    mov_all, mov_off, fix_all, fix_off, given_all, inits, max_corrs, cells, max_iter, rel_rmse, yaw_only, n_workers
+):
+    """Coarse-to-fine point-to-point ICP of P packed pairs (see :func:`register_stages_cpu`); returns (transforms,
+    errors, IoU ratios, errors at the identity, IoU ratios at the identity, errors of the given clouds, IoU ratios
+    of the given clouds). Worker w takes pairs w, w + n_workers, ... (pairs sorted by decreasing size)."""
+    n_pairs = inits.shape[0]
+    transforms = np.zeros((n_pairs, 4, 4))
+    out = np.full((6, n_pairs), np.inf)
+    out[1], out[3], out[5] = 0.0, 0.0, 0.0
+    last = max_corrs.shape[0] - 1
+    inlier_d2 = max_corrs[last] * max_corrs[last]
+    for w in numba.prange(n_workers):
+        for p in range(w, n_pairs, n_workers):
+            moving = mov_all[mov_off[p] : mov_off[p + 1]]
+            fixed = fix_all[fix_off[p] : fix_off[p + 1]]
+            transform = inits[p].copy()
+            if moving.shape[0] == 0 or fixed.shape[0] == 0:
+                transforms[p] = transform
+                continue
+            grid = build_grid(fixed, cells[0])
+            for s in range(max_corrs.shape[0]):
+                if s > 0 and cells[s] != cells[s - 1]:
+                    grid = build_grid(fixed, cells[s])
+                init = transform
+                transform, n_iter = icp_point_to_point(
+                    moving, fixed, grid, cells[s], init, max_corrs[s], max_iter, rel_rmse, yaw_only
+                )
+                if n_iter > 0:  # ICP made the forward mean distance no smaller: keep the stage's start
+                    moved, _ = nn_stats(transform_cloud(moving, transform), fixed, grid, cells[s], 0.0)
+                    if not moved < nn_stats(transform_cloud(moving, init), fixed, grid, cells[s], 0.0)[0]:
+                        transform = init
+            transforms[p] = transform
+            out[0, p], out[1, p] = _quality(transform_cloud(moving, transform), fixed, grid, cells[last], inlier_d2)
+            out[2, p], out[3, p] = _quality(moving, fixed, grid, cells[last], inlier_d2)
+            out[4, p], out[5, p] = _quality(given_all[mov_off[p] : mov_off[p + 1]], fixed, grid, cells[last], inlier_d2)
+    return transforms, out[0], out[1], out[2], out[3], out[4], out[5]
+
+
+def register_stages_cpu(
+    movings, fixeds, givens, starts, max_corrs, max_iter: int, rel_rmse: float, yaw_only: bool
+) -> tuple[np.ndarray, ...]:
+    """Coarse-to-fine point-to-point ICP of each moving cloud (M_p, 3) onto its fixed cloud (N_p, 3) from its
+    start (P, 4, 4): one stage per truncation of ``max_corrs`` (metres, coarse to fine), each from the last one's
+    transform, all in one compiled call. The same transforms as :func:`register_batch_cpu` run stage by stage, and
+    the same quality at the last stage's truncation (mean error and IoU ratio, as :func:`_register_one`) of three
+    clouds per pair: the registered one, the identity's (the moving cloud as it is) and ``givens`` (M_p, 3), the
+    moving points placed by some other motion (a per-point flow). Returns (transforms, errors, IoU ratios, errors
+    at the identity, IoU ratios at the identity, errors of the givens, IoU ratios of the givens), in input order."""
+    order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
+    mov_all, mov_off = pack([movings[k] for k in order])
+    fix_all, fix_off = pack([fixeds[k] for k in order])
+    given_all, _ = pack([givens[k] for k in order])
+    max_corrs = np.asarray(max_corrs, np.float64)
+    cells = np.array([grid_cell(d) for d in max_corrs])
+    out = _register_stages_batch(
+        mov_all,
+        mov_off,
+        fix_all,
+        fix_off,
+        given_all,
+        np.asarray(starts, np.float64)[order],
+        max_corrs,
+        cells,
+        int(max_iter),
+        float(rel_rmse),
+        bool(yaw_only),
+        numba.get_num_threads(),
+    )
+    result = tuple(np.empty_like(a) for a in out)
+    for a, b in zip(result, out):
+        a[order] = b
+    return result
