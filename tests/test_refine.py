@@ -147,3 +147,40 @@ def test_an_accepted_motion_moves_only_the_points_it_fits():
         # without the per-point rule the post was carried along with the bus
         carried, _ = refine_residual(pc0, student, pc1, RefineConfig(point_slack=np.inf))
         assert epe(carried, truth, ~on_bus) > 1.0
+
+
+def test_ground_surface_left_in_the_scans_joins_no_objects_and_stays_out_of_icp():
+    """Estimated ground leaves a ring of surface points around objects (``GroundSegmenter.masks``' surface): a
+    slow car and a parked one joined by such a strip are one component, which the identity fits about as well (the
+    strip and the parked car do not move), so the moving car keeps the student's short flow. Told the scans'
+    surfaces, the refinement builds objects from the points above them: the car is refined, the parked one and the
+    strip keep the student's flow, and the car's own feet (surface points in its cells) move with it. Surfaces
+    that hold nothing change nothing."""
+    from teacher_scenes import box_surface  # tests/ is on sys.path (pytest's prepend import mode)
+
+    rng = np.random.default_rng(1)
+    car = box_surface((4.4, 1.8, 1.4), rng, spacing=0.2) + np.float64([4.0, 0.0, 0.2])
+    feet = np.column_stack([rng.uniform(2.0, 6.0, 40), rng.uniform(-0.8, 0.8, 40), np.full(40, 0.1)])
+    parked = box_surface((4.4, 1.8, 1.4), rng, spacing=0.2) + np.float64([4.0, 4.0, 0.2])
+    # the strip lies between the cars, in cells of neither (the car's end at y = 0.9, the parked one's at 3.1)
+    strip = np.column_stack([rng.uniform(1.0, 7.0, 600), rng.uniform(1.1, 2.9, 600), rng.uniform(0.0, 0.1, 600)])
+    motion = np.float64([0.4, 0.0, 0.0])  # 4 m/s: within the static rule's reach (static_max_motion)
+    pc0 = np.concatenate([car, feet, parked, strip]).astype(np.float32)
+    pc1 = np.concatenate([car + motion, feet + motion, parked, strip]).astype(np.float32)
+    sizes = np.cumsum([len(car), len(feet), len(parked), len(strip)])
+    index = np.arange(len(pc0))
+    on_car, on_feet, on_strip = index < sizes[0], (index >= sizes[0]) & (index < sizes[1]), index >= sizes[2]
+    surface0, surface1 = on_feet | on_strip, on_feet | on_strip  # the same rows in both scans
+    truth = np.where((on_car | on_feet)[:, None], motion, 0.0).astype(np.float32)
+    student = np.where((on_car | on_feet)[:, None], 0.3 * motion, 0.0).astype(np.float32)
+    cfg = RefineConfig()
+    assert components(pc0, cfg.cell)[1] == 1 and components(pc0, cfg.cell, ~surface0)[1] == 2
+    joined, joined_replaced = refine_residual(pc0, student, pc1, cfg)
+    assert not joined_replaced[on_car].any() and epe(joined, truth, on_car) > 0.25
+    refined, replaced = refine_residual(pc0, student, pc1, cfg, surface0, surface1)
+    assert replaced[on_car].mean() > 0.9 and epe(refined, truth, on_car) < 0.03
+    assert replaced[on_feet].mean() > 0.9 and epe(refined, truth, on_feet) < 0.03
+    assert np.array_equal(refined[~(on_car | on_feet)], student[~(on_car | on_feet)])
+    nothing = np.zeros(len(pc0), bool)
+    same, same_replaced = refine_residual(pc0, student, pc1, cfg, nothing, nothing)
+    assert np.array_equal(same, joined) and np.array_equal(same_replaced, joined_replaced)

@@ -152,7 +152,8 @@ class Predictor(ScanSteps):
         if problem:
             raise PredictorError(f"{'estimated ' if estimated else ''}ego1_from_ego0 {problem}")
         check_ego = ego1_from_ego0 is not None and self.ego_checks_left > 0
-        return self.flow_in_frame(lifted, ego_frame, ground0, ground1, lift, estimated, assumed, check_ego)
+        surfaces = (surface0, surface1)
+        return self.flow_in_frame(lifted, ego_frame, ground0, ground1, lift, estimated, assumed, check_ego, surfaces)
 
     def flow_in_frame(
         self,
@@ -164,18 +165,20 @@ class Predictor(ScanSteps):
         estimated: bool,
         assumed: bool = False,
         check_ego: bool = False,
+        surfaces: tuple[np.ndarray, np.ndarray] | None = None,
         run_network: bool = True,
     ) -> Prediction:
         """The :class:`Prediction` of a pair already in the model's height frame: ``lifted`` (pc0, pc1) (N, 3)
         float32 raised by ``lift`` m, ``ego_frame`` (4, 4) in that frame, the ground masks (N,) bool (from
         :meth:`ground_mask`). What :meth:`predict` and a stream (``fastflow3d.inference.stream``) run after their own
         ego motion and ground steps; ``check_ego``: compare the given ego motion with the identity and its inverse;
+        ``surfaces``: each scan's (N,) bool ground surface (:meth:`scan_masks`), kept out of the refinement's ICP;
         ``run_network`` False: the ego flow only (a stream's pair with too few points). The three parts,
         :meth:`network_input`, :meth:`run_network` and :meth:`finish`, are also called apart (a stream runs the
         network of one pair while it prepares the next scan)."""
         pair = self.network_input(lifted, ego_frame, ground0, ground1, check_ego)
         output = self.run_network(pair) if run_network else None
-        return self.finish(pair, output, ego_frame, lift, estimated, assumed)
+        return self.finish(pair, output, ego_frame, lift, estimated, assumed, surfaces)
 
     def network_input(
         self,
@@ -207,9 +210,11 @@ class Predictor(ScanSteps):
         lift: float,
         estimated: bool,
         assumed: bool = False,
+        surfaces: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> Prediction:
         """The :class:`Prediction` from the network's ``output`` (:meth:`run_network`; None: the ego flow only):
-        the residual restored on pc0's rows, refined when the Predictor refines, checked and made FULL flow."""
+        the residual restored on pc0's rows, refined when the Predictor refines (``surfaces``: the two scans' ground
+        surface masks, :meth:`scan_masks`, kept out of its ICP), checked and made FULL flow."""
         count = len(pair.pc0)
         residual, in_grid = np.zeros((count, 3), np.float32), np.zeros(count, bool)
         refined = np.zeros(count, bool) if self.refine is not None else None
@@ -223,9 +228,10 @@ class Predictor(ScanSteps):
                 )
             residual, in_grid = self.contract.restore(pair, kept, valid)
             if self.refine is not None:
-                rows = np.flatnonzero(in_grid)
+                rows, targets = np.flatnonzero(in_grid), ~pair.ground1
+                surface0, surface1 = (None, None) if surfaces is None else (surfaces[0][rows], surfaces[1][targets])
                 residual[rows], refined[rows] = refine_residual(
-                    pair.compensated[rows], residual[rows], pair.pc1[~pair.ground1], self.refine
+                    pair.compensated[rows], residual[rows], pair.pc1[targets], self.refine, surface0, surface1
                 )
         self.check_plausible(pair)
         flow = residual_to_full(residual, pair.pc0, pair.ego1_from_ego0)  # a common lift changes no flow vector

@@ -5,7 +5,12 @@ the teacher's ICP is exact where it starts close enough. This stage joins them, 
 
 1. Objects: the 8-connected components of the bird's-eye-view occupancy (``RefineConfig.cell`` metres) of the
    network's pc0 points (ego-compensated, non-ground, inside the grid). Components with fewer than ``min_points``
-   points or longer than ``max_extent`` (walls, kerbs, hedges) are left as they are.
+   points or longer than ``max_extent`` (walls, kerbs, hedges) are left as they are. Where the scans' ground
+   surfaces are known (an estimated ground leaves the ring the sensor draws around each object's foot:
+   ``icpflow.ground.GroundSegmenter.masks``), only the points above them occupy cells; a surface point joins the
+   object in its cell (its feet) or none, and stays out of the ICP and its checks (steps 3, 4) on both scans.
+   Issue 44: the ring had joined moving objects to parked ones, and the refinement with estimated ground scored
+   0.175 m dynamic-foreground EPE against 0.145 with the dataset's ground; 0.161 with it kept out.
 2. Candidates: components whose median predicted residual is at least ``min_motion`` metres per pair (the moving
    ones; the rest keep the student's flow).
 3. Registration: the component's points are moved onto the pc1 points near them by point-to-point ICP (the
@@ -124,9 +129,10 @@ def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def components(points: np.ndarray, cell: float) -> tuple[np.ndarray, int]:
+def components(points: np.ndarray, cell: float, occupying: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """((N,) int64 component of each (N, 3) point, number of components): 8-connected components of the
-    bird's-eye-view cells the points occupy."""
+    bird's-eye-view cells the ``occupying`` (N,) bool points occupy (None: all); a point in a cell none of them
+    occupies is in no component (-1)."""
     from scipy import ndimage
 
     if not len(points):
@@ -135,14 +141,26 @@ def components(points: np.ndarray, cell: float) -> tuple[np.ndarray, int]:
     cells -= cells.min(axis=0)
     shape = tuple(cells.max(axis=0) + 1)
     occupied = np.zeros(shape, bool)
-    occupied[cells[:, 0], cells[:, 1]] = True
+    seeds = cells if occupying is None else cells[np.asarray(occupying, bool)]
+    occupied[seeds[:, 0], seeds[:, 1]] = True
     labels, count = ndimage.label(occupied, structure=np.ones((3, 3), bool))
     return labels[cells[:, 0], cells[:, 1]].astype(np.int64) - 1, int(count)
 
 
-def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg: RefineConfig):
+def refine_residual(
+    pc0: np.ndarray,
+    residual: np.ndarray,
+    pc1: np.ndarray,
+    cfg: RefineConfig,
+    surface0: np.ndarray | None = None,
+    surface1: np.ndarray | None = None,
+):
     """((N0, 3) float32 refined residual flow, (N0,) bool: the points whose flow ICP replaced) of pc0 (N0, 3)
-    (ego-compensated) with the student's residual (N0, 3) towards pc1 (N1, 3), all in the ego frame of t + dt."""
+    (ego-compensated) with the student's residual (N0, 3) towards pc1 (N1, 3), all in the ego frame of t + dt.
+    ``surface0`` (N0,) / ``surface1`` (N1,) bool: points of the ground's surface left in the scans (objects' feet,
+    the ring the sensor draws around them: ``icpflow.ground.GroundSegmenter.masks``); they belong to components
+    and get an accepted motion where it fits them, but stay out of the ICP and its checks, whose matches they pull
+    towards no motion."""
     from icpflow.teacher.checks import passes
     from icpflow.teacher.config import ChecksConfig, ICPConfig
     from icpflow.teacher.neighbours import build_grid, nearest_distances
@@ -151,9 +169,13 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
     out, refined = np.array(residual, np.float32, copy=True), np.zeros(len(pc0), bool)
     if len(pc0) < cfg.min_points or len(pc1) < cfg.min_points:
         return out, refined
-    label, count = components(pc0, cfg.cell)
+    # objects from the points above the ground's surface; a surface point (an object's foot) joins the object in
+    # its cell, and one in no object's cell (the ground a moving object is joined to by) keeps the student's flow
+    label, count = components(pc0, cfg.cell, None if surface0 is None else ~np.asarray(surface0, bool))
     order = np.argsort(label, kind="stable")
     bounds = np.searchsorted(label[order], np.arange(count + 1))
+    if count == 0:
+        return out, refined
     # per component at once (each has >= 1 point): box, mean residual; candidates by size, extent, speed
     sorted_points, sorted_residual = np.asarray(pc0[order], np.float64), np.asarray(residual[order], np.float64)
     lows = np.minimum.reduceat(sorted_points, bounds[:-1])
@@ -169,19 +191,24 @@ def refine_residual(pc0: np.ndarray, residual: np.ndarray, pc1: np.ndarray, cfg:
     ]
     by_x = np.argsort(pc1[:, 0], kind="stable")  # pc1 sorted along x: each candidate's targets from one slice
     pc1_x, pc1_sorted = pc1[by_x, 0], np.asarray(pc1[by_x], np.float64)
+    registered0 = np.ones(len(pc0), bool) if surface0 is None else ~np.asarray(surface0, bool)[order]
+    registered1 = np.ones(len(pc1), bool) if surface1 is None else ~np.asarray(surface1, bool)[by_x]
     groups, movings, student_moved, fixeds, windows, kept = [], [], [], [], [], []
     for k in chosen:
         low, high = lows[k] + means[k] - cfg.margin, highs[k] + means[k] + cfg.margin
-        window = pc1_sorted[np.searchsorted(pc1_x, low[0]) : np.searchsorted(pc1_x, high[0], side="right")]
-        target = window[np.all((window >= low) & (window <= high), axis=1)]
-        if len(target) < cfg.min_points:
+        first, last = np.searchsorted(pc1_x, low[0]), np.searchsorted(pc1_x, high[0], side="right")
+        inside = np.all((pc1_sorted[first:last] >= low) & (pc1_sorted[first:last] <= high), axis=1)
+        target = pc1_sorted[first:last][inside]
+        fixed = target[registered1[first:last][inside]]
+        rows = bounds[k] + np.flatnonzero(registered0[bounds[k] : bounds[k + 1]])
+        if len(fixed) < cfg.min_points or len(rows) < cfg.min_points:
             continue
-        stride = -(-sizes[k] // cfg.max_points)  # every stride-th point: at most max_points in pc0, and the
-        rows = slice(bounds[k], bounds[k + 1], stride)  # targets thinned alike (the IoU ratio compares like densities)
+        stride = -(-len(rows) // cfg.max_points)  # every stride-th point: at most max_points in pc0, and the
+        rows = rows[::stride]  # targets thinned alike (the IoU ratio compares like densities)
         groups.append(order[bounds[k] : bounds[k + 1]])
         movings.append(sorted_points[rows])
         student_moved.append(sorted_points[rows] + sorted_residual[rows])
-        fixeds.append(target[::stride])
+        fixeds.append(fixed[::stride])
         windows.append(target)
         kept.append(k)
     if not groups:

@@ -90,6 +90,7 @@ class _Staged:
     pose: np.ndarray | None = None
     fitness: float | None = None
     restarted: bool = False
+    surfaces: tuple[np.ndarray, np.ndarray] | None = None  # the two scans' ground surfaces (the refinement's)
 
 
 class FlowStream:
@@ -165,7 +166,7 @@ class FlowStream:
         if staged.step is not None:
             return staged.step
         prediction = self.predictor.finish(
-            staged.pair, output, staged.ego_frame, staged.lift, staged.estimated, staged.assumed
+            staged.pair, output, staged.ego_frame, staged.lift, staged.estimated, staged.assumed, staged.surfaces
         )
         return StreamStep(prediction, staged.source, staged.previous, staged.pose, staged.fitness, staged.restarted)
 
@@ -234,6 +235,7 @@ class FlowStream:
             pose=self._pose.copy(),
             fitness=step.fitness,
             restarted=restarted,
+            surfaces=(previous.odometry_ground, odometry_ground),
         )
 
     def _too_few(self, previous: _Scan, current: _Scan) -> _Staged:
