@@ -11,7 +11,7 @@ the refinement dial (``refine``).
     .venv/bin/python -m benchmarks.bench_student_latency --mode refine --export <export dir> [--runs 20]
         [--warmup 3] [--scans kitti,av2]
     .venv/bin/python -m benchmarks.bench_student_latency --mode cli --export <export dir> [--passes 3] [--threads 2]
-        [--scans kitti,av2,synthetic]
+        [--scans kitti,av2,synthetic] [--backends onnxruntime,openvino]
 
 Scans: KITTI HDL-64E ``000000`` -> ``000001`` (``../shared/data/kitti_hdl64_scans``, ~124k points each) and the
 Argoverse 2 pair (``../shared/data/av2``, ~99k points each); ``uniform`` (pair mode) adds ``--points`` uniform
@@ -58,14 +58,16 @@ ICP replaced and their median change (m).
 
 ``cli``: the stream as a user runs it, ``fastflow3d-infer EXPORT DIR --out OUT [--refine]`` in a process of its own,
 whole runs (reading, every step and writing), on KITTI (the six HDL-64E scans), AV2 (the two sweeps alternating, 12
-scans) and a synthetic test sequence (40 frames), with and without the refinement. Prints median and p90 ms per
-frame and Hz. The accuracy of the same stream: ``eval.py ... method=[student-stream,student-stream+refine]``.
+scans) and a synthetic test sequence (40 frames), with and without the refinement, per ``--backends`` (the CLI's
+``--runtime``). Prints median and p90 ms per frame and Hz. The accuracy of the same stream: ``eval.py ...
+method=[student-stream,student-stream+refine]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import itertools
 import os
 import statistics
 import subprocess
@@ -115,7 +117,7 @@ MODES = {
         "scans": "kitti,av2", "passes": 5, "regimes": "pairwise,streamed,given", "backends": "onnx-tuned,openvino",
     },
     "refine": {"export": None, "runs": 20, "warmup": 3, "scans": "kitti,av2"},
-    "cli": {"export": None, "threads": 2, "passes": 3, "scans": "kitti,av2,synthetic"},
+    "cli": {"export": None, "threads": 2, "passes": 3, "scans": "kitti,av2,synthetic", "backends": "onnxruntime"},
 }  # fmt: skip
 
 
@@ -504,32 +506,24 @@ def cli(args) -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, (scans, options) in cli_streams(args.scans.split(","), Path(tmp)).items():
-            for refine in (False, True):
+            for runtime, refine in itertools.product(args.backends.split(","), (False, True)):
                 times = []
                 for run in range(args.passes):
-                    out = Path(tmp) / f"out_{name}_{refine}_{run}"
-                    command = [
-                        sys.executable,
-                        "-m",
-                        "fastflow3d.inference.cli",
-                        args.export,
-                        str(scans),
-                        "--out",
-                        str(out),
-                    ]
-                    command += [*options, "--threads", str(args.threads), *(["--refine"] if refine else [])]
-                    subprocess.run(command, check=True, capture_output=True)
+                    out = Path(tmp) / f"out_{name}_{runtime}_{refine}_{run}"
+                    command = [sys.executable, "-m", "fastflow3d.inference.cli", args.export, str(scans)]
+                    command += ["--out", str(out), *options, "--threads", str(args.threads), "--runtime", runtime]
+                    subprocess.run(command + (["--refine"] if refine else []), check=True, capture_output=True)
                     flows = sorted(out.glob("*.npz"), key=lambda path: path.stem)  # the scans' names: 000000, ...
                     written = np.array([path.stat().st_mtime_ns for path in flows]) / 1e9
                     times.extend(np.diff(written)[2:])
-                rows.append((name, len(flows) + 1, refine, times))
-    print("| stream | scans | refinement | median ms | p90 ms | Hz (median) | Hz (p90) |")
-    print("|---|---|---|---|---|---|---|")
-    for name, scans, refine, times in rows:
+                rows.append((name, len(flows) + 1, runtime, refine, times))
+    print("| stream | scans | runtime | refinement | median ms | p90 ms | Hz (median) | Hz (p90) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, scans, runtime, refine, times in rows:
         median, p90 = statistics.median(times), float(np.percentile(times, 90))
         print(
-            f"| {name} | {scans} | {'yes' if refine else 'no'} | {1000 * median:.1f} | {1000 * p90:.1f} | "
-            f"{1 / median:.1f} | {1 / p90:.1f} |"
+            f"| {name} | {scans} | {runtime} | {'yes' if refine else 'no'} | {1000 * median:.1f} | {1000 * p90:.1f} "
+            f"| {1 / median:.1f} | {1 / p90:.1f} |"
         )
     print(f"{args.passes} runs each, {args.threads} threads; load average {os.getloadavg()[0]:.2f}; {cpu_name()}")
 
@@ -556,7 +550,9 @@ def main() -> None:
         "--regimes", help="comma-separated: given, estimated (pair); pairwise, streamed, given (stream); default all"
     )
     parser.add_argument(
-        "--backends", help="comma-separated (default onnx,onnx-tuned,openvino,eager; stream: onnx-tuned,openvino)"
+        "--backends",
+        help="comma-separated (default onnx,onnx-tuned,openvino,eager; stream: onnx-tuned,openvino; cli: the CLI's "
+        "--runtime, onnxruntime and/or openvino, default onnxruntime)",
     )
     parser.add_argument("--breakdown", action="store_true", default=None, help="time each step of a call (pair)")
     args = parser.parse_args()

@@ -202,14 +202,14 @@ class Collector:
         return "\n".join(lines)
 
 
-def curves(run_dir: Path) -> str:
-    """The training run's curves (its ``tensorboard/`` events): per validation, the mean training loss since the
-    previous one, the validation loss and the validation dynamic-foreground EPE."""
+def curve_points(run_dir: Path) -> dict[int, tuple[float | None, float | None, float]]:
+    """{validation step: (mean training loss since the previous validation or None, validation loss or None,
+    validation dynamic-foreground EPE)} of a training run's ``tensorboard/`` events."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     files = sorted(run_dir.glob("tensorboard/**/events.out.tfevents.*"))
     if not files:
-        raise SystemExit(f"--curves {run_dir}: no TensorBoard events under {run_dir / 'tensorboard'}")
+        raise SystemExit(f"{run_dir}: no TensorBoard events under {run_dir / 'tensorboard'}")
     scalars = {}
     for file in files:  # a resumed run writes a version per launch; the later steps win
         events = EventAccumulator(str(file), size_guidance={"scalars": 0})
@@ -217,20 +217,25 @@ def curves(run_dir: Path) -> str:
         for tag in ("train/loss", "val/loss", "val/dynamic_fg/EPE"):
             if tag in events.Tags()["scalars"]:
                 scalars.setdefault(tag, {}).update({e.step: e.value for e in events.Scalars(tag)})
-    train = scalars.get("train/loss", {})
+    train, points, previous = scalars.get("train/loss", {}), {}, -1
+    for step in sorted(scalars.get("val/dynamic_fg/EPE", {})):
+        window = [value for s, value in train.items() if previous < s <= step]
+        mean = float(np.mean(window)) if window else None
+        points[step] = (mean, scalars.get("val/loss", {}).get(step), scalars["val/dynamic_fg/EPE"][step])
+        previous = step
+    return points
+
+
+def curves(run_dir: Path) -> str:
+    """The training run's curves (:func:`curve_points`) as a table."""
     lines = [f"Curves of {run_dir}", ""]
     lines.append("| step | training loss (mean since the last validation) | val loss | val dynamic EPE (m) |")
     lines.append("|---|---|---|---|")
-    previous = -1
-    for step in sorted(scalars.get("val/dynamic_fg/EPE", {})):
-        window = [value for s, value in train.items() if previous < s <= step]
-        mean = f"{np.mean(window):.4f}" if window else "-"
-        val_loss = scalars.get("val/loss", {}).get(step)
+    for step, (mean, val_loss, val_epe) in curve_points(run_dir).items():
         lines.append(
-            f"| {step} | {mean} | {'-' if val_loss is None else f'{val_loss:.4f}'} | "
-            f"{scalars['val/dynamic_fg/EPE'][step]:.4f} |"
+            f"| {step} | {'-' if mean is None else f'{mean:.4f}'} | {'-' if val_loss is None else f'{val_loss:.4f}'} "
+            f"| {val_epe:.4f} |"
         )
-        previous = step
     return "\n".join(lines)
 
 
