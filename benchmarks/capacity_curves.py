@@ -12,7 +12,8 @@ CPU minutes, the test split's dynamic-foreground, static-foreground and Threeway
 its fit on its own training pairs: ``eval.py split=train dataset.reader.num_sequences=<--fit-sequences>
 dataset.reader.frames_per_sequence=3`` (the first sequences of the synthetic training split: pairs of any
 ``label.py ... frames_per_sequence=3`` shards of at least that many sequences), scored into ``RUN_DIR/fit/``
-(kept; reused).
+(kept; reused), beside the teacher on the same pairs (the labels it learnt from; into the first run's
+``fit_teacher/``).
 """
 
 from __future__ import annotations
@@ -25,9 +26,10 @@ from benchmarks.training_runs import run_python, scores
 from icpflow.evaluation import is_complete
 
 
-def fit_scores(run_dir: Path, sequences: int) -> dict:
-    """The run's export scored on the first ``sequences`` sequences of the training split (3 frames each)."""
-    metrics = run_dir / "fit" / "metrics.json"
+def fit_scores(out_dir: Path, sequences: int, method: str, checkpoint: Path | None = None) -> dict:
+    """``method`` (``student``: the export ``checkpoint``; ``icpflow``: the teacher, whose labels these pairs got)
+    scored on the first ``sequences`` sequences of the training split (3 frames each), into ``out_dir``."""
+    metrics = out_dir / "metrics.json"
     if not is_complete(metrics):
         run_python(
             [
@@ -36,12 +38,12 @@ def fit_scores(run_dir: Path, sequences: int) -> dict:
                 f"dataset.reader.num_sequences={sequences}",
                 "dataset.reader.frames_per_sequence=3",
                 "bev=0",
-                "method=[student]",
-                f"checkpoint={run_dir / 'export'}",
-                f"out_dir={metrics.parent}",
+                f"method=[{method}]",
+                *([f"checkpoint={checkpoint}"] if checkpoint is not None else []),
+                f"out_dir={out_dir}",
             ]
         )
-    return scores(metrics, "student")
+    return scores(metrics, method)
 
 
 def main() -> None:
@@ -63,8 +65,9 @@ def main() -> None:
             loss = "-" if train_loss is None else f"{train_loss:.4f}"
             print(f"| {name} | {step} | {step * seconds / 60:.1f} | {loss} | {val_epe:.4f} |")
         last = max(points)
-        ends.append((name, last, last * seconds / 60, scores(folder / "score" / "metrics.json", "student"),
-                     fit_scores(folder, args.fit_sequences)))  # fmt: skip
+        fit = fit_scores(folder / "fit", args.fit_sequences, "student", folder / "export")
+        ends.append((name, last, last * seconds / 60, scores(folder / "score" / "metrics.json", "student"), fit))
+    teacher = fit_scores(runs[0][1] / "fit_teacher", args.fit_sequences, "icpflow")
     print()
     print(
         "| run | steps | CPU minutes | test dynamic fg | test static fg | test Threeway | training pairs dynamic fg "
@@ -77,6 +80,10 @@ def main() -> None:
             f"{test['threeway']:.4f} | {fit['dynamic_fg']:.4f} | {fit['threeway']:.4f} | "
             f"{test['dynamic_fg'] / fit['dynamic_fg']:.2f} |"
         )
+    print(
+        f"| the teacher (its labels of the training pairs) | | | | | | {teacher['dynamic_fg']:.4f} | "
+        f"{teacher['threeway']:.4f} | |"
+    )
 
 
 if __name__ == "__main__":
