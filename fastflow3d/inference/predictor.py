@@ -172,7 +172,7 @@ class Predictor(ScanSteps):
         float32 raised by ``lift`` m, ``ego_frame`` (4, 4) in that frame, the ground masks (N,) bool (from
         :meth:`ground_mask`). What :meth:`predict` and a stream (``fastflow3d.inference.stream``) run after their own
         ego motion and ground steps; ``check_ego``: compare the given ego motion with the identity and its inverse;
-        ``surfaces``: each scan's (N,) bool ground surface (:meth:`scan_masks`), kept out of the refinement's ICP;
+        ``surfaces``: each scan's (N,) bool ground surface (:meth:`scan_masks`): the refinement's objects lie above it;
         ``run_network`` False: the ego flow only (a stream's pair with too few points). The three parts,
         :meth:`network_input`, :meth:`run_network` and :meth:`finish`, are also called apart (a stream runs the
         network of one pair while it prepares the next scan)."""
@@ -214,7 +214,7 @@ class Predictor(ScanSteps):
     ) -> Prediction:
         """The :class:`Prediction` from the network's ``output`` (:meth:`run_network`; None: the ego flow only):
         the residual restored on pc0's rows, refined when the Predictor refines (``surfaces``: the two scans' ground
-        surface masks, :meth:`scan_masks`, kept out of its ICP), checked and made FULL flow."""
+        surface masks, :meth:`scan_masks`, under the refinement's objects), checked and made FULL flow."""
         count = len(pair.pc0)
         residual, in_grid = np.zeros((count, 3), np.float32), np.zeros(count, bool)
         refined = np.zeros(count, bool) if self.refine is not None else None
