@@ -31,6 +31,23 @@ def grid_cell(max_corr: float) -> float:
 
 
 @numba.njit(cache=True)
+def _quality_from(moved, err_fwd, inl_fwd, fixed, cell, inlier_d2):
+    """(mean error, IoU ratio, symmetric error) of moved (M, 3) on fixed (N, 3) (module docstring), given the
+    forward direction's mean distance and inlier count: the backward one is measured here."""
+    err_bwd, inl_bwd = nn_stats(fixed, moved, build_grid(moved, cell), cell, inlier_d2)
+    n_all = moved.shape[0] + fixed.shape[0]
+    iou = min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
+    return min(err_fwd, err_bwd), iou, 0.5 * (err_fwd + err_bwd)
+
+
+@numba.njit(cache=True)
+def _quality(moved, fixed, fixed_grid, cell, inlier_d2):
+    """:func:`_quality_from` with the forward direction measured too (``fixed_grid``: fixed's ``build_grid``)."""
+    err_fwd, inl_fwd = nn_stats(moved, fixed, fixed_grid, cell, inlier_d2)
+    return _quality_from(moved, err_fwd, inl_fwd, fixed, cell, inlier_d2)
+
+
+@numba.njit(cache=True)
 def _register_one(
     moving, fixed, fixed_normals, init, max_corr, max_iter, rel_rmse, yaw_only, plane, inlier_d2, grid_cell, identity
 ):
@@ -43,12 +60,7 @@ def _register_one(
     fixed_grid = build_grid(fixed, grid_cell)
     err_id, iou_id, sym_id = np.inf, 0.0, np.inf
     if identity:  # the same quality at no motion (what a separate registration with max_iter=0 measures)
-        err_id_fwd, inl_id_fwd = nn_stats(moving, fixed, fixed_grid, grid_cell, inlier_d2)
-        err_id_bwd, inl_id_bwd = nn_stats(fixed, moving, build_grid(moving, grid_cell), grid_cell, inlier_d2)
-        n_id = moving.shape[0] + fixed.shape[0]
-        err_id = min(err_id_fwd, err_id_bwd)
-        sym_id = 0.5 * (err_id_fwd + err_id_bwd)
-        iou_id = min(inl_id_fwd / (n_id - inl_id_fwd), inl_id_bwd / (n_id - inl_id_bwd))
+        err_id, iou_id, sym_id = _quality(moving, fixed, fixed_grid, grid_cell, inlier_d2)
     if plane:
         transform, n_iter = icp_point_to_plane(
             moving, fixed, fixed_normals, fixed_grid, grid_cell, init, max_corr, PLANE_MAX_ITER
@@ -64,10 +76,8 @@ def _register_one(
         err_init, inl_init = nn_stats(moved_init, fixed, fixed_grid, grid_cell, inlier_d2)
         if not err_fwd < err_init:  # ICP made it worse: keep the initial transform
             transform, moved, err_fwd, inl_fwd = init, moved_init, err_init, inl_init
-    err_bwd, inl_bwd = nn_stats(fixed, moved, build_grid(moved, grid_cell), grid_cell, inlier_d2)
-    n_all = moving.shape[0] + fixed.shape[0]
-    iou = min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
-    return transform, min(err_fwd, err_bwd), iou, n_iter, err_id, iou_id, 0.5 * (err_fwd + err_bwd), sym_id
+    error, iou, symmetric = _quality_from(moved, err_fwd, inl_fwd, fixed, grid_cell, inlier_d2)
+    return transform, error, iou, n_iter, err_id, iou_id, symmetric, sym_id
 
 
 @numba.njit(cache=True, parallel=True)
@@ -171,15 +181,6 @@ def register_batch_cpu(
     return result
 
 
-@numba.njit(cache=True)
-def _quality(moved, fixed, fixed_grid, cell, inlier_d2):
-    """(mean error, IoU ratio) of moved (M, 3) on fixed (N, 3), as :func:`_register_one` measures them."""
-    err_fwd, inl_fwd = nn_stats(moved, fixed, fixed_grid, cell, inlier_d2)
-    err_bwd, inl_bwd = nn_stats(fixed, moved, build_grid(moved, cell), cell, inlier_d2)
-    n_all = moved.shape[0] + fixed.shape[0]
-    return min(err_fwd, err_bwd), min(inl_fwd / (n_all - inl_fwd), inl_bwd / (n_all - inl_bwd))
-
-
 @numba.njit(cache=True, parallel=True)
 def _register_stages_batch(
     mov_all, mov_off, fix_all, fix_off, given_all, inits, max_corrs, cells, max_iter, rel_rmse, yaw_only, n_workers
@@ -214,9 +215,10 @@ def _register_stages_batch(
                     if not moved < nn_stats(transform_cloud(moving, init), fixed, grid, cells[s], 0.0)[0]:
                         transform = init
             transforms[p] = transform
-            out[0, p], out[1, p] = _quality(transform_cloud(moving, transform), fixed, grid, cells[last], inlier_d2)
-            out[2, p], out[3, p] = _quality(moving, fixed, grid, cells[last], inlier_d2)
-            out[4, p], out[5, p] = _quality(given_all[mov_off[p] : mov_off[p + 1]], fixed, grid, cells[last], inlier_d2)
+            given = given_all[mov_off[p] : mov_off[p + 1]]
+            out[0, p], out[1, p], _ = _quality(transform_cloud(moving, transform), fixed, grid, cells[last], inlier_d2)
+            out[2, p], out[3, p], _ = _quality(moving, fixed, grid, cells[last], inlier_d2)
+            out[4, p], out[5, p], _ = _quality(given, fixed, grid, cells[last], inlier_d2)
     return transforms, out[0], out[1], out[2], out[3], out[4], out[5]
 
 
