@@ -22,28 +22,14 @@ import argparse
 from pathlib import Path
 
 from benchmarks.student_anatomy import curve_points
-from benchmarks.training_runs import run_python, scores
-from icpflow.evaluation import is_complete
+from benchmarks.training_runs import evaluated, scores
 
 
 def fit_scores(out_dir: Path, sequences: int, method: str, checkpoint: Path | None = None) -> dict:
     """``method`` (``student``: the export ``checkpoint``; ``icpflow``: the teacher, whose labels these pairs got)
     scored on the first ``sequences`` sequences of the training split (3 frames each), into ``out_dir``."""
-    metrics = out_dir / "metrics.json"
-    if not is_complete(metrics):
-        run_python(
-            [
-                "eval.py",
-                "split=train",
-                f"dataset.reader.num_sequences={sequences}",
-                "dataset.reader.frames_per_sequence=3",
-                "bev=0",
-                f"method=[{method}]",
-                *([f"checkpoint={checkpoint}"] if checkpoint is not None else []),
-                f"out_dir={out_dir}",
-            ]
-        )
-    return scores(metrics, method)
+    split = ["split=train", f"dataset.reader.num_sequences={sequences}", "dataset.reader.frames_per_sequence=3"]
+    return evaluated(out_dir / "metrics.json", [*split, "bev=0"], method, checkpoint)
 
 
 def main() -> None:

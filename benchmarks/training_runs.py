@@ -49,11 +49,16 @@ def trained_and_scored(run_dir: Path, metrics_json: Path, train: list[str], test
             ]
         )
         write_text_atomic(timing, f"{seconds:.1f}\n")
+    return {**evaluated(metrics_json, test, "student", run_dir / "export"), "seconds": float(timing.read_text())}
+
+
+def evaluated(metrics_json: Path, overrides: list[str], method: str, checkpoint: Path | None = None) -> dict:
+    """``scores`` of ``method`` by ``eval.py <overrides>`` (with ``checkpoint=`` where given) into
+    ``metrics_json``'s folder, run only where that is not complete."""
     if not is_complete(metrics_json):
-        run_python(
-            ["eval.py", *test, "method=[student]", f"checkpoint={run_dir / 'export'}", f"out_dir={metrics_json.parent}"]
-        )
-    return {**scores(metrics_json, "student"), "seconds": float(timing.read_text())}
+        model = [f"checkpoint={checkpoint}"] if checkpoint is not None else []
+        run_python(["eval.py", *overrides, f"method=[{method}]", *model, f"out_dir={metrics_json.parent}"])
+    return scores(metrics_json, method)
 
 
 def save_line_plot(path: Path, title: str, xlabel: str, curves: list[tuple], references: list[tuple]) -> None:
