@@ -171,7 +171,8 @@ def refine_residual(
         return out, refined
     # objects from the points above the ground's surface; a surface point (an object's foot) joins the object in
     # its cell, and one in no object's cell (the ground a moving object is joined to by) keeps the student's flow
-    label, count = components(pc0, cfg.cell, None if surface0 is None else ~np.asarray(surface0, bool))
+    above0 = np.ones(len(pc0), bool) if surface0 is None else ~np.asarray(surface0, bool)
+    label, count = components(pc0, cfg.cell, above0)
     order = np.argsort(label, kind="stable")
     bounds = np.searchsorted(label[order], np.arange(count + 1))
     if count == 0:
@@ -191,7 +192,7 @@ def refine_residual(
     ]
     by_x = np.argsort(pc1[:, 0], kind="stable")  # pc1 sorted along x: each candidate's targets from one slice
     pc1_x, pc1_sorted = pc1[by_x, 0], np.asarray(pc1[by_x], np.float64)
-    registered0 = np.ones(len(pc0), bool) if surface0 is None else ~np.asarray(surface0, bool)[order]
+    registered0 = above0[order]
     registered1 = np.ones(len(pc1), bool) if surface1 is None else ~np.asarray(surface1, bool)[by_x]
     groups, movings, student_moved, fixeds, windows, kept = [], [], [], [], [], []
     for k in chosen:
