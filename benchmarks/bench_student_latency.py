@@ -11,7 +11,7 @@ the refinement dial (``refine``).
     .venv/bin/python -m benchmarks.bench_student_latency --mode refine --export <export dir> [--runs 20]
         [--warmup 3] [--scans kitti,av2]
     .venv/bin/python -m benchmarks.bench_student_latency --mode cli --export <export dir> [--passes 3] [--threads 2]
-        [--scans kitti,av2,synthetic] [--backends onnxruntime,openvino]
+        [--scans kitti,av2,synthetic] [--backends onnxruntime,onnxruntime-int8,openvino,openvino-bf16]
 
 Scans: KITTI HDL-64E ``000000`` -> ``000001`` (``../shared/data/kitti_hdl64_scans``, ~124k points each) and the
 Argoverse 2 pair (``../shared/data/av2``, ~99k points each); ``uniform`` (pair mode) adds ``--points`` uniform
@@ -59,8 +59,9 @@ ICP replaced and their median change (m).
 ``cli``: the stream as a user runs it, ``fastflow3d-infer EXPORT DIR --out OUT [--refine]`` in a process of its own,
 whole runs (reading, every step and writing), on KITTI (the six HDL-64E scans), AV2 (the two sweeps alternating, 12
 scans) and a synthetic test sequence (40 frames), with and without the refinement, per ``--backends`` (the CLI's
-``--runtime``). Prints median and p90 ms per frame and Hz. The accuracy of the same stream: ``eval.py ...
-method=[student-stream,student-stream+refine]``.
+``--runtime``, and ``--precision`` after a dash: ``onnxruntime-int8`` runs the export's int8 network, which
+``export.py ... int8=true`` writes). Prints median and p90 ms per frame and Hz. The accuracy of the same stream:
+``eval.py ... method=[student-stream,student-stream+refine] [precision=int8]``.
 """
 
 from __future__ import annotations
@@ -511,7 +512,9 @@ def cli(args) -> None:
                 for run in range(args.passes):
                     out = Path(tmp) / f"out_{name}_{runtime}_{refine}_{run}"
                     command = [sys.executable, "-m", "fastflow3d.inference.cli", args.export, str(scans)]
-                    command += ["--out", str(out), *options, "--threads", str(args.threads), "--runtime", runtime]
+                    engine, _, precision = runtime.partition("-")  # onnxruntime-int8: --precision int8
+                    command += ["--out", str(out), *options, "--threads", str(args.threads), "--runtime", engine]
+                    command += ["--precision", precision] if precision else []
                     subprocess.run(command + (["--refine"] if refine else []), check=True, capture_output=True)
                     flows = sorted(out.glob("*.npz"), key=lambda path: path.stem)  # the scans' names: 000000, ...
                     written = np.array([path.stat().st_mtime_ns for path in flows]) / 1e9
@@ -552,7 +555,7 @@ def main() -> None:
     parser.add_argument(
         "--backends",
         help="comma-separated (default onnx,onnx-tuned,openvino,eager; stream: onnx-tuned,openvino; cli: the CLI's "
-        "--runtime, onnxruntime and/or openvino, default onnxruntime)",
+        "--runtime, onnxruntime and/or openvino, with -int8 / -bf16 for its --precision; default onnxruntime)",
     )
     parser.add_argument("--breakdown", action="store_true", default=None, help="time each step of a call (pair)")
     args = parser.parse_args()

@@ -445,6 +445,99 @@ def test_cpu_runtime_rejects_what_it_cannot_run(export_dir):
         load_network(export_dir / FILE_NAMES["onnx"], "onnx", runtime="tensorrt")
 
 
+# ------------------------------------------------------------------------------------------- the int8 network
+@pytest.fixture(scope="module")
+def int8_export(checkpoint, tmp_path_factory):
+    """The tiny checkpoint exported as ONNX with its int8 network, calibrated on the run's validation shards."""
+    return export_checkpoint(checkpoint, tmp_path_factory.mktemp("int8") / "export", formats=("onnx",), int8=True)
+
+
+def test_int8_network_quantises_the_convolutions_and_stays_near_the_float_one(int8_export, checkpoint, pairs):
+    """``int8=true`` writes fastflow3d.int8.onnx beside the float32 ONNX: its convolutions read int8 weights (QDQ),
+    the rest stays float32; its metadata entry carries its hash and its difference from the float32 network on the
+    labelled pairs; the Predictor runs it with precision int8 (and picks ONNX Runtime for it), and its flow on
+    pairs it was not calibrated on differs from the float32 flow, but by under INT8_TOLERANCE on average."""
+    import onnx
+
+    from fastflow3d.artifact.file_format import INT8, INT8_FILE_NAME
+    from fastflow3d.artifact.quantize import INT8_TOLERANCE
+
+    metadata = json.loads((int8_export / METADATA_NAME).read_text())
+    entry = metadata["files"][INT8]
+    assert entry == {"path": INT8_FILE_NAME, "sha256": sha256_file(int8_export / INT8_FILE_NAME)}
+    assert 0 < metadata["int8"]["mean_abs_m"] <= INT8_TOLERANCE and metadata["int8"]["calibration_pairs"] == 1
+    assert metadata["int8"]["held_out"] is False  # one labelled pair: the check runs on it too
+    graph = onnx.load(str(int8_export / INT8_FILE_NAME)).graph
+    convs = [node for node in graph.node if node.op_type == "Conv"]
+    weights = {init.name: init for init in graph.initializer}
+    produced = {output: node for node in graph.node for output in node.output}
+    for conv in convs:  # every convolution's weight is an int8 initializer dequantised on the fly
+        dequantise = produced[conv.input[1]]
+        assert dequantise.op_type == "DequantizeLinear"
+        assert weights[dequantise.input[0]].data_type == onnx.TensorProto.INT8
+    assert convs and not any(
+        init.data_type == onnx.TensorProto.INT8
+        for init in onnx.load(str(int8_export / FILE_NAMES["onnx"])).graph.initializer
+    )
+    float_predictor, int8_predictor = Predictor.load(int8_export), Predictor.load(int8_export, precision="int8")
+    assert int8_predictor.backend == "onnxruntime"
+    for pair in pairs[1:]:
+        want = float_predictor.predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+        got = int8_predictor.predict(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+        assert np.array_equal(got.in_grid, want.in_grid)
+        distance = np.linalg.norm(got.flow - want.flow, axis=1)[want.in_grid]
+        assert 0 < distance.mean() <= INT8_TOLERANCE and distance.max() > 0
+
+
+def test_int8_is_refused_in_one_line_where_it_cannot_be_made_or_run(
+    int8_export, export_dir, checkpoint, pairs, tmp_path, monkeypatch, capsys
+):
+    """No shards to calibrate on, a pt2-only export, a network beyond the tolerance (nothing kept: the folder keeps
+    its previous export), an export without the int8 network (Predictor and CLI), int8 in OpenVINO: one line each."""
+    from fastflow3d.artifact import export as export_module
+    from fastflow3d.artifact.engines import load_network
+    from fastflow3d.artifact.export import ExportError
+    from fastflow3d.artifact.file_format import INT8_FILE_NAME
+
+    with pytest.raises(ExportError, match="int8 calibration needs labelled shards: .*missing.* is not a folder"):
+        export_checkpoint(checkpoint, tmp_path / "a", formats=("onnx",), int8=str(tmp_path / "missing"))
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ArtifactError, match="int8 calibration: .*index.json: no index"):
+        export_checkpoint(checkpoint, tmp_path / "a", formats=("onnx",), int8=str(empty))
+    with pytest.raises(ExportError, match="int8 quantises the ONNX network: export the onnx format too"):
+        export_checkpoint(checkpoint, tmp_path / "a", formats=("pt2",), int8=True)
+    out = export_checkpoint(checkpoint, tmp_path / "kept", formats=("onnx",))
+    before = {path.name: path.read_bytes() for path in out.iterdir()}
+    monkeypatch.setattr(export_module, "INT8_TOLERANCE", 0.0)
+    with pytest.raises(ExportError, match=f"{INT8_FILE_NAME}: the int8 network differs .* on average .*not kept"):
+        export_checkpoint(checkpoint, out, formats=("onnx",), int8=True)
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before
+    assert not any(path.name.startswith(("int8-", ".")) for path in out.parent.iterdir() if path != out)
+    with pytest.raises(PredictorError, match="the export has no int8 network; export it with .* int8=true"):
+        Predictor.load(export_dir, precision="int8")
+    scans = [
+        str(write_scan(tmp_path / name, points)) for name, points in (("a.npy", pairs[1].pc0), ("b.npy", pairs[1].pc1))
+    ]
+    assert infer_main([str(export_dir), *scans, "--precision", "int8", "--out", str(tmp_path / "x.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no int8 network" in err
+    with pytest.raises(ArtifactError, match="precision 'int8' is not available with openvino"):
+        load_network(int8_export / INT8_FILE_NAME, "onnx", runtime="openvino", threads=1, precision="int8")
+
+
+def test_eval_scores_the_int8_network(int8_export, pairs):
+    """``eval.py precision=int8``: the student methods run the export's int8 network (the Predictor's)."""
+    from omegaconf import OmegaConf
+
+    from fastflow3d.inference.eval_methods import refined_streamed_student_method, student_method
+
+    cfg = OmegaConf.create({"checkpoint": str(int8_export), "precision": "int8", "sensor_height": None})
+    want = Predictor.load(int8_export, precision="int8")(pairs[0].pc0, pairs[0].pc1, pairs[0].ego1_from_ego0)
+    assert np.array_equal(student_method(cfg)(pairs[0], 0), want)
+    assert refined_streamed_student_method(cfg).predictor.network.session._model_path.endswith("int8.onnx")
+
+
 # ------------------------------------------------------------------------------------- height frame, bare files
 def lowered(pair, height: float):
     """pc0, pc1 and ego1_from_ego0 of ``pair`` as a sensor ``height`` m above its ground would give them (the

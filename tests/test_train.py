@@ -17,7 +17,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from fastflow3d.artifact.checkpoint import CheckpointError, build_student, load_student
-from fastflow3d.artifact.file_format import FILE_NAMES, METADATA_NAME
+from fastflow3d.artifact.file_format import FILE_NAMES, INT8, INT8_FILE_NAME, METADATA_NAME
 from fastflow3d.network.model import FastFlow3D
 from fastflow3d.network.voxelize import Grid
 from fastflow3d.training.data import DataError, StudentDataset, collate
@@ -343,8 +343,10 @@ def test_fast_dev_run_against_gt_and_pseudo(shards, tmp_path):
 
 def test_short_run_validates_at_its_last_step_and_exports_the_best_checkpoint(shards, tmp_path):
     """python train.py ... trainer.max_steps=3: the default experiment validates every 200 steps, so only the final
-    validation makes the best checkpoint; the run ends by exporting it (the default formats) under out_dir."""
+    validation makes the best checkpoint; the run ends by exporting it (the default formats, and the CPU recipes' int8
+    network calibrated on the validation shards, which comes with the onnx format) under out_dir."""
     formats = list(_compose().export.formats)
+    assert _compose().export.int8 is True and _compose("experiment=paper").export.int8 is False
     cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=3", f"export.formats=[{','.join(formats)}]")
     assert cfg.trainer.val_check_interval == 200 and formats == ["onnx", "pt2"]
     trainer = fit(cfg)
@@ -352,10 +354,11 @@ def test_short_run_validates_at_its_last_step_and_exports_the_best_checkpoint(sh
     best = list((tmp_path / "run" / "checkpoints").glob("best-*.ckpt"))
     assert len(best) == 1 and best[0].name.startswith("best-step0000003-")
     export = tmp_path / "run" / "export"
-    assert sorted(p.name for p in export.iterdir()) == sorted([METADATA_NAME, *FILE_NAMES.values()])
+    assert sorted(p.name for p in export.iterdir()) == sorted([METADATA_NAME, *FILE_NAMES.values(), INT8_FILE_NAME])
     metadata = json.loads((export / METADATA_NAME).read_text())
     assert metadata["source_checkpoint"]["path"] == str(best[0].resolve())
-    assert set(metadata["files"]) == set(formats) and max(metadata["parity_max_abs_m"].values()) <= 1e-4
+    assert set(metadata["files"]) == {*formats, INT8} and max(metadata["parity_max_abs_m"].values()) <= 1e-4
+    assert metadata["int8"]["calibration_pairs"] >= 1
     assert metadata["input"]["remove_ground"] is True
     assert {key: metadata["input"][key] for key in ("frame", "ground", "ego_motion")} == {
         key: value

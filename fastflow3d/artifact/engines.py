@@ -13,10 +13,12 @@ Every engine gives a network with the artifact's calling convention (``fastflow3
 * ``.pt2`` (``torch.export``, checked by ``fastflow3d.artifact.safe_loading`` first), a legacy TorchScript ``.pt`` and
   a training checkpoint (``.ckpt``, eager) in PyTorch on a device (:class:`TorchNetwork`).
 
-``precision`` is ``f32`` or ``bf16`` (OpenVINO only). Every runtime is checked against eager PyTorch by
-``fastflow3d.artifact.export.measure_parity`` in ``tests/test_export.py`` and in
+``precision`` is ``f32``, ``bf16`` (OpenVINO only) or ``int8`` (ONNX Runtime, on the export's ``fastflow3d.int8.onnx``,
+``fastflow3d.artifact.quantize``, which ``fastflow3d.inference.model_loading`` picks). Every float runtime is checked
+against eager PyTorch by ``fastflow3d.artifact.export.measure_parity`` in ``tests/test_export.py`` and in
 ``benchmarks/bench_student_latency.py``: float32 within the export's ``PARITY_TOLERANCE`` (1e-4 m), bf16 within
-:data:`BF16_TOLERANCE`. The Predictor, the export's parity check and the latency benchmark open their files here.
+:data:`BF16_TOLERANCE`; the int8 network against the float32 one, at export, on labelled pairs (``INT8_TOLERANCE``
+on average). The Predictor, the export's parity check and the latency benchmark open their files here.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING, check_pt2
 from icpflow.errors_and_signals import one_line
 
 RUNTIMES = ("onnxruntime", "openvino")
-PRECISIONS = ("f32", "bf16")
+PRECISIONS = ("f32", "bf16", "int8")
 #: metres; bfloat16 keeps 8 bits of mantissa, so a residual of a few metres is off by up to about 2 cm
 BF16_TOLERANCE = 0.05
 
@@ -161,8 +163,11 @@ def _runtime_network(path: Path, runtime: str, threads: int | None, precision: s
     """The network of the ``.onnx`` at ``path`` in ``runtime`` (see the module docstring)."""
     if runtime not in RUNTIMES:
         raise ArtifactError(f"{path}: unknown runtime {runtime!r}; use one of {', '.join(RUNTIMES)}")
-    if precision not in PRECISIONS or (precision == "bf16" and runtime != "openvino"):
-        raise ArtifactError(f"{path}: precision {precision!r} is not available with {runtime} (f32; bf16: openvino)")
+    wanted = {"bf16": "openvino", "int8": "onnxruntime"}.get(precision, runtime)
+    if precision not in PRECISIONS or runtime != wanted:
+        raise ArtifactError(
+            f"{path}: precision {precision!r} is not available with {runtime} (f32; bf16: openvino; int8: onnxruntime)"
+        )
     threads = threads or default_threads()
     if runtime == "openvino":
         return OpenVinoNetwork(path, threads, precision)

@@ -5,6 +5,8 @@ Every export is loaded back through ``fastflow3d.artifact.engines.load_network``
 in ONNX Runtime's default CPU session) and run on random clouds of
 several sizes; one that differs from eager by more than :data:`PARITY_TOLERANCE` metres, or whose validity mask
 differs, is refused. ONNX uses the dynamo exporter: the legacy exporter mis-exports scatter ops without a warning.
+On request (``int8``) the ONNX network is also quantised (``fastflow3d.artifact.quantize``), calibrated on labelled
+shards, and compared with the float32 one.
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ from fastflow3d.artifact.engines import load_network
 from fastflow3d.artifact.file_format import (
     FILE_NAMES,
     FORMATS,
+    INT8,
+    INT8_FILE_NAME,
     LEGACY_FILE_NAMES,
     METADATA_NAME,
     SingleSampleNet,
@@ -32,6 +36,7 @@ from fastflow3d.artifact.file_format import (
     sha256_file,
     write_metadata,
 )
+from fastflow3d.artifact.quantize import INT8_TOLERANCE, calibration_pairs, int8_difference, write_int8
 from fastflow3d.artifact.writers import WRITERS, onnx_opset
 from fastflow3d.network.contract import ContractError, InputContract, upgrade
 from fastflow3d.network.model import FastFlow3D
@@ -108,6 +113,7 @@ def export_model(
     checkpoint=None,
     contract: InputContract | None = None,
     tolerance: float = PARITY_TOLERANCE,
+    int8_pairs: tuple[list, list] | None = None,
 ) -> dict:
     """Export ``model`` (eval mode is set) in ``formats`` to ``out_dir``; returns the metadata written.
 
@@ -115,11 +121,18 @@ def export_model(
     ``out_dir`` holds the previous export or the new one, never a part (a full disk, a signal, a failed check leave
     it as it was). Each export is loaded back and compared with eager on random clouds of several sizes; an export
     off by more than ``tolerance`` metres raises :class:`ExportError` and is not kept.
+
+    ``int8_pairs``: ``(calibration, check)`` network inputs (``fastflow3d.artifact.quantize.calibration_pairs``):
+    the ONNX network is also written with int8 convolutions (``fastflow3d.int8.onnx``, ``files.onnx_int8``), its
+    difference from the float32 one on the check pairs in ``metadata["int8"]``; more than ``INT8_TOLERANCE`` on
+    average raises :class:`ExportError` and nothing is kept.
     """
     formats = tuple(formats)
     unknown = [name for name in formats if name not in FORMATS]
     if unknown or not formats:
         raise ExportError(f"unknown export format(s) {unknown or formats}; use {', '.join(FORMATS)} or all")
+    if int8_pairs is not None and "onnx" not in formats:
+        raise ExportError("int8 quantises the ONNX network: export the onnx format too (format=all or onnx)")
     out_dir = Path(out_dir)
     check_replaceable(out_dir)
     net = SingleSampleNet(model.eval()).eval()
@@ -147,8 +160,28 @@ def export_model(
             metadata["parity_max_abs_m"][name] = error
         if "onnx" in formats:
             metadata["onnx_opset"] = onnx_opset(build / FILE_NAMES["onnx"])
+        if int8_pairs is not None:
+            metadata["int8"] = quantised(build, out_dir, *int8_pairs)
+            metadata["files"][INT8] = {"path": INT8_FILE_NAME, "sha256": sha256_file(build / INT8_FILE_NAME)}
         write_metadata(build, metadata)
     return metadata
+
+
+def quantised(build: Path, out_dir: Path, calibration: list, check: list) -> dict:
+    """Write the int8 network of ``build``'s ONNX file beside it, calibrated on ``calibration``, and return its
+    difference from the float32 network on ``check`` (``fastflow3d.artifact.quantize``); refused (ExportError)
+    beyond ``INT8_TOLERANCE``."""
+    write_int8(build / FILE_NAMES["onnx"], build / INT8_FILE_NAME, calibration)
+    float_network, int8_network = (
+        load_network(build / name, "onnx", runtime="onnxruntime") for name in (FILE_NAMES["onnx"], INT8_FILE_NAME)
+    )
+    difference = int8_difference(float_network, int8_network, check)
+    if not difference["mean_abs_m"] <= INT8_TOLERANCE:
+        raise ExportError(
+            f"{out_dir / INT8_FILE_NAME}: the int8 network differs from the float32 one by "
+            f"{difference['mean_abs_m']:.3g} m on average (> {INT8_TOLERANCE:g} m); not kept"
+        )
+    return {**difference, "calibration_pairs": len(calibration), "held_out": check is not calibration}
 
 
 def check_replaceable(out_dir: Path) -> None:
@@ -158,7 +191,7 @@ def check_replaceable(out_dir: Path) -> None:
         return
     if not out_dir.is_dir():
         raise ExportError(f"{out_dir}: exists and is not a folder; give a new or export folder as out_dir")
-    ours = {METADATA_NAME, *FILE_NAMES.values(), *LEGACY_FILE_NAMES}
+    ours = {METADATA_NAME, *FILE_NAMES.values(), INT8_FILE_NAME, *LEGACY_FILE_NAMES}
     others = sorted(child.name for child in out_dir.iterdir() if child.name not in ours)
     if others:
         raise ExportError(
@@ -191,9 +224,13 @@ def default_export_dir(checkpoint: Path, cfg: dict) -> Path:
     return target
 
 
-def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None, formats=FORMATS) -> Path:
+def export_checkpoint(
+    checkpoint: str | os.PathLike, out_dir: str | os.PathLike | None = None, formats=FORMATS, int8=False
+) -> Path:
     """Export a training checkpoint (``fastflow3d.artifact.checkpoint.load_student``) to ``out_dir`` (default:
-    :func:`default_export_dir`). Returns the export directory."""
+    :func:`default_export_dir`). ``int8``: also the int8 network (:func:`export_model`), calibrated on labelled shards:
+    ``True`` those the run validated on (its config's ``data.val``), or a ``label.py`` out_dir. Returns the export
+    directory."""
     checkpoint = Path(checkpoint)
     if not checkpoint.is_file():
         raise ExportError(f"{checkpoint}: checkpoint not found")
@@ -203,6 +240,15 @@ def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike 
     except ContractError as error:
         raise ExportError(f"{checkpoint}: {one_line(error)}") from None
     out_dir = default_export_dir(checkpoint, cfg) if out_dir is None else Path(out_dir)
+    int8_pairs = None
+    if int8 is not False and int8 is not None:
+        shards = (cfg.get("data") or {}).get("val") if int8 is True else int8
+        if not isinstance(shards, str | os.PathLike) or not Path(shards).is_dir():
+            raise ExportError(
+                f"{checkpoint}: int8 calibration needs labelled shards: {shards!r} is not a folder; "
+                "give int8=<a label.py out_dir>"
+            )
+        int8_pairs = calibration_pairs(shards, contract)
     export_model(
         model,
         out_dir,
@@ -210,6 +256,7 @@ def export_checkpoint(checkpoint: str | os.PathLike, out_dir: str | os.PathLike 
         model_config=dict(cfg.get("model") or {}),
         checkpoint=checkpoint,
         contract=contract,
+        int8_pairs=int8_pairs,
     )
     return out_dir
 
@@ -244,7 +291,7 @@ def _run_export(cfg) -> None:
         print(f"export: exporting {cfg.checkpoint}, then checking parity (about 20 s) ...", file=sys.stderr)
     try:
         with stop_on_signals():
-            out_dir = export_checkpoint(cfg.checkpoint, cfg.out_dir, formats)
+            out_dir = export_checkpoint(cfg.checkpoint, cfg.out_dir, formats, cfg.int8)
     except Stop as stop:
         where = cfg.out_dir or "the export folder"
         raise Stop(stop.signum, f"{signal_words(stop.signum)}; nothing exported, {where} is as it was") from None
@@ -252,6 +299,13 @@ def _run_export(cfg) -> None:
         raise ExportError(f"{os_error_line(error)}; the export there is as it was") from None
     metadata = json.loads((out_dir / METADATA_NAME).read_text())
     for name, entry in metadata["files"].items():
+        if name == INT8:
+            int8 = metadata["int8"]
+            print(
+                f"export: {name} -> {out_dir / entry['path']} (|int8 - float32| mean {int8['mean_abs_m']:.2e} m, "
+                f"max {int8['max_abs_m']:.2e} m on {int8['pairs']} labelled pairs)"
+            )
+            continue
         print(
             f"export: {name} -> {out_dir / entry['path']} (max |export - eager| "
             f"{metadata['parity_max_abs_m'][name]:.2e} m)"

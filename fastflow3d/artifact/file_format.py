@@ -5,6 +5,8 @@ An export directory holds ``metadata.json`` and one file per format:
 
 * ``fastflow3d.onnx``: ONNX (dynamo exporter), run in ONNX Runtime;
 * ``fastflow3d.pt2``: a ``torch.export`` ExportedProgram, run in PyTorch (``torch.export.load``);
+* ``fastflow3d.int8.onnx`` (``export.py ... int8=true``, listed as ``onnx_int8``): the ONNX network with int8
+  convolutions (``fastflow3d.artifact.quantize``), run in ONNX Runtime with ``precision="int8"``;
 * ``fastflow3d.pt``: TorchScript, written by older versions of this code. It is only read (``torch.jit`` is
   deprecated): keep it while such exports are in use, re-export their checkpoints to replace them.
 
@@ -42,6 +44,8 @@ from icpflow.errors_and_signals import one_line
 FORMATS = ("onnx", "pt2")  # what an export writes
 LEGACY_FORMATS = ("torchscript",)  # read only: exports of older versions
 FILE_NAMES = {"onnx": "fastflow3d.onnx", "pt2": "fastflow3d.pt2"}
+INT8 = "onnx_int8"  # the int8 network's entry in ``files`` (written on request, from the onnx one)
+INT8_FILE_NAME = "fastflow3d.int8.onnx"
 LEGACY_FILE_NAMES = ("fastflow3d.pt",)
 SUFFIX_FORMATS = {".onnx": "onnx", ".pt2": "pt2", ".pt": "torchscript"}
 METADATA_NAME = "metadata.json"

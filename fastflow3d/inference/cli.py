@@ -2,8 +2,8 @@
 
     python -m fastflow3d.inference.cli MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
         [--bev FILE.png | --no-bev] [--rerun FILE.rrd] [--bin-columns N] [--backend onnx|pt2|torchscript]
-        [--device cpu] [--runtime onnxruntime|openvino] [--threads N] [--sensor-height METRES|auto]
-        [--metadata FILE | --remove-ground yes|no]
+        [--device cpu] [--runtime onnxruntime|openvino] [--threads N] [--precision f32|bf16|int8]
+        [--sensor-height METRES|auto] [--metadata FILE | --remove-ground yes|no]
     python -m fastflow3d.inference.cli MODEL DIR|'GLOB' [--out OUT_DIR] [--rerun FILE.rrd] [...]
 
 Stream mode (one argument after MODEL: a folder of scans or a quoted glob, in natural name order, ``2.bin`` before
@@ -51,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fastflow3d.artifact.engines import PRECISIONS
 from fastflow3d.artifact.file_format import FORMATS, LEGACY_FORMATS
 from fastflow3d.inference.scan_files import read_raw_scan, read_transforms, refuse_input_as_output, write_flow
 from fastflow3d.inference.stream_folder import MANIFEST, claim_output_folder, stream_files, stream_manifest
@@ -92,6 +93,12 @@ def parse_args(argv):
         help="CPU engine for the ONNX file (fastflow3d.artifact.engines)",
     )
     parser.add_argument("--threads", type=int, help="inference threads of --runtime (default: the usable cores)")
+    parser.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        default="f32",
+        help="f32; bf16 (OpenVINO); int8: the export's int8 network (export.py ... int8=true) in ONNX Runtime",
+    )
     parser.add_argument(
         "--refine",
         action="store_true",
@@ -147,6 +154,7 @@ def load_predictor(args):
         device=args.device,
         runtime=args.runtime,
         threads=args.threads,
+        precision=args.precision,
         sensor_height=args.sensor_height,
         preprocessing=given_preprocessing(args),
         refine=args.refine,

@@ -21,8 +21,8 @@ class StudentMethod:
     """A trained FastFlow3D (checkpoint or export): ``method(pair, index) -> (N0, 3) float32 FULL flow``, given the
     pair's ego motion and ground masks as the teacher is (each estimated by the Predictor when the dataset has none)."""
 
-    def __init__(self, path, refine=None, sensor_height=None):
-        self.predictor = Predictor.load(path, refine=refine, sensor_height=sensor_height)
+    def __init__(self, path, refine=None, sensor_height=None, precision="f32"):
+        self.predictor = Predictor.load(path, refine=refine, sensor_height=sensor_height, precision=precision)
 
     def __call__(self, pair: FramePair, index: int) -> np.ndarray:
         return self.predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1)
@@ -33,10 +33,10 @@ class StreamedStudentMethod:
     pc0 is the previous pair's pc1, same log) continue the stream; any other pair starts a new one. A pair the
     stream gives no flow (a lost track) gets the pairwise Predictor's, nothing given, with the stream's warning."""
 
-    def __init__(self, path, sensor_height=None, refine=None):
+    def __init__(self, path, sensor_height=None, refine=None, precision="f32"):
         from fastflow3d.inference.stream import FlowStream
 
-        self.predictor = Predictor.load(path, refine=refine, sensor_height=sensor_height)
+        self.predictor = Predictor.load(path, refine=refine, sensor_height=sensor_height, precision=precision)
         self.stream = FlowStream(self.predictor)
         self._last: tuple[str | None, np.ndarray] | None = None  # (log, pc1) of the previous pair
 
@@ -54,12 +54,12 @@ class StreamedStudentMethod:
 
 def streamed_student_method(cfg) -> StreamedStudentMethod:
     """The student of ``cfg.checkpoint`` in streaming mode (``StreamedStudentMethod``)."""
-    return StreamedStudentMethod(_checkpoint(cfg), cfg.get("sensor_height"))
+    return StreamedStudentMethod(_checkpoint(cfg), cfg.get("sensor_height"), precision=_precision(cfg))
 
 
 def refined_streamed_student_method(cfg) -> StreamedStudentMethod:
     """``streamed_student_method`` with the default ICP refinement (``fastflow3d.inference.refine.RefineConfig()``)."""
-    return StreamedStudentMethod(_checkpoint(cfg), cfg.get("sensor_height"), refine=True)
+    return StreamedStudentMethod(_checkpoint(cfg), cfg.get("sensor_height"), refine=True, precision=_precision(cfg))
 
 
 def _checkpoint(cfg) -> str:
@@ -71,10 +71,16 @@ def _checkpoint(cfg) -> str:
     return checkpoint
 
 
+def _precision(cfg) -> str:
+    """The student's ``precision`` (``eval.py precision=``: f32, or int8 for the export's int8 network)."""
+    return cfg.get("precision") or "f32"
+
+
 def student_method(cfg, refine=None) -> StudentMethod:
     """The student of ``cfg.checkpoint`` (a ``.ckpt``, an export directory or an exported file) with the height
-    frame ``cfg.sensor_height`` (None, ``auto`` or metres); ``refine`` as ``Predictor.load`` takes it."""
-    return StudentMethod(_checkpoint(cfg), refine, cfg.get("sensor_height"))
+    frame ``cfg.sensor_height`` (None, ``auto`` or metres) and ``cfg.precision``; ``refine`` as ``Predictor.load``
+    takes it."""
+    return StudentMethod(_checkpoint(cfg), refine, cfg.get("sensor_height"), _precision(cfg))
 
 
 def refined_student_method(cfg) -> StudentMethod:

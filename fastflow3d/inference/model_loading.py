@@ -12,6 +12,7 @@ from pathlib import Path
 from fastflow3d.artifact.engines import choose_format, load_network
 from fastflow3d.artifact.file_format import (
     FORMATS,
+    INT8,
     LEGACY_FORMATS,
     METADATA_NAME,
     SUFFIX_FORMATS,
@@ -31,13 +32,21 @@ def open_model(
 ) -> tuple[object, str, dict]:
     """``(network, backend, metadata)`` of the model at ``path`` (``Predictor.load``'s arguments): the network
     numpy in, numpy out; the backend it runs in (a format, ``eager`` for a checkpoint, or the ONNX ``runtime``);
-    the metadata that describes it ({} for a bare exported file without its ``metadata.json``)."""
+    the metadata that describes it ({} for a bare exported file without its ``metadata.json``). A ``precision`` other
+    than ``f32`` picks its runtime when none is given (``bf16``: openvino; ``int8``: onnxruntime, on the export's
+    int8 file)."""
+    runtime = runtime or {"bf16": "openvino", "int8": "onnxruntime"}.get(precision)
     if runtime is not None:
+        entry = INT8 if precision == "int8" else "onnx"
         if path.is_dir():
             metadata = read_metadata(path / METADATA_NAME)
-            file = listed_file(path, metadata, "onnx")
+            if entry not in metadata["files"] and entry == INT8:
+                raise PredictorError(
+                    f"{path}: the export has no int8 network; export it with export.py checkpoint=<.ckpt> int8=true"
+                )
+            file = listed_file(path, metadata, entry)
         elif path.suffix.lower() == ".onnx" and path.is_file():
-            file, metadata = path, sibling_metadata(path, "onnx")
+            file, metadata = path, sibling_metadata(path, entry)
         else:
             raise PredictorError(f"{path}: runtime {runtime!r} needs an export directory with ONNX or a .onnx")
         network = load_network(file, "onnx", runtime=runtime, threads=threads, precision=precision)

@@ -108,7 +108,8 @@ class Predictor(ScanSteps):
         ``torchscript``; default ONNX when onnxruntime is installed and the export has it). ``device`` applies to
         PyTorch formats and checkpoints; ONNX Runtime uses CUDA when its CUDA provider is installed, else the CPU.
         ``runtime`` (``onnxruntime`` or ``openvino``), ``threads`` and ``precision`` (``f32``, ``bf16`` with
-        OpenVINO) run the ONNX file on the CPU as ``fastflow3d.artifact.engines`` tunes it.
+        OpenVINO, ``int8``: the export's int8 network in ONNX Runtime) run the ONNX file on the CPU as
+        ``fastflow3d.artifact.engines`` tunes it.
         ``sensor_height``: see the module docstring. ``preprocessing`` (a ``metadata.json`` path, a metadata dict or
         its ``preprocessing`` entry) replaces the saved one; a bare exported file without its metadata needs it.
         ``refine``: the opt-in ICP refinement (see ``__init__``).

@@ -221,7 +221,8 @@ def export_best(trainer: L.Trainer, cfg: DictConfig, formats: tuple[str, ...]) -
         log.warning("no best checkpoint (no validation ran?): exporting %s instead", source)
     log.info("exporting %s (%s) to %s: about 20 s ...", source.name, ", ".join(formats), cfg.export.dir)
     try:
-        out_dir = export_checkpoint(source, cfg.export.dir, formats)
+        int8 = bool(cfg.export.get("int8", False)) and "onnx" in formats  # the int8 network of the ONNX one
+        out_dir = export_checkpoint(source, cfg.export.dir, formats, int8=int8)
     except (ValueError, RuntimeError, OSError) as error:
         cause = os_error_line(error) if isinstance(error, OSError) else one_line(error)
         raise TrainError(
