@@ -3,9 +3,9 @@ the refinement dial (``refine``).
 
     .venv/bin/python -m benchmarks.bench_student_latency [--mode pair] [--model fastflow3d_small]
         [--decoder linear|gru] [--set KEY=VALUE ...] [--threads 2] [--runs 20] [--warmup 3] [--scans kitti,av2]
-        [--regimes given,estimated] [--backends eager,eager-bf16,pt2,onnx,onnx-tuned,openvino,openvino-bf16]
+        [--regimes given,estimated] [--backends eager,eager-bf16,pt2,onnx,onnx-tuned,onnx-int8,openvino,openvino-bf16]
         [--breakdown] [--device cpu|cuda]
-    .venv/bin/python -m benchmarks.bench_student_latency --mode stream [--backends onnx-tuned,openvino]
+    .venv/bin/python -m benchmarks.bench_student_latency --mode stream [--backends onnx-tuned,onnx-int8,openvino]
         [--scans kitti,av2] [--passes 5] [--threads 2] [--model fastflow3d_small] [--regimes pairwise,streamed,given]
         [--device cpu|cuda]
     .venv/bin/python -m benchmarks.bench_student_latency --mode refine --export <export dir> [--runs 20]
@@ -23,7 +23,9 @@ autocast), ``compile`` (torch.compile, dynamic; its first call takes minutes on 
 ``onnx`` (ONNX Runtime with its default session, the Predictor's before issue 22; with ``--device cuda`` its CUDA
 provider where ``onnxruntime-gpu`` is installed, else its CPU provider), ``onnx-tuned`` and ``openvino`` /
 ``openvino-bf16`` (``fastflow3d.artifact.engines``, the CPU engines; OpenVINO rows need ``pip install
-'icpflow[openvino]'`` and are left out without it).
+'icpflow[openvino]'`` and are left out without it), ``onnx-int8`` (the tuned ONNX Runtime session on the int8
+network, ``fastflow3d.artifact.quantize``, its ranges from 4 synthetic pairs; its parity is printed, not gated: its
+accuracy is checked at export, on a trained network and labelled pairs).
 
 ``pair``: the whole ``Predictor`` call per frame pair, per backend and regime. The model is exported (ONNX +
 torch.export) and checked against eager by ``fastflow3d.artifact.export``; every backend is then checked again against
@@ -86,17 +88,19 @@ from benchmarks.common import DATA, compose, cpu_name, open_split, read_scan_pai
 from fastflow3d.artifact.checkpoint import build_student
 from fastflow3d.artifact.engines import BF16_TOLERANCE, TorchNetwork, load_network
 from fastflow3d.artifact.export import PARITY_TOLERANCE, export_model, measure_parity
-from fastflow3d.artifact.file_format import FILE_NAMES, SingleSampleNet
+from fastflow3d.artifact.file_format import FILE_NAMES, INT8_FILE_NAME, SingleSampleNet
+from fastflow3d.artifact.quantize import write_int8
 from fastflow3d.inference.predictor import Predictor
 from fastflow3d.inference.stream import FlowStream
 from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import compensate
+from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import residual_to_full
 from icpflow.preprocess import Preprocessing, lift_points, lift_transform
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.config import ICPFlowConfig
 
-BACKENDS = ("eager", "eager-bf16", "compile", "pt2", "onnx", "onnx-tuned", "openvino", "openvino-bf16")
+BACKENDS = ("eager", "eager-bf16", "compile", "pt2", "onnx", "onnx-tuned", "onnx-int8", "openvino", "openvino-bf16")
 #: teacher settings of each scan's dataset (ground segmentation and ego motion in the ``estimated`` regime)
 TEACHERS = {
     "kitti": ICPFlowConfig.preset("waymo", ground={"method": "patchwork", "patchwork_z_offset": 0.0}, crop_xy=51.2),
@@ -139,6 +143,17 @@ def export_formats(backends) -> list[str]:
     return [f for f in ("onnx", "pt2") if any(b.startswith(f) or (f == "onnx" and "openvino" in b) for b in backends)]
 
 
+def synthetic_calibration(model, pairs: int = 4) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The network inputs of ``pairs`` synthetic validation pairs (the world's ego motion and ground, the synthetic
+    frame, ground removed, cropped to ``model``'s grid): the activation ranges of ``onnx-int8``'s random network."""
+    contract = InputContract(Preprocessing(), True, model.grid)
+    dataset = SyntheticDataset(split="val", num_sequences=pairs, frames_per_sequence=2)
+    prepared = (
+        contract.prepare(p.pc0, p.pc1, p.ego1_from_ego0, p.ground0, p.ground1) for p in map(dataset.pair, range(pairs))
+    )
+    return [(pair.network0, pair.network1) for pair in prepared]
+
+
 def build_network(name: str, model, export_dir: Path, device: str, threads: int):
     """The runnable network of backend ``name`` (numpy in, numpy out); None when its runtime is not installed. The
     exported files open through ``fastflow3d.artifact.engines.load_network``, as the Predictor opens them."""
@@ -154,6 +169,11 @@ def build_network(name: str, model, export_dir: Path, device: str, threads: int)
     if name == "onnx":
         providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if device == "cuda" else ["CPUExecutionProvider"]
         return load_network(onnx_file, "onnx", providers=providers)
+    if name == "onnx-int8":
+        int8_file = export_dir / INT8_FILE_NAME
+        if not int8_file.is_file():
+            write_int8(onnx_file, int8_file, synthetic_calibration(model))
+        return load_network(int8_file, "onnx", runtime="onnxruntime", threads=threads, precision="int8")
     if name.startswith("openvino"):
         try:
             import openvino  # noqa: F401
@@ -215,6 +235,7 @@ def pair(args) -> None:
                 continue
             parity[name] = measure_parity(eager_net, network) if args.device == "cpu" else float("nan")
             tolerance = BF16_TOLERANCE if name.endswith("bf16") else PARITY_TOLERANCE
+            tolerance = float("inf") if name == "onnx-int8" else tolerance  # int8's gate: trained, labelled pairs
             if args.device == "cpu" and not parity[name] <= tolerance:  # on CUDA: not measured (nan)
                 print(f"{name}: differs from eager by {parity[name]:.3g} m (> {tolerance:g} m); no row")
                 continue
