@@ -448,7 +448,7 @@ def test_cpu_runtime_rejects_what_it_cannot_run(export_dir):
 # ------------------------------------------------------------------------------------------- the int8 network
 @pytest.fixture(scope="module")
 def int8_export(checkpoint, tmp_path_factory):
-    """The tiny checkpoint exported as ONNX with its int8 network, calibrated on the run's validation shards."""
+    """The tiny checkpoint exported as ONNX with its int8 network, calibrated on the run's training shards."""
     return export_checkpoint(checkpoint, tmp_path_factory.mktemp("int8") / "export", formats=("onnx",), int8=True)
 
 

@@ -344,7 +344,7 @@ def test_fast_dev_run_against_gt_and_pseudo(shards, tmp_path):
 def test_short_run_validates_at_its_last_step_and_exports_the_best_checkpoint(shards, tmp_path):
     """python train.py ... trainer.max_steps=3: the default experiment validates every 200 steps, so only the final
     validation makes the best checkpoint; the run ends by exporting it (the default formats, and the CPU recipes' int8
-    network calibrated on the validation shards, which comes with the onnx format) under out_dir."""
+    network calibrated on the training shards, which comes with the onnx format) under out_dir."""
     formats = list(_compose().export.formats)
     assert _compose().export.int8 is True and _compose("experiment=paper").export.int8 is False
     cfg = _cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=3", f"export.formats=[{','.join(formats)}]")

@@ -229,8 +229,8 @@ def export_checkpoint(
 ) -> Path:
     """Export a training checkpoint (``fastflow3d.artifact.checkpoint.load_student``) to ``out_dir`` (default:
     :func:`default_export_dir`). ``int8``: also the int8 network (:func:`export_model`), calibrated on labelled shards:
-    ``True`` those the run validated on (its config's ``data.val``), or a ``label.py`` out_dir. Returns the export
-    directory."""
+    ``True`` those the run trained on (its config's ``data.train``: most runs validate on a few pairs only), or a
+    ``label.py`` out_dir. Returns the export directory."""
     checkpoint = Path(checkpoint)
     if not checkpoint.is_file():
         raise ExportError(f"{checkpoint}: checkpoint not found")
@@ -242,7 +242,7 @@ def export_checkpoint(
     out_dir = default_export_dir(checkpoint, cfg) if out_dir is None else Path(out_dir)
     int8_pairs = None
     if int8 is not False and int8 is not None:
-        shards = (cfg.get("data") or {}).get("val") if int8 is True else int8
+        shards = (cfg.get("data") or {}).get("train") if int8 is True else int8
         if not isinstance(shards, str | os.PathLike) or not Path(shards).is_dir():
             raise ExportError(
                 f"{checkpoint}: int8 calibration needs labelled shards: {shards!r} is not a folder; "

@@ -65,7 +65,7 @@ class ExportStepOptions:
     """``export``: the best checkpoint exported at the end of fit."""
 
     formats: list[str] = setting(["onnx", "pt2"])  # [] = no export
-    int8: bool = False  # with onnx: also fastflow3d.int8.onnx, calibrated on data.val (fastflow3d.artifact.quantize)
+    int8: bool = False  # with onnx: also fastflow3d.int8.onnx, calibrated on data.train (fastflow3d.artifact.quantize)
     dir: str = MISSING
 
 
@@ -110,7 +110,7 @@ class ExportOptions:
 
     checkpoint: str = MISSING
     format: str = "all"  # onnx, pt2, all or a comma-separated list
-    int8: Any = False  # true (calibrated on the run's data.val) or a label.py out_dir: also fastflow3d.int8.onnx
+    int8: Any = False  # true (calibrated on the run's data.train) or a label.py out_dir: also fastflow3d.int8.onnx
     out_dir: str | None = None
     hydra_dir: str = MISSING  # each launch's config and log (conf/hydra/default.yaml); unset: outputs/hydra/<script>
 
