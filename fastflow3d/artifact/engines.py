@@ -38,6 +38,8 @@ from icpflow.errors_and_signals import one_line
 
 RUNTIMES = ("onnxruntime", "openvino")
 PRECISIONS = ("f32", "bf16", "int8")
+#: the one runtime that runs each reduced precision (f32 runs in any)
+PRECISION_RUNTIMES = {"bf16": "openvino", "int8": "onnxruntime"}
 #: metres; bfloat16 keeps 8 bits of mantissa, so a residual of a few metres is off by up to about 2 cm
 BF16_TOLERANCE = 0.05
 
@@ -163,7 +165,7 @@ def _runtime_network(path: Path, runtime: str, threads: int | None, precision: s
     """The network of the ``.onnx`` at ``path`` in ``runtime`` (see the module docstring)."""
     if runtime not in RUNTIMES:
         raise ArtifactError(f"{path}: unknown runtime {runtime!r}; use one of {', '.join(RUNTIMES)}")
-    wanted = {"bf16": "openvino", "int8": "onnxruntime"}.get(precision, runtime)
+    wanted = PRECISION_RUNTIMES.get(precision, runtime)
     if precision not in PRECISIONS or runtime != wanted:
         raise ArtifactError(
             f"{path}: precision {precision!r} is not available with {runtime} (f32; bf16: openvino; int8: onnxruntime)"

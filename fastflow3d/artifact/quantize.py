@@ -65,17 +65,6 @@ def calibration_pairs(shard_dir, contract: InputContract, count: int = CALIBRATI
     return calibration, check or calibration
 
 
-class _Feed:
-    """ONNX Runtime's calibration reader over a list of network inputs."""
-
-    def __init__(self, pairs):
-        self.pairs = iter(pairs)
-
-    def get_next(self):
-        pair = next(self.pairs, None)
-        return None if pair is None else dict(zip(INPUT_NAMES, pair))
-
-
 def write_int8(onnx_file: Path, int8_file: Path, calibration) -> None:
     """Write the int8 network of the float32 ONNX ``onnx_file`` to ``int8_file`` (atomically), its activation ranges
     measured on the ``calibration`` network inputs (:func:`calibration_pairs`)."""
@@ -88,8 +77,15 @@ def write_int8(onnx_file: Path, int8_file: Path, calibration) -> None:
     )
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
-    class Feed(_Feed, CalibrationDataReader):
-        pass
+    class Feed(CalibrationDataReader):
+        """ONNX Runtime's calibration reader over the list of network inputs."""
+
+        def __init__(self, pairs):
+            self.pairs = iter(pairs)
+
+        def get_next(self):
+            pair = next(self.pairs, None)
+            return None if pair is None else dict(zip(INPUT_NAMES, pair))
 
     with tempfile.TemporaryDirectory(prefix="int8-", dir=int8_file.parent) as work, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the quantiser's deprecation and shape-inference notes

@@ -9,7 +9,7 @@ import json
 import os
 from pathlib import Path
 
-from fastflow3d.artifact.engines import choose_format, load_network
+from fastflow3d.artifact.engines import PRECISION_RUNTIMES, choose_format, load_network
 from fastflow3d.artifact.file_format import (
     FORMATS,
     INT8,
@@ -35,7 +35,7 @@ def open_model(
     the metadata that describes it ({} for a bare exported file without its ``metadata.json``). A ``precision`` other
     than ``f32`` picks its runtime when none is given (``bf16``: openvino; ``int8``: onnxruntime, on the export's
     int8 file)."""
-    runtime = runtime or {"bf16": "openvino", "int8": "onnxruntime"}.get(precision)
+    runtime = runtime or PRECISION_RUNTIMES.get(precision)
     if runtime is not None:
         entry = INT8 if precision == "int8" else "onnx"
         if path.is_dir():
