@@ -11,7 +11,8 @@ the refinement dial (``refine``).
     .venv/bin/python -m benchmarks.bench_student_latency --mode refine --export <export dir> [--runs 20]
         [--warmup 3] [--scans kitti,av2]
     .venv/bin/python -m benchmarks.bench_student_latency --mode cli --export <export dir> [--passes 3] [--threads 2]
-        [--scans kitti,av2,synthetic] [--backends onnxruntime,onnxruntime-int8,openvino,openvino-bf16]
+        [--scans kitti,av2,synthetic] [--backends onnxruntime,onnxruntime-int8,openvino,openvino-bf16,pt2]
+        [--device cpu|cuda]
 
 Scans: KITTI HDL-64E ``000000`` -> ``000001`` (``../shared/data/kitti_hdl64_scans``, ~124k points each) and the
 Argoverse 2 pair (``../shared/data/av2``, ~99k points each); ``uniform`` (pair mode) adds ``--points`` uniform
@@ -62,7 +63,8 @@ ICP replaced and their median change (m).
 whole runs (reading, every step and writing), on KITTI (the six HDL-64E scans), AV2 (the two sweeps alternating, 12
 scans) and a synthetic test sequence (40 frames), with and without the refinement, per ``--backends`` (the CLI's
 ``--runtime``, and ``--precision`` after a dash: ``onnxruntime-int8`` runs the export's int8 network, which
-``export.py ... int8=true`` writes). Prints median and p90 ms per frame and Hz. The accuracy of the same stream:
+``export.py ... int8=true`` writes; ``pt2``: the export's torch.export program on ``--device``, the network on a GPU
+with ``--device cuda``). Prints median and p90 ms per frame and Hz. The accuracy of the same stream:
 ``eval.py ... method=[student-stream,student-stream+refine] [precision=int8]``.
 """
 
@@ -122,7 +124,10 @@ MODES = {
         "scans": "kitti,av2", "passes": 5, "regimes": "pairwise,streamed,given", "backends": "onnx-tuned,openvino",
     },
     "refine": {"export": None, "runs": 20, "warmup": 3, "scans": "kitti,av2"},
-    "cli": {"export": None, "threads": 2, "passes": 3, "scans": "kitti,av2,synthetic", "backends": "onnxruntime"},
+    "cli": {
+        "export": None, "device": "cpu", "threads": 2, "passes": 3, "scans": "kitti,av2,synthetic",
+        "backends": "onnxruntime",
+    },
 }  # fmt: skip
 
 
@@ -533,10 +538,16 @@ def cli(args) -> None:
                 for run in range(args.passes):
                     out = Path(tmp) / f"out_{name}_{runtime}_{refine}_{run}"
                     command = [sys.executable, "-m", "fastflow3d.inference.cli", args.export, str(scans)]
-                    engine, _, precision = runtime.partition("-")  # onnxruntime-int8: --precision int8
-                    command += ["--out", str(out), *options, "--threads", str(args.threads), "--runtime", engine]
-                    command += ["--precision", precision] if precision else []
-                    subprocess.run(command + (["--refine"] if refine else []), check=True, capture_output=True)
+                    command += ["--out", str(out), *options, "--threads", str(args.threads)]
+                    if runtime == "pt2":  # the torch.export program, on --device
+                        command += ["--backend", "pt2", "--device", args.device]
+                    else:
+                        engine, _, precision = runtime.partition("-")  # onnxruntime-int8: --precision int8
+                        command += ["--runtime", engine] + (["--precision", precision] if precision else [])
+                    done = subprocess.run(command + (["--refine"] if refine else []), capture_output=True, text=True)
+                    if done.returncode != 0:
+                        said = (done.stderr.strip().splitlines() or ["(nothing on stderr)"])[-1]
+                        raise SystemExit(f"bench_student_latency: {' '.join(command)} failed: {said}")
                     flows = sorted(out.glob("*.npz"), key=lambda path: path.stem)  # the scans' names: 000000, ...
                     written = np.array([path.stat().st_mtime_ns for path in flows]) / 1e9
                     times.extend(np.diff(written)[2:])
@@ -549,7 +560,11 @@ def cli(args) -> None:
             f"| {name} | {scans} | {runtime} | {'yes' if refine else 'no'} | {1000 * median:.1f} | {1000 * p90:.1f} "
             f"| {1 / median:.1f} | {1 / p90:.1f} |"
         )
-    print(f"{args.passes} runs each, {args.threads} threads; load average {os.getloadavg()[0]:.2f}; {cpu_name()}")
+    gpu = f"; pt2 on {torch.cuda.get_device_name()}" if args.device == "cuda" else ""
+    print(
+        f"{args.passes} runs each, {args.threads} threads, {len(os.sched_getaffinity(0))} usable CPUs{gpu}; "
+        f"load average {os.getloadavg()[0]:.2f}; {cpu_name()}"
+    )
 
 
 def main() -> None:
@@ -559,7 +574,7 @@ def main() -> None:
     parser.add_argument("--decoder", help="the model's decoder, a model.decoder override (pair, stream)")
     parser.add_argument("--set", nargs="*", metavar="KEY=VALUE", help="more model.<key> overrides (pair, stream)")
     parser.add_argument("--export", help="a trained student's export directory (or .ckpt) (refine, cli)")
-    parser.add_argument("--device", choices=("cpu", "cuda"), help="where the network runs (pair, stream)")
+    parser.add_argument("--device", choices=("cpu", "cuda"), help="where the network runs (pair, stream; cli: pt2)")
     parser.add_argument("--threads", type=int, help="torch, ONNX Runtime and OpenVINO threads (default 2)")
     parser.add_argument("--runs", type=int, help="timed calls (default 20; pair, refine)")
     parser.add_argument("--warmup", type=int, help="calls before (default 3; pair, refine)")
@@ -576,7 +591,8 @@ def main() -> None:
     parser.add_argument(
         "--backends",
         help="comma-separated (default onnx,onnx-tuned,openvino,eager; stream: onnx-tuned,openvino; cli: the CLI's "
-        "--runtime, onnxruntime and/or openvino, with -int8 / -bf16 for its --precision; default onnxruntime)",
+        "--runtime, onnxruntime and/or openvino, with -int8 / -bf16 for its --precision, or pt2: the export's "
+        "torch.export program on --device; default onnxruntime)",
     )
     parser.add_argument("--breakdown", action="store_true", default=None, help="time each step of a call (pair)")
     args = parser.parse_args()

@@ -25,7 +25,11 @@ again (labelling and training resume where they stopped; a partial score file is
    (issue 33.7): ``benchmarks.bench_student_latency --mode stream --device cuda``, the small model's network on the
    GPU with the same backends, the shipped scans played as streams, regimes ``streamed`` (nothing given) and
    ``given``, 102 frames each after the first two of each pass, the process held to 2 CPU cores (ground and
-   odometry as on the 2-core laptop);
+   odometry as on the 2-core laptop); ``latency_cli`` (issue 44.6): the stream as a user runs it
+   (``bench_student_latency --mode cli``: ``fastflow3d-infer EXPORT DIR --out OUT [--refine]``, whole runs) with
+   the export's torch.export network on the GPU (``--backend pt2 --device cuda``) and every other step on 2 cores,
+   plain and refined, on the KITTI, AV2 and synthetic streams; the export is ``--stream-export`` (a trained
+   student's, carried) or ``train_small``'s own;
 5. ``teacher``: ``benchmarks.teacher_backends --av2 <data>/av2``: ``icp.backend=torch`` (CUDA) against the CPU
    backend on the shipped Argoverse 2 pair: time of each and the largest flow difference (synthetic pairs where the
    AV2 sample is absent).
@@ -41,10 +45,11 @@ git-ignored ``.wheels/`` folder named in the run's ``carry`` (64 MiB in all, 10 
 antlr4-python3-runtime (built with ``pip wheel``: it has no wheel on PyPI) hdbscan kiss-icp pypatchworkpp pebble and
 kiss-icp's pydantic pydantic-core pydantic-settings python-dotenv annotated-types typing-inspection typing-extensions
 natsort pyquaternion (``pip download --no-deps --only-binary=:all: --python-version 3.12 ...``); this script
-installs ``.wheels/*.whl`` first where the folder exists (``--no-index --no-deps``). Two do not fit the carry:
-``open3d-cpu`` (99 MB; the ego motion's refinement needs it: the 2026-11-27 run carried its ``cpu`` module as a
-39 MB xz archive with the X and GL libraries it links, BENCHMARKS.md issue 33) and ``onnxruntime-gpu`` (over 200 MB:
-without its CUDA provider the GPU latency steps have no ``onnx`` rows). The ``teacher`` step on the AV2 sample also
+installs ``.wheels/*.whl`` first where the folder exists (``--no-index --no-deps``). Two do not fit the carry as
+wheels: ``open3d-cpu`` (99 MB; the stream's odometry needs it: ``bash benchmarks/pack_open3d.sh`` writes
+``.wheels/open3d.tar.xz``, 41 MB, which this script unpacks and puts first on the steps' ``PYTHONPATH`` and
+``LD_LIBRARY_PATH``) and ``onnxruntime-gpu`` (over 200 MB: without its CUDA provider the GPU latency steps have no
+``onnx`` rows). The ``teacher`` step on the AV2 sample also
 needs the ``av2`` package.
 """
 
@@ -122,6 +127,20 @@ def install_wheels() -> None:
         subprocess.run([*command, *map(str, wheels)], check=False)
 
 
+def unpack_open3d(target: Path) -> None:
+    """``.wheels/open3d.tar.xz`` (``benchmarks/studies/pack_open3d.sh``: the ``open3d`` package without its
+    resources and ML ops, and a ``lib/`` of the system libraries it links) unpacked into ``target``, which then
+    leads ``PYTHONPATH`` and ``LD_LIBRARY_PATH`` of every step; nothing where the archive is absent."""
+    archive = ROOT / ".wheels" / "open3d.tar.xz"
+    if not archive.is_file():
+        return
+    if not (target / "open3d").is_dir():
+        target.mkdir(parents=True, exist_ok=True)
+        subprocess.run(["tar", "-xJf", str(archive), "-C", str(target)], check=True)
+    for variable, path in (("PYTHONPATH", target), ("LD_LIBRARY_PATH", target / "lib")):
+        os.environ[variable] = os.pathsep.join(filter(None, (str(path), os.environ.get(variable))))
+
+
 def gpu_backends() -> str:
     """The latency steps' backends on a GPU: eager and eager bf16, and ``onnx`` where ONNX Runtime has its CUDA
     provider (``onnxruntime-gpu``; its CPU provider's rows would time the CPU, the paper model's at seconds a call)."""
@@ -147,7 +166,7 @@ def steps(args) -> list[Step]:
         f"data.val={labels / 'val'}",
         *trainer,
         *length,
-        "export.formats=[onnx]",
+        "export.formats=[onnx,pt2]",
         "trainer.enable_progress_bar=false",
         f"data.workers={0 if smoke else 4}",
     ]
@@ -196,6 +215,13 @@ def steps(args) -> list[Step]:
     else:
         stream += ["--regimes", "streamed,given", "--device", "cuda", "--backends", on_gpu, "--passes", "34"]
     result.append(Step(out, "latency_stream", stream, cpus=2))
+    export = args.stream_export or out / "train_small" / "export"
+    cli = ["-m", "benchmarks.bench_student_latency", "--mode", "cli", "--export", str(export), "--threads", "2"]
+    if smoke:
+        cli += ["--device", "cpu", "--backends", "pt2", "--passes", "1", "--scans", "kitti"]
+    else:
+        cli += ["--device", "cuda", "--backends", "pt2", "--passes", "2", "--scans", "kitti,av2,synthetic"]
+    result.append(Step(out, "latency_cli", cli, cpus=2))
     teacher = ["-m", "benchmarks.teacher_backends", "--json", str(out / "teacher.json")]
     if smoke:
         teacher += ["--pairs", "1", "--teacher", "icp.max_points=300", "--teacher", "icp.max_iter=3"]
@@ -261,7 +287,7 @@ def report(args, seconds: dict, failed: list[str]) -> str:
             for ref in ("icpflow", "ego")
         ]
         lines.append(f"| {method} | " + " | ".join(cells + ratios) + " |")
-    for name in ("latency_paper", "latency_small", "latency_stream", "teacher"):
+    for name in ("latency_paper", "latency_small", "latency_stream", "latency_cli", "teacher"):
         lines += ["", f"## {name}", "", *table_lines(out / "logs" / f"{name}.log")]
     return "\n".join(lines) + "\n"
 
@@ -278,6 +304,9 @@ def main(argv=None) -> int:
         "--smoke", action="store_true", help="tiny sizes on the CPU: every step runs, in about a minute"
     )
     parser.add_argument("--steps", default=None, help="comma-separated step names to run (default: all)")
+    parser.add_argument(
+        "--stream-export", type=Path, help="the export latency_cli streams with (default: train_small's own)"
+    )
     args = parser.parse_args(argv)
     if importlib.util.find_spec("benchmarks") is None:  # the report reads the scores through benchmarks.student_report
         parser.error("run from the checkout's root as: python3 -m benchmarks.gpu_run ...")
@@ -286,6 +315,7 @@ def main(argv=None) -> int:
     args.out = args.out.resolve()
     if not args.smoke:
         install_wheels()
+        unpack_open3d(args.out / "open3d")
     seconds, failed = {}, []
     chosen = steps(args)
     if args.steps:
