@@ -125,7 +125,7 @@ MODES = {
     },
     "refine": {"export": None, "runs": 20, "warmup": 3, "scans": "kitti,av2"},
     "cli": {
-        "export": None, "device": "cpu", "threads": 2, "passes": 3, "scans": "kitti,av2,synthetic",
+        "export": None, "device": "cpu", "threads": 0, "passes": 3, "scans": "kitti,av2,synthetic",
         "backends": "onnxruntime",
     },
 }  # fmt: skip
@@ -538,7 +538,8 @@ def cli(args) -> None:
                 for run in range(args.passes):
                     out = Path(tmp) / f"out_{name}_{runtime}_{refine}_{run}"
                     command = [sys.executable, "-m", "fastflow3d.inference.cli", args.export, str(scans)]
-                    command += ["--out", str(out), *options, "--threads", str(args.threads)]
+                    command += ["--out", str(out), *options]
+                    command += ["--threads", str(args.threads)] if args.threads else []
                     if runtime == "pt2":  # the torch.export program, on --device
                         command += ["--backend", "pt2", "--device", args.device]
                     else:
@@ -561,8 +562,9 @@ def cli(args) -> None:
             f"| {1 / median:.1f} | {1 / p90:.1f} |"
         )
     gpu = f"; pt2 on {torch.cuda.get_device_name()}" if args.device == "cuda" else ""
+    threads = f"{args.threads} threads" if args.threads else "the CLI's threads"
     print(
-        f"{args.passes} runs each, {args.threads} threads, {len(os.sched_getaffinity(0))} usable CPUs{gpu}; "
+        f"{args.passes} runs each, {threads}, {len(os.sched_getaffinity(0))} usable CPUs{gpu}; "
         f"load average {os.getloadavg()[0]:.2f}; {cpu_name()}"
     )
 
@@ -575,7 +577,9 @@ def main() -> None:
     parser.add_argument("--set", nargs="*", metavar="KEY=VALUE", help="more model.<key> overrides (pair, stream)")
     parser.add_argument("--export", help="a trained student's export directory (or .ckpt) (refine, cli)")
     parser.add_argument("--device", choices=("cpu", "cuda"), help="where the network runs (pair, stream; cli: pt2)")
-    parser.add_argument("--threads", type=int, help="torch, ONNX Runtime and OpenVINO threads (default 2)")
+    parser.add_argument(
+        "--threads", type=int, help="torch, ONNX Runtime and OpenVINO threads (default 2; cli: the CLI's default)"
+    )
     parser.add_argument("--runs", type=int, help="timed calls (default 20; pair, refine)")
     parser.add_argument("--warmup", type=int, help="calls before (default 3; pair, refine)")
     parser.add_argument(

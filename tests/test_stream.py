@@ -4,6 +4,7 @@ is exact on the synthetic world; every bad stream (a gap, a skipped scan, time g
 track, another frame) is one warning and never a silent wrong flow, and the other frames keep theirs."""
 
 import json
+import os
 import re
 import warnings
 from pathlib import Path
@@ -13,7 +14,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from fastflow3d.inference.predictor import Predictor
-from fastflow3d.inference.stream import FlowStream, StreamWarning
+from fastflow3d.inference.stream import FlowStream, StreamWarning, overlap_threads
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
 
@@ -330,3 +331,34 @@ def test_eval_student_stream_refine_is_the_refined_stream(tiny_student):
         step = stream.push(pair.pc1)
         assert step.prediction.refined is not None
         np.testing.assert_allclose(method(pair, index), step.prediction.flow, atol=1e-6)
+
+
+def test_infer_stream_gives_its_network_the_cores_but_one(tiny_student, moving, tmp_path, monkeypatch):
+    """The stream overlaps each network with the next scan's steps: by default the network runs on one core fewer
+    than the process may use (at least one), beside them; --threads overrides it, and a pair keeps every core."""
+    from fastflow3d.inference import predictor
+    from fastflow3d.inference.cli import main as infer_main
+
+    asked = []
+    load = predictor.Predictor.load.__func__
+
+    def recording_load(cls, *args, **kwargs):
+        asked.append(kwargs.get("threads"))
+        return load(cls, *args, **kwargs)
+
+    monkeypatch.setattr(predictor.Predictor, "load", classmethod(recording_load))
+    _, scans = moving
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for k, scan in enumerate(scans[:3]):
+        np.save(folder / f"{k:06d}.npy", scan)
+    for cores, expected in (({0, 1, 2, 3}, 3), ({0}, 1)):
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid, cores=cores: cores, raising=False)
+        assert overlap_threads() == expected
+        assert infer_main([str(tiny_student), str(folder), "--out", str(tmp_path / f"out{expected}")]) == 0
+        assert asked[-1] == expected
+    assert infer_main([str(tiny_student), str(folder), "--out", str(tmp_path / "given"), "--threads", "2"]) == 0
+    assert asked[-1] == 2
+    pair = [str(folder / "000000.npy"), str(folder / "000001.npy"), "--out", str(tmp_path / "pair.npz")]
+    assert infer_main([str(tiny_student), *pair]) == 0
+    assert asked[-1] is None  # a pair: the engine's default, every usable core

@@ -92,7 +92,11 @@ def parse_args(argv):
         choices=("onnxruntime", "openvino"),
         help="CPU engine for the ONNX file (fastflow3d.artifact.engines)",
     )
-    parser.add_argument("--threads", type=int, help="inference threads of --runtime (default: the usable cores)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        help="inference threads of --runtime (default: the usable cores; a stream: one fewer, for its own steps)",
+    )
     parser.add_argument(
         "--precision",
         choices=PRECISIONS,
@@ -228,7 +232,7 @@ def infer(args) -> tuple[Path, Path | None]:
 
 def infer_stream(args) -> tuple[Path, int, int]:
     """Stream mode (module docstring): returns the output folder, the flows written and the scans read."""
-    from fastflow3d.inference.stream import FlowStream
+    from fastflow3d.inference.stream import FlowStream, overlap_threads
     from icpflow.console import Progress
 
     if args.poses is not None or args.ego is not None:
@@ -238,6 +242,8 @@ def infer_stream(args) -> tuple[Path, int, int]:
     if out.suffix in (".npz", ".npy"):
         raise ValueError(f"{out}: --out of a stream is a folder (one .npz per pair)")
     refuse_input_as_output(args.rerun, [*files, args.model, args.metadata])
+    if args.threads is None:
+        args.threads = overlap_threads()
     predictor = load_predictor(args)
     manifest = stream_manifest(args, files)
     claim_output_folder(out, manifest, files)

@@ -25,7 +25,9 @@ Each case is one :class:`StreamWarning`; the other frames keep their flow.
 the next scan (its ground and odometry step; the refinement of a pair runs beside the network of the next). The
 steps are the same, in the same order, one push late: :meth:`FlowStream.push` returns the step of the scan pushed
 before (None for the first) and :meth:`FlowStream.flush` the last one. A caller that reads its scans from files
-(``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps ``overlap=False``.
+(``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps ``overlap=False``. The
+network then runs best on one core fewer than the process has (:func:`overlap_threads`, the CLI's default: the
+Predictor's ``threads``).
 """
 
 from __future__ import annotations
@@ -36,11 +38,19 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
+from fastflow3d.artifact.engines import default_threads
 from fastflow3d.inference.prediction import Prediction, PredictorWarning, as_points
 from fastflow3d.inference.predictor import Predictor, scans_frame_ego
 from fastflow3d.network.contract import PreparedPair
 from icpflow.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
 from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
+
+
+def overlap_threads() -> int:
+    """The network's threads in an overlapped stream: the usable cores but the one that runs the stream's own steps
+    (ground, odometry, input and output) beside it. On 2 cores one network thread is quicker per frame than two
+    that contend with those steps (int8 on KITTI: 72.6 against 87.8 ms; BENCHMARKS.md, issue 44)."""
+    return max(1, default_threads() - 1)
 
 
 class StreamWarning(PredictorWarning):

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from fastflow3d.network.model import compensate
-from fastflow3d.network.voxelize import Grid, pillar_ids
+from fastflow3d.network.voxelize import Grid, in_grid
 from icpflow.errors_and_signals import one_line
 from icpflow.preprocess import VERSION as PREPROCESSING_VERSION
 from icpflow.preprocess import Preprocessing, PreprocessingError, lift_points, lift_transform
@@ -89,15 +89,14 @@ class InputContract:
     # ------------------------------------------------------------------------------------------------ rows
     def network_mask(self, points, ground=None):
         """(N,) bool: the rows of (N, 3) ``points`` (pc1, or pc0 already compensated; numpy or torch, any number of
-        samples concatenated) that the network sees: inside the grid (``fastflow3d.network.voxelize.pillar_ids``, the
+        samples concatenated) that the network sees: inside the grid (``fastflow3d.network.voxelize.in_grid``, the
         network's own test) and, with ``remove_ground``, not in the (N,) bool ``ground``. Same type as ``points``."""
         as_numpy = isinstance(points, np.ndarray)
         tensor = torch.from_numpy(points) if as_numpy else points
         if self.grid is None:
             inside = torch.ones(len(tensor), dtype=torch.bool, device=tensor.device)
         else:
-            batch = torch.zeros(len(tensor), dtype=torch.int64, device=tensor.device)
-            inside = pillar_ids(tensor, batch, self.grid, 1)[1]
+            inside = in_grid(tensor, self.grid)
         if self.remove_ground and ground is not None:
             inside &= ~(torch.from_numpy(np.asarray(ground, bool)) if as_numpy else ground)
         return inside.numpy() if as_numpy else inside
