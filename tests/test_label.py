@@ -22,14 +22,14 @@ from omegaconf import OmegaConf
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.frames import FramePairError
 from icpflow.labelling.cli import label
-from icpflow.labelling.executors import available_cores
 from icpflow.labelling.job import LabelJob
 from icpflow.labelling.records import DIED, write_shard_and_record
-from icpflow.labelling.sample import label_sample, thread_limit
+from icpflow.labelling.sample import label_sample
 from icpflow.shards import ShardDataset
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.config import teacher_config
 from icpflow.teacher.long_horizon import long_horizon_flow
+from icpflow.threads import available_cores, thread_limit
 
 from helpers.labelling import (
     READER,

@@ -7,6 +7,7 @@ import json
 import os
 import re
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -362,3 +363,48 @@ def test_infer_stream_gives_its_network_the_cores_but_one(tiny_student, moving, 
     pair = [str(folder / "000000.npy"), str(folder / "000001.npy"), "--out", str(tmp_path / "pair.npz")]
     assert infer_main([str(tiny_student), *pair]) == 0
     assert asked[-1] is None  # a pair: the engine's default, every usable core
+
+
+def test_an_overlapped_stream_runs_its_own_steps_on_one_thread(tiny_student, moving, monkeypatch):
+    """overlap=True: the stream's own steps (ground, odometry, refinement) run with numba and torch on one thread
+    of the calling thread (their idle pool threads spun on the network's core); the network keeps its engine's
+    threads, and the caller's settings come back after each push. A plain stream leaves them as they are."""
+    import numba
+    import torch
+
+    from fastflow3d.inference import predictor as predictor_module
+
+    seen = {"odometry": [], "refine": [], "network": []}
+    predictor = Predictor.load(tiny_student, refine=True)
+    refine_residual, network = predictor_module.refine_residual, predictor.run_network
+
+    def threads(name, call):
+        def recorded(*args, **kwargs):
+            seen[name].append(settings())
+            return call(*args, **kwargs)
+
+        return recorded
+
+    monkeypatch.setattr(predictor_module, "refine_residual", threads("refine", refine_residual))
+    monkeypatch.setattr(predictor, "run_network", threads("network", network))
+
+    def settings():
+        return numba.get_num_threads(), torch.get_num_threads()
+
+    before = settings()
+    with ThreadPoolExecutor(1) as other:
+        elsewhere = other.submit(settings).result()  # what a new thread has (the stream's worker is one)
+    assert before[0] > 1 or numba.config.NUMBA_NUM_THREADS == 1  # a 2-core CI machine: 2
+    _, scans = moving
+    for overlap in (True, False):
+        stream = FlowStream(predictor, overlap=overlap)
+        monkeypatch.setattr(stream.odometry, "step", threads("odometry", stream.odometry.step))
+        for scan in scans[:4]:
+            stream.push(scan)
+            assert settings() == before
+        stream.flush()
+        expected = (1, 1) if overlap else before
+        for name in ("odometry", "refine"):
+            assert seen[name] and set(seen[name]) == {expected}, (overlap, name, seen[name])
+        assert set(seen["network"]) == {elsewhere if overlap else before}, seen["network"]  # the thread's own
+        seen = {name: [] for name in seen}

@@ -24,7 +24,6 @@ on average). The Predictor, the export's parity check and the latency benchmark 
 from __future__ import annotations
 
 import importlib.util
-import os
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +34,7 @@ from fastflow3d.artifact.checkpoint import load_student
 from fastflow3d.artifact.file_format import INPUT_NAMES, LEGACY_FORMATS, OUTPUT_NAMES, ArtifactError, SingleSampleNet
 from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING, check_pt2
 from icpflow.errors_and_signals import one_line
+from icpflow.threads import available_cores
 
 RUNTIMES = ("onnxruntime", "openvino")
 PRECISIONS = ("f32", "bf16", "int8")
@@ -42,14 +42,6 @@ PRECISIONS = ("f32", "bf16", "int8")
 PRECISION_RUNTIMES = {"bf16": "openvino", "int8": "onnxruntime"}
 #: metres; bfloat16 keeps 8 bits of mantissa, so a residual of a few metres is off by up to about 2 cm
 BF16_TOLERANCE = 0.05
-
-
-def default_threads() -> int:
-    """The cores this process may use (``os.sched_getaffinity`` where the OS has it)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - macOS, Windows
-        return max(1, os.cpu_count() or 1)
 
 
 def cpu_only() -> bool:
@@ -170,7 +162,7 @@ def _runtime_network(path: Path, runtime: str, threads: int | None, precision: s
         raise ArtifactError(
             f"{path}: precision {precision!r} is not available with {runtime} (f32; bf16: openvino; int8: onnxruntime)"
         )
-    threads = threads or default_threads()
+    threads = threads or available_cores()
     if runtime == "openvino":
         return OpenVinoNetwork(path, threads, precision)
     return OnnxRuntimeNetwork(path, ["CPUExecutionProvider"], ort_session_options(threads))

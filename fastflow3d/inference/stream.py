@@ -27,7 +27,9 @@ steps are the same, in the same order, one push late: :meth:`FlowStream.push` re
 before (None for the first) and :meth:`FlowStream.flush` the last one. A caller that reads its scans from files
 (``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps ``overlap=False``. The
 network then runs best on one core fewer than the process has (:func:`overlap_threads`, the CLI's default: the
-Predictor's ``threads``).
+Predictor's ``threads``), and the stream's own steps on one thread (numba, torch, BLAS and OpenMP limited while
+they run: their idle threads spun on the network's core; 2 cores, synthetic stream, int8: 82 -> 74 ms a frame,
+104 -> 89 ms refined).
 """
 
 from __future__ import annotations
@@ -38,19 +40,19 @@ from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
-from fastflow3d.artifact.engines import default_threads
 from fastflow3d.inference.prediction import Prediction, PredictorWarning, as_points
 from fastflow3d.inference.predictor import Predictor, scans_frame_ego
 from fastflow3d.network.contract import PreparedPair
 from icpflow.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
 from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
+from icpflow.threads import available_cores, thread_limit
 
 
 def overlap_threads() -> int:
     """The network's threads in an overlapped stream: the usable cores but the one that runs the stream's own steps
     (ground, odometry, input and output) beside it. On 2 cores one network thread is quicker per frame than two
     that contend with those steps (int8 on KITTI: 72.6 against 87.8 ms; BENCHMARKS.md, issue 44)."""
-    return max(1, default_threads() - 1)
+    return max(1, available_cores() - 1)
 
 
 class StreamWarning(PredictorWarning):
@@ -130,6 +132,7 @@ class FlowStream:
         self.overlap = bool(overlap)
         self._pending: tuple[_Staged, Future | None] | None = None  # overlap: the last push, its network running
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="flowstream") if self.overlap else None
+        self._pools = None  # overlap: the libraries' thread pools, found once (icpflow.threads.thread_limit)
 
     def reset(self) -> None:
         """Start again: the next scan begins a new stream (height frame, odometry, trajectory). With ``overlap``, a
@@ -149,23 +152,37 @@ class FlowStream:
     def push(self, scan, timestamp: float | None = None, source: str | None = None) -> StreamStep | None:
         """Take the next scan (N, 3) (``timestamp`` in seconds, ``source`` its name); see :class:`StreamStep`. With
         ``overlap``: the step of the scan pushed before this one (None after the first push; :meth:`flush`)."""
-        staged = self._stage(scan, timestamp, source)
         if not self.overlap:
+            staged = self._stage(scan, timestamp, source)
             return self._complete(
                 staged, self.predictor.run_network(staged.pair) if self._needs_network(staged) else None
             )
-        done, self._pending = self._pending, None
-        output = None if done is None or done[1] is None else done[1].result()  # the earlier pair's network
-        future = self._worker.submit(self.predictor.run_network, staged.pair) if self._needs_network(staged) else None
-        self._pending = (staged, future)
-        return None if done is None else self._complete(done[0], output)
+        with self._own_steps():
+            staged = self._stage(scan, timestamp, source)
+            done, self._pending = self._pending, None
+            output = None if done is None or done[1] is None else done[1].result()  # the earlier pair's network
+            network = self.predictor.run_network
+            future = self._worker.submit(network, staged.pair) if self._needs_network(staged) else None
+            self._pending = (staged, future)
+            return None if done is None else self._complete(done[0], output)
 
     def flush(self) -> StreamStep | None:
         """With ``overlap``: the step of the last pushed scan (None when there is none left); without, None."""
         if self._pending is None:
             return None
         (staged, future), self._pending = self._pending, None
-        return self._complete(staged, None if future is None else future.result())
+        with self._own_steps():
+            return self._complete(staged, None if future is None else future.result())
+
+    def _own_steps(self):
+        """With ``overlap``: the context of the stream's own steps (ground, odometry, input, output, refinement) on
+        this thread: one thread each for numba, torch, BLAS and OpenMP, whose idle pool threads would otherwise spin on
+        the core the network runs on (``icpflow.threads``; the network's engine keeps its own threads)."""
+        from threadpoolctl import ThreadpoolController
+
+        if self._pools is None:
+            self._pools = ThreadpoolController()
+        return thread_limit(1, controller=self._pools)
 
     @staticmethod
     def _needs_network(staged: _Staged) -> bool:

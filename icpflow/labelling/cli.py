@@ -13,7 +13,6 @@ from omegaconf import DictConfig, OmegaConf
 from icpflow.atomic import WriteError
 from icpflow.datasets.from_config import dataset_root, open_dataset
 from icpflow.errors_and_signals import Stop, one_line, stop_on_signals, stop_signum
-from icpflow.labelling.executors import available_cores
 from icpflow.labelling.job import LabelError, LabelJob
 from icpflow.labelling.plan import plan_shards
 from icpflow.labelling.run import run_labelling
@@ -21,6 +20,7 @@ from icpflow.preprocess import Preprocessing
 from icpflow.settings import check_config
 from icpflow.teacher.config import teacher_config
 from icpflow.teacher.warmup import ensure_compiled
+from icpflow.threads import available_cores
 
 #: failed samples listed at the end of a run (the rest: failures.jsonl)
 SHOWN_FAILURES = 10

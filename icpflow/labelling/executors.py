@@ -25,14 +25,6 @@ from icpflow.labelling.sample import label_sample
 PARENT_CHECK_S = 0.2
 
 
-def available_cores() -> int:
-    """Cores this process may run on (its CPU affinity: SLURM and cgroup allocations), else ``os.cpu_count()``."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 def in_process(job: LabelJob, indices: list[int], threads: int) -> Iterator[dict]:
     """The samples labelled one after the other in this process."""
     for index in indices:

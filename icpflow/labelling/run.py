@@ -9,12 +9,13 @@ import time
 from dataclasses import dataclass, field
 
 from icpflow.datasets.base import sample_id_or_index
-from icpflow.labelling.executors import available_cores, in_process, local_pool, ray_tasks
+from icpflow.labelling.executors import in_process, local_pool, ray_tasks
 from icpflow.labelling.job import LabelJob
 from icpflow.labelling.records import died, finished, prepare, retried, write_manifests, write_shard_and_record
 from icpflow.labelling.trajectory import drive_trajectory
 from icpflow.shards.reader import read_shard_samples
 from icpflow.shards.schema import shard_name
+from icpflow.threads import available_cores
 
 
 @dataclass

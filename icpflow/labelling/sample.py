@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
 
 import numpy as np
 
@@ -12,30 +11,7 @@ from icpflow.datasets.base import sample_id_or_index
 from icpflow.errors_and_signals import Stop
 from icpflow.frames import FramePairError
 from icpflow.teacher.long_horizon import SampleFlow, teacher_on_sample
-
-
-@contextmanager
-def thread_limit(threads: int, torch_too: bool = False):
-    """Run the block with numba, BLAS/OpenMP and (``torch_too``) torch on at most ``threads`` threads each;
-    the previous numba and torch settings come back afterwards."""
-    import numba
-    from threadpoolctl import threadpool_limits
-
-    numba_before = numba.get_num_threads()
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-    torch_before = None
-    if torch_too:
-        import torch
-
-        torch_before = torch.get_num_threads()
-        torch.set_num_threads(threads)
-    try:
-        with threadpool_limits(threads):
-            yield
-    finally:
-        numba.set_num_threads(numba_before)
-        if torch_before is not None:
-            torch.set_num_threads(torch_before)
+from icpflow.threads import thread_limit
 
 
 def build_teacher(cfg, threads: int):
