@@ -184,3 +184,26 @@ def test_ground_surface_left_in_the_scans_joins_no_objects_and_stays_out_of_icp(
     nothing = np.zeros(len(pc0), bool)
     same, same_replaced = refine_residual(pc0, student, pc1, cfg, nothing, nothing)
     assert np.array_equal(same, joined) and np.array_equal(same_replaced, joined_replaced)
+
+
+def test_the_targets_are_searched_among_the_points_of_the_cells_the_boxes_touch():
+    """refine._covered: every point inside a candidate's box is kept (so its targets, and their order along x, are
+    those of the whole scan), and a point far from every box is not."""
+    from fastflow3d.inference.refine import _covered
+
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-40, 40, (20000, 3)).astype(np.float32)
+    lows = rng.uniform(-40, 30, (12, 3))
+    highs = lows + rng.uniform(0.2, 8, (12, 3))
+    lows[:2, 2], highs[:2, 2] = -50, 50  # two boxes of every height: many points inside
+    kept = _covered(points, lows, highs, 0.5)
+    assert np.all(np.diff(kept) > 0)
+    inside = np.zeros(len(points), bool)
+    for low, high in zip(lows, highs):
+        inside |= np.all((points >= low) & (points <= high), axis=1)
+    assert inside.sum() > 100 and set(np.flatnonzero(inside)) <= set(kept)
+    gap = np.full(len(points), np.inf)  # each point's distance to the nearest box in the bird's-eye view
+    for low, high in zip(lows, highs):
+        outside = np.maximum(np.maximum(low[:2] - points[:, :2], points[:, :2] - high[:2]), 0)
+        gap = np.minimum(gap, np.linalg.norm(outside, axis=1))
+    assert np.all(gap[kept] < 0.5 * np.sqrt(2) + 1e-6) and np.any(gap > 1.0)

@@ -147,6 +147,21 @@ def components(points: np.ndarray, cell: float, occupying: np.ndarray | None = N
     return labels[cells[:, 0], cells[:, 1]].astype(np.int64) - 1, int(count)
 
 
+def _covered(points: np.ndarray, lows: np.ndarray, highs: np.ndarray, cell: float) -> np.ndarray:
+    """Indices (increasing) of the (N, 3) ``points`` in the bird's-eye-view cells (``cell`` m) that the (K, 3) boxes
+    ``lows`` .. ``highs`` touch: every point inside a box is among them (flooring is monotonic)."""
+    origin = lows[:, :2].min(axis=0)
+    first = np.floor((lows[:, :2] - origin) / cell).astype(np.int64)
+    last = np.floor((highs[:, :2] - origin) / cell).astype(np.int64)
+    covered = np.zeros(tuple(last.max(axis=0) + 1), bool)
+    for (x0, y0), (x1, y1) in zip(first, last):
+        covered[x0 : x1 + 1, y0 : y1 + 1] = True
+    cells = np.floor((points[:, :2] - origin) / cell)
+    near = np.flatnonzero(np.all((cells >= 0) & (cells < covered.shape), axis=1))
+    cells = cells[near].astype(np.int64)
+    return near[covered[cells[:, 0], cells[:, 1]]]
+
+
 def refine_residual(
     pc0: np.ndarray,
     residual: np.ndarray,
@@ -173,7 +188,7 @@ def refine_residual(
     # its cell, and one in no object's cell (the ground a moving object is joined to by) keeps the student's flow
     above0 = np.ones(len(pc0), bool) if surface0 is None else ~np.asarray(surface0, bool)
     label, count = components(pc0, cfg.cell, above0)
-    order = np.argsort(label, kind="stable")
+    order = np.argsort(label.astype(np.int16) if count < 2**15 else label, kind="stable")  # 16 bits: a radix sort
     bounds = np.searchsorted(label[order], np.arange(count + 1))
     if count == 0:
         return out, refined
@@ -184,13 +199,18 @@ def refine_residual(
     sizes = np.diff(bounds)
     means = np.add.reduceat(sorted_residual, bounds[:-1]) / sizes[:, None]
     extents = np.linalg.norm((highs - lows)[:, :2], axis=1)
-    speed = np.linalg.norm(sorted_residual, axis=1)
     chosen = [
         k
         for k in np.flatnonzero((sizes >= cfg.min_points) & (extents <= cfg.max_extent))
-        if np.median(speed[bounds[k] : bounds[k + 1]]) >= cfg.min_motion
+        if np.median(np.linalg.norm(sorted_residual[bounds[k] : bounds[k + 1]], axis=1)) >= cfg.min_motion
     ]
-    by_x = np.argsort(pc1[:, 0], kind="stable")  # pc1 sorted along x: each candidate's targets from one slice
+    if not chosen:
+        return out, refined
+    # pc1 sorted along x (each candidate's targets from one slice), of the points in the cells the candidates' boxes
+    # cover only: the same targets in the same order as the whole scan sorted, at a fraction of the sort
+    shifted = means[chosen] + np.array([[-cfg.margin], [cfg.margin]])[:, None]  # (2, K, 3): the boxes' two shifts
+    by_x = _covered(pc1, lows[chosen] + shifted[0], highs[chosen] + shifted[1], cfg.cell)
+    by_x = by_x[np.argsort(pc1[by_x, 0], kind="stable")]
     pc1_x, pc1_sorted = pc1[by_x, 0], np.asarray(pc1[by_x], np.float64)
     registered0 = above0[order]
     registered1 = np.ones(len(pc1), bool) if surface1 is None else ~np.asarray(surface1, bool)[by_x]
