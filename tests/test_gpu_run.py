@@ -53,8 +53,8 @@ def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
     assert "| stream | points | regime | engine |" in report  # the stream's table (issue 33.7), rows with the data
     if (DATA / "kitti_hdl64_scans").is_dir():
         assert report.count("| kitti | 124668 | streamed | eager |") == 1
-        for refined in ("no", "yes"):  # the stream as a user runs it, the export's pt2 network (issue 44.6)
-            assert f"| kitti | 6 | pt2 | {refined} |" in report, refined
+        for refined in ("no", "yes"):  # the stream as a user runs it (issue 44.6; on a GPU: its pt2 network)
+            assert f"| kitti | 6 | onnxruntime | {refined} |" in report, refined
 
 
 def test_steps_picks_steps_and_refuses_an_unknown_one(tmp_path):
