@@ -3,7 +3,8 @@ thread pools of numba, BLAS, OpenMP and torch for a block of work (:func:`thread
 
 A labelling worker runs the teacher on its share of the cores; a stream that overlaps its network with its own steps
 (``fastflow3d.inference.stream``) runs those steps on one thread, so that their thread pools do not spin on the core
-the network runs on (issue 44: 82 -> 74 ms per frame of the synthetic stream, 104 -> 89 ms refined, 2 cores).
+the network runs on (issue 44, 2 cores: 86-89 -> 74-76 ms per frame of the synthetic stream, 106-120 -> 94-102 ms
+refined).
 """
 
 from __future__ import annotations

@@ -28,8 +28,8 @@ before (None for the first) and :meth:`FlowStream.flush` the last one. A caller 
 (``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps ``overlap=False``. The
 network then runs best on one core fewer than the process has (:func:`overlap_threads`, the CLI's default: the
 Predictor's ``threads``), and the stream's own steps on one thread (numba, torch, BLAS and OpenMP limited while
-they run: their idle threads spun on the network's core; 2 cores, synthetic stream, int8: 82 -> 74 ms a frame,
-104 -> 89 ms refined).
+they run: their idle threads spun on the network's core; 2 cores, synthetic stream, int8: 86-89 -> 74-76 ms a
+frame, 106-120 -> 94-102 ms refined).
 """
 
 from __future__ import annotations
