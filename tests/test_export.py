@@ -524,6 +524,10 @@ def test_int8_is_refused_in_one_line_where_it_cannot_be_made_or_run(
     assert err.count("\n") == 1 and "no int8 network" in err
     with pytest.raises(ArtifactError, match="precision 'int8' is not available with openvino"):
         load_network(int8_export / INT8_FILE_NAME, "onnx", runtime="openvino", threads=1, precision="int8")
+    # the export's int8 file given alone, without its precision: the line says which precision runs it
+    assert infer_main([str(int8_export / INT8_FILE_NAME), *scans, "--out", str(tmp_path / "y.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "this is its export's int8 network; run it with precision 'int8'" in err
 
 
 def test_eval_scores_the_int8_network(int8_export, pairs):

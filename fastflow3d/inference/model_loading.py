@@ -74,6 +74,11 @@ def open_model(
             metadata = network_metadata(model, dict(cfg.get("model") or {}), path, contract)
         else:
             metadata = sibling_metadata(path, kind)
+            if not metadata and kind == "onnx" and sibling_metadata(path, INT8):
+                raise PredictorError(
+                    f"{path}: this is its export's int8 network; run it with precision 'int8' "
+                    "(fastflow3d-infer --precision int8, eval.py precision=int8)"
+                )
             network = load_network(path, kind, device)
     return network, kind, metadata
 
