@@ -101,6 +101,7 @@ from icpflow.geometry import residual_to_full
 from icpflow.preprocess import Preprocessing, lift_points, lift_transform
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.config import ICPFlowConfig
+from icpflow.threads import available_cores
 
 BACKENDS = ("eager", "eager-bf16", "compile", "pt2", "onnx", "onnx-tuned", "onnx-int8", "openvino", "openvino-bf16")
 #: teacher settings of each scan's dataset (ground segmentation and ego motion in the ``estimated`` regime)
@@ -564,7 +565,7 @@ def cli(args) -> None:
     gpu = f"; pt2 on {torch.cuda.get_device_name()}" if args.device == "cuda" else ""
     threads = f"{args.threads} threads" if args.threads else "the CLI's threads"
     print(
-        f"{args.passes} runs each, {threads}, {len(os.sched_getaffinity(0))} usable CPUs{gpu}; "
+        f"{args.passes} runs each, {threads}, {available_cores()} usable CPUs{gpu}; "
         f"load average {os.getloadavg()[0]:.2f}; {cpu_name()}"
     )
 

@@ -128,7 +128,7 @@ def install_wheels() -> None:
 
 
 def unpack_open3d(target: Path) -> None:
-    """``.wheels/open3d.tar.xz`` (``benchmarks/studies/pack_open3d.sh``: the ``open3d`` package without its
+    """``.wheels/open3d.tar.xz`` (``benchmarks/pack_open3d.sh``: the ``open3d`` package without its
     resources and ML ops, and a ``lib/`` of the system libraries it links) unpacked into ``target``, which then
     leads ``PYTHONPATH`` and ``LD_LIBRARY_PATH`` of every step; nothing where the archive is absent."""
     archive = ROOT / ".wheels" / "open3d.tar.xz"
