@@ -73,9 +73,9 @@ def ego_settings(cfg) -> EgoMotionConfig:
     return Preprocessing.from_teacher(cfg).ego_motion
 
 
-def kiss_odometry(cfg):
+def kiss_odometry(cfg, threads: int = 0):
     """A fresh ``kiss_icp.kiss_icp.KissICP`` with ``cfg``'s ego-motion settings (max range, voxel size), deskewing off
-    (no per-point timestamps)."""
+    (no per-point timestamps), its registration on ``threads`` threads (0: every core)."""
     from kiss_icp.config import load_config
     from kiss_icp.kiss_icp import KissICP
 
@@ -84,6 +84,7 @@ def kiss_odometry(cfg):
     settings = ego_settings(cfg)
     config.data.max_range = float(settings.kiss_max_range)
     config.mapping.voxel_size = float(settings.kiss_voxel_size)
+    config.registration.max_num_threads = int(threads)
     return KissICP(config)
 
 
@@ -106,10 +107,11 @@ class TargetPlanes:
     the answer keeps its correspondences among these; computing normals for the whole scan was the odometry's
     costliest step, BENCHMARKS.md, issue 33)."""
 
-    def __init__(self, points: np.ndarray):
+    def __init__(self, points: np.ndarray, workers: int = -1):
+        """``points`` (M, 3); ``workers``: the threads of each query (-1: every core)."""
         from scipy.spatial import cKDTree
 
-        self.points = np.asarray(points, np.float64)
+        self.points, self.workers = np.asarray(points, np.float64), int(workers)
         self.tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)  # built once: quicker so
 
     def near(self, moved: np.ndarray | None = None):
@@ -123,7 +125,9 @@ class TargetPlanes:
 
         centres = self.points if moved is None else moved
         with signals_held():  # a stop inside the threaded query would free its memory under its threads
-            distance, neighbours = self.tree.query(centres, k=min(NORMAL_NEIGHBOURS, len(self.points)), workers=-1)
+            distance, neighbours = self.tree.query(
+                centres, k=min(NORMAL_NEIGHBOURS, len(self.points)), workers=self.workers
+            )
         neighbours, distance = neighbours.reshape(len(centres), -1), distance.reshape(len(centres), -1)
         nearest, first, back = np.unique(neighbours[:, 0], return_index=True, return_inverse=True)
         normals = plane_normals(self.points[neighbours[first]])
@@ -166,10 +170,10 @@ class _Scan:
             self.whole = np.concatenate([np.asarray(self.cloud.points), ground])
         return self.whole
 
-    def planes(self) -> TargetPlanes:
-        """:meth:`whole_cloud` as a refinement's target, built once."""
+    def planes(self, workers: int = -1) -> TargetPlanes:
+        """:meth:`whole_cloud` as a refinement's target (its queries on ``workers`` threads), built once."""
         if self.target is None:
-            self.target = TargetPlanes(self.whole_cloud())
+            self.target = TargetPlanes(self.whole_cloud(), workers)
         return self.target
 
 
@@ -178,11 +182,13 @@ class Odometry:
 
     :meth:`step` returns None for the first scan after a start or :meth:`reset`, else an :class:`OdometryStep`.
     ``min_fitness``: under it a step is estimated afresh from its two scans. ``refine=False``: KISS-ICP alone (the
-    fitness is still measured)."""
+    fitness is still measured). ``threads``: KISS-ICP's and the k-d trees' threads (0: every core; a stream that runs
+    its network beside the odometry gives it 1)."""
 
-    def __init__(self, cfg, min_fitness: float = 0.5, refine: bool = True, voxel: float = VOXEL):
+    def __init__(self, cfg, min_fitness: float = 0.5, refine: bool = True, voxel: float = VOXEL, threads: int = 0):
         self.settings = ego_settings(cfg)
         self.min_fitness, self.refine, self.voxel = float(min_fitness), bool(refine), float(voxel)
+        self.threads = int(threads)
         self.reset()
 
     def reset(self) -> None:
@@ -197,7 +203,7 @@ class Odometry:
         ground = np.zeros(len(points), bool) if ground is None else np.asarray(ground, bool)
         kept = points[~ground] if (~ground).sum() >= MIN_EGO_POINTS else points
         if self._kiss is None:
-            self._kiss = kiss_odometry(self.settings)
+            self._kiss = kiss_odometry(self.settings, self.threads)
         self._kiss.register_frame(kept, np.zeros(0))
         cloud = voxel_cloud(kept, self.voxel)
         source = cloud.uniform_down_sample(max(1, len(cloud.points) // SOURCE_POINTS))
@@ -214,7 +220,7 @@ class Odometry:
         if fitness >= self.min_fitness:
             return OdometryStep(transform, fitness)
         if self._steps > 1:  # the two scans alone, a new track from this pair
-            self._kiss = kiss_odometry(self.settings)
+            self._kiss = kiss_odometry(self.settings, self.threads)
             self._kiss.register_frame(previous.kept, np.zeros(0))
             self._kiss.register_frame(kept, np.zeros(0))
             current.kiss_pose = np.asarray(self._kiss.last_pose, np.float64)
@@ -226,6 +232,10 @@ class Odometry:
         self.step(points, ground)  # this scan starts the new track
         return OdometryStep(None, fitness, restarted=True)
 
+    def _planes(self, scan: _Scan) -> TargetPlanes:
+        """``scan``'s whole cloud as a refinement's target, its queries on this odometry's threads."""
+        return scan.planes(self.threads or -1)
+
     def _refined(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> np.ndarray:
         """``transform`` (KISS-ICP's, centimetres off) refined point-to-plane from the previous whole scan onto this
         one (``SOURCE_POINTS``, reach twice the voxel, ``TUKEY``, ``ITERATIONS``), when ``refine``."""
@@ -233,7 +243,7 @@ class Odometry:
             return transform
         source = previous.whole_cloud()
         source = source[:: max(1, len(source) // SOURCE_POINTS)]
-        return _staged(source, current.planes(), transform, ((2 * self.voxel, TUKEY, ITERATIONS),))
+        return _staged(source, self._planes(current), transform, ((2 * self.voxel, TUKEY, ITERATIONS),))
 
     def _aligned(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> tuple[np.ndarray, float]:
         """``transform`` and its fitness (module docstring): the share of the previous scan's non-ground source points
@@ -241,7 +251,7 @@ class Odometry:
         if not len(previous.source.points) or not len(current.cloud.points):
             return transform, 0.0
         moved = transform_points(transform, np.asarray(previous.source.points))
-        distance, nearest = current.planes().tree.query(moved, distance_upper_bound=2.0 * self.voxel)
+        distance, nearest = self._planes(current).tree.query(moved, distance_upper_bound=2.0 * self.voxel)
         return transform, float(np.mean(np.isfinite(distance) & (nearest < len(current.cloud.points))))
 
     def _first_step(self, previous: _Scan, current: _Scan, start: np.ndarray) -> tuple[np.ndarray, float]:
@@ -253,12 +263,12 @@ class Odometry:
             return self._aligned(previous, current, start)
         source = previous.whole_cloud()
         source = source[:: max(1, len(source) // FIRST_SOURCE_POINTS)]
-        target = current.planes()
+        target = self._planes(current)
         transform = _staged(source, target, start)
         fit = _fit(source, target, transform)
         jump = float(np.linalg.norm((invert(start) @ transform)[:3, 3]))
         if fit < RETRY_FIT or jump > RETRY_JUMP:
-            reverse = invert(_kiss_registration(current.kept, previous.kept, self.settings))
+            reverse = invert(_kiss_registration(current.kept, previous.kept, self.settings, self.threads))
             for other in (np.eye(4), reverse):
                 refined = _staged(source, target, other)
                 refined_fit = _fit(source, target, refined)
@@ -298,9 +308,10 @@ def _fit(source: np.ndarray, target: TargetPlanes, transform: np.ndarray, width:
     return float(weight.mean())
 
 
-def _kiss_registration(points0: np.ndarray, points1: np.ndarray, cfg) -> np.ndarray:
-    """``ego1_from_ego0`` by a fresh KISS-ICP's registration of ``points1`` onto the map of ``points0``."""
-    odometry = kiss_odometry(cfg)
+def _kiss_registration(points0: np.ndarray, points1: np.ndarray, cfg, threads: int = 0) -> np.ndarray:
+    """``ego1_from_ego0`` by a fresh KISS-ICP's registration (on ``threads`` threads, 0: every core) of ``points1``
+    onto the map of ``points0``."""
+    odometry = kiss_odometry(cfg, threads)
     odometry.register_frame(np.asarray(points0, np.float64), np.zeros(0))
     odometry.register_frame(np.asarray(points1, np.float64), np.zeros(0))
     return invert(np.asarray(odometry.last_pose, np.float64))

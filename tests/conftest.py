@@ -20,9 +20,18 @@ def pytest_addoption(parser):
     )
 
 
+#: the files whose tests take longest (BENCHMARKS.md, "The test suite"), collected first: pytest-xdist's
+#: ``--dist loadfile`` (.ci/run) hands files to its workers in collection order, so these start at once and the
+#: workers end together instead of one running a long file alone at the end
+LONGEST_FIRST = ("test_gpu_run.py", "test_ddp.py", "test_faults.py", "test_faults_training.py", "test_label.py")
+
+
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``slow`` (whole processes of label.py, train.py under DDP, eval.py; trainings of many steps) are
-    skipped unless ``--run-slow`` is given: ``pytest -q`` stays a few minutes, CI runs everything."""
+    """The longest files first (``LONGEST_FIRST``; each file's tests keep their order). Tests marked ``slow`` (whole
+    processes of label.py, train.py under DDP, eval.py; trainings of many steps) are skipped unless ``--run-slow``
+    is given: ``pytest -q`` stays a few minutes, CI runs everything."""
+    first = {name: rank for rank, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: first.get(item.path.name, len(first)))
     if config.getoption("--run-slow"):
         return
     skip = pytest.mark.skip(reason="slow: run with --run-slow (as .ci/run does)")

@@ -289,7 +289,7 @@ def test_overfit_one_synthetic_pair():
     model = FastFlow3D(**{**PAPER, "x_range": (-16.0, 16.0), "y_range": (-16.0, 16.0), "cell": 1.0})
     optimiser = torch.optim.Adam(model.parameters(), lr=5e-4)  # 2e-3 diverges on this pair
     epes = []
-    for _ in range(150):
+    for _ in range(100):  # 0.023 m by then, 28 % under the bound below (150 steps: 0.021)
         pred, valid = model(*inputs)
         epes.append(torch.linalg.vector_norm(pred - target, dim=1)[valid].mean().item())
         loss = flow_loss(pred, target, inputs[1], valid, 1)

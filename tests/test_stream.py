@@ -19,6 +19,7 @@ from fastflow3d.inference.stream import FlowStream, StreamWarning, overlap_threa
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
 
+from helpers.disk import fail_fsync_after
 from helpers.drives import synthetic_drive
 
 
@@ -215,6 +216,36 @@ def test_infer_streams_a_folder_and_bridges_a_broken_scan(tiny_student, moving, 
     assert len(entities["pc0"]) == 3
 
 
+def test_a_disk_filling_up_mid_stream_is_one_line_and_keeps_the_flows_written(
+    tiny_student, moving, tmp_path, monkeypatch, capsys
+):
+    """The flows are written in a thread beside the next frame: a full disk at the second flow file is still one line
+    naming that file, exit status 2; the first flow stays whole, nothing is half-written, and the manifest does not
+    call the run complete."""
+    from fastflow3d.inference.cli import main as infer_main
+
+    _, scans = moving
+    folder, out = tmp_path / "scans", tmp_path / "flows"
+    folder.mkdir()
+    for k, scan in enumerate(scans[:5]):
+        np.save(folder / f"{k:06d}.npy", scan)
+    fail_fsync_after(monkeypatch, 4, place=out)  # the manifest's claim and the first flow (file and folder each)
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert (
+        err[-1]
+        == f"infer: {out / '000001.npz'}: cannot write (No space left on device); free space there or write elsewhere"
+    )
+    assert not [line for line in err[:-1] if "cannot write" in line or "Traceback" in line], err
+    assert sorted(path.name for path in out.iterdir()) == ["000000.npz", "stream.json"]
+    with np.load(out / "000000.npz") as first:
+        assert first["flow"].shape == scans[0].shape
+    assert not json.loads((out / "stream.json").read_text())["complete"]
+    monkeypatch.undo()  # space is freed: the same command replaces its own outputs
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 0
+    assert json.loads((out / "stream.json").read_text())["outputs"] == [f"{k:06d}.npz" for k in range(4)]
+
+
 def test_infer_stream_needs_a_folder_or_glob_of_two_scans(tiny_student, tmp_path, capsys):
     from fastflow3d.inference.cli import main as infer_main
 
@@ -403,6 +434,9 @@ def test_an_overlapped_stream_runs_its_own_steps_on_one_thread(tiny_student, mov
             stream.push(scan)
             assert settings() == before
         stream.flush()
+        # KISS-ICP's registration and the k-d trees' queries (their own threads, out of threadpoolctl's reach) too
+        assert stream.odometry._kiss.config.registration.max_num_threads == (1 if overlap else 0)
+        assert stream.odometry._previous.target.workers == (1 if overlap else -1)
         expected = (1, 1) if overlap else before
         for name in ("odometry", "refine"):
             assert seen[name] and set(seen[name]) == {expected}, (overlap, name, seen[name])

@@ -29,7 +29,8 @@ before (None for the first) and :meth:`FlowStream.flush` the last one. A caller 
 network then runs best on one core fewer than the process has (:func:`overlap_threads`, the CLI's default: the
 Predictor's ``threads``), and the stream's own steps on one thread (numba, torch, BLAS and OpenMP limited while
 they run: their idle threads spun on the network's core; 2 cores, synthetic stream, int8: 86-89 -> 74-76 ms a
-frame, 106-120 -> 94-102 ms refined).
+frame, 106-120 -> 94-102 ms refined; KISS-ICP's registration and the odometry's k-d tree queries, which run threads
+of their own, are given one by the odometry: ``Odometry(threads=1)``).
 """
 
 from __future__ import annotations
@@ -123,7 +124,10 @@ class FlowStream:
     ):
         self.predictor = predictor
         self.max_gap_s, self.check_every = float(max_gap_s), int(check_every)
-        self.odometry = Odometry(predictor.ego_config, min_fitness=min_fitness, refine=refine)
+        # overlapped: one thread for KISS-ICP and the k-d trees too, beside the network (module docstring)
+        self.odometry = Odometry(
+            predictor.ego_config, min_fitness=min_fitness, refine=refine, threads=1 if overlap else 0
+        )
         self.lift: float | None = None
         self._previous: _Scan | None = None
         self._pose = np.eye(4)

@@ -158,6 +158,8 @@ class PillarEmbedder(nn.Module):
     def forward(self, features: torch.Tensor, ids: torch.Tensor, valid: torch.Tensor, num_slots: int):
         """Pillar rows (num_slots, C) and per-point embeddings (P, C) from point features (P, 9); batch statistics
         use in-range points only."""
+        if torch.compiler.is_exporting() and not self.training and isinstance(self.norm, nn.BatchNorm1d):
+            return self.exported(features, ids, num_slots)
         h = self.linear(features)
         batch_norm = self.training and isinstance(self.norm, nn.BatchNorm1d)
         inside = int(valid.sum()) if batch_norm else 0  # training only: one host sync per step, as before
@@ -171,6 +173,17 @@ class PillarEmbedder(nn.Module):
         else:
             normed = self.norm(h)
         points = torch.relu(normed)
+        return scatter_mean(points, ids, num_slots), points
+
+    def exported(self, features: torch.Tensor, ids: torch.Tensor, num_slots: int):
+        """:meth:`forward` in evaluation as an export traces it: the BatchNorm's running statistics folded into the
+        linear layer (one per-point product instead of two passes over the (P, C) embeddings; ONNX Runtime does not
+        fold a BatchNormalization after a MatMul itself: 2.3 of 91 ms of the int8 network on a KITTI pair)."""
+        norm = self.norm
+        scale = norm.weight / torch.sqrt(norm.running_var + norm.eps)
+        points = torch.relu(
+            F.linear(features, self.linear.weight * scale[:, None], norm.bias - norm.running_mean * scale)
+        )
         return scatter_mean(points, ids, num_slots), points
 
 
