@@ -219,9 +219,9 @@ def test_infer_streams_a_folder_and_bridges_a_broken_scan(tiny_student, moving, 
 def test_a_disk_filling_up_mid_stream_is_one_line_and_keeps_the_flows_written(
     tiny_student, moving, tmp_path, monkeypatch, capsys
 ):
-    """The flows are written in a thread beside the next frame: a full disk at the second flow file is still one line
-    naming that file, exit status 2; the first flow stays whole, nothing is half-written, and the manifest does not
-    call the run complete."""
+    """A full disk at the second flow file of a stream is one line naming that file, exit status 2; the first flow
+    stays whole, nothing is half-written, the manifest does not call the run complete, and the same command once
+    there is space replaces its own outputs."""
     from fastflow3d.inference.cli import main as infer_main
 
     _, scans = moving

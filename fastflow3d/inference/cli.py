@@ -47,7 +47,6 @@ import argparse
 import json
 import sys
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -256,15 +255,12 @@ def infer_stream(args) -> tuple[Path, int, int]:
 
         recording = PairRecording(args.rerun, application="fastflow3d-infer")
     trajectory, scans = [], {}  # scans: the points of the scans whose step is not out yet, by name
-    writing = []  # the flow file being written (one at a time, in a thread: its fsyncs wait beside the next frame)
 
     def write(step) -> None:
         """A step of the stream out: its flow file, the recording, the trajectory."""
         if step.prediction is not None:
             name = f"{Path(step.previous).stem}.npz"
-            if writing:
-                writing.pop().result()  # the previous file is written (its error, a full disk, is raised here)
-            writing.append(writer.submit(write_flow, out / name, step.prediction))
+            write_flow(out / name, step.prediction)
             outputs.append(name)
             if recording is not None:
                 pair = FramePair(
@@ -284,10 +280,7 @@ def infer_stream(args) -> tuple[Path, int, int]:
             del scans[name]  # done with: neither this step's pc1 nor a scan whose step is still to come
 
     pushed = []
-    with (
-        ThreadPoolExecutor(1, thread_name_prefix="infer-writer") as writer,
-        Progress(total=len(files), unit="frame", desc="infer") as bar,  # its rate: frames per second
-    ):
+    with Progress(total=len(files), unit="frame", desc="infer") as bar:  # its rate: frames per second
         for path in [*files, None]:  # None: the last step out of the stream (flush)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
@@ -309,8 +302,6 @@ def infer_stream(args) -> tuple[Path, int, int]:
                 write(step)
             if path is not None:
                 bar.update(1)
-        if writing:
-            writing.pop().result()
     written = len(outputs)
     if recording is not None:
         recording.close()
