@@ -39,6 +39,20 @@ def test_a_fresh_cache_is_seen_as_cold(tmp_path):
     assert not list(tmp_path.rglob("*.nbc"))  # no machine code written: the check compiled nothing
 
 
+def test_the_warmup_reaches_the_refinements_kernels():
+    """``compile_kernels`` (setup.sh's warm-up) calls the two kernels of ``KERNEL_MODULES`` that the teacher's pair
+    never reaches, the student refinement's batch ICP and nearest distances (``fastflow3d.inference.refine``): left
+    out, they stayed cold after set-up, and every label.py or eval.py run said it compiled the kernels again (a first
+    label test of a fresh clone caught it). In a fresh process, so that no other test has called them."""
+    code = (
+        "from icpflow.teacher import warmup; warmup.compile_kernels(); kernels = warmup.kernels(); "
+        "print(sorted(name for name in ('registration_cpu._register_stages_batch', 'neighbours.nearest_distances') "
+        "if not kernels[name].signatures))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=600)
+    assert done.stdout.strip().splitlines()[-1] == "[]"
+
+
 def test_ensure_compiled_says_what_it_does(monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(warmup, "compile_kernels", lambda: calls.append(1))

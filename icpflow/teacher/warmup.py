@@ -65,11 +65,16 @@ def cache_location() -> str:
 
 def compile_kernels() -> None:
     """Call every kernel with the types a labelling run uses: the teacher (av2 preset: ground removal, histogram vote,
-    ICP both ways, de-skew) on a small synthetic pair with per-point capture times."""
+    ICP both ways, de-skew) on a small synthetic pair with per-point capture times; then the two kernels of these
+    modules that only the student's refinement calls (``fastflow3d.inference.refine``: the coarse-to-fine batch ICP
+    and the exact nearest distances), with its types, on two small clouds (else they stay cold, and every run after
+    set-up would say so and compile again)."""
     import numpy as np
 
     from icpflow.datasets.synthetic import SyntheticDataset
     from icpflow.teacher import ICPFlow, ICPFlowConfig
+    from icpflow.teacher.neighbours import build_grid, nearest_distances
+    from icpflow.teacher.registration_cpu import grid_cell, register_stages_cpu
 
     pair = SyntheticDataset(
         split="train", num_sequences=1, frames_per_sequence=2, beams=32, azimuth_resolution_deg=0.5
@@ -79,6 +84,10 @@ def compile_kernels() -> None:
     ICPFlow(ICPFlowConfig.preset("av2"))(
         pair.pc0, pair.pc1, pair.ego1_from_ego0, None, None, times0, times1, dt=pair.dt
     )
+    cloud = np.random.default_rng(0).uniform(-1.0, 1.0, (64, 3))
+    register_stages_cpu([cloud], [cloud + 0.1], [cloud], np.eye(4)[None], (0.5, 0.2), 5, 1e-6, yaw_only=True)
+    cell = grid_cell(0.2)
+    nearest_distances(cloud, cloud, build_grid(cloud, cell), cell)
 
 
 def ensure_compiled(prefix: str = "icpflow", stream=None) -> bool:
