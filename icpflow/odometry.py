@@ -170,7 +170,7 @@ class _Scan:
             self.whole = np.concatenate([np.asarray(self.cloud.points), ground])
         return self.whole
 
-    def planes(self, workers: int = -1) -> TargetPlanes:
+    def planes(self, workers: int) -> TargetPlanes:
         """:meth:`whole_cloud` as a refinement's target (its queries on ``workers`` threads), built once."""
         if self.target is None:
             self.target = TargetPlanes(self.whole_cloud(), workers)
