@@ -414,24 +414,129 @@ def test_cpu_runtimes_keep_the_export_parity(export_dir, expected, pairs, runtim
         assert options.get_session_config_entry("session.intra_op.allow_spinning") == "0"
 
 
+def crowded_points(seed: int = 1):
+    """Two scans of 60,000 and 40,000 points in 150 pillars of the tiny grid (many points per pillar)."""
+    rng = np.random.default_rng(seed)
+    cells = rng.uniform(-15.0, 15.0, (150, 2))
+    scans = []
+    for count in (60_000, 40_000):
+        xy = cells[rng.integers(0, len(cells), count)] + rng.uniform(-0.05, 0.05, (count, 2))
+        scans.append(np.column_stack([xy, rng.uniform(0.3, 2.0, count)]).astype(np.float32))
+    return scans
+
+
 def test_onnx_runtime_pillar_sums_are_exact_with_threads_on_crowded_pillars(export_dir, eager):
     """The pillar means are one scatter-add over many points per pillar: a threaded engine that races on repeated
     pillar ids (ONNX Runtime's ScatterND-add did, issue 33) gives sums that change from run to run. 60,000 points
     in 150 pillars, 2 threads, three runs: each equals eager to the export's tolerance."""
     from fastflow3d.artifact.engines import load_network
 
-    rng = np.random.default_rng(1)
-    cells = rng.uniform(-15.0, 15.0, (150, 2))
-    crowded = []
-    for count in (60_000, 40_000):
-        xy = cells[rng.integers(0, len(cells), count)] + rng.uniform(-0.05, 0.05, (count, 2))
-        crowded.append(np.column_stack([xy, rng.uniform(0.3, 2.0, count)]).astype(np.float32))
+    crowded = crowded_points()
     with torch.no_grad():
         want = eager(*map(torch.from_numpy, crowded))[0].numpy()
     network = load_network(export_dir / FILE_NAMES["onnx"], "onnx", runtime="onnxruntime", threads=2)
     for _ in range(3):
         got, valid = network(*crowded)
         assert valid.all() and np.abs(got - want).max() <= TOLERANCE
+
+
+@pytest.mark.parametrize("file", ["onnx", "int8"])
+def test_one_thread_sessions_sum_pillars_with_scatternd_to_the_same_bits(export_dir, int8_export, eager, file):
+    """A CPU session of one thread runs the pillar sums as ScatterND-add (fastflow3d.artifact.sequential_scatter):
+    every ScatterElements of the export is rewritten, nothing left unread, and the network's output on crowded pillars
+    equals the graph as exported on one thread bit for bit (the float one: eager to the export's tolerance). Two
+    threads keep the export's scatter (ScatterND races there), as does a machine without the onnx package."""
+    import onnx
+    import onnxruntime
+
+    from fastflow3d.artifact.engines import load_network, ort_session_options
+    from fastflow3d.artifact.file_format import INT8_FILE_NAME
+    from fastflow3d.artifact.sequential_scatter import sequential_scatter_sums
+
+    path = export_dir / FILE_NAMES["onnx"] if file == "onnx" else int8_export / INT8_FILE_NAME
+    model = onnx.load(str(path))
+    before = [node.op_type for node in model.graph.node]
+    scatters = before.count("ScatterElements")
+    assert scatters == 4 and sequential_scatter_sums(model) == scatters
+    ops = [node.op_type for node in model.graph.node]
+    assert "ScatterElements" not in ops and ops.count("ScatterND") == scatters
+    assert ops.count("Expand") == before.count("Expand") - scatters  # the index expansions are gone
+    read = {name for node in model.graph.node for name in node.input} | {out.name for out in model.graph.output}
+    assert all(name in read for node in model.graph.node for name in node.output if name)
+    assert all(tensor.name in read for tensor in model.graph.initializer)
+    onnx.checker.check_model(model)
+
+    points = crowded_points()
+    network = load_network(
+        path, "onnx", runtime="onnxruntime", threads=1, precision="int8" if file == "int8" else "f32"
+    )
+    assert network.sequential_scatters == scatters
+    exported = onnxruntime.InferenceSession(str(path), ort_session_options(1), providers=["CPUExecutionProvider"])
+    want = exported.run(None, {"pc0_compensated": points[0], "pc1": points[1]})
+    for _ in range(2):
+        got = network(*points)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    if file == "onnx":
+        with torch.no_grad():
+            assert np.abs(got[0] - eager(*map(torch.from_numpy, points))[0].numpy()).max() <= TOLERANCE
+    assert load_network(path, "onnx", runtime="onnxruntime", threads=2).sequential_scatters == 0
+
+
+def test_one_thread_rewrite_leaves_other_graphs_and_machines_without_onnx_alone(export_dir, monkeypatch):
+    """Only the export's own pillar sums are rewritten: a ScatterElements-add along axis 0, or along axis 1 with
+    indices that are not a 1-D tensor expanded over the channels, stays as it is (the model's bytes unchanged); with
+    no onnx package the session runs the file as exported."""
+    import importlib.util
+
+    import onnxruntime
+    from onnx import TensorProto, helper, numpy_helper
+
+    from fastflow3d.artifact.engines import load_network
+    from fastflow3d.artifact.sequential_scatter import sequential_scatter_sums
+
+    def graph(axis: int, expanded: bool):
+        data = helper.make_tensor_value_info("data", TensorProto.FLOAT, [4, 8])
+        ids = helper.make_tensor_value_info("ids", TensorProto.INT64, [4, 5] if not expanded else [5])
+        updates = helper.make_tensor_value_info("updates", TensorProto.FLOAT, [4, 5])
+        out = helper.make_tensor_value_info("out", TensorProto.FLOAT, [4, 8])
+        nodes = [helper.make_node("ScatterElements", ["data", "index", "updates"], ["out"], axis=axis, reduction="add")]
+        initializers = []
+        if expanded:
+            initializers = [
+                numpy_helper.from_array(np.array([0]), "zero"),
+                numpy_helper.from_array(np.array([4, 5]), "shape"),
+            ]
+            nodes[:0] = [
+                helper.make_node("Unsqueeze", ["ids", "zero"], ["row"]),
+                helper.make_node("Expand", ["row", "shape"], ["index"]),
+            ]
+        else:
+            nodes[0].input[1] = "ids"
+        return helper.make_model(
+            helper.make_graph(nodes, "g", [data, ids, updates], [out], initializers),
+            opset_imports=[helper.make_opsetid("", 18)],
+        )
+
+    for axis, expanded in ((0, True), (1, False)):
+        model = graph(axis, expanded)
+        before = model.SerializeToString()
+        assert sequential_scatter_sums(model) == 0 and model.SerializeToString() == before
+    model = graph(1, True)
+    exported = onnxruntime.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    assert sequential_scatter_sums(model) == 1
+    ops = [node.op_type for node in model.graph.node]
+    assert ops == ["Transpose", "Cast", "Unsqueeze", "Transpose", "ScatterND", "Transpose"]
+    rewritten = onnxruntime.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    feed = {"data": rng.normal(size=(4, 8)).astype(np.float32), "ids": np.array([3, 1, 3, 3, 7])}
+    feed["updates"] = rng.normal(size=(4, 5)).astype(np.float32)
+    assert np.array_equal(rewritten.run(None, feed)[0], exported.run(None, feed)[0])
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "onnx" else find_spec(name, *a))
+    assert (
+        load_network(export_dir / FILE_NAMES["onnx"], "onnx", runtime="onnxruntime", threads=1).sequential_scatters == 0
+    )
 
 
 def test_cpu_runtime_rejects_what_it_cannot_run(export_dir):
