@@ -6,6 +6,7 @@ track, another frame) is one warning and never a silent wrong flow, and the othe
 import json
 import os
 import re
+import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -397,21 +398,24 @@ def test_infer_stream_gives_its_network_the_cores_but_one(tiny_student, moving, 
 
 
 def test_an_overlapped_stream_runs_its_own_steps_on_one_thread(tiny_student, moving, monkeypatch):
-    """overlap=True: the stream's own steps (ground, odometry, refinement) run with numba and torch on one thread
-    of the calling thread (their idle pool threads spun on the network's core); the network keeps its engine's
-    threads, and the caller's settings come back after each push. A plain stream leaves them as they are."""
+    """overlap=True: the stream's own steps (ground, odometry) run with numba and torch on one thread of the calling
+    thread (their idle pool threads spun on the network's core), and the caller's settings come back after each push;
+    the network and the refinement run in the worker thread, the refinement's numba kernels on one thread there (the
+    network keeps its engine's threads). A plain stream runs everything on the calling thread, as it is set."""
     import numba
     import torch
 
     from fastflow3d.inference import predictor as predictor_module
 
     seen = {"odometry": [], "refine": [], "network": []}
+    where = {"refine": set(), "network": set()}
     predictor = Predictor.load(tiny_student, refine=True)
     refine_residual, network = predictor_module.refine_residual, predictor.run_network
 
     def threads(name, call):
         def recorded(*args, **kwargs):
             seen[name].append(settings())
+            where.get(name, set()).add(threading.current_thread() is threading.main_thread())
             return call(*args, **kwargs)
 
         return recorded
@@ -437,8 +441,8 @@ def test_an_overlapped_stream_runs_its_own_steps_on_one_thread(tiny_student, mov
         # KISS-ICP's registration and the k-d trees' queries (their own threads, out of threadpoolctl's reach) too
         assert stream.odometry._kiss.config.registration.max_num_threads == (1 if overlap else 0)
         assert stream.odometry._previous.target.workers == (1 if overlap else -1)
-        expected = (1, 1) if overlap else before
-        for name in ("odometry", "refine"):
-            assert seen[name] and set(seen[name]) == {expected}, (overlap, name, seen[name])
-        assert set(seen["network"]) == {elsewhere if overlap else before}, seen["network"]  # the thread's own
+        assert seen["odometry"] and set(seen["odometry"]) == {(1, 1) if overlap else before}, seen["odometry"]
+        assert set(seen["refine"]) == {(1, elsewhere[1]) if overlap else before}, seen["refine"]
+        assert where == {"refine": {not overlap}, "network": {not overlap}}, where
         seen = {name: [] for name in seen}
+        where = {name: set() for name in where}

@@ -39,6 +39,7 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -53,6 +54,16 @@ from icpflow.errors_and_signals import one_line
 from icpflow.geometry import residual_to_full, rigid_problem
 from icpflow.odometry import MIN_EGO_POINTS
 from icpflow.preprocess import implausible, lift_transform
+
+
+class PairResidual(NamedTuple):
+    """A pair's ego-compensated flow before it is made FULL (:meth:`Predictor.pair_residual`): ``residual`` (N0, 3)
+    float32 (0 where the network did not predict), ``in_grid`` (N0,) bool, ``refined`` (N0,) bool or None (as
+    :class:`~fastflow3d.inference.prediction.Prediction`'s)."""
+
+    residual: np.ndarray
+    in_grid: np.ndarray
+    refined: np.ndarray | None
 
 
 def scans_frame_ego(ego_frame: np.ndarray, lift: float) -> np.ndarray:
@@ -174,12 +185,12 @@ class Predictor(ScanSteps):
         :meth:`ground_mask`). What :meth:`predict` and a stream (``fastflow3d.inference.stream``) run after their own
         ego motion and ground steps; ``check_ego``: compare the given ego motion with the identity and its inverse;
         ``surfaces``: each scan's (N,) bool ground surface (:meth:`scan_masks`): the refinement's objects lie above it;
-        ``run_network`` False: the ego flow only (a stream's pair with too few points). The three parts,
-        :meth:`network_input`, :meth:`run_network` and :meth:`finish`, are also called apart (a stream runs the
-        network of one pair while it prepares the next scan)."""
+        ``run_network`` False: the ego flow only (a stream's pair with too few points). Its parts,
+        :meth:`network_input`, :meth:`pair_residual` (the network and the refinement) and :meth:`finish`, are also
+        called apart (a stream runs the network and refinement of one pair while it prepares the next scan)."""
         pair = self.network_input(lifted, ego_frame, ground0, ground1, check_ego)
-        output = self.run_network(pair) if run_network else None
-        return self.finish(pair, output, ego_frame, lift, estimated, assumed, surfaces)
+        residual = self.pair_residual(pair, surfaces, run_network)
+        return self.finish(pair, residual, ego_frame, lift, estimated, assumed)
 
     def network_input(
         self,
@@ -203,22 +214,20 @@ class Predictor(ScanSteps):
             return None
         return self.network(pair.network0, pair.network1)
 
-    def finish(
+    def pair_residual(
         self,
         pair: PreparedPair,
-        output: tuple[np.ndarray, np.ndarray] | None,
-        ego_frame: np.ndarray,
-        lift: float,
-        estimated: bool,
-        assumed: bool = False,
         surfaces: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> Prediction:
-        """The :class:`Prediction` from the network's ``output`` (:meth:`run_network`; None: the ego flow only):
-        the residual restored on pc0's rows, refined when the Predictor refines (``surfaces``: the two scans' ground
-        surface masks, :meth:`scan_masks`, under the refinement's objects), checked and made FULL flow."""
+        run_network: bool = True,
+    ) -> PairResidual:
+        """The network's residual on pc0's rows, refined when the Predictor refines (``surfaces``: the two scans'
+        (N,) bool ground surface masks, :meth:`scan_masks`, under the refinement's objects); ``run_network`` False: none
+        (the ego flow only). Raises PredictorError for a non-finite network output. Warns about nothing and touches
+        nothing of the Predictor: a stream runs it in its worker thread (numba's threads are that thread's own)."""
         count = len(pair.pc0)
         residual, in_grid = np.zeros((count, 3), np.float32), np.zeros(count, bool)
         refined = np.zeros(count, bool) if self.refine is not None else None
+        output = self.run_network(pair) if run_network else None
         if output is not None:
             kept, valid = output
             if not np.isfinite(kept[valid]).all():
@@ -234,10 +243,33 @@ class Predictor(ScanSteps):
                 residual[rows], refined[rows] = refine_residual(
                     pair.compensated[rows], residual[rows], pair.pc1[targets], self.refine, surface0, surface1
                 )
+        return PairResidual(residual, in_grid, refined)
+
+    def finish(
+        self,
+        pair: PreparedPair,
+        residual: PairResidual,
+        ego_frame: np.ndarray,
+        lift: float,
+        estimated: bool,
+        assumed: bool = False,
+    ) -> Prediction:
+        """The :class:`Prediction` from the pair's ``residual`` (:meth:`pair_residual`): checked (one warning for an
+        implausible preprocessing) and made FULL flow."""
         self.check_plausible(pair)
-        flow = residual_to_full(residual, pair.pc0, pair.ego1_from_ego0)  # a common lift changes no flow vector
+        flow = residual_to_full(residual.residual, pair.pc0, pair.ego1_from_ego0)  # a common lift changes no flow
         ego = scans_frame_ego(ego_frame, lift)
-        return Prediction(flow, residual, in_grid, pair.ground0, ego, estimated, float(lift), refined, assumed)
+        return Prediction(
+            flow,
+            residual.residual,
+            residual.in_grid,
+            pair.ground0,
+            ego,
+            estimated,
+            float(lift),
+            residual.refined,
+            assumed,
+        )
 
     def check_plausible(self, pair: PreparedPair) -> None:
         """One-line warning when pc0's ground fraction or its share inside the network's grid is implausible."""

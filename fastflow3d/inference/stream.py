@@ -21,16 +21,17 @@ ego flow only; a step whose fitness is under ``min_fitness`` is estimated afresh
 that fits under ``LOST_FITNESS`` too the pair gets no flow (``StreamStep.prediction`` None) and a new track starts.
 Each case is one :class:`StreamWarning`; the other frames keep their flow.
 
-``overlap=True`` uses the second core: the network of one pair runs in a worker thread while the stream prepares
-the next scan (its ground and odometry step; the refinement of a pair runs beside the network of the next). The
-steps are the same, in the same order, one push late: :meth:`FlowStream.push` returns the step of the scan pushed
-before (None for the first) and :meth:`FlowStream.flush` the last one. A caller that reads its scans from files
-(``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps ``overlap=False``. The
-network then runs best on one core fewer than the process has (:func:`overlap_threads`, the CLI's default: the
-Predictor's ``threads``), and the stream's own steps on one thread (numba, torch, BLAS and OpenMP limited while
-they run: their idle threads spun on the network's core; 2 cores, synthetic stream, int8: 86-89 -> 74-76 ms a
-frame, 106-120 -> 94-102 ms refined; KISS-ICP's registration and the odometry's k-d tree queries, which run threads
-of their own, are given one by the odometry: ``Odometry(threads=1)``).
+``overlap=True`` uses the second core: the network of one pair, and its refinement, run in a worker thread while the
+stream prepares the next scan (its ground and odometry step) and writes out the previous step (refined on the stream's
+own thread, a frame waited for the refinement beside an idle network core: synthetic stream, int8, one network thread,
+101 -> xx ms a frame, issue 44). The steps are the same, in the same order, one push late: :meth:`FlowStream.push`
+returns the step of the scan pushed before (None for the first) and :meth:`FlowStream.flush` the last one. A caller that
+reads its scans from files (``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps
+``overlap=False``. The network then runs best on one core fewer than the process has (:func:`overlap_threads`, the CLI's
+default: the Predictor's ``threads``), and the stream's own steps on one thread (numba, torch, BLAS and OpenMP limited
+while they run: their idle threads spun on the network's core; 2 cores, synthetic stream, int8: 86-89 -> 74-76 ms a
+frame, 106-120 -> 94-102 ms refined; KISS-ICP's registration and the odometry's k-d tree queries, which run threads of
+their own, are given one by the odometry: ``Odometry(threads=1)``).
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 
 from fastflow3d.inference.prediction import Prediction, PredictorWarning, as_points
-from fastflow3d.inference.predictor import Predictor, scans_frame_ego
+from fastflow3d.inference.predictor import PairResidual, Predictor, scans_frame_ego
 from fastflow3d.network.contract import PreparedPair
 from icpflow.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
 from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
@@ -54,6 +55,14 @@ def overlap_threads() -> int:
     (ground, odometry, input and output) beside it. On 2 cores one network thread is quicker per frame than two
     that contend with those steps (int8 on KITTI: 72.6 against 87.8 ms; BENCHMARKS.md, issue 44)."""
     return max(1, available_cores() - 1)
+
+
+def _one_numba_thread() -> None:
+    """The overlapped stream's worker: its refinement's numba kernels on one thread (numba's setting is the calling
+    thread's own; the network's engine keeps its own threads)."""
+    import numba
+
+    numba.set_num_threads(1)
 
 
 class StreamWarning(PredictorWarning):
@@ -135,7 +144,11 @@ class FlowStream:
         self._gap: str | None = None  # why the next pair must restart the odometry
         self.overlap = bool(overlap)
         self._pending: tuple[_Staged, Future | None] | None = None  # overlap: the last push, its network running
-        self._worker = ThreadPoolExecutor(1, thread_name_prefix="flowstream") if self.overlap else None
+        self._worker = (
+            ThreadPoolExecutor(1, thread_name_prefix="flowstream", initializer=_one_numba_thread)
+            if self.overlap
+            else None
+        )
         self._pools = None  # overlap: the libraries' thread pools, found once (icpflow.threads.thread_limit)
 
     def reset(self) -> None:
@@ -158,17 +171,14 @@ class FlowStream:
         ``overlap``: the step of the scan pushed before this one (None after the first push; :meth:`flush`)."""
         if not self.overlap:
             staged = self._stage(scan, timestamp, source)
-            return self._complete(
-                staged, self.predictor.run_network(staged.pair) if self._needs_network(staged) else None
-            )
+            return self._complete(staged, None if staged.step is not None else self._residual(staged))
         with self._own_steps():
             staged = self._stage(scan, timestamp, source)
             done, self._pending = self._pending, None
-            output = None if done is None or done[1] is None else done[1].result()  # the earlier pair's network
-            network = self.predictor.run_network
-            future = self._worker.submit(network, staged.pair) if self._needs_network(staged) else None
+            residual = None if done is None or done[1] is None else done[1].result()  # the earlier pair's
+            future = self._worker.submit(self._residual, staged) if staged.step is None else None
             self._pending = (staged, future)
-            return None if done is None else self._complete(done[0], output)
+            return None if done is None else self._complete(done[0], residual)
 
     def flush(self) -> StreamStep | None:
         """With ``overlap``: the step of the last pushed scan (None when there is none left); without, None."""
@@ -179,7 +189,7 @@ class FlowStream:
             return self._complete(staged, None if future is None else future.result())
 
     def _own_steps(self):
-        """With ``overlap``: the context of the stream's own steps (ground, odometry, input, output, refinement) on
+        """With ``overlap``: the context of the stream's own steps (ground, odometry, input, output) on
         this thread: one thread each for numba, torch, BLAS and OpenMP, whose idle pool threads would otherwise spin on
         the core the network runs on (``icpflow.threads``; the network's engine keeps its own threads)."""
         from threadpoolctl import ThreadpoolController
@@ -188,16 +198,16 @@ class FlowStream:
             self._pools = ThreadpoolController()
         return thread_limit(1, controller=self._pools)
 
-    @staticmethod
-    def _needs_network(staged: _Staged) -> bool:
-        return staged.step is None and staged.run_network
+    def _residual(self, staged: _Staged) -> PairResidual:
+        """A staged pair's network and refinement (``Predictor.pair_residual``): with ``overlap``, in the worker."""
+        return self.predictor.pair_residual(staged.pair, staged.surfaces, staged.run_network)
 
-    def _complete(self, staged: _Staged, output) -> StreamStep:
-        """The :class:`StreamStep` of a staged scan, from its network's ``output`` (``Predictor.run_network``)."""
+    def _complete(self, staged: _Staged, residual: PairResidual | None) -> StreamStep:
+        """The :class:`StreamStep` of a staged scan, from its pair's ``residual`` (:meth:`_residual`)."""
         if staged.step is not None:
             return staged.step
         prediction = self.predictor.finish(
-            staged.pair, output, staged.ego_frame, staged.lift, staged.estimated, staged.assumed, staged.surfaces
+            staged.pair, residual, staged.ego_frame, staged.lift, staged.estimated, staged.assumed
         )
         return StreamStep(prediction, staged.source, staged.previous, staged.pose, staged.fitness, staged.restarted)
 
