@@ -38,6 +38,9 @@ from icpflow.teacher.config import EgoMotionConfig
 
 #: fewer points than this in either scan: no estimate
 MIN_EGO_POINTS = 100
+#: metres: the cells of a target's nearest-neighbour grid (``TargetPlanes``; its 10th neighbour lies within 0.35 m for
+#: half its points: 0.3 m cells took 1.7x the time of 0.5 m ones, 0.75 and 1 m as long or longer; issue 44)
+GRID_CELL = 0.5
 #: metres: the voxel of the refinement clouds. Finer than KISS-ICP's: a voxel grid fixed in each scan's frame pulls a
 #: slow motion towards the identity (BENCHMARKS.md, issue 33)
 VOXEL = 0.15
@@ -102,33 +105,41 @@ def voxel_cloud(points: np.ndarray, voxel: float):
 
 
 class TargetPlanes:
-    """A refinement's target points (M, 3) with a k-d tree; each point's normal, one estimate: ``plane_normals`` of
-    its ``NORMAL_NEIGHBOURS`` nearest (computed only for the points a source lands near: a step that starts close to
-    the answer keeps its correspondences among these; computing normals for the whole scan was the odometry's
-    costliest step, BENCHMARKS.md, issue 33)."""
+    """A refinement's target points (M, 3) in a voxel grid (``icpflow.teacher.neighbours``: exact nearest neighbours;
+    a scipy k-d tree gave the same neighbours, its build and queries 2x the time, BENCHMARKS.md, issue 44); each
+    point's normal, one estimate: ``plane_normals`` of its ``NORMAL_NEIGHBOURS`` nearest (computed only for the points
+    a source lands near: a step that starts close to the answer keeps its correspondences among these; computing
+    normals for the whole scan was the odometry's costliest step, BENCHMARKS.md, issue 33). The queries run on
+    numba's threads."""
 
-    def __init__(self, points: np.ndarray, workers: int = -1):
-        """``points`` (M, 3); ``workers``: the threads of each query (-1: every core)."""
-        from scipy.spatial import cKDTree
+    def __init__(self, points: np.ndarray):
+        """``points`` (M, 3)."""
+        from icpflow.teacher.neighbours import build_grid
 
-        self.points, self.workers = np.asarray(points, np.float64), int(workers)
-        self.tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)  # built once: quicker so
+        self.points = np.ascontiguousarray(points, np.float64)
+        self.grid = build_grid(self.points, GRID_CELL) if len(self.points) else None
+
+    def nearest(self, moved: np.ndarray, k: int, reach: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` target points nearest each of the (K, 3) ``moved`` points, closer than ``reach`` m: (distances
+        (K, k) ascending, inf where there is none; indices (K, k) int64, -1 there)."""
+        from icpflow.teacher.neighbours import k_nearest
+
+        moved = np.ascontiguousarray(moved, np.float64)
+        if self.grid is None:
+            return np.full((len(moved), k), np.inf), np.full((len(moved), k), -1, np.int64)
+        squared, index = k_nearest(moved, self.points, self.grid, GRID_CELL, k, reach * reach)
+        return np.where(index >= 0, np.sqrt(squared), np.inf), index
 
     def near(self, moved: np.ndarray | None = None):
         """For the (K, 3) ``moved`` source points (None: every target point): the open3d cloud, with normals, of the
         target points nearest to them (once each), and per source point the distance (K,) to its nearest target
         point, that point (K, 3) and its normal (K, 3)."""
-        from icpflow.errors_and_signals import signals_held
         from icpflow.open3d_loader import load_open3d
 
         o3d = load_open3d()
 
         centres = self.points if moved is None else moved
-        with signals_held():  # a stop inside the threaded query would free its memory under its threads
-            distance, neighbours = self.tree.query(
-                centres, k=min(NORMAL_NEIGHBOURS, len(self.points)), workers=self.workers
-            )
-        neighbours, distance = neighbours.reshape(len(centres), -1), distance.reshape(len(centres), -1)
+        distance, neighbours = self.nearest(centres, min(NORMAL_NEIGHBOURS, len(self.points)))
         nearest, first, back = np.unique(neighbours[:, 0], return_index=True, return_inverse=True)
         normals = plane_normals(self.points[neighbours[first]])
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points[nearest]))
@@ -170,10 +181,10 @@ class _Scan:
             self.whole = np.concatenate([np.asarray(self.cloud.points), ground])
         return self.whole
 
-    def planes(self, workers: int) -> TargetPlanes:
-        """:meth:`whole_cloud` as a refinement's target (its queries on ``workers`` threads), built once."""
+    def planes(self) -> TargetPlanes:
+        """:meth:`whole_cloud` as a refinement's target, built once."""
         if self.target is None:
-            self.target = TargetPlanes(self.whole_cloud(), workers)
+            self.target = TargetPlanes(self.whole_cloud())
         return self.target
 
 
@@ -182,8 +193,9 @@ class Odometry:
 
     :meth:`step` returns None for the first scan after a start or :meth:`reset`, else an :class:`OdometryStep`.
     ``min_fitness``: under it a step is estimated afresh from its two scans. ``refine=False``: KISS-ICP alone (the
-    fitness is still measured). ``threads``: KISS-ICP's and the k-d trees' threads (0: every core; a stream that runs
-    its network beside the odometry gives it 1)."""
+    fitness is still measured). ``threads``: KISS-ICP's threads (0: every core; a stream that runs its network beside
+    the odometry gives it 1); the nearest-neighbour queries of the refinement run on numba's threads (the caller's
+    setting: the stream's steps limit it to one)."""
 
     def __init__(self, cfg, min_fitness: float = 0.5, refine: bool = True, voxel: float = VOXEL, threads: int = 0):
         self.settings = ego_settings(cfg)
@@ -232,10 +244,6 @@ class Odometry:
         self.step(points, ground)  # this scan starts the new track
         return OdometryStep(None, fitness, restarted=True)
 
-    def _planes(self, scan: _Scan) -> TargetPlanes:
-        """``scan``'s whole cloud as a refinement's target, its queries on this odometry's threads."""
-        return scan.planes(self.threads or -1)
-
     def _refined(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> np.ndarray:
         """``transform`` (KISS-ICP's, centimetres off) refined point-to-plane from the previous whole scan onto this
         one (``SOURCE_POINTS``, reach twice the voxel, ``TUKEY``, ``ITERATIONS``), when ``refine``."""
@@ -243,7 +251,7 @@ class Odometry:
             return transform
         source = previous.whole_cloud()
         source = source[:: max(1, len(source) // SOURCE_POINTS)]
-        return _staged(source, self._planes(current), transform, ((2 * self.voxel, TUKEY, ITERATIONS),))
+        return _staged(source, current.planes(), transform, ((2 * self.voxel, TUKEY, ITERATIONS),))
 
     def _aligned(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> tuple[np.ndarray, float]:
         """``transform`` and its fitness (module docstring): the share of the previous scan's non-ground source points
@@ -251,8 +259,8 @@ class Odometry:
         if not len(previous.source.points) or not len(current.cloud.points):
             return transform, 0.0
         moved = transform_points(transform, np.asarray(previous.source.points))
-        distance, nearest = self._planes(current).tree.query(moved, distance_upper_bound=2.0 * self.voxel)
-        return transform, float(np.mean(np.isfinite(distance) & (nearest < len(current.cloud.points))))
+        nearest = current.planes().nearest(moved, 1, 2.0 * self.voxel)[1][:, 0]
+        return transform, float(np.mean((nearest >= 0) & (nearest < len(current.cloud.points))))
 
     def _first_step(self, previous: _Scan, current: _Scan, start: np.ndarray) -> tuple[np.ndarray, float]:
         """The first step of a track, from KISS-ICP's estimate on the non-ground points of a one-scan map: refined
@@ -263,7 +271,7 @@ class Odometry:
             return self._aligned(previous, current, start)
         source = previous.whole_cloud()
         source = source[:: max(1, len(source) // FIRST_SOURCE_POINTS)]
-        target = self._planes(current)
+        target = current.planes()
         transform = _staged(source, target, start)
         fit = _fit(source, target, transform)
         jump = float(np.linalg.norm((invert(start) @ transform)[:3, 3]))

@@ -401,3 +401,52 @@ def test_nearest_distances_are_exact():
     for cell in (0.1, 0.3, 2.0):
         got = nearest_distances(query, points, build_grid(points, cell), cell)
         np.testing.assert_allclose(got, cKDTree(points).query(query)[0], rtol=1e-12)
+
+
+def test_the_grid_sorts_points_by_column_then_height_cell_stably():
+    """``build_grid``'s counting sorts give the order of a stable sort by (xy column, z cell): within a cell, the
+    points in their input order (repeated points included)."""
+    from icpflow.teacher.neighbours import build_grid
+
+    rng = np.random.default_rng(4)
+    cloud = rng.uniform(-6, 6, (3000, 3))
+    for points in (cloud, np.repeat(cloud[:50], 3, axis=0), np.zeros((1, 3)), cloud[:, [0, 0, 2]]):
+        for cell in (0.2, 1.0, 20.0):
+            origin, dims, starts, z_sorted, order = build_grid(points, cell)
+            cells = np.minimum(((points - origin) / cell).astype(np.int64), dims - 1)
+            columns = cells[:, 0] * dims[1] + cells[:, 1]
+            expected = np.lexsort((np.arange(len(points)), cells[:, 2], columns))
+            assert np.array_equal(order, expected) and np.array_equal(z_sorted, cells[expected, 2])
+            assert np.array_equal(starts, np.searchsorted(columns[expected], np.arange(dims[0] * dims[1] + 1)))
+
+
+def test_k_nearest_neighbours_are_exact():
+    """``k_nearest`` gives scipy's k nearest (same points, same order, same distances) on a scan-like cloud (planes and
+    sparse clutter), for queries near it and far outside (past the shells: a full scan), with fewer points than k
+    (the rest -1) and within a reach (none there: -1)."""
+    from scipy.spatial import cKDTree
+
+    from icpflow.teacher.neighbours import build_grid, k_nearest
+
+    rng = np.random.default_rng(5)
+    ground = np.column_stack([rng.uniform(-30, 30, (6000, 2)), rng.normal(0.0, 0.02, 6000)])
+    wall = np.column_stack([rng.uniform(-30, 30, 2000), np.full(2000, 8.0), rng.uniform(0, 3, 2000)])
+    points = np.concatenate([ground, wall, rng.uniform(-40, 40, (300, 3))])
+    query = np.concatenate(
+        [points[rng.choice(len(points), 500)] + rng.normal(0, 0.05, (500, 3)), rng.uniform(-90, 90, (60, 3))]
+    )
+    tree = cKDTree(points)
+    for cell in (0.25, 0.5, 2.0):
+        grid = build_grid(points, cell)
+        squared, index = k_nearest(query, points, grid, cell, 10, np.inf)
+        distance, expected = tree.query(query, k=10)
+        assert np.array_equal(index, expected)
+        np.testing.assert_allclose(np.sqrt(squared), distance, rtol=1e-12)
+        squared, index = k_nearest(query, points, grid, cell, 1, 0.3**2)
+        distance, expected = tree.query(query, distance_upper_bound=0.3)
+        assert np.array_equal(index[:, 0], np.where(np.isfinite(distance), expected, -1))
+        assert np.all(np.isfinite(distance) == (squared[:, 0] < 0.3**2))
+    few = points[:4]
+    squared, index = k_nearest(query, few, build_grid(few, 0.5), 0.5, 6, np.inf)
+    assert np.array_equal(index[:, :4], cKDTree(few).query(query, k=4)[1]) and (index[:, 4:] == -1).all()
+    assert np.isinf(squared[:, 4:]).all()

@@ -68,10 +68,12 @@ def compile_kernels() -> None:
     ICP both ways, de-skew) on a small synthetic pair with per-point capture times; then the two kernels of these
     modules that only the student's refinement calls (``fastflow3d.inference.refine``: the coarse-to-fine batch ICP
     and the exact nearest distances), with its types, on two small clouds (else they stay cold, and every run after
-    set-up would say so and compile again)."""
+    set-up would say so and compile again); and the odometry's k nearest neighbours (``icpflow.odometry``: the teacher
+    runs it only without a given ego motion)."""
     import numpy as np
 
     from icpflow.datasets.synthetic import SyntheticDataset
+    from icpflow.odometry import TargetPlanes
     from icpflow.teacher import ICPFlow, ICPFlowConfig
     from icpflow.teacher.neighbours import build_grid, nearest_distances
     from icpflow.teacher.registration_cpu import grid_cell, register_stages_cpu
@@ -88,6 +90,7 @@ def compile_kernels() -> None:
     register_stages_cpu([cloud], [cloud + 0.1], [cloud], np.eye(4)[None], (0.5, 0.2), 5, 1e-6, yaw_only=True)
     cell = grid_cell(0.2)
     nearest_distances(cloud, cloud, build_grid(cloud, cell), cell)
+    TargetPlanes(cloud).nearest(cloud, 2)  # the odometry's neighbour queries (a pair's ego motion, a stream)
 
 
 def ensure_compiled(prefix: str = "icpflow", stream=None) -> bool:
