@@ -15,10 +15,10 @@ same sums bit for bit.
 
 where ``rows`` (P, C) is what the export transposed into the updates, then drops the nodes whose outputs nothing reads
 any more (ONNX Runtime still ran the unused index Expand and row Transpose, 5 ms a KITTI pair) and the constants only
-they read. The int8 network on one
-thread, a pair of the synthetic stream 77 -> 62 ms, of KITTI 95 -> 71 ms (BENCHMARKS.md, issue 44). Only the export's
-own pattern is rewritten: ``ids`` a 1-D tensor unsqueezed on axis 0 and expanded over the channels; anything else is
-left as it is.
+they read. The int8 network on one thread, a pair of the synthetic stream 77 -> 62 ms, of KITTI 95 -> 71 ms
+(BENCHMARKS.md, issue 44). Only the export's own pattern is rewritten: ``ids`` a 1-D tensor unsqueezed on axis 0 and
+expanded over the channels (or not expanded, for constant data of one row: the counts, as ONNX Runtime's optimiser
+leaves them); anything else is left as it is.
 """
 
 from __future__ import annotations
@@ -76,10 +76,13 @@ def _pillar_ids(node, producer, constants, helper) -> str | None:
     attributes = {attribute.name: helper.get_attribute_value(attribute) for attribute in node.attribute}
     if attributes.get("axis") != 1 or attributes.get("reduction") not in (b"add", "add"):
         return None
-    expand = producer.get(node.input[1])
-    if expand is None or expand.op_type != "Expand":
-        return None
-    unsqueeze = producer.get(expand.input[0])
+    unsqueeze = producer.get(node.input[1])
+    if unsqueeze is not None and unsqueeze.op_type == "Expand":
+        unsqueeze = producer.get(unsqueeze.input[0])
+    else:  # no expansion (an optimiser drops it for one channel): only where the data has that one row
+        data = constants.get(node.input[0])
+        if data is None or data.ndim != 2 or data.shape[0] != 1:
+            return None
     if unsqueeze is None or unsqueeze.op_type != "Unsqueeze" or len(unsqueeze.input) != 2:
         return None
     axes = constants.get(unsqueeze.input[1])

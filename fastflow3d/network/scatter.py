@@ -28,8 +28,13 @@ def scatter_sum(values: torch.Tensor, ids: torch.Tensor, num_slots: int) -> torc
 
 
 def scatter_mean(values: torch.Tensor, ids: torch.Tensor, num_slots: int) -> torch.Tensor:
-    """Row means (num_slots, C) of values (P, C) grouped by ``ids``; rows without any point are 0."""
+    """Row means (num_slots, C) of values (P, C) grouped by ``ids``; rows without any point are 0.
+
+    Exported as two sums, of the values and of ones (the same sums): the (P, C + 1) concatenation of the eager
+    step cost 3 of the int8 network's 60 ms on a pair of 60k-point scans in ONNX Runtime (issue 44)."""
     ones = values.new_ones((values.shape[0], 1))
+    if torch.compiler.is_exporting():
+        return scatter_sum(values, ids, num_slots) / scatter_sum(ones, ids, num_slots).clamp(min=1.0)
     summed = scatter_sum(torch.cat([values, ones], dim=1), ids, num_slots)
     counts = summed[:, -1:].clamp(min=1.0)
     return summed[:, :-1] / counts
