@@ -135,7 +135,7 @@ def object_columns(points: np.ndarray, ground: np.ndarray, height: np.ndarray, r
     return _object_columns(points, np.asarray(ground, bool), np.asarray(height, np.float32), float(radius), float(gap))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _ground_height(points, seeds, cell, slope, reach, fill_reach):
     size = int(np.ceil(2.0 * reach / cell))
     n = len(points)
@@ -183,7 +183,7 @@ def _ground_height(points, seeds, cell, slope, reach, fill_reach):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _object_columns(points, ground, height, radius, gap):
     n = len(points)
     out = np.zeros(n, np.bool_)

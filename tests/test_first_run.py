@@ -30,6 +30,17 @@ def test_every_kernel_is_cached_on_disk():
     assert not not_cached, f"kernels without cache=True compile in every process: {not_cached}"
 
 
+def test_every_kernel_releases_the_gil():
+    """An overlapped stream runs the ground and the odometry on its own thread and the refinement in its worker: a
+    kernel that held the GIL stopped the other thread's Python for its whole run (numba's default)."""
+    import numba
+
+    kernels = warmup.kernels()
+    assert {"ground._ground_height", "neighbours.k_nearest", "registration_cpu._register_stages_batch"} <= set(kernels)
+    holding = [name for name, kernel in kernels.items() if not kernel.targetoptions.get("nogil")]
+    assert not holding and all(isinstance(kernel, numba.core.registry.CPUDispatcher) for kernel in kernels.values())
+
+
 def test_a_fresh_cache_is_seen_as_cold(tmp_path):
     """In a new environment (an empty NUMBA_CACHE_DIR) every kernel is cold; nothing is compiled by the check."""
     code = "import json; from icpflow.teacher import warmup; print(json.dumps(warmup.cold_kernels()))"

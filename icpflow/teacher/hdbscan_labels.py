@@ -57,7 +57,7 @@ def spanning_tree(points: np.ndarray, min_samples: int, leaf_size: int, workers:
     return algorithm.spanning_tree()
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _find(parent, node):
     root = node
     while parent[root] != -1:
@@ -67,7 +67,7 @@ def _find(parent, node):
     return root
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def single_linkage(edges):
     """Scipy-format hierarchy (N - 1, 4) of a spanning tree's edges sorted by distance (N - 1, 3)."""
     n_edges = edges.shape[0]
@@ -87,7 +87,7 @@ def single_linkage(edges):
     return hierarchy
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _breadth_first(hierarchy, start, n_points, queue):
     """Nodes of the subtree under ``start`` in breadth-first order (left before right), in ``queue``; their count."""
     queue[0] = start
@@ -102,7 +102,7 @@ def _breadth_first(hierarchy, start, n_points, queue):
     return tail
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def condense(hierarchy, min_cluster_size):
     """Condensed tree (parent, child, lambda, child_size) of a hierarchy: splits into two parts of at least
     ``min_cluster_size`` points make two new clusters, smaller parts fall out of their cluster point by point."""
@@ -154,7 +154,7 @@ def condense(hierarchy, min_cluster_size):
     return out_parent[:pos], out_child[:pos], out_lambda[:pos], out_size[:pos]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def stabilities(parent, child, lam, size):
     """Stability of every cluster (ids root .. max parent, index id - root): the sum over its rows of (lambda -
     the cluster's birth lambda) x child size, in row order."""
@@ -226,7 +226,7 @@ def _epsilon_merge(leaves: set, birth: dict, children: dict, epsilon: float, roo
     return selected
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def point_labels(parent, child, n_points, selected):
     """(N,) intp: the index in ``selected`` (sorted cluster ids) of each point's nearest selected ancestor, -1 for
     none."""

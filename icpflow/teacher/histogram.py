@@ -54,7 +54,7 @@ def pack(clouds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([np.asarray(c, dtype=np.float64).reshape(-1, 3) for c in clouds]), offsets
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _max_filter(values: np.ndarray, half: int) -> np.ndarray:
     """Maximum over the cube ``[-half, half]^3`` around each cell of a 3D array, cells outside ignored."""
     nx, ny, nz = values.shape
@@ -87,7 +87,7 @@ def _max_filter(values: np.ndarray, half: int) -> np.ndarray:
     return a
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _vote_peaks(src, dst, window, bin_size, z_bins, z_range, nms_kernel, top_k):
     """Top-k histogram peaks of ``dst_j - src_i``: ((k, 3) bin-centre translations, number of valid rows)."""
     half_xy = int(np.round(window / bin_size))
@@ -140,7 +140,7 @@ def _vote_peaks(src, dst, window, bin_size, z_bins, z_range, nms_kernel, top_k):
 
 
 # fastmath without the no-inf / no-nan assumptions: min() against infinity stays exact.
-@numba.njit(cache=True, fastmath={"reassoc", "contract", "arcp", "nsz"})
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract", "arcp", "nsz"})
 def _scores(src_t, dst_t, candidates):
     """Score of each candidate translation (K, 3): the smaller of the two directed mean nearest-neighbour distances
     between ``src + t`` and ``dst``. Clusters are given transposed, (3, Ns) and (3, Nd), for vectorised loops."""
@@ -167,7 +167,7 @@ def _scores(src_t, dst_t, candidates):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def main_axis(points):
     """(unit (2,) main horizontal axis of (N >= 1, 3) float64 points, their length along it in metres)."""
     n = points.shape[0]
@@ -187,7 +187,7 @@ def main_axis(points):
     return axis, high - low
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _axis_search(src, dst, axis, start, score, window, axis_step, axis_points):
     """The line search along the source cluster's main horizontal axis from ``start`` (its ``score``): candidates
     every ``axis_step`` metres across the window, scored on every k-th point (at most ``axis_points`` per
@@ -216,7 +216,7 @@ def _axis_search(src, dst, axis, start, score, window, axis_step, axis_points):
     return start, score
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _initial_translation(
     src, dst, window, bin_size, z_bins, z_range, nms_kernel, top_k, axis_min_extent, axis_step, axis_points
 ):
@@ -234,7 +234,7 @@ def _initial_translation(
     return candidates[c], scores[c]
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _initial_translations(
     src_all,
     src_off,

@@ -34,7 +34,7 @@ _PLANE_TOL = 1e-4
 PLANE_MAX_ITER = 30
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def icp_point_to_point(moving, fixed, grid, cell, init, max_corr, max_iter, rel_rmse, yaw_only):
     """Point-to-point ICP of moving (M, 3) onto fixed (N, 3) from ``init``: ((4, 4) transform, iterations run).
     ``grid`` is fixed's ``build_grid`` with cells of ``cell`` metres (any size: the search is exact; cells a few
@@ -109,7 +109,7 @@ def icp_point_to_point(moving, fixed, grid, cell, init, max_corr, max_iter, rel_
     return transform, iterations
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def icp_point_to_plane(moving, fixed, normals, grid, cell, init, max_corr, max_iter):
     """Point-to-plane ICP (rotation about z and 3D translation) of moving (M, 3) onto fixed (N, 3) with unit
     ``normals`` (N, 3), from ``init``: ((4, 4) transform, iterations run). ``grid``/``cell`` as in

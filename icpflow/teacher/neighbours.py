@@ -21,7 +21,7 @@ _FAR = 1e30
 _MAX_KNN_SHELL = 8
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def build_grid(points, cell):
     """Voxel grid of (N, 3) points, sorted by xy column then z cell: (origin (3,), dims (3,), column starts
     (nx * ny + 1,), z cell of each sorted point (N,), sorted point order (N,))."""
@@ -63,7 +63,7 @@ def build_grid(points, cell):
     return origin, dims, starts, z_cells[order], order
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _scan_column(q, points, starts, z_sorted, order, dims, cx, cy, z0, z1, best_d2, best_j):
     """Closest point to q among grid column (cx, cy), z cells z0..z1 (already clipped)."""
     column = cx * dims[1] + cy
@@ -84,7 +84,7 @@ def _scan_column(q, points, starts, z_sorted, order, dims, cx, cy, z0, z1, best_
     return best_d2, best_j
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _nearest_brute(q, points, max_d2):
     """Nearest of ``points`` to q by a full scan: (index, squared distance), or (-1, max_d2)."""
     best_d2, best_j = max_d2, -1
@@ -95,7 +95,7 @@ def _nearest_brute(q, points, max_d2):
     return best_j, best_d2
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def nearest(q, points, grid, cell, max_d2):
     """Nearest of ``points`` to q: (index, squared distance), or (-1, max_d2) if none is closer than sqrt(max_d2).
 
@@ -152,7 +152,7 @@ def nearest(q, points, grid, cell, max_d2):
     return best_j, best_d2
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _keep(d2, j, best_d2, best_j):
     """Insert point j at squared distance d2 into the ascending (k,) lists ``best_d2``, ``best_j`` if it is closer
     than their last (an equal distance keeps the point found first)."""
@@ -168,7 +168,7 @@ def _keep(d2, j, best_d2, best_j):
     best_j[at] = j
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _scan_column_k(q, points, starts, z_sorted, order, dims, cx, cy, z0, z1, best_d2, best_j):
     """``_scan_column`` for the k nearest: the points of column (cx, cy), z cells z0..z1, kept in the lists."""
     column = cx * dims[1] + cy
@@ -186,7 +186,7 @@ def _scan_column_k(q, points, starts, z_sorted, order, dims, cx, cy, z0, z1, bes
         _keep((points[j, 0] - q[0]) ** 2 + (points[j, 1] - q[1]) ** 2 + (points[j, 2] - q[2]) ** 2, j, best_d2, best_j)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _k_nearest_one(q, points, grid, cell, best_d2, best_j):
     """The k nearest of ``points`` to q into ``best_d2`` / ``best_j`` (k,), which hold (max_d2, -1) on entry: the
     search of :func:`nearest`, pruned by the k-th distance so far; beyond ``_MAX_KNN_SHELL`` shells a full scan."""
@@ -248,7 +248,7 @@ def _k_nearest_one(q, points, grid, cell, best_d2, best_j):
         r += 1
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def k_nearest(query, points, grid, cell, k, max_d2):
     """The ``k`` nearest of ``points`` (N, 3) (with their ``build_grid``) to each query point (M, 3), exactly:
     (squared distances (M, k) ascending, indices (M, k) int64); ``max_d2`` where fewer than k lie closer than
@@ -262,7 +262,7 @@ def k_nearest(query, points, grid, cell, k, max_d2):
     return best_d2, best_j
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def transform_cloud(points, transform):
     """(N, 3) points mapped by a (4, 4) transform."""
     out = np.empty_like(points)
@@ -277,7 +277,7 @@ def transform_cloud(points, transform):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def nn_stats(query, points, grid, cell, inlier_d2):
     """Exact nearest-neighbour distances from query (M, 3) to points (N, 3) with their ``build_grid``:
     (mean distance, inlier count)."""
@@ -291,7 +291,7 @@ def nn_stats(query, points, grid, cell, inlier_d2):
     return total / query.shape[0], inliers
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def nearest_distances(query, points, grid, cell):
     """(M,) exact distances from each query point (M, 3) to its nearest of points (N, 3) with their ``build_grid``."""
     out = np.empty(query.shape[0])

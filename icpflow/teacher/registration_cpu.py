@@ -30,7 +30,7 @@ def grid_cell(max_corr: float) -> float:
     return max(_GRID_CELL, float(max_corr) / 2)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _quality_from(moved, err_fwd, inl_fwd, fixed, cell, inlier_d2):
     """(mean error, IoU ratio, symmetric error) of moved (M, 3) on fixed (N, 3) (module docstring), given the
     forward direction's mean distance and inlier count: the backward one is measured here."""
@@ -40,14 +40,14 @@ def _quality_from(moved, err_fwd, inl_fwd, fixed, cell, inlier_d2):
     return min(err_fwd, err_bwd), iou, 0.5 * (err_fwd + err_bwd)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _quality(moved, fixed, fixed_grid, cell, inlier_d2):
     """:func:`_quality_from` with the forward direction measured too (``fixed_grid``: fixed's ``build_grid``)."""
     err_fwd, inl_fwd = nn_stats(moved, fixed, fixed_grid, cell, inlier_d2)
     return _quality_from(moved, err_fwd, inl_fwd, fixed, cell, inlier_d2)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _register_one(
     moving, fixed, fixed_normals, init, max_corr, max_iter, rel_rmse, yaw_only, plane, inlier_d2, grid_cell, identity
 ):
@@ -80,7 +80,7 @@ def _register_one(
     return transform, error, iou, n_iter, err_id, iou_id, symmetric, sym_id
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _register_batch(
     mov_all,
     mov_off,
@@ -181,7 +181,7 @@ def register_batch_cpu(
     return result
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def _register_stages_batch(
     mov_all, mov_off, fix_all, fix_off, given_all, inits, max_corrs, cells, max_iter, rel_rmse, yaw_only, n_workers
 ):
