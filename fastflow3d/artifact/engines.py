@@ -7,7 +7,7 @@ Every engine gives a network with the artifact's calling convention (``fastflow3
   or, ``runtime="onnxruntime"``, the tuned CPU session: every graph optimisation, ``threads`` intra-op threads,
   sequential execution and no spin-waiting of idle threads (spinning threads compete with the rest of the process,
   and with other processes, for the cores of a small machine); on one thread, its pillar sums as one-thread
-  ``ScatterND`` (``fastflow3d.artifact.sequential_scatter``: the same sums, the int8 network 1.3x quicker);
+  ``ScatterND`` (``fastflow3d.artifact.sequential_scatter``: the same sums, the int8 network 1.4x quicker);
 * ``.onnx`` in Intel OpenVINO (``runtime="openvino"``, :class:`OpenVinoNetwork`, ``pip install 'icpflow[openvino]'``),
   compiled for the CPU with a latency hint and ``threads`` inference threads; ``precision="bf16"`` runs in bfloat16
   where the CPU has it (AVX512-BF16 / AMX), else OpenVINO keeps float32;

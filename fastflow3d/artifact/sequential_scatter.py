@@ -15,10 +15,10 @@ same sums bit for bit.
 
 where ``rows`` (P, C) is what the export transposed into the updates, then drops the nodes whose outputs nothing reads
 any more (ONNX Runtime still ran the unused index Expand and row Transpose, 5 ms a KITTI pair) and the constants only
-they read. The int8 network on one thread, a pair of the synthetic stream 77 -> 62 ms, of KITTI 95 -> 71 ms
-(BENCHMARKS.md, issue 44). Only the export's own pattern is rewritten: ``ids`` a 1-D tensor unsqueezed on axis 0 and
-expanded over the channels (or not expanded, for constant data of one row: the counts, as ONNX Runtime's optimiser
-leaves them); anything else is left as it is.
+they read. The int8 network on one thread, 12 calls of each graph in turn: 84.8 -> 60.8 ms on a pair of the synthetic
+stream, 102.9 -> 70.6 ms on a KITTI pair (BENCHMARKS.md, issue 44). Only the export's own pattern is rewritten: ``ids``
+a 1-D tensor unsqueezed on axis 0 and expanded over the channels (or not expanded, for constant data of one row: the
+counts, as ONNX Runtime's optimiser leaves them); anything else is left as it is.
 """
 
 from __future__ import annotations

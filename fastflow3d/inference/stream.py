@@ -22,16 +22,17 @@ that fits under ``LOST_FITNESS`` too the pair gets no flow (``StreamStep.predict
 Each case is one :class:`StreamWarning`; the other frames keep their flow.
 
 ``overlap=True`` uses the second core: the network of one pair, and its refinement, run in a worker thread while the
-stream prepares the next scan (its ground and odometry step) and writes out the previous step (refined on the stream's
-own thread, a frame waited for the refinement beside an idle network core: synthetic stream, int8, one network thread,
-101 -> xx ms a frame, issue 44). The steps are the same, in the same order, one push late: :meth:`FlowStream.push`
-returns the step of the scan pushed before (None for the first) and :meth:`FlowStream.flush` the last one. A caller that
-reads its scans from files (``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps
-``overlap=False``. The network then runs best on one core fewer than the process has (:func:`overlap_threads`, the CLI's
-default: the Predictor's ``threads``), and the stream's own steps on one thread (numba, torch, BLAS and OpenMP limited
-while they run: their idle threads spun on the network's core; 2 cores, synthetic stream, int8: 86-89 -> 74-76 ms a
-frame, 106-120 -> 94-102 ms refined; KISS-ICP's registration and the odometry's k-d tree queries, which run threads of
-their own, are given one by the odometry: ``Odometry(threads=1)``).
+stream prepares the next scan (its ground and odometry step) and writes out the previous step. The refinement ran on the
+stream's own thread before, which then waited for it beside an idle network core (synthetic stream, int8, one network
+thread: 109.2 -> 93.3 ms a refined frame, p90 153.0 -> 120.0, issue 44). The steps are the same, in the same order, one
+push late: :meth:`FlowStream.push` returns the step of the scan pushed before (None for the first) and
+:meth:`FlowStream.flush` the last one. A caller that reads its scans from files (``fastflow3d-infer``) gains the
+throughput; a live caller that needs each flow at once keeps ``overlap=False``. The network then runs best on one core
+fewer than the process has (:func:`overlap_threads`, the CLI's default: the Predictor's ``threads``; on one thread ONNX
+Runtime sums the pillars quicker, ``fastflow3d.artifact.sequential_scatter``), and the stream's own steps on one thread
+(numba, torch, BLAS and OpenMP limited while they run: their idle threads spun on the network's core; 2 cores, synthetic
+stream, int8: 86-89 -> 74-76 ms a frame, 106-120 -> 94-102 ms refined; KISS-ICP's registration, which runs threads of
+its own, is given one by the odometry: ``Odometry(threads=1)``). Every numba kernel of both threads releases the GIL.
 """
 
 from __future__ import annotations
@@ -133,7 +134,7 @@ class FlowStream:
     ):
         self.predictor = predictor
         self.max_gap_s, self.check_every = float(max_gap_s), int(check_every)
-        # overlapped: one thread for KISS-ICP and the k-d trees too, beside the network (module docstring)
+        # overlapped: one thread for KISS-ICP too, beside the network (module docstring)
         self.odometry = Odometry(
             predictor.ego_config, min_fitness=min_fitness, refine=refine, threads=1 if overlap else 0
         )
