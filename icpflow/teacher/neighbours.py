@@ -64,17 +64,24 @@ def build_grid(points, cell):
 
 
 @numba.njit(cache=True, nogil=True)
-def _scan_column(q, points, starts, z_sorted, order, dims, cx, cy, z0, z1, best_d2, best_j):
-    """Closest point to q among grid column (cx, cy), z cells z0..z1 (already clipped)."""
-    column = cx * dims[1] + cy
+def _column_from(starts, z_sorted, column, z0):
+    """The sorted index of grid column ``column``'s first point at z cell >= z0 (a binary search: tall columns hold
+    many points)."""
     lo, hi = starts[column], starts[column + 1]
-    while lo < hi:  # binary search for the column's first point at z cell >= z0 (tall columns hold many points)
+    while lo < hi:
         mid = (lo + hi) // 2
         if z_sorted[mid] < z0:
             lo = mid + 1
         else:
             hi = mid
-    for s in range(lo, starts[column + 1]):
+    return lo
+
+
+@numba.njit(cache=True, nogil=True)
+def _scan_column(q, points, starts, z_sorted, order, dims, cx, cy, z0, z1, best_d2, best_j):
+    """Closest point to q among grid column (cx, cy), z cells z0..z1 (already clipped)."""
+    column = cx * dims[1] + cy
+    for s in range(_column_from(starts, z_sorted, column, z0), starts[column + 1]):
         if z_sorted[s] > z1:
             break
         j = order[s]
@@ -172,14 +179,7 @@ def _keep(d2, j, best_d2, best_j):
 def _scan_column_k(q, points, starts, z_sorted, order, dims, cx, cy, z0, z1, best_d2, best_j):
     """``_scan_column`` for the k nearest: the points of column (cx, cy), z cells z0..z1, kept in the lists."""
     column = cx * dims[1] + cy
-    lo, hi = starts[column], starts[column + 1]
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if z_sorted[mid] < z0:
-            lo = mid + 1
-        else:
-            hi = mid
-    for s in range(lo, starts[column + 1]):
+    for s in range(_column_from(starts, z_sorted, column, z0), starts[column + 1]):
         if z_sorted[s] > z1:
             break
         j = order[s]
