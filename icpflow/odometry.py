@@ -194,14 +194,23 @@ class Odometry:
     :meth:`step` returns None for the first scan after a start or :meth:`reset`, else an :class:`OdometryStep`.
     ``min_fitness``: under it a step is estimated afresh from its two scans. ``refine=False``: KISS-ICP alone (the
     fitness is still measured). ``threads``: KISS-ICP's threads (0: every core; a stream that runs its network beside
-    the odometry gives it 1); the nearest-neighbour queries of the refinement run on numba's threads (the caller's
-    setting: the stream's steps limit it to one)."""
+    the odometry gives it 1; None: numba's thread count where a KISS-ICP is made, i.e. the caller's limit, as a
+    labelling worker's ``icpflow.threads.thread_limit``: each worker's KISS-ICP had taken every core); the
+    nearest-neighbour queries of the refinement run on numba's threads (the caller's setting)."""
 
-    def __init__(self, cfg, min_fitness: float = 0.5, refine: bool = True, voxel: float = VOXEL, threads: int = 0):
+    def __init__(
+        self, cfg, min_fitness: float = 0.5, refine: bool = True, voxel: float = VOXEL, threads: int | None = None
+    ):
         self.settings = ego_settings(cfg)
         self.min_fitness, self.refine, self.voxel = float(min_fitness), bool(refine), float(voxel)
-        self.threads = int(threads)
+        self.threads = None if threads is None else int(threads)
         self.reset()
+
+    def kiss_threads(self) -> int:
+        """KISS-ICP's threads for a registration made now (class docstring)."""
+        import numba
+
+        return numba.get_num_threads() if self.threads is None else self.threads
 
     def reset(self) -> None:
         """Forget the map and the motion: the next scan starts a new track."""
@@ -215,7 +224,7 @@ class Odometry:
         ground = np.zeros(len(points), bool) if ground is None else np.asarray(ground, bool)
         kept = points[~ground] if (~ground).sum() >= MIN_EGO_POINTS else points
         if self._kiss is None:
-            self._kiss = kiss_odometry(self.settings, self.threads)
+            self._kiss = kiss_odometry(self.settings, self.kiss_threads())
         self._kiss.register_frame(kept, np.zeros(0))
         cloud = voxel_cloud(kept, self.voxel)
         source = cloud.uniform_down_sample(max(1, len(cloud.points) // SOURCE_POINTS))
@@ -232,7 +241,7 @@ class Odometry:
         if fitness >= self.min_fitness:
             return OdometryStep(transform, fitness)
         if self._steps > 1:  # the two scans alone, a new track from this pair
-            self._kiss = kiss_odometry(self.settings, self.threads)
+            self._kiss = kiss_odometry(self.settings, self.kiss_threads())
             self._kiss.register_frame(previous.kept, np.zeros(0))
             self._kiss.register_frame(kept, np.zeros(0))
             current.kiss_pose = np.asarray(self._kiss.last_pose, np.float64)
@@ -276,7 +285,7 @@ class Odometry:
         fit = _fit(source, target, transform)
         jump = float(np.linalg.norm((invert(start) @ transform)[:3, 3]))
         if fit < RETRY_FIT or jump > RETRY_JUMP:
-            reverse = invert(_kiss_registration(current.kept, previous.kept, self.settings, self.threads))
+            reverse = invert(_kiss_registration(current.kept, previous.kept, self.settings, self.kiss_threads()))
             for other in (np.eye(4), reverse):
                 refined = _staged(source, target, other)
                 refined_fit = _fit(source, target, refined)

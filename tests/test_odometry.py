@@ -182,3 +182,27 @@ def test_label_estimates_a_drive_once_in_order_and_resumes(tmp_path, moving, cap
     other = LabelJob(ScanSequenceDataset(folder, sensor_height=0.0), teacher.replace(**{"ground.margin": 0.2}),
                      job.out_dir, "x")  # fmt: skip
     assert drive_trajectory(other, progress=False)["reused"] == 0
+
+
+def test_kiss_icp_takes_the_callers_thread_limit(moving, monkeypatch):
+    """KISS-ICP runs threads of its own (TBB), out of ``thread_limit``'s reach: an odometry made without ``threads``
+    gives it numba's thread count where it is made, so a labelling worker's limit (the teacher's pairwise ego motion)
+    holds it too; ``threads`` given wins (the stream's 1; 0: every core). The estimate is the same."""
+    import numba
+
+    from icpflow import odometry as odometry_module
+    from icpflow.threads import thread_limit
+
+    made = []
+    kiss_odometry = odometry_module.kiss_odometry
+    monkeypatch.setattr(
+        odometry_module, "kiss_odometry", lambda cfg, threads: made.append(threads) or kiss_odometry(cfg, threads)
+    )
+    pair = moving[0][0]
+    free = estimate_ego_motion(pair.pc0, pair.pc1, EGO, pair.ground0, pair.ground1)
+    with thread_limit(1):
+        limited = estimate_ego_motion(pair.pc0, pair.pc1, EGO, pair.ground0, pair.ground1)
+        for threads in (0, 2):
+            Odometry(EGO, threads=threads).step(pair.pc0, pair.ground0)
+    assert made == [numba.get_num_threads(), 1, 0, 2]
+    np.testing.assert_allclose(limited, free, atol=1e-9)

@@ -136,7 +136,7 @@ class FlowStream:
         self.max_gap_s, self.check_every = float(max_gap_s), int(check_every)
         # overlapped: one thread for KISS-ICP too, beside the network (module docstring)
         self.odometry = Odometry(
-            predictor.ego_config, min_fitness=min_fitness, refine=refine, threads=1 if overlap else 0
+            predictor.ego_config, min_fitness=min_fitness, refine=refine, threads=1 if overlap else None
         )
         self.lift: float | None = None
         self._previous: _Scan | None = None
