@@ -42,6 +42,9 @@ NOISE_WARNINGS = (
     # Lightning's guess on a resume inside an epoch; train.py's data module saves and resumes the training order
     # (fastflow3d.training.data.ShardDataModule.state_dict), which Lightning does not see
     (r"You're resuming from a checkpoint that ended before the epoch ended", UserWarning),
+    # numba, at its first parallel kernel after open3d loaded its own older TBB: numba falls back to its OpenMP layer
+    # (the same kernels, the same results); nothing to do for a user
+    (r"The TBB threading layer requires TBB version", Warning),
 )
 #: loggers that Lightning gives their own console handler (they do not reach the root logger's)
 LIGHTNING_LOGGERS = ("lightning.pytorch", "lightning.fabric", "lightning_fabric", "pytorch_lightning")
@@ -129,12 +132,26 @@ class Progress(tqdm):
 
 def quiet() -> None:
     """Leave the library noise listed in ``NOISE`` and ``NOISE_WARNINGS`` out of this process's console."""
-    for message, category in NOISE_WARNINGS:
-        warnings.filterwarnings("ignore", message=message, category=category)
+    _ignore_noise_warnings()
     for name in ("", *LIGHTNING_LOGGERS):  # filters on handlers: a logger's own filters skip its children's records
         for handler in logging.getLogger(name).handlers:
             if not any(isinstance(f, NoiseFilter) for f in handler.filters):
                 handler.addFilter(NoiseFilter())
+
+
+@contextlib.contextmanager
+def recorded_warnings() -> Iterator[list]:
+    """``warnings.catch_warnings(record=True)`` with every warning recorded each time it is raised, but those of
+    ``NOISE_WARNINGS`` (a caller that prints what it records, as a stream's loop, stays as quiet as :func:`quiet`)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _ignore_noise_warnings()
+        yield caught
+
+
+def _ignore_noise_warnings() -> None:
+    for message, category in NOISE_WARNINGS:
+        warnings.filterwarnings("ignore", message=message, category=category)
 
 
 #: file descriptors 1 and 2 belong to the whole process: one redirection at a time (two threads each saving and

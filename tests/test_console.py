@@ -146,3 +146,44 @@ def test_native_output_redirections_from_two_threads_keep_stdout(capfd):
     out, _ = capfd.readouterr()
     assert out == "still here\n"
     assert len(caught) == 400 and all(len(lines) == 1 for lines in caught)
+
+
+NUMBA_AFTER_OPEN3D = """
+import numpy as np
+{quiet}
+from icpflow.open3d_loader import load_open3d
+from icpflow.teacher.neighbours import build_grid, k_nearest
+load_open3d()  # open3d loads its own TBB, older than numba's TBB layer wants
+points = np.random.default_rng(0).uniform(-1, 1, (200, 3))
+k_nearest(points, points, build_grid(points, 0.5), 0.5, 3, np.inf)  # numba's first parallel kernel
+"""
+
+
+def test_numbas_threading_layer_warning_is_noise():
+    """numba warns, at its first parallel kernel after open3d loaded an older TBB, that it takes another threading
+    layer (the same results): ``quiet`` drops that line, and so does ``recorded_warnings`` (the stream's loop prints
+    what it records)."""
+    run = [sys.executable, "-c"]
+    alone = subprocess.run([*run, NUMBA_AFTER_OPEN3D.format(quiet="")], capture_output=True, text=True, timeout=300)
+    if "TBB threading layer" not in alone.stderr:
+        pytest.skip("numba takes its TBB layer here, or open3d brings none: no warning to drop")
+    for guard in ("from icpflow.console import quiet; quiet()", "from icpflow.console import recorded_warnings"):
+        code = NUMBA_AFTER_OPEN3D.format(quiet=guard)
+        if "recorded" in guard:
+            code = code.replace("k_nearest(points", "with recorded_warnings() as caught:\n    k_nearest(points")
+            code += "print(len(caught))\n"
+        done = subprocess.run([*run, code], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0 and "TBB" not in done.stderr, done.stderr
+        assert "recorded" not in guard or done.stdout.strip() == "0"
+
+
+def test_recorded_warnings_keep_every_other_warning_each_time():
+    import warnings
+
+    from icpflow.console import recorded_warnings
+
+    with recorded_warnings() as caught:
+        for _ in range(2):
+            warnings.warn("a scan was skipped", UserWarning, stacklevel=1)
+        warnings.warn("The TBB threading layer requires TBB version 2021 update 6 or later", UserWarning, stacklevel=1)
+    assert [str(warning.message) for warning in caught] == ["a scan was skipped"] * 2

@@ -56,7 +56,7 @@ from fastflow3d.artifact.file_format import FORMATS, LEGACY_FORMATS
 from fastflow3d.inference.scan_files import read_raw_scan, read_transforms, refuse_input_as_output, write_flow
 from fastflow3d.inference.stream_folder import MANIFEST, claim_output_folder, stream_files, stream_manifest
 from icpflow.atomic import write_text_atomic
-from icpflow.console import quiet
+from icpflow.console import quiet, recorded_warnings
 from icpflow.errors_and_signals import exit_status, one_line, stop_on_signals
 from icpflow.frames import FramePair
 from icpflow.geometry import relative_transform
@@ -282,8 +282,7 @@ def infer_stream(args) -> tuple[Path, int, int]:
     pushed = []
     with Progress(total=len(files), unit="frame", desc="infer") as bar:  # its rate: frames per second
         for path in [*files, None]:  # None: the last step out of the stream (flush)
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
+            with recorded_warnings() as caught:
                 points = None
                 if path is not None:
                     try:
