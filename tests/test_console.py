@@ -152,10 +152,10 @@ NUMBA_AFTER_OPEN3D = """
 import numpy as np
 {quiet}
 from icpflow.open3d_loader import load_open3d
-from icpflow.teacher.neighbours import build_grid, k_nearest
+from icpflow.teacher.neighbours import MAX_KNN_SHELL, build_grid, k_nearest
 load_open3d()  # open3d loads its own TBB, older than numba's TBB layer wants
 points = np.random.default_rng(0).uniform(-1, 1, (200, 3))
-k_nearest(points, points, build_grid(points, 0.5), 0.5, 3, np.inf)  # numba's first parallel kernel
+k_nearest(points, points, build_grid(points, 0.5), 0.5, 3, np.inf, MAX_KNN_SHELL, True)  # numba's first parallel kernel
 """
 
 

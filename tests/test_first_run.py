@@ -51,14 +51,21 @@ def test_a_fresh_cache_is_seen_as_cold(tmp_path):
 
 
 def test_the_warmup_reaches_the_refinements_kernels():
-    """``compile_kernels`` (setup.sh's warm-up) calls the two kernels of ``KERNEL_MODULES`` that the teacher's pair
-    never reaches, the student refinement's batch ICP and nearest distances (``fastflow3d.inference.refine``): left
-    out, they stayed cold after set-up, and every label.py or eval.py run said it compiled the kernels again (a first
-    label test of a fresh clone caught it). In a fresh process, so that no other test has called them."""
+    """``compile_kernels`` (setup.sh's warm-up) calls the kernels of ``KERNEL_MODULES`` that the teacher's pair
+    never reaches, the student refinement's batch ICP, nearest distances and bird's-eye-view cells
+    (``fastflow3d.inference.refine``): left out, they stayed cold after set-up, and every label.py or eval.py run said
+    it compiled the kernels again (a first label test of a fresh clone caught it). In a fresh process, so that no
+    other test has called them."""
+    refinements = (
+        "registration_cpu._register_stages_batch",
+        "neighbours.nearest_distances",
+        "bev.occupied_cells",
+        "bev.cell_values",
+        "bev.in_box_cells",
+    )
     code = (
         "from icpflow.teacher import warmup; warmup.compile_kernels(); kernels = warmup.kernels(); "
-        "print(sorted(name for name in ('registration_cpu._register_stages_batch', 'neighbours.nearest_distances') "
-        "if not kernels[name].signatures))"
+        f"print(sorted(name for name in {refinements!r} if not kernels[name].signatures))"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=600)
     assert done.stdout.strip().splitlines()[-1] == "[]"

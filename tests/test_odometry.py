@@ -83,6 +83,34 @@ def test_the_target_normals_are_the_nearest_points_planes(moving):
     assert np.median(agree) > 0.999 and np.mean(agree > 0.95) > 0.95
 
 
+def test_sparse_far_queries_get_their_exact_neighbours_from_the_coarse_grid():
+    """TargetPlanes.nearest: a query whose k-th neighbour lies beyond FINE_SHELLS cells (the sparse far rings of a
+    scan) is answered on the coarse grid: the same k nearest as scipy's, whether they lie 2, 10 or 80 m away, with
+    and without a reach; the dense queries never build it."""
+    from scipy.spatial import cKDTree
+
+    from icpflow.odometry import FINE_SHELLS, GRID_CELL
+
+    rng = np.random.default_rng(7)
+    ground = np.column_stack([rng.uniform(-20, 20, (20000, 2)), rng.normal(0.0, 0.02, 20000)])
+    radius, angle = rng.uniform(25, 90, 400), rng.uniform(0, 2 * np.pi, 400)
+    far = np.column_stack([radius * np.cos(angle), radius * np.sin(angle), rng.uniform(-1, 4, 400)])  # sparse rings
+    points = np.concatenate([ground, far])
+    query = np.concatenate([ground[::50] + rng.normal(0, 0.05, (400, 3)), far[::4] + 0.3, [[300.0, 0.0, 0.0]]])
+    tree, planes = cKDTree(points), TargetPlanes(points)
+    distance, expected = tree.query(query, k=10)
+    assert (distance[:, -1] > (FINE_SHELLS + 1) * GRID_CELL).sum() > 50  # these gave up on the fine grid
+    got_distance, got = planes.nearest(query, 10)
+    assert planes.coarse is not None and np.array_equal(got, expected)
+    np.testing.assert_allclose(got_distance, distance, rtol=1e-12)
+    got_distance, got = planes.nearest(query, 10, 3.0)
+    within = distance < 3.0
+    assert np.array_equal(got[within], expected[within]) and (got[~within] == -1).all()
+    assert np.isinf(got_distance[~within]).all()
+    dense = TargetPlanes(points)
+    assert np.array_equal(dense.nearest(query[:100], 10)[1], expected[:100]) and dense.coarse is None
+
+
 def test_the_normals_in_closed_form_are_numpys_eigenvectors():
     """``smallest_axes``: the eigenvector of the smallest eigenvalue, as numpy.linalg.eigh gives it (up to sign), on
     planes, lines and blobs of 10 points anywhere; (0, 0, 1) where no axis is defined."""

@@ -187,16 +187,16 @@ def test_ground_surface_left_in_the_scans_joins_no_objects_and_stays_out_of_icp(
 
 
 def test_the_targets_are_searched_among_the_points_of_the_cells_the_boxes_touch():
-    """refine._covered: every point inside a candidate's box is kept (so its targets, and their order along x, are
-    those of the whole scan), and a point far from every box is not."""
-    from fastflow3d.inference.refine import _covered
+    """icpflow.bev.in_box_cells (the refinement's targets): every point inside a candidate's box is kept (so its
+    targets, and their order along x, are those of the whole scan), and a point far from every box is not."""
+    from icpflow.bev import in_box_cells
 
     rng = np.random.default_rng(4)
     points = rng.uniform(-40, 40, (20000, 3)).astype(np.float32)
     lows = rng.uniform(-40, 30, (12, 3))
     highs = lows + rng.uniform(0.2, 8, (12, 3))
     lows[:2, 2], highs[:2, 2] = -50, 50  # two boxes of every height: many points inside
-    kept = _covered(points, lows, highs, 0.5)
+    kept = in_box_cells(points, lows, highs, 0.5)
     assert np.all(np.diff(kept) > 0)
     inside = np.zeros(len(points), bool)
     for low, high in zip(lows, highs):

@@ -398,9 +398,16 @@ def test_nearest_distances_are_exact():
     rng = np.random.default_rng(3)
     points = rng.uniform(-4, 4, (700, 3))
     query = np.concatenate([rng.uniform(-5, 5, (300, 3)), rng.uniform(20, 30, (20, 3))])  # some far outside
+    truth = cKDTree(points).query(query)[0]
+    reach = rng.uniform(0, 1, len(query)) * truth * 2  # about half the points nearer than their reach
     for cell in (0.1, 0.3, 2.0):
-        got = nearest_distances(query, points, build_grid(points, cell), cell)
-        np.testing.assert_allclose(got, cKDTree(points).query(query)[0], rtol=1e-12)
+        grid = build_grid(points, cell)
+        got = nearest_distances(query, points, grid, cell, np.full(len(query), np.inf))
+        np.testing.assert_allclose(got, truth, rtol=1e-12)
+        bounded = nearest_distances(query, points, grid, cell, reach)
+        inside = truth < reach
+        assert 0.3 < inside.mean() < 0.7 and np.array_equal(bounded[inside], got[inside])
+        assert np.all(np.isinf(bounded[~inside]))
 
 
 def test_the_grid_sorts_points_by_column_then_height_cell_stably():
@@ -426,7 +433,7 @@ def test_k_nearest_neighbours_are_exact():
     (the rest -1) and within a reach (none there: -1)."""
     from scipy.spatial import cKDTree
 
-    from icpflow.teacher.neighbours import build_grid, k_nearest
+    from icpflow.teacher.neighbours import MAX_KNN_SHELL, build_grid, k_nearest
 
     rng = np.random.default_rng(5)
     ground = np.column_stack([rng.uniform(-30, 30, (6000, 2)), rng.normal(0.0, 0.02, 6000)])
@@ -438,15 +445,15 @@ def test_k_nearest_neighbours_are_exact():
     tree = cKDTree(points)
     for cell in (0.25, 0.5, 2.0):
         grid = build_grid(points, cell)
-        squared, index = k_nearest(query, points, grid, cell, 10, np.inf)
+        squared, index = k_nearest(query, points, grid, cell, 10, np.inf, MAX_KNN_SHELL, True)
         distance, expected = tree.query(query, k=10)
         assert np.array_equal(index, expected)
         np.testing.assert_allclose(np.sqrt(squared), distance, rtol=1e-12)
-        squared, index = k_nearest(query, points, grid, cell, 1, 0.3**2)
+        squared, index = k_nearest(query, points, grid, cell, 1, 0.3**2, MAX_KNN_SHELL, True)
         distance, expected = tree.query(query, distance_upper_bound=0.3)
         assert np.array_equal(index[:, 0], np.where(np.isfinite(distance), expected, -1))
         assert np.all(np.isfinite(distance) == (squared[:, 0] < 0.3**2))
     few = points[:4]
-    squared, index = k_nearest(query, few, build_grid(few, 0.5), 0.5, 6, np.inf)
+    squared, index = k_nearest(query, few, build_grid(few, 0.5), 0.5, 6, np.inf, MAX_KNN_SHELL, True)
     assert np.array_equal(index[:, :4], cKDTree(few).query(query, k=4)[1]) and (index[:, 4:] == -1).all()
     assert np.isinf(squared[:, 4:]).all()

@@ -135,31 +135,14 @@ def components(points: np.ndarray, cell: float, occupying: np.ndarray | None = N
     occupies is in no component (-1)."""
     from scipy import ndimage
 
+    from icpflow.bev import cell_values, occupied_cells
+
     if not len(points):
         return np.zeros(0, np.int64), 0
-    cells = np.floor(points[:, :2] / cell).astype(np.int64)
-    cells -= cells.min(axis=0)
-    shape = tuple(cells.max(axis=0) + 1)
-    occupied = np.zeros(shape, bool)
-    seeds = cells if occupying is None else cells[np.asarray(occupying, bool)]
-    occupied[seeds[:, 0], seeds[:, 1]] = True
+    occupying = np.ones(len(points), bool) if occupying is None else np.asarray(occupying, bool)
+    cells, occupied = occupied_cells(points, points.dtype.type(cell), occupying)
     labels, count = ndimage.label(occupied, structure=np.ones((3, 3), bool))
-    return labels[cells[:, 0], cells[:, 1]].astype(np.int64) - 1, int(count)
-
-
-def _covered(points: np.ndarray, lows: np.ndarray, highs: np.ndarray, cell: float) -> np.ndarray:
-    """Indices (increasing) of the (N, 3) ``points`` in the bird's-eye-view cells (``cell`` m) that the (K, 3) boxes
-    ``lows`` .. ``highs`` touch: every point inside a box is among them (flooring is monotonic)."""
-    origin = lows[:, :2].min(axis=0)
-    first = np.floor((lows[:, :2] - origin) / cell).astype(np.int64)
-    last = np.floor((highs[:, :2] - origin) / cell).astype(np.int64)
-    covered = np.zeros(tuple(last.max(axis=0) + 1), bool)
-    for (x0, y0), (x1, y1) in zip(first, last):
-        covered[x0 : x1 + 1, y0 : y1 + 1] = True
-    cells = np.floor((points[:, :2] - origin) / cell)
-    near = np.flatnonzero(np.all((cells >= 0) & (cells < covered.shape), axis=1))
-    cells = cells[near].astype(np.int64)
-    return near[covered[cells[:, 0], cells[:, 1]]]
+    return cell_values(labels, cells) - 1, int(count)
 
 
 def refine_residual(
@@ -176,6 +159,7 @@ def refine_residual(
     the ring the sensor draws around them: ``icpflow.ground.GroundSegmenter.masks``); they belong to components
     and get an accepted motion where it fits them, but stay out of the ICP and its checks, whose matches they pull
     towards no motion."""
+    from icpflow.bev import in_box_cells
     from icpflow.teacher.checks import passes
     from icpflow.teacher.config import ChecksConfig, ICPConfig
     from icpflow.teacher.neighbours import build_grid, nearest_distances
@@ -209,7 +193,7 @@ def refine_residual(
     # pc1 sorted along x (each candidate's targets from one slice), of the points in the cells the candidates' boxes
     # cover only: the same targets in the same order as the whole scan sorted, at a fraction of the sort
     shifted = means[chosen] + np.array([[-cfg.margin], [cfg.margin]])[:, None]  # (2, K, 3): the boxes' two shifts
-    by_x = _covered(pc1, lows[chosen] + shifted[0], highs[chosen] + shifted[1], cfg.cell)
+    by_x = in_box_cells(pc1, lows[chosen] + shifted[0], highs[chosen] + shifted[1], cfg.cell)
     by_x = by_x[np.argsort(pc1[by_x, 0], kind="stable")]
     pc1_x, pc1_sorted = pc1[by_x, 0], np.asarray(pc1[by_x], np.float64)
     registered0 = above0[order]
@@ -256,8 +240,15 @@ def refine_residual(
         members, points = groups[k], np.asarray(pc0[groups[k]], np.float64)
         flow = rigid_flow(points, transforms[k])
         grid = build_grid(windows[k], cell)
-        icp_gap = nearest_distances(points + flow, windows[k], grid, cell)
-        fits = icp_gap <= nearest_distances(points + residual[members], windows[k], grid, cell) + cfg.point_slack
+        icp_gap = nearest_distances(points + flow, windows[k], grid, cell, np.full(len(points), np.inf))
+        # fits: icp_gap <= student_gap + point_slack; where the ICP's gap is within the slack, it fits whatever the
+        # student's; elsewhere only a target nearer the student's flow than icp_gap - slack (a hair more: the
+        # comparison below stays exact) can fail it, and a query bounded so stops early (issue 44)
+        fits = icp_gap <= cfg.point_slack
+        ask = np.flatnonzero(~fits)
+        reach = (icp_gap[ask] - cfg.point_slack) * (1.0 + 1e-9)
+        student_gap = nearest_distances(points[ask] + residual[members[ask]], windows[k], grid, cell, reach)
+        fits[ask] = icp_gap[ask] <= student_gap + cfg.point_slack
         out[members[fits]] = flow[fits]
         refined[members[fits]] = True
     return out, refined

@@ -18,7 +18,9 @@ _MAX_SHELL = 3
 _FAR = 1e30
 # Shells a k-nearest query visits before it scans every point (the 10th neighbour of an odometry target's point lies
 # within 3.5 m for 99 % of them, 7 shells of 0.5 m cells; BENCHMARKS.md, issue 44).
-_MAX_KNN_SHELL = 8
+MAX_KNN_SHELL = 8
+#: the indices of a k-nearest query that gave up (``k_nearest`` without ``scan_all``)
+GAVE_UP = -2
 
 
 @numba.njit(cache=True, nogil=True)
@@ -187,9 +189,10 @@ def _scan_column_k(q, points, starts, z_sorted, order, dims, cx, cy, z0, z1, bes
 
 
 @numba.njit(cache=True, nogil=True)
-def _k_nearest_one(q, points, grid, cell, best_d2, best_j):
+def _k_nearest_one(q, points, grid, cell, best_d2, best_j, max_shell, scan_all):
     """The k nearest of ``points`` to q into ``best_d2`` / ``best_j`` (k,), which hold (max_d2, -1) on entry: the
-    search of :func:`nearest`, pruned by the k-th distance so far; beyond ``_MAX_KNN_SHELL`` shells a full scan."""
+    search of :func:`nearest`, pruned by the k-th distance so far; beyond ``max_shell`` shells a full scan
+    (``scan_all``) or ``GAVE_UP`` in ``best_j``."""
     origin, dims, starts, z_sorted, order = grid
     k = best_d2.shape[0]
     c0 = int(np.floor((q[0] - origin[0]) / cell))
@@ -203,7 +206,10 @@ def _k_nearest_one(q, points, grid, cell, best_d2, best_j):
     while r <= r_max:
         if r > 1 and ((r - 1) * cell) ** 2 >= best_d2[k - 1]:
             break
-        if r > _MAX_KNN_SHELL:
+        if r > max_shell:
+            if not scan_all:
+                best_j[:] = GAVE_UP
+                return
             # start again over every point: below the caller's max_d2 (still the last entry where fewer than k were
             # found; where k were, the k nearest are nearer than it anyway)
             limit = best_d2[k - 1] if best_j[k - 1] < 0 else np.inf
@@ -249,16 +255,18 @@ def _k_nearest_one(q, points, grid, cell, best_d2, best_j):
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def k_nearest(query, points, grid, cell, k, max_d2):
+def k_nearest(query, points, grid, cell, k, max_d2, max_shell, scan_all):
     """The ``k`` nearest of ``points`` (N, 3) (with their ``build_grid``) to each query point (M, 3), exactly:
     (squared distances (M, k) ascending, indices (M, k) int64); ``max_d2`` where fewer than k lie closer than
-    sqrt(``max_d2``), index -1 there. The queries run on numba's threads (the caller's setting)."""
+    sqrt(``max_d2``), index -1 there. A query whose k-th neighbour lies beyond ``max_shell`` shells of cells
+    (``MAX_KNN_SHELL``: the grid's) scans every point where ``scan_all``, else its indices are ``GAVE_UP`` (the
+    caller asks a coarser grid). The queries run on numba's threads (the caller's setting)."""
     best_d2 = np.full((query.shape[0], k), max_d2)
     best_j = np.full((query.shape[0], k), -1, dtype=np.int64)
     if points.shape[0] == 0:
         return best_d2, best_j
     for i in numba.prange(query.shape[0]):
-        _k_nearest_one(query[i], points, grid, cell, best_d2[i], best_j[i])
+        _k_nearest_one(query[i], points, grid, cell, best_d2[i], best_j[i], max_shell, scan_all)
     return best_d2, best_j
 
 
@@ -292,9 +300,12 @@ def nn_stats(query, points, grid, cell, inlier_d2):
 
 
 @numba.njit(cache=True, nogil=True)
-def nearest_distances(query, points, grid, cell):
-    """(M,) exact distances from each query point (M, 3) to its nearest of points (N, 3) with their ``build_grid``."""
+def nearest_distances(query, points, grid, cell, reach):
+    """(M,) exact distances from each query point (M, 3) to its nearest of points (N, 3) with their ``build_grid``,
+    where it lies nearer than ``reach`` (M,) m (inf: any distance), inf elsewhere: a bounded query stops at its reach
+    (the refinement asks whether a point lies nearer than a known distance, issue 44)."""
     out = np.empty(query.shape[0])
     for i in range(query.shape[0]):
-        out[i] = np.sqrt(nearest(query[i], points, grid, cell, np.inf)[1])
+        found, d2 = nearest(query[i], points, grid, cell, reach[i] * reach[i])
+        out[i] = np.sqrt(d2) if found >= 0 else np.inf
     return out

@@ -187,7 +187,9 @@ def _register_stages_batch(
 ):
     """Coarse-to-fine point-to-point ICP of P packed pairs (see :func:`register_stages_cpu`); returns (transforms,
     errors, IoU ratios, errors at the identity, IoU ratios at the identity, errors of the given clouds, IoU ratios
-    of the given clouds). Worker w takes pairs w, w + n_workers, ... (pairs sorted by decreasing size)."""
+    of the given clouds). Worker w takes pairs w, w + n_workers, ... (pairs sorted by decreasing size). A transform's
+    forward mean distance is measured once and carried to the next stage and the quality (the student's refinement,
+    issue 44: 8 passes over the moving cloud to 5)."""
     n_pairs = inits.shape[0]
     transforms = np.zeros((n_pairs, 4, 4))
     out = np.full((6, n_pairs), np.inf)
@@ -203,6 +205,9 @@ def _register_stages_batch(
                 transforms[p] = transform
                 continue
             grid = build_grid(fixed, cells[0])
+            # the forward (mean distance, inliers at the last truncation) of the current transform, measured once
+            # each: exact, whatever the grid's cell, so a stage's start is its last stage's result (-1: not yet)
+            current, current_inliers = -1.0, 0
             for s in range(max_corrs.shape[0]):
                 if s > 0 and cells[s] != cells[s - 1]:
                     grid = build_grid(fixed, cells[s])
@@ -211,12 +216,25 @@ def _register_stages_batch(
                     moving, fixed, grid, cells[s], init, max_corrs[s], max_iter, rel_rmse, yaw_only
                 )
                 if n_iter > 0:  # ICP made the forward mean distance no smaller: keep the stage's start
-                    moved, _ = nn_stats(transform_cloud(moving, transform), fixed, grid, cells[s], 0.0)
-                    if not moved < nn_stats(transform_cloud(moving, init), fixed, grid, cells[s], 0.0)[0]:
+                    if current < 0:
+                        current, current_inliers = nn_stats(
+                            transform_cloud(moving, init), fixed, grid, cells[s], inlier_d2
+                        )
+                    moved, moved_inliers = nn_stats(
+                        transform_cloud(moving, transform), fixed, grid, cells[s], inlier_d2
+                    )
+                    if moved < current:
+                        current, current_inliers = moved, moved_inliers
+                    else:
                         transform = init
             transforms[p] = transform
             given = given_all[mov_off[p] : mov_off[p + 1]]
-            out[0, p], out[1, p], _ = _quality(transform_cloud(moving, transform), fixed, grid, cells[last], inlier_d2)
+            moved_cloud = transform_cloud(moving, transform)
+            if current < 0:
+                current, current_inliers = nn_stats(moved_cloud, fixed, grid, cells[last], inlier_d2)
+            out[0, p], out[1, p], _ = _quality_from(
+                moved_cloud, current, current_inliers, fixed, cells[last], inlier_d2
+            )
             out[2, p], out[3, p], _ = _quality(moving, fixed, grid, cells[last], inlier_d2)
             out[4, p], out[5, p], _ = _quality(given, fixed, grid, cells[last], inlier_d2)
     return transforms, out[0], out[1], out[2], out[3], out[4], out[5]

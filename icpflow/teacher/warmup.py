@@ -15,7 +15,8 @@ import importlib
 import sys
 import time
 
-#: the modules whose numba kernels the teacher calls on the CPU (the ground's also the Predictor and the stream)
+#: the modules whose numba kernels the teacher calls on the CPU (the ground's also the Predictor and the stream; the
+#: bird's-eye-view cells only the student's refinement)
 KERNEL_MODULES = (
     "icpflow.teacher.neighbours",
     "icpflow.teacher.icp",
@@ -23,6 +24,7 @@ KERNEL_MODULES = (
     "icpflow.teacher.registration_cpu",
     "icpflow.teacher.hdbscan_labels",
     "icpflow.ground",
+    "icpflow.bev",
 )
 
 
@@ -65,13 +67,14 @@ def cache_location() -> str:
 
 def compile_kernels() -> None:
     """Call every kernel with the types a labelling run uses: the teacher (av2 preset: ground removal, histogram vote,
-    ICP both ways, de-skew) on a small synthetic pair with per-point capture times; then the two kernels of these
-    modules that only the student's refinement calls (``fastflow3d.inference.refine``: the coarse-to-fine batch ICP
-    and the exact nearest distances), with its types, on two small clouds (else they stay cold, and every run after
-    set-up would say so and compile again); and the odometry's k nearest neighbours (``icpflow.odometry``: the teacher
-    runs it only without a given ego motion)."""
+    ICP both ways, de-skew) on a small synthetic pair with per-point capture times; then the kernels of these
+    modules that only the student's refinement calls (``fastflow3d.inference.refine``: the coarse-to-fine batch ICP,
+    the exact nearest distances and the bird's-eye-view cells), with its types, on small clouds (else they stay
+    cold, and every run after set-up would say so and compile again); and the odometry's k nearest neighbours
+    (``icpflow.odometry``: the teacher runs it only without a given ego motion)."""
     import numpy as np
 
+    from icpflow.bev import cell_values, in_box_cells, occupied_cells
     from icpflow.datasets.synthetic import SyntheticDataset
     from icpflow.odometry import TargetPlanes
     from icpflow.teacher import ICPFlow, ICPFlowConfig
@@ -89,8 +92,13 @@ def compile_kernels() -> None:
     cloud = np.random.default_rng(0).uniform(-1.0, 1.0, (64, 3))
     register_stages_cpu([cloud], [cloud + 0.1], [cloud], np.eye(4)[None], (0.5, 0.2), 5, 1e-6, yaw_only=True)
     cell = grid_cell(0.2)
-    nearest_distances(cloud, cloud, build_grid(cloud, cell), cell)
+    nearest_distances(cloud, cloud, build_grid(cloud, cell), cell, np.full(len(cloud), np.inf))
     TargetPlanes(cloud).nearest(cloud, 2)  # the odometry's neighbour queries (a pair's ego motion, a stream)
+    # the refinement's objects and targets (icpflow.bev), with its types: float32 points, int32 component labels
+    points = cloud.astype(np.float32)
+    cells, occupied = occupied_cells(points, np.float32(0.5), np.ones(len(points), bool))
+    cell_values(occupied.astype(np.int32), cells)
+    in_box_cells(points, cloud[:2], cloud[:2] + 1.0, 0.5)
 
 
 def ensure_compiled(prefix: str = "icpflow", stream=None) -> bool:
