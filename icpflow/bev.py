@@ -36,15 +36,6 @@ def occupied_cells(points, cell, occupying):
 
 
 @numba.njit(cache=True, nogil=True)
-def cell_values(grid, cells):
-    """(N,) int64: the value of the 2D ``grid`` at each of the (N, 2) ``cells``."""
-    out = np.empty(cells.shape[0], np.int64)
-    for i in range(cells.shape[0]):
-        out[i] = grid[cells[i, 0], cells[i, 1]]
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
 def in_box_cells(points, lows, highs, cell):
     """Indices (increasing, int64) of the (N, 3) ``points`` in the cells that the (K, 3) boxes ``lows`` .. ``highs``
     (K >= 1) touch, on a grid whose origin is the smallest corner of the boxes: every point inside a box is among

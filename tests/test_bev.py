@@ -4,7 +4,7 @@ bit for bit, also for points on a cell's edge)."""
 import numpy as np
 import pytest
 
-from icpflow.bev import cell_values, in_box_cells, occupied_cells
+from icpflow.bev import in_box_cells, occupied_cells
 
 
 def edge_points(rng, count, dtype):
@@ -29,8 +29,6 @@ def test_occupied_cells_are_numpys_floor(dtype):
         grid = np.zeros(tuple(expected.max(axis=0) + 1), bool)
         grid[expected[occupying, 0], expected[occupying, 1]] = True
         assert np.array_equal(cells, expected) and np.array_equal(occupied, grid)
-        labels = rng.integers(0, 9, grid.shape)
-        assert np.array_equal(cell_values(labels, cells), labels[expected[:, 0], expected[:, 1]])
 
 
 def test_in_box_cells_are_the_points_of_the_cells_the_boxes_touch():

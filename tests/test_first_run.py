@@ -60,7 +60,6 @@ def test_the_warmup_reaches_the_refinements_kernels():
         "registration_cpu._register_stages_batch",
         "neighbours.nearest_distances",
         "bev.occupied_cells",
-        "bev.cell_values",
         "bev.in_box_cells",
     )
     code = (

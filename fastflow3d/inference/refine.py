@@ -135,14 +135,14 @@ def components(points: np.ndarray, cell: float, occupying: np.ndarray | None = N
     occupies is in no component (-1)."""
     from scipy import ndimage
 
-    from icpflow.bev import cell_values, occupied_cells
+    from icpflow.bev import occupied_cells
 
     if not len(points):
         return np.zeros(0, np.int64), 0
     occupying = np.ones(len(points), bool) if occupying is None else np.asarray(occupying, bool)
     cells, occupied = occupied_cells(points, points.dtype.type(cell), occupying)
     labels, count = ndimage.label(occupied, structure=np.ones((3, 3), bool))
-    return cell_values(labels, cells) - 1, int(count)
+    return labels[cells[:, 0], cells[:, 1]].astype(np.int64) - 1, int(count)
 
 
 def refine_residual(

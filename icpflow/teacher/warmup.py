@@ -74,7 +74,7 @@ def compile_kernels() -> None:
     (``icpflow.odometry``: the teacher runs it only without a given ego motion)."""
     import numpy as np
 
-    from icpflow.bev import cell_values, in_box_cells, occupied_cells
+    from icpflow.bev import in_box_cells, occupied_cells
     from icpflow.datasets.synthetic import SyntheticDataset
     from icpflow.odometry import TargetPlanes
     from icpflow.teacher import ICPFlow, ICPFlowConfig
@@ -94,10 +94,9 @@ def compile_kernels() -> None:
     cell = grid_cell(0.2)
     nearest_distances(cloud, cloud, build_grid(cloud, cell), cell, np.full(len(cloud), np.inf))
     TargetPlanes(cloud).nearest(cloud, 2)  # the odometry's neighbour queries (a pair's ego motion, a stream)
-    # the refinement's objects and targets (icpflow.bev), with its types: float32 points, int32 component labels
+    # the refinement's objects and targets (icpflow.bev), with its types: float32 points
     points = cloud.astype(np.float32)
-    cells, occupied = occupied_cells(points, np.float32(0.5), np.ones(len(points), bool))
-    cell_values(occupied.astype(np.int32), cells)
+    occupied_cells(points, np.float32(0.5), np.ones(len(points), bool))
     in_box_cells(points, cloud[:2], cloud[:2] + 1.0, 0.5)
 
 
