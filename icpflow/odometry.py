@@ -7,13 +7,16 @@ height frame (``icpflow.preprocess``) with its (N,) bool ground mask (the ground
 (4, 4) float64 from the previous scan's frame into this one's. A pair is a two-scan sequence
 (:func:`estimate_ego_motion`); ``label.py`` runs one over a whole drive (``icpflow.labelling.trajectory``).
 
-Each step: KISS-ICP (``kiss-icp`` 1.x, one instance across the track: its local map and constant-velocity model) on
-the non-ground points gives a start (on every point, the ground's rings, drawn by the sensor, hold KISS-ICP near the
-identity); it is refined point-to-plane (open3d ``registration_icp``) on ``VOXEL`` m clouds of the two whole scans
-(the ground's planes fix roll, pitch and height) with a robust (Tukey) kernel that leaves moving objects out; the
-target's normals come from one estimate (:class:`TargetPlanes`: ``icpflow.geometry.plane_normals`` of a target
-point's ``NORMAL_NEIGHBOURS`` nearest). The first step of a track (a pair: no motion model, a one-scan map) is
-refined coarse to fine and, when it fits poorly, from other starts too (:meth:`Odometry._first_step`).
+Each step: KISS-ICP (``kiss-icp`` 1.x, one instance across the track: its local map and constant-velocity model) on the
+non-ground points gives a start (on every point, the ground's rings, drawn by the sensor, hold KISS-ICP near the
+identity; it takes them down-sampled to one per ``VOXEL``, the cloud the refinement uses too: its own voxel grids, 0.5
+and 1.5 m, keep one point per voxel anyway, and an AV2 sweep's registration took 15.6 instead of 18.4-19.4 ms, with the
+same errors in ``benchmarks/bench_ego_motion.py``; issue 44); it is refined point-to-plane (open3d ``registration_icp``)
+on ``VOXEL`` m clouds of the two whole scans (the ground's planes fix roll, pitch and height) with a robust (Tukey)
+kernel that leaves moving objects out; the target's normals come from one estimate (:class:`TargetPlanes`:
+``icpflow.normals.plane_normals`` of a target point's ``NORMAL_NEIGHBOURS`` nearest). The first step of a track (a pair:
+no motion model, a one-scan map) is refined coarse to fine and, when it fits poorly, from other starts too
+(:meth:`Odometry._first_step`).
 
 Whether the track holds: the step's fitness (the share of the previous scan's non-ground points with a point of
 this scan within twice the voxel). Under ``min_fitness`` the step is estimated afresh from its two scans (a new
@@ -32,7 +35,8 @@ import dataclasses
 
 import numpy as np
 
-from icpflow.geometry import invert, plane_normals, transform_points
+from icpflow.geometry import invert, transform_points
+from icpflow.normals import plane_normals
 from icpflow.preprocess import Preprocessing
 from icpflow.teacher.config import EgoMotionConfig
 
@@ -156,7 +160,7 @@ class TargetPlanes:
         centres = self.points if moved is None else moved
         distance, neighbours = self.nearest(centres, min(NORMAL_NEIGHBOURS, len(self.points)))
         nearest, first, back = np.unique(neighbours[:, 0], return_index=True, return_inverse=True)
-        normals = plane_normals(self.points[neighbours[first]])
+        normals = plane_normals(self.points, neighbours[first])
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points[nearest]))
         cloud.normals = o3d.utility.Vector3dVector(normals)
         return cloud, distance[:, 0], self.points[neighbours[:, 0]], normals[back]
@@ -178,7 +182,7 @@ class OdometryStep:
 @dataclasses.dataclass
 class _Scan:
     ground: np.ndarray  # (G, 3) float64 ground points
-    kept: np.ndarray  # (M, 3) float64 non-ground points
+    kept: np.ndarray  # (M, 3) float64 its non-ground points, one per VOXEL (KISS-ICP's input)
     cloud: object  # their VOXEL cloud
     source: object  # its subsample, the next step's source
     kiss_pose: np.ndarray  # (4, 4) KISS-ICP's pose of the scan in its track
@@ -237,11 +241,11 @@ class Odometry:
         """Register the scan ``points`` (N, 3) (``ground``: its (N,) bool ground mask); see the class docstring."""
         points = np.asarray(points, np.float64)
         ground = np.zeros(len(points), bool) if ground is None else np.asarray(ground, bool)
-        kept = points[~ground] if (~ground).sum() >= MIN_EGO_POINTS else points
+        cloud = voxel_cloud(points[~ground] if (~ground).sum() >= MIN_EGO_POINTS else points, self.voxel)
+        kept = np.asarray(cloud.points)  # KISS-ICP's input (module docstring)
         if self._kiss is None:
             self._kiss = kiss_odometry(self.settings, self.kiss_threads())
         self._kiss.register_frame(kept, np.zeros(0))
-        cloud = voxel_cloud(kept, self.voxel)
         source = cloud.uniform_down_sample(max(1, len(cloud.points) // SOURCE_POINTS))
         current = _Scan(points[ground], kept, cloud, source, np.asarray(self._kiss.last_pose, np.float64))
         previous, self._previous = self._previous, current

@@ -6,7 +6,8 @@ in order, and resumes it."""
 import numpy as np
 import pytest
 
-from icpflow.geometry import invert, pose_error, smallest_axes
+from icpflow.geometry import invert, pose_error
+from icpflow.normals import plane_normals, smallest_axes
 from icpflow.odometry import NORMAL_NEIGHBOURS, Odometry, TargetPlanes, estimate_ego_motion, voxel_cloud
 from icpflow.open3d_loader import load_open3d
 from icpflow.teacher.config import ICPFlowConfig
@@ -112,8 +113,9 @@ def test_sparse_far_queries_get_their_exact_neighbours_from_the_coarse_grid():
 
 
 def test_the_normals_in_closed_form_are_numpys_eigenvectors():
-    """``smallest_axes``: the eigenvector of the smallest eigenvalue, as numpy.linalg.eigh gives it (up to sign), on
-    planes, lines and blobs of 10 points anywhere; (0, 0, 1) where no axis is defined."""
+    """``smallest_axes`` and ``plane_normals`` (icpflow.normals): the eigenvector of the smallest eigenvalue, as
+    numpy.linalg.eigh gives it (up to sign), on planes, lines and blobs of 10 points anywhere; (0, 0, 1) where no
+    axis is defined."""
     rng = np.random.default_rng(0)
     for spread in ([1.0, 0.5, 0.01], [1.0, 0.02, 0.01], [1.0, 1.0, 1.0], [1.0, 0.3, 0.03]):
         points = rng.normal(size=(500, 10, 3)) * spread
@@ -123,7 +125,15 @@ def test_the_normals_in_closed_form_are_numpys_eigenvectors():
         scatter = np.matmul(centred.transpose(0, 2, 1), centred)
         expected = np.linalg.eigh(scatter)[1][:, :, 0]
         assert np.abs((smallest_axes(scatter) * expected).sum(axis=1)).min() > 1 - 1e-9
+        # plane_normals: the same from the neighbourhoods' indices into a cloud, shuffled
+        cloud, shuffle = points.reshape(-1, 3), rng.permutation(5000)
+        neighbours = np.argsort(shuffle).reshape(500, 10)
+        normals = plane_normals(np.ascontiguousarray(cloud[shuffle]), neighbours)
+        assert np.abs((normals * expected).sum(axis=1)).min() > 1 - 1e-9
+        np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, rtol=1e-12)
     np.testing.assert_array_equal(smallest_axes(np.zeros((2, 3, 3))), [[0, 0, 1], [0, 0, 1]])
+    flat = np.ones((4, 3))  # one point four times, or two: no spread, no plane
+    np.testing.assert_array_equal(plane_normals(flat, np.zeros((2, 10), np.int64)), [[0, 0, 1], [0, 0, 1]])
 
 
 def test_two_places_spliced_give_no_estimate_then_a_new_exact_track(moving):

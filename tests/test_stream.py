@@ -124,17 +124,18 @@ def test_splicing_two_places_is_a_lost_track_without_flow(tiny_student, moving, 
         assert _errors(pair.ego1_from_ego0, steps[k].prediction.ego1_from_ego0)[0] < 0.03, k
 
 
-def test_an_overlapped_stream_gives_the_same_steps_one_push_late(tiny_student, moving, other_place):
+@pytest.mark.parametrize("depth", [1, 2])
+def test_an_overlapped_stream_gives_the_same_steps_depth_pushes_late(tiny_student, moving, other_place, depth):
     """overlap=True (the network of a pair beside the next scan's steps, in a worker thread): the very steps of the
-    plain stream, in order, each one push late and the last from flush(), through a scan of too few points, a
-    skipped scan and a lost track, with the refinement on."""
+    plain stream, in order, each ``depth`` pushes late and the last ones from flush() (until it gives None), through
+    a scan of too few points, a skipped scan and a lost track, with the refinement on."""
     _, scans = moving
     _, other_scans = other_place
     scans = [scans[0], scans[1], scans[2][:50], *scans[3:6], *other_scans[:3]]
     sources = [f"s{k}" for k in range(len(scans))]
 
     def run(overlap):
-        stream = FlowStream(Predictor.load(tiny_student, refine=True), overlap=overlap)
+        stream = FlowStream(Predictor.load(tiny_student, refine=True), overlap=overlap, depth=depth)
         steps = []
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -142,15 +143,18 @@ def test_an_overlapped_stream_gives_the_same_steps_one_push_late(tiny_student, m
                 if k == 5:
                     stream.skip("gone", "unreadable")
                 steps.append(stream.push(scan, source=source))
-            steps.append(stream.flush())
+            steps.extend(iter(stream.flush, None))
+            steps.append(stream.flush())  # nothing left
         said = [str(w.message) for w in caught if issubclass(w.category, StreamWarning)]
         return steps, said
 
     plain, plain_said = run(False)
     overlapped, overlapped_said = run(True)
-    assert plain[-1] is None and overlapped[0] is None  # plain: flush has nothing; overlapped: the first push
+    # plain: flush has nothing; overlapped: nothing for the first depth pushes, every step after them
+    assert plain[-1] is None and overlapped[:depth] == [None] * depth and overlapped[-1] is None
+    assert len(overlapped) == len(plain) + depth
     assert overlapped_said == plain_said and len(plain_said) == 3, plain_said  # too few, skipped, lost track
-    for expected, step in zip(plain[:-1], overlapped[1:]):
+    for expected, step in zip(plain[:-1], overlapped[depth:-1], strict=True):
         assert (step.source, step.previous, step.restarted, step.fitness) == (
             expected.source,
             expected.previous,
@@ -171,6 +175,8 @@ def test_an_overlapped_stream_gives_the_same_steps_one_push_late(tiny_student, m
                     getattr(step.prediction, name), getattr(expected.prediction, name), atol=1e-5
                 )
     assert sum(step.prediction is not None for step in plain[:-1]) >= 5
+    with pytest.raises(ValueError, match="depth must be at least 1, got 0"):
+        FlowStream(Predictor.load(tiny_student), overlap=True, depth=0)
 
 
 def test_a_scan_from_another_frame_is_caught_by_the_height_check(tiny_student, moving):

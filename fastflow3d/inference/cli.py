@@ -62,6 +62,11 @@ from icpflow.errors_and_signals import exit_status, one_line, stop_on_signals
 from icpflow.frames import FramePair
 from icpflow.geometry import relative_transform
 
+#: a stream's pairs in flight (``FlowStream(overlap=True, depth=...)``): a pair slow on one thread holds the other up
+#: less (AV2 and synthetic streams refined, int8: median 93.0 -> 91.5 and 75.3 -> 72.8 ms a frame, issue 44); the last
+#: ``STREAM_DEPTH`` flows are written after the last scan is read
+STREAM_DEPTH = 2
+
 
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python -m fastflow3d.inference.cli", description=__doc__.splitlines()[0])
@@ -249,7 +254,7 @@ def infer_stream(args) -> tuple[Path, int, int]:
     manifest = stream_manifest(args, files)
     claim_output_folder(out, manifest, files)
     outputs = []
-    stream = FlowStream(predictor, overlap=True)  # each pair's network beside the next scan's steps
+    stream = FlowStream(predictor, overlap=True, depth=STREAM_DEPTH)  # each pair's network beside the next scans' steps
     recording = None
     if args.rerun is not None:
         from icpflow.viz_rerun import PairRecording
@@ -282,7 +287,7 @@ def infer_stream(args) -> tuple[Path, int, int]:
             trajectory.append(step.pose[:3, 3])
             if recording is not None:
                 recording.log_trajectory(len(outputs), np.array(trajectory))
-        for name in [name for name in scans if name not in (step.source, *pushed[-2:])]:
+        for name in [name for name in scans if name not in (step.source, *pushed[-1 - stream.depth :])]:
             del scans[name]  # done with: neither this step's pc1 nor a scan whose step is still to come
 
     pushed = []
@@ -294,7 +299,7 @@ def infer_stream(args) -> tuple[Path, int, int]:
         # each scan read in a thread while the frame before it is worked on (a KITTI .bin: 2-3.5 ms of the stream's
         # own thread, issue 44); its error comes out of result() as the read's own
         reading = reader.submit(read_raw_scan, files[0], args.bin_columns)
-        for index, path in enumerate([*files, None]):  # None: the last step out of the stream (flush)
+        for index, path in enumerate([*files] + [None] * stream.depth):  # None: a step still in flight (flush)
             with recorded_warnings() as caught:
                 points = None
                 if path is not None:

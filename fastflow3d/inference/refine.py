@@ -145,6 +145,20 @@ def components(points: np.ndarray, cell: float, occupying: np.ndarray | None = N
     return labels[cells[:, 0], cells[:, 1]].astype(np.int64) - 1, int(count)
 
 
+def median_at_least(values: np.ndarray, starts: np.ndarray, sizes: np.ndarray, threshold: float) -> np.ndarray:
+    """(K,) bool: is ``numpy.median`` of each segment ``values[starts[k] : starts[k] + sizes[k]]`` (of the (N,) float
+    ``values``; the segments tile them in order, none empty) at least ``threshold``? Exactly, without a sort: a
+    segment of n values has its median there when more than n / 2 of them are; with exactly n / 2 (n even), when
+    the mean of the two middle values, the largest below and the smallest at or above the threshold, is. (A Python
+    loop of ``numpy.median`` over a KITTI pair's 100-200 components took 2-3 ms.)"""
+    above = values >= threshold
+    count = np.add.reduceat(above.astype(np.int64), starts)
+    below_largest = np.maximum.reduceat(np.where(above, -np.inf, values), starts)
+    above_smallest = np.minimum.reduceat(np.where(above, values, np.inf), starts)
+    halved = (2 * count == sizes) & ((below_largest + above_smallest) / 2.0 >= threshold)
+    return (2 * count > sizes) | halved
+
+
 def refine_residual(
     pc0: np.ndarray,
     residual: np.ndarray,
@@ -177,18 +191,17 @@ def refine_residual(
     if count == 0:
         return out, refined
     # per component at once (each has >= 1 point): box, mean residual; candidates by size, extent, speed
-    sorted_points, sorted_residual = np.asarray(pc0[order], np.float64), np.asarray(residual[order], np.float64)
-    lows = np.minimum.reduceat(sorted_points, bounds[:-1])
-    highs = np.maximum.reduceat(sorted_points, bounds[:-1])
+    # (np.take gathers rows 4x quicker than indexing)
+    sorted_points = np.take(pc0, order, axis=0).astype(np.float64)
+    sorted_residual = np.take(residual, order, axis=0).astype(np.float64)
+    firsts = bounds[:-1]
+    lows, highs = np.minimum.reduceat(sorted_points, firsts), np.maximum.reduceat(sorted_points, firsts)
     sizes = np.diff(bounds)
-    means = np.add.reduceat(sorted_residual, bounds[:-1]) / sizes[:, None]
+    means = np.add.reduceat(sorted_residual, firsts) / sizes[:, None]
     extents = np.linalg.norm((highs - lows)[:, :2], axis=1)
-    chosen = [
-        k
-        for k in np.flatnonzero((sizes >= cfg.min_points) & (extents <= cfg.max_extent))
-        if np.median(np.linalg.norm(sorted_residual[bounds[k] : bounds[k + 1]], axis=1)) >= cfg.min_motion
-    ]
-    if not chosen:
+    fast = median_at_least(np.linalg.norm(sorted_residual, axis=1), firsts, sizes, cfg.min_motion)
+    chosen = np.flatnonzero((sizes >= cfg.min_points) & (extents <= cfg.max_extent) & fast)
+    if not len(chosen):
         return out, refined
     # pc1 sorted along x (each candidate's targets from one slice), of the points in the cells the candidates' boxes
     # cover only: the same targets in the same order as the whole scan sorted, at a fraction of the sort

@@ -26,17 +26,21 @@ stream prepares the next scan (its ground and odometry step) and writes out the 
 stream's own thread before, which then waited for it beside an idle network core (synthetic stream, int8, one network
 thread: 109.2 -> 93.3 ms a refined frame, p90 153.0 -> 120.0, issue 44). The steps are the same, in the same order, one
 push late: :meth:`FlowStream.push` returns the step of the scan pushed before (None for the first) and
-:meth:`FlowStream.flush` the last one. A caller that reads its scans from files (``fastflow3d-infer``) gains the
-throughput; a live caller that needs each flow at once keeps ``overlap=False``. The network then runs best on one core
-fewer than the process has (:func:`overlap_threads`, the CLI's default: the Predictor's ``threads``; on one thread ONNX
-Runtime sums the pillars quicker, ``fastflow3d.artifact.sequential_scatter``), and the stream's own steps on one thread
-(numba, torch, BLAS and OpenMP limited while they run: their idle threads spun on the network's core; 2 cores, synthetic
-stream, int8: 86-89 -> 74-76 ms a frame, 106-120 -> 94-102 ms refined; KISS-ICP's registration, which runs threads of
-its own, is given one by the odometry: ``Odometry(threads=1)``). Every numba kernel of both threads releases the GIL.
+:meth:`FlowStream.flush` the last one. With ``depth=2`` (the CLI's) two pairs are in flight and the steps come two
+pushes late (flush until None): a pair slow on one thread then holds the other up less (AV2 and synthetic streams
+refined, int8: median 93.0 -> 91.5 and 75.3 -> 72.8 ms a frame, p90 alike; issue 44). A caller that reads its scans from
+files (``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps ``overlap=False``.
+The network then runs best on one core fewer than the process has (:func:`overlap_threads`, the CLI's default: the
+Predictor's ``threads``; on one thread ONNX Runtime sums the pillars quicker,
+``fastflow3d.artifact.sequential_scatter``), and the stream's own steps on one thread (numba, torch, BLAS and OpenMP
+limited while they run: their idle threads spun on the network's core; 2 cores, synthetic stream, int8: 86-89 -> 74-76
+ms a frame, 106-120 -> 94-102 ms refined; KISS-ICP's registration, which runs threads of its own, is given one by the
+odometry: ``Odometry(threads=1)``). Every numba kernel of both threads releases the GIL.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -121,7 +125,8 @@ class FlowStream:
     0.25 s: 2.5 frames at 10 Hz); ``min_fitness``: below it a step is estimated afresh from its two scans (under
     ``icpflow.odometry.LOST_FITNESS`` after that, the track is lost); ``check_every``: scans between
     checks of the height frame; ``refine``: refine each odometry step (off: KISS-ICP alone); ``overlap``: run each
-    pair's network beside the next scan's steps, the steps one push late (module docstring)."""
+    pair's network beside the next scan's steps, the steps one push late (module docstring); ``depth``: with
+    ``overlap``, the pairs in flight, the steps that many pushes late (module docstring)."""
 
     def __init__(
         self,
@@ -131,6 +136,7 @@ class FlowStream:
         check_every: int = 10,
         refine: bool = True,
         overlap: bool = False,
+        depth: int = 1,
     ):
         self.predictor = predictor
         self.max_gap_s, self.check_every = float(max_gap_s), int(check_every)
@@ -144,7 +150,11 @@ class FlowStream:
         self._since_check = 0
         self._gap: str | None = None  # why the next pair must restart the odometry
         self.overlap = bool(overlap)
-        self._pending: tuple[_Staged, Future | None] | None = None  # overlap: the last push, its network running
+        if int(depth) < 1:
+            raise ValueError(f"FlowStream: depth must be at least 1, got {depth}")
+        self.depth = int(depth)
+        # overlap: the pushes whose steps are not out yet, oldest first, each with its network's future
+        self._pending: collections.deque[tuple[_Staged, Future | None]] = collections.deque()
         self._worker = (
             ThreadPoolExecutor(1, thread_name_prefix="flowstream", initializer=_one_numba_thread)
             if self.overlap
@@ -154,10 +164,11 @@ class FlowStream:
 
     def reset(self) -> None:
         """Start again: the next scan begins a new stream (height frame, odometry, trajectory). With ``overlap``, a
-        step not yet returned is dropped (call :meth:`flush` first to keep it)."""
-        if self._pending is not None and self._pending[1] is not None:
-            self._pending[1].result()  # let its network finish: the worker is free for the next stream
-        self._pending = None
+        step not yet returned is dropped (call :meth:`flush` until None first to keep them)."""
+        for _, future in self._pending:
+            if future is not None:
+                future.result()  # let its network finish: the worker is free for the next stream
+        self._pending.clear()
         self.odometry.reset()
         self.lift, self._previous, self._pose, self._since_check, self._gap = None, None, np.eye(4), 0, None
 
@@ -169,23 +180,26 @@ class FlowStream:
 
     def push(self, scan, timestamp: float | None = None, source: str | None = None) -> StreamStep | None:
         """Take the next scan (N, 3) (``timestamp`` in seconds, ``source`` its name); see :class:`StreamStep`. With
-        ``overlap``: the step of the scan pushed before this one (None after the first push; :meth:`flush`)."""
+        ``overlap``: the step of the scan pushed ``depth`` pushes before this one (None for the first ``depth``
+        pushes; :meth:`flush`)."""
         if not self.overlap:
             staged = self._stage(scan, timestamp, source)
             return self._complete(staged, None if staged.step is not None else self._residual(staged))
         with self._own_steps():
             staged = self._stage(scan, timestamp, source)
-            done, self._pending = self._pending, None
-            residual = None if done is None or done[1] is None else done[1].result()  # the earlier pair's
-            future = self._worker.submit(self._residual, staged) if staged.step is None else None
-            self._pending = (staged, future)
-            return None if done is None else self._complete(done[0], residual)
+            future = None if staged.step is not None else self._worker.submit(self._residual, staged)
+            self._pending.append((staged, future))
+            if len(self._pending) <= self.depth:
+                return None
+            done, future = self._pending.popleft()
+            return self._complete(done, None if future is None else future.result())
 
     def flush(self) -> StreamStep | None:
-        """With ``overlap``: the step of the last pushed scan (None when there is none left); without, None."""
-        if self._pending is None:
+        """With ``overlap``: the oldest step not yet returned (call it until None: ``depth`` steps are left after the
+        last push); without, None."""
+        if not self._pending:
             return None
-        (staged, future), self._pending = self._pending, None
+        staged, future = self._pending.popleft()
         with self._own_steps():
             return self._complete(staged, None if future is None else future.result())
 

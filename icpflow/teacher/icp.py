@@ -23,7 +23,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from icpflow.geometry import plane_normals
+from icpflow.normals import plane_normals
 from icpflow.teacher.neighbours import nearest, transform_cloud
 
 # Neighbours (the point included) whose covariance gives a destination point's normal in point-to-plane ICP.
@@ -174,4 +174,4 @@ def normals(points: np.ndarray, neighbours: int = PLANE_NEIGHBOURS) -> np.ndarra
     if k < 3:
         return np.tile([0.0, 0.0, 1.0], (len(points), 1))
     _, nearest = cKDTree(points).query(points, k)
-    return plane_normals(points[nearest])
+    return plane_normals(points, nearest)

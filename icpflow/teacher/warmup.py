@@ -16,7 +16,7 @@ import sys
 import time
 
 #: the modules whose numba kernels the teacher calls on the CPU (the ground's also the Predictor and the stream; the
-#: bird's-eye-view cells only the student's refinement)
+#: bird's-eye-view cells only the student's refinement; the plane normals also the odometry)
 KERNEL_MODULES = (
     "icpflow.teacher.neighbours",
     "icpflow.teacher.icp",
@@ -25,6 +25,7 @@ KERNEL_MODULES = (
     "icpflow.teacher.hdbscan_labels",
     "icpflow.ground",
     "icpflow.bev",
+    "icpflow.normals",
 )
 
 
@@ -70,12 +71,13 @@ def compile_kernels() -> None:
     ICP both ways, de-skew) on a small synthetic pair with per-point capture times; then the kernels of these
     modules that only the student's refinement calls (``fastflow3d.inference.refine``: the coarse-to-fine batch ICP,
     the exact nearest distances and the bird's-eye-view cells), with its types, on small clouds (else they stay
-    cold, and every run after set-up would say so and compile again); and the odometry's k nearest neighbours
-    (``icpflow.odometry``: the teacher runs it only without a given ego motion)."""
+    cold, and every run after set-up would say so and compile again); and the odometry's k nearest neighbours and
+    plane normals (``icpflow.odometry``: the teacher runs it only without a given ego motion)."""
     import numpy as np
 
     from icpflow.bev import in_box_cells, occupied_cells
     from icpflow.datasets.synthetic import SyntheticDataset
+    from icpflow.normals import plane_normals, smallest_axes
     from icpflow.odometry import TargetPlanes
     from icpflow.teacher import ICPFlow, ICPFlowConfig
     from icpflow.teacher.neighbours import build_grid, nearest_distances
@@ -94,6 +96,8 @@ def compile_kernels() -> None:
     cell = grid_cell(0.2)
     nearest_distances(cloud, cloud, build_grid(cloud, cell), cell, np.full(len(cloud), np.inf))
     TargetPlanes(cloud).nearest(cloud, 2)  # the odometry's neighbour queries (a pair's ego motion, a stream)
+    plane_normals(cloud, np.zeros((len(cloud), 10), np.int64))  # its targets' normals (and a point-to-plane ICP's)
+    smallest_axes(np.zeros((1, 3, 3)))
     # the refinement's objects and targets (icpflow.bev), with its types: float32 points
     points = cloud.astype(np.float32)
     occupied_cells(points, np.float32(0.5), np.ones(len(points), bool))
