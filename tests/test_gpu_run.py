@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks import gpu_run
+from benchmarks.bench_student_latency import CLI_SCANS
 
 from helpers.labelling import TESTS_ENV
 
@@ -54,7 +55,7 @@ def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
     if (DATA / "kitti_hdl64_scans").is_dir():
         assert report.count("| kitti | 124668 | streamed | eager |") == 1
         for refined in ("no", "yes"):  # the stream as a user runs it (issue 44.6; on a GPU: its pt2 network)
-            assert f"| kitti | 6 | onnxruntime | {refined} |" in report, refined
+            assert f"| kitti | {CLI_SCANS} | onnxruntime | {refined} |" in report, refined
 
 
 def test_steps_picks_steps_and_refuses_an_unknown_one(tmp_path):
