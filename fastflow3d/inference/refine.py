@@ -149,8 +149,8 @@ def median_at_least(values: np.ndarray, starts: np.ndarray, sizes: np.ndarray, t
     """(K,) bool: is ``numpy.median`` of each segment ``values[starts[k] : starts[k] + sizes[k]]`` (of the (N,) float
     ``values``; the segments tile them in order, none empty) at least ``threshold``? Exactly, without a sort: a
     segment of n values has its median there when more than n / 2 of them are; with exactly n / 2 (n even), when
-    the mean of the two middle values, the largest below and the smallest at or above the threshold, is. (A Python
-    loop of ``numpy.median`` over a KITTI pair's 100-200 components took 2-3 ms.)"""
+    the mean of the two middle values, the largest below and the smallest at or above the threshold, is. (It
+    replaced a Python loop of ``numpy.median`` per component, with ``np.take``'s gathers 0.4-0.8 ms of a pair.)"""
     above = values >= threshold
     count = np.add.reduceat(above.astype(np.int64), starts)
     below_largest = np.maximum.reduceat(np.where(above, -np.inf, values), starts)
