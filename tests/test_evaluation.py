@@ -235,6 +235,16 @@ def test_stored_labels_of_other_points_are_refused(tmp_path, dataset, capsys):
             ["method=icpflow", "horizon=3", "dataset.reader.frames_per_sequence=5", "icpflow.pairing.max_frame_gap=2"],
             "icpflow: horizon=3 exceeds the teacher's max_frame_gap 2",
         ),
+        # icpflow-raw alone gets the eval's teacher settings too (it ran the defaults, issue 44's ninth session)
+        (
+            [
+                "method=icpflow-raw",
+                "horizon=3",
+                "dataset.reader.frames_per_sequence=5",
+                "icpflow.pairing.max_frame_gap=2",
+            ],
+            "icpflow: horizon=3 exceeds the teacher's max_frame_gap 2",
+        ),
     ],
 )
 def test_bad_requests_get_one_line(tmp_path, capsys, overrides, message):

@@ -131,7 +131,8 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
         check_config(cfg)  # the schema's rules (icpflow.options.EvalOptions)
         horizons = parse_horizons(cfg.horizon)
         dataset = open_dataset(cfg, horizons[-1])
-        teacher = teacher_config(cfg) if "icpflow" in names else None
+        # the eval's teacher settings for either teacher row (icpflow-raw alone had run the defaults)
+        teacher = teacher_config(cfg) if {"icpflow", "icpflow-raw"} & set(names) else None
         if teacher is not None and horizons[-1] > teacher.pairing.max_frame_gap:
             raise EvaluationError(
                 f"icpflow: horizon={horizons[-1]} exceeds the teacher's max_frame_gap "
