@@ -182,12 +182,16 @@ class OdometryStep:
 @dataclasses.dataclass
 class _Scan:
     ground: np.ndarray  # (G, 3) float64 ground points
-    kept: np.ndarray  # (M, 3) float64 its non-ground points, one per VOXEL (KISS-ICP's input)
-    cloud: object  # their VOXEL cloud
+    cloud: object  # the VOXEL cloud of its non-ground points (KISS-ICP's input: ``kept``)
     source: object  # its subsample, the next step's source
     kiss_pose: np.ndarray  # (4, 4) KISS-ICP's pose of the scan in its track
     whole: np.ndarray | None = None  # (K, 3) the whole scan's cloud (made when needed)
     target: TargetPlanes | None = None  # the whole cloud as a refinement's target (made when needed)
+
+    @property
+    def kept(self) -> np.ndarray:
+        """(M, 3) float64 the non-ground points of :attr:`cloud` (KISS-ICP's input)."""
+        return np.asarray(self.cloud.points)
 
     def whole_cloud(self) -> np.ndarray:
         """The non-ground cloud (its first rows) with the ground's (``VOXEL`` m): what a step is refined on (the
@@ -197,7 +201,7 @@ class _Scan:
             from kiss_icp.voxelization import voxel_down_sample
 
             ground = voxel_down_sample(self.ground, VOXEL) if len(self.ground) else np.zeros((0, 3))
-            self.whole = np.concatenate([np.asarray(self.cloud.points), ground])
+            self.whole = np.concatenate([self.kept, ground])
         return self.whole
 
     def planes(self) -> TargetPlanes:
@@ -247,7 +251,7 @@ class Odometry:
             self._kiss = kiss_odometry(self.settings, self.kiss_threads())
         self._kiss.register_frame(kept, np.zeros(0))
         source = cloud.uniform_down_sample(max(1, len(cloud.points) // SOURCE_POINTS))
-        current = _Scan(points[ground], kept, cloud, source, np.asarray(self._kiss.last_pose, np.float64))
+        current = _Scan(points[ground], cloud, source, np.asarray(self._kiss.last_pose, np.float64))
         previous, self._previous = self._previous, current
         if previous is None:
             return None

@@ -189,19 +189,20 @@ class FlowStream:
             staged = self._stage(scan, timestamp, source)
             future = None if staged.step is not None else self._worker.submit(self._residual, staged)
             self._pending.append((staged, future))
-            if len(self._pending) <= self.depth:
-                return None
-            done, future = self._pending.popleft()
-            return self._complete(done, None if future is None else future.result())
+            return None if len(self._pending) <= self.depth else self._complete_oldest()
 
     def flush(self) -> StreamStep | None:
         """With ``overlap``: the oldest step not yet returned (call it until None: ``depth`` steps are left after the
         last push); without, None."""
         if not self._pending:
             return None
-        staged, future = self._pending.popleft()
         with self._own_steps():
-            return self._complete(staged, None if future is None else future.result())
+            return self._complete_oldest()
+
+    def _complete_oldest(self) -> StreamStep:
+        """With ``overlap``: the :class:`StreamStep` of the oldest pending push, once its network is done."""
+        staged, future = self._pending.popleft()
+        return self._complete(staged, None if future is None else future.result())
 
     def _own_steps(self):
         """With ``overlap``: the context of the stream's own steps (ground, odometry, input, output) on
