@@ -19,6 +19,7 @@ from fastflow3d.inference.predictor import Predictor
 from fastflow3d.inference.stream import FlowStream, StreamWarning, overlap_threads
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
+from icpflow.threads import available_cores
 
 from helpers.disk import fail_fsync_after
 from helpers.drives import synthetic_drive
@@ -406,8 +407,9 @@ def test_infer_stream_gives_its_network_the_cores_but_one(tiny_student, moving, 
 def test_an_overlapped_stream_runs_its_own_steps_on_one_thread(tiny_student, moving, monkeypatch):
     """overlap=True: the stream's own steps (ground, odometry) run with numba and torch on one thread of the calling
     thread (their idle pool threads spun on the network's core), and the caller's settings come back after each push;
-    the network and the refinement run in the worker thread, the refinement's numba kernels on one thread there (the
-    network keeps its engine's threads). A plain stream runs everything on the calling thread, as it is set."""
+    the network and the refinement run in the worker thread, the refinement's numba kernels on every usable core there
+    (the components of a pair spread over the cores the stream's own steps leave idle; the network keeps its engine's
+    threads). A plain stream runs everything on the calling thread, as it is set."""
     import numba
     import torch
 
@@ -447,7 +449,8 @@ def test_an_overlapped_stream_runs_its_own_steps_on_one_thread(tiny_student, mov
         # KISS-ICP's registration (its own threads, out of threadpoolctl's reach) too
         assert stream.odometry._kiss.config.registration.max_num_threads == (1 if overlap else before[0])
         assert seen["odometry"] and set(seen["odometry"]) == {(1, 1) if overlap else before}, seen["odometry"]
-        assert set(seen["refine"]) == {(1, elsewhere[1]) if overlap else before}, seen["refine"]
+        cores = min(available_cores(), numba.config.NUMBA_NUM_THREADS)
+        assert set(seen["refine"]) == {(cores, elsewhere[1]) if overlap else before}, seen["refine"]
         assert where == {"refine": {not overlap}, "network": {not overlap}}, where
         seen = {name: [] for name in seen}
         where = {name: set() for name in where}

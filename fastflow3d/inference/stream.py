@@ -35,7 +35,10 @@ Predictor's ``threads``; on one thread ONNX Runtime sums the pillars quicker,
 ``fastflow3d.artifact.sequential_scatter``), and the stream's own steps on one thread (numba, torch, BLAS and OpenMP
 limited while they run: their idle threads spun on the network's core; 2 cores, synthetic stream, int8: 86-89 -> 74-76
 ms a frame, 106-120 -> 94-102 ms refined; KISS-ICP's registration, which runs threads of its own, is given one by the
-odometry: ``Odometry(threads=1)``). Every numba kernel of both threads releases the GIL.
+odometry: ``Odometry(threads=1)``). Every numba kernel of both threads releases the GIL. The worker's refinement
+registers its components on every usable core (:func:`_refinement_threads`): a pair with many moving objects then takes
+the cores the stream's own steps leave idle while they wait for it (KITTI stream refined, int8, 2 cores, in turn with
+one numba thread over 8 runs: run p90 124-165 -> 112-124 ms a frame, the medians alike; issue 44).
 """
 
 from __future__ import annotations
@@ -62,12 +65,12 @@ def overlap_threads() -> int:
     return max(1, available_cores() - 1)
 
 
-def _one_numba_thread() -> None:
-    """The overlapped stream's worker: its refinement's numba kernels on one thread (numba's setting is the calling
-    thread's own; the network's engine keeps its own threads)."""
+def _refinement_threads() -> None:
+    """The overlapped stream's worker: its refinement's numba kernels on every usable core (numba's setting is the
+    calling thread's own; the network's engine keeps its own threads; module docstring)."""
     import numba
 
-    numba.set_num_threads(1)
+    numba.set_num_threads(min(available_cores(), numba.config.NUMBA_NUM_THREADS))
 
 
 class StreamWarning(PredictorWarning):
@@ -156,7 +159,7 @@ class FlowStream:
         # overlap: the pushes whose steps are not out yet, oldest first, each with its network's future
         self._pending: collections.deque[tuple[_Staged, Future | None]] = collections.deque()
         self._worker = (
-            ThreadPoolExecutor(1, thread_name_prefix="flowstream", initializer=_one_numba_thread)
+            ThreadPoolExecutor(1, thread_name_prefix="flowstream", initializer=_refinement_threads)
             if self.overlap
             else None
         )
