@@ -37,8 +37,9 @@ limited while they run: their idle threads spun on the network's core; 2 cores, 
 ms a frame, 106-120 -> 94-102 ms refined; KISS-ICP's registration, which runs threads of its own, is given one by the
 odometry: ``Odometry(threads=1)``). Every numba kernel of both threads releases the GIL. The worker's refinement
 registers its components on every usable core (:func:`_refinement_threads`): a pair with many moving objects then takes
-the cores the stream's own steps leave idle while they wait for it (KITTI stream refined, int8, 2 cores, in turn with
-one numba thread over 8 runs: run p90 124-165 -> 112-124 ms a frame, the medians alike; issue 44).
+the cores the stream's own steps leave idle while they wait for it (refined, int8, 2 cores, in turn with one numba
+thread: KITTI p90 136.2 -> 121.6 ms a frame over 11 runs each, lower in every run, the median alike; AV2 and synthetic
+within their runs' spread, p90 +4 and +3 ms; issue 44).
 """
 
 from __future__ import annotations
