@@ -47,6 +47,18 @@ def rigid_problem(transform: np.ndarray, atol: float = ROTATION_ATOL) -> str | N
     return None
 
 
+def orthonormalized(transform: np.ndarray) -> np.ndarray:
+    """The (4, 4) float64 rigid transform nearest ``transform``: its rotation block replaced by the nearest rotation
+    (the polar factor of its SVD), its translation kept. Products of rigid transforms drift from orthonormal by
+    rounding, which some libraries refuse (KISS-ICP's Sophus checks to about 1e-13)."""
+    transform = np.asarray(transform, dtype=np.float64)
+    u, _, vt = np.linalg.svd(transform[:3, :3])
+    out = np.eye(4)
+    out[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    out[:3, 3] = transform[:3, 3]
+    return out
+
+
 def invert(transform: np.ndarray) -> np.ndarray:
     """Inverse of a rigid (4, 4) transform, float64."""
     transform = np.asarray(transform, dtype=np.float64)

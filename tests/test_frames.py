@@ -12,6 +12,7 @@ from icpflow.geometry import (
     is_rigid,
     kabsch,
     make_transform,
+    orthonormalized,
     pose_error,
     relative_transform,
     residual_to_full,
@@ -189,3 +190,22 @@ def test_kabsch_recovers_a_rigid_motion_and_never_a_reflection():
     mirrored = points * [1.0, 1.0, -1.0]  # the best fit of a mirror image is still a rotation
     fit = kabsch(points, mirrored)
     assert is_rigid(fit) and np.linalg.det(fit[:3, :3]) > 0
+
+
+def test_orthonormalized_is_the_nearest_rigid_transform():
+    """A product of rigid transforms drifts from orthonormal by rounding; ``orthonormalized`` puts it back (to the
+    float64 precision) and keeps a rigid transform as it is; a perturbed rotation goes to its nearest rotation
+    (det +1), the translation kept."""
+    truth = make_transform(0.3, (1.0, -2.0, 0.2), roll=0.05, pitch=-0.02)
+    drifted = np.eye(4)
+    for _ in range(1000):
+        drifted = drifted @ truth @ invert(truth)
+    clean = orthonormalized(drifted)
+    assert np.abs(clean[:3, :3] @ clean[:3, :3].T - np.eye(3)).max() < 1e-15
+    np.testing.assert_allclose(orthonormalized(truth), truth, atol=1e-15)
+    noisy = truth.copy()
+    noisy[:3, :3] += np.random.default_rng(0).normal(0, 1e-3, (3, 3))
+    fixed = orthonormalized(noisy)
+    assert is_rigid(fixed) and np.linalg.det(fixed[:3, :3]) > 0
+    np.testing.assert_array_equal(fixed[:3, 3], truth[:3, 3])
+    assert np.abs(fixed - truth).max() < 3e-3  # the nearest rotation: within the noise of the true one

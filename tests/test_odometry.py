@@ -151,6 +151,34 @@ def test_two_places_spliced_give_no_estimate_then_a_new_exact_track(moving):
     assert estimate_ego_motion(scans[0], other_scans[0], EGO) is None  # a pair that does not overlap
 
 
+def test_a_track_steps_from_its_last_motion_and_registers_only_where_that_fails(moving, monkeypatch):
+    """After a track's first step, a step starts from the last step's motion (constant velocity) and KISS-ICP does
+    not register the scan; where the motion turns around (the scans played back), that start fails its check, and
+    KISS-ICP's registration gives the start instead: every step within 3 cm of the truth, no restart."""
+    pairs, scans = moving
+    odometry = Odometry(EGO)
+    aligned = []
+    odometry.step(scans[0], pairs[0].ground0)
+    odometry.step(pairs[0].pc1, pairs[0].ground1)  # the first step: KISS-ICP's registration
+    align = type(odometry._kiss.registration).align_points_to_map
+
+    def counted(self, *args, **kwargs):
+        aligned.append(len(aligned))
+        return align(self, *args, **kwargs)
+
+    monkeypatch.setattr(type(odometry._kiss.registration), "align_points_to_map", counted)
+    grounds = [pairs[0].ground0] + [pair.ground1 for pair in pairs]
+    forth = [odometry.step(pair.pc1, pair.ground1) for pair in pairs[1:]]
+    assert not aligned  # a smooth drive: no registration after the first step
+    for pair, step in zip(pairs[1:], forth):
+        assert not step.restarted and pose_error(step.ego1_from_ego0, pair.ego1_from_ego0)[0] < 0.03
+    back = [odometry.step(scans[k], grounds[k]) for k in (len(scans) - 2, len(scans) - 3)]
+    assert len(aligned) == 1  # the turn-around: the velocity start fails once, the next step follows it again
+    for k, step in zip((len(pairs) - 1, len(pairs) - 2), back):
+        assert not step.restarted
+        assert pose_error(step.ego1_from_ego0, invert(pairs[k].ego1_from_ego0))[0] < 0.03, k
+
+
 def test_the_trajectory_is_the_product_of_the_steps(moving):
     pairs, scans = moving
     odometry = Odometry(EGO)
