@@ -10,7 +10,8 @@ frame). What the pairwise call recomputes for every pair, the stream keeps:
   (the ground below the sensor); a scan whose ground moved by more than ``FRAME_TOLERANCE`` (another sensor or
   frame) is warned about, lifted by its own ground, and the odometry restarts;
 * the odometry (``icpflow.odometry.Odometry``: one KISS-ICP across frames, each step refined against the previous
-  scan's non-ground points), every scan down-sampled once;
+  scan's non-ground points from the last step's motion, KISS-ICP registering where that start fails), every scan
+  down-sampled once;
 * each scan's ground mask (``icpflow.ground``, the model's settings): computed once, as pc1 of its pair, and reused
   as pc0 of the next (and left out of the odometry, also for a model that sees ground).
 
