@@ -288,6 +288,7 @@ class Odometry:
             current.kiss_pose = np.asarray(self._kiss.last_pose, np.float64)
             self._steps = 1
             transform, fitness = self._first_step(previous, current, invert(current.kiss_pose))
+            self._last_match = self._match(previous, current, transform)  # the new track's yardstick
         if fitness >= LOST_FITNESS:
             return OdometryStep(transform, fitness, restarted=True)
         self.reset()
