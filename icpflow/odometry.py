@@ -195,7 +195,7 @@ class _Scan:
     ground: np.ndarray  # (G, 3) float64 ground points
     cloud: object  # the VOXEL cloud of its non-ground points (KISS-ICP's input: ``kept``)
     source: object  # its subsample, the next step's source
-    kiss_pose: np.ndarray  # (4, 4) KISS-ICP's pose of the scan in its track
+    kiss_pose: np.ndarray  # (4, 4) the scan's pose in its track as KISS-ICP's map holds it (refined: velocity steps)
     whole: np.ndarray | None = None  # (K, 3) the whole scan's cloud (made when needed)
     target: TargetPlanes | None = None  # the whole cloud as a refinement's target (made when needed)
 
@@ -266,7 +266,7 @@ class Odometry:
         previous, self._previous = self._previous, current
         if previous is not None and self._steps >= 1 and self.refine:
             self._steps += 1
-            transform, fitness = self._velocity_step(previous, current)
+            transform = self._velocity_step(previous, current)
         else:
             self._kiss.register_frame(kept, np.zeros(0))
             current.kiss_pose = np.asarray(self._kiss.last_pose, np.float64)
@@ -275,10 +275,11 @@ class Odometry:
             self._steps += 1
             start = invert(current.kiss_pose) @ previous.kiss_pose
             if self._steps == 1:
-                transform, fitness = self._first_step(previous, current, start)
+                transform = self._first_step(previous, current, start)
             else:
-                transform, fitness = self._aligned(previous, current, self._refined(previous, current, start))
+                transform = self._refined(previous, current, start)
             self._last_match = self._match(previous, current, transform)
+        fitness = self._last_match[0]
         if fitness >= self.min_fitness:
             return OdometryStep(transform, fitness)
         if self._steps > 1:  # the two scans alone, a new track from this pair
@@ -287,8 +288,9 @@ class Odometry:
             self._kiss.register_frame(kept, np.zeros(0))
             current.kiss_pose = np.asarray(self._kiss.last_pose, np.float64)
             self._steps = 1
-            transform, fitness = self._first_step(previous, current, invert(current.kiss_pose))
+            transform = self._first_step(previous, current, invert(current.kiss_pose))
             self._last_match = self._match(previous, current, transform)  # the new track's yardstick
+            fitness = self._last_match[0]
         if fitness >= LOST_FITNESS:
             return OdometryStep(transform, fitness, restarted=True)
         self.reset()
@@ -304,14 +306,11 @@ class Odometry:
         source = source[:: max(1, len(source) // SOURCE_POINTS)]
         return _staged(source, current.planes(), transform, ((2 * self.voxel, TUKEY, ITERATIONS),))
 
-    def _aligned(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> tuple[np.ndarray, float]:
-        """``transform`` and its fitness (module docstring): the share of the previous scan's non-ground source points
-        whose nearest point of this scan's whole cloud is a non-ground one within twice the voxel."""
-        return transform, self._match(previous, current, transform)[0]
-
     def _match(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> tuple[float, float]:
-        """(fitness (:meth:`_aligned`), the share of the same source points with a point of the whole cloud within
-        ``TIGHT`` m) of ``transform``."""
+        """(fitness, tight share) of ``transform``: the fitness (module docstring) is the share of the previous
+        scan's non-ground source points whose nearest point of this scan's whole cloud is a non-ground one within
+        twice the voxel; the tight share, that of the same points with a point of the whole cloud within ``TIGHT`` m.
+        One query gives both."""
         if not len(previous.source.points) or not len(current.cloud.points):
             return 0.0, 0.0
         moved = transform_points(transform, np.asarray(previous.source.points))
@@ -319,11 +318,11 @@ class Odometry:
         fitness = float(np.mean((nearest[:, 0] >= 0) & (nearest[:, 0] < len(current.cloud.points))))
         return fitness, float(np.mean(distance[:, 0] <= TIGHT))
 
-    def _velocity_step(self, previous: _Scan, current: _Scan) -> tuple[np.ndarray, float]:
+    def _velocity_step(self, previous: _Scan, current: _Scan) -> np.ndarray:
         """A later step of a track: refined from the last step's motion (KISS-ICP's constant-velocity prediction,
         its poses kept from the refined steps), or, where that start or its result fits worse than the last step
         (``VELOCITY_SHARE``, ``VELOCITY_REACH``), from KISS-ICP's registration of the scan as before. KISS-ICP's map,
-        motion and threshold take the refined pose either way. Returns the step and its fitness."""
+        motion and threshold take the refined pose either way. Returns the step (its match in ``_last_match``)."""
         kiss = self._kiss
         frame = kiss.preprocessor.preprocess(current.kept, np.zeros(0), kiss.last_delta)
         registered, down_sampled = kiss.voxelize(frame)
@@ -354,15 +353,15 @@ class Odometry:
         kiss.last_delta, kiss.last_pose = orthonormalized(invert(kiss.last_pose) @ pose), pose
         current.kiss_pose = pose
         self._last_match = (fitness, tight)
-        return transform, fitness
+        return transform
 
-    def _first_step(self, previous: _Scan, current: _Scan, start: np.ndarray) -> tuple[np.ndarray, float]:
+    def _first_step(self, previous: _Scan, current: _Scan, start: np.ndarray) -> np.ndarray:
         """The first step of a track, from KISS-ICP's estimate on the non-ground points of a one-scan map: refined
         point-to-plane on the whole scans through ``FIRST_STAGES`` (a wide one, then a fine one); a poor fit, or a
         result far from the start, is also refined from the identity and from KISS-ICP's reverse registration, and
-        the best fit wins. Returns it and its fitness."""
+        the best fit wins. Returns it (the caller measures its match, :meth:`_match`)."""
         if not self.refine or not len(previous.source.points) or not len(current.cloud.points):
-            return self._aligned(previous, current, start)
+            return start
         source = previous.whole_cloud()
         source = source[:: max(1, len(source) // FIRST_SOURCE_POINTS)]
         target = current.planes()
@@ -376,7 +375,7 @@ class Odometry:
                 refined_fit = _fit(source, target, refined)
                 if refined_fit > fit:
                     transform, fit = refined, refined_fit
-        return self._aligned(previous, current, transform)
+        return transform
 
 
 def _staged(source: np.ndarray, target: TargetPlanes, transform: np.ndarray, stages=FIRST_STAGES) -> np.ndarray:
