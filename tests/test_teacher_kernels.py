@@ -388,6 +388,16 @@ def test_coarse_to_fine_in_one_call_equals_the_stages_run_one_by_one():
     for got, want in zip(result, (transforms, errors, ious, still_errors, still_ious, given_errors, given_ious)):
         np.testing.assert_array_equal(got, want)
     assert np.abs(result[0][:6, :3, 3] - starts[:6, :3, 3]).max() > 1.0  # the coarse stages moved the boxes
+    # the identity's quality only where asked (the refinement's slow components): the rest unchanged, inf and 0
+    asked = np.arange(len(starts)) % 2 == 0
+    some = register_stages_cpu(movings, fixeds, givens, starts, stages, 40, ICPConfig().rel_rmse, True, asked)
+    for index, (got, want) in enumerate(zip(some, result)):
+        if index in (3, 4):
+            np.testing.assert_array_equal(got[asked], want[asked])
+            assert np.all(got[~asked] == (np.inf if index == 3 else 0.0))
+        else:
+            np.testing.assert_array_equal(got, want)
+    assert np.isfinite(result[3][~asked][:2]).all()  # so the unasked ones were measured before
 
 
 def test_nearest_distances_are_exact():

@@ -234,14 +234,15 @@ def refine_residual(
     starts = means[kept]  # (K, 3): each candidate's mean predicted residual, ICP's initial translation
     transforms = np.tile(np.eye(4), (len(groups), 1, 1))
     transforms[:, :3, 3] = starts
+    # the teacher's rule (icp.static_tolerance): what no motion fits nearly as well stays static; only these
+    # components need the match of no motion
+    slow = (np.linalg.norm(starts, axis=1) <= cfg.static_max_motion) & (cfg.static_tolerance > 0)
     # every stage of the coarse-to-fine ICP and the quality (at the last truncation) of its motion, of no motion
-    # and of the student's own flow, in one compiled call
+    # (the slow ones) and of the student's own flow, in one compiled call
     transforms, errors, ious, still_errors, still_ious, student_errors, _ = register_stages_cpu(
-        movings, fixeds, student_moved, transforms, cfg.max_corr, cfg.max_iter, ICPConfig().rel_rmse, yaw_only=True
+        movings, fixeds, student_moved, transforms, cfg.max_corr, cfg.max_iter, ICPConfig().rel_rmse, True, slow
     )
-    # the teacher's rule (icp.static_tolerance): what no motion fits nearly as well stays static
-    slow = np.linalg.norm(starts, axis=1) <= cfg.static_max_motion
-    static = slow & (still_errors <= errors * (1.0 + cfg.static_tolerance)) & (cfg.static_tolerance > 0)
+    static = slow & (still_errors <= errors * (1.0 + cfg.static_tolerance))
     transforms[static], errors[static], ious[static] = np.eye(4), still_errors[static], still_ious[static]
     centroids = np.stack([moving.mean(axis=0) for moving in movings])
     moved_centroids = np.einsum("kij,kj->ki", transforms[:, :3, :3], centroids) + transforms[:, :3, 3]

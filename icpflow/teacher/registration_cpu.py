@@ -186,11 +186,24 @@ def register_batch_cpu(
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def _register_stages_batch(
-    mov_all, mov_off, fix_all, fix_off, given_all, inits, max_corrs, cells, max_iter, rel_rmse, yaw_only, n_workers
+    mov_all,
+    mov_off,
+    fix_all,
+    fix_off,
+    given_all,
+    inits,
+    max_corrs,
+    cells,
+    max_iter,
+    rel_rmse,
+    yaw_only,
+    identities,
+    n_workers,
 ):
     """Coarse-to-fine point-to-point ICP of P packed pairs (see :func:`register_stages_cpu`); returns (transforms,
     errors, IoU ratios, errors at the identity, IoU ratios at the identity, errors of the given clouds, IoU ratios
-    of the given clouds). Worker w takes pairs w, w + n_workers, ... (pairs sorted by decreasing size). A transform's
+    of the given clouds), the identity's measured only where ``identities`` (P,) bool (else inf and 0). Worker w
+    takes pairs w, w + n_workers, ... (pairs sorted by decreasing size). A transform's
     forward mean distance is measured once and carried to the next stage and the quality (the student's refinement,
     issue 44: 8 passes over the moving cloud to 5)."""
     n_pairs = inits.shape[0]
@@ -238,13 +251,14 @@ def _register_stages_batch(
             out[0, p], out[1, p], _ = _quality_from(
                 moved_cloud, current, current_inliers, fixed, cells[last], inlier_d2
             )
-            out[2, p], out[3, p], _ = _quality(moving, fixed, grid, cells[last], inlier_d2)
+            if identities[p]:
+                out[2, p], out[3, p], _ = _quality(moving, fixed, grid, cells[last], inlier_d2)
             out[4, p], out[5, p], _ = _quality(given, fixed, grid, cells[last], inlier_d2)
     return transforms, out[0], out[1], out[2], out[3], out[4], out[5]
 
 
 def register_stages_cpu(
-    movings, fixeds, givens, starts, max_corrs, max_iter: int, rel_rmse: float, yaw_only: bool
+    movings, fixeds, givens, starts, max_corrs, max_iter: int, rel_rmse: float, yaw_only: bool, identities=None
 ) -> tuple[np.ndarray, ...]:
     """Coarse-to-fine point-to-point ICP of each moving cloud (M_p, 3) onto its fixed cloud (N_p, 3) from its
     start (P, 4, 4): one stage per truncation of ``max_corrs`` (metres, coarse to fine), each from the last one's
@@ -252,7 +266,10 @@ def register_stages_cpu(
     the same quality at the last stage's truncation (mean error and IoU ratio, as :func:`_register_one`) of three
     clouds per pair: the registered one, the identity's (the moving cloud as it is) and ``givens`` (M_p, 3), the
     moving points placed by some other motion (a per-point flow). Returns (transforms, errors, IoU ratios, errors
-    at the identity, IoU ratios at the identity, errors of the givens, IoU ratios of the givens), in input order."""
+    at the identity, IoU ratios at the identity, errors of the givens, IoU ratios of the givens), in input order.
+    ``identities`` (P,) bool: the pairs whose quality at the identity is wanted (None: all; the others get inf and
+    0: an unbounded nearest-neighbour pass each way, a tenth of the refinement's registration on KITTI's pairs for
+    the components it cannot keep static)."""
     order = np.argsort([-(len(m) + len(f)) for m, f in zip(movings, fixeds)], kind="stable")
     mov_all, mov_off = pack([movings[k] for k in order])
     fix_all, fix_off = pack([fixeds[k] for k in order])
@@ -271,6 +288,7 @@ def register_stages_cpu(
         int(max_iter),
         float(rel_rmse),
         bool(yaw_only),
+        np.ones(len(order), bool) if identities is None else np.asarray(identities, bool)[order],
         numba.get_num_threads(),
     )
     result = tuple(np.empty_like(a) for a in out)
