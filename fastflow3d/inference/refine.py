@@ -44,7 +44,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from icpflow.geometry import rigid_flow
+from icpflow.geometry import lengths, rigid_flow
 
 
 @dataclass(frozen=True)
@@ -199,7 +199,7 @@ def refine_residual(
     sizes = np.diff(bounds)
     means = np.add.reduceat(sorted_residual, firsts) / sizes[:, None]
     extents = np.linalg.norm((highs - lows)[:, :2], axis=1)
-    fast = median_at_least(np.linalg.norm(sorted_residual, axis=1), firsts, sizes, cfg.min_motion)
+    fast = median_at_least(lengths(sorted_residual), firsts, sizes, cfg.min_motion)
     chosen = np.flatnonzero((sizes >= cfg.min_points) & (extents <= cfg.max_extent) & fast)
     if not len(chosen):
         return out, refined
