@@ -118,6 +118,11 @@ STREAM_REGIMES = ("pairwise", "streamed", "overlapped", "given")
 #: metres of each scan's origin above the ground (KITTI's velodyne frame; the AV2 ego frame is the model's own)
 SENSOR_HEIGHTS = {"kitti": 1.73, "av2": None}
 #: each mode's options and their defaults (None: no default); an option of another mode is refused
+#: scans of the shipped KITTI and AV2 streams as the ``cli`` mode plays them (KITTI's six back and forth, AV2's two
+#: alternating): 20 timed frames a run
+CLI_SCANS = 26
+
+
 MODES = {
     "pair": {
         "model": "fastflow3d_small", "decoder": None, "set": [], "device": "cpu", "threads": 2, "runs": 20,
@@ -131,7 +136,7 @@ MODES = {
     "refine": {"export": None, "runs": 20, "warmup": 3, "scans": "kitti,av2"},
     "cli": {
         "export": None, "device": "cpu", "threads": 0, "passes": 3, "scans": "kitti,av2,synthetic",
-        "backends": "onnxruntime",
+        "backends": "onnxruntime", "frames": CLI_SCANS,
     },
 }  # fmt: skip
 
@@ -497,15 +502,10 @@ def refine(args) -> None:
     print(f"median and p90 of {args.runs} calls after {args.warmup}; load average {os.getloadavg()[0]:.2f}")
 
 
-#: scans of the shipped KITTI and AV2 streams as the ``cli`` mode plays them (KITTI's six back and forth, AV2's two
-#: alternating): 20 timed frames a run
-CLI_SCANS = 26
-
-
-def cli_streams(names: list[str], folder: Path) -> dict[str, tuple[Path, list[str]]]:
+def cli_streams(names: list[str], folder: Path, frames: int = CLI_SCANS) -> dict[str, tuple[Path, list[str]]]:
     """{name: (folder of scans, the CLI options a user of that sensor gives)}: ``kitti`` (the six HDL-64E scans
-    000000-000005 played forth and back, 0 1 .. 5 4 .. 0 1 .., ``CLI_SCANS`` of them, copied as they are, ``.bin``,
-    ``--sensor-height 1.73``), ``av2`` (the two sweeps alternating, ``CLI_SCANS`` written as ``.npy``), ``synthetic``
+    000000-000005 played forth and back, 0 1 .. 5 4 .. 0 1 .., ``frames`` of them, copied as they are, ``.bin``,
+    ``--sensor-height 1.73``), ``av2`` (the two sweeps alternating, ``frames`` written as ``.npy``), ``synthetic``
     (the first sequence of the test split, 40 frames, written as ``.npy``); a stream whose data ../shared/data lacks
     is left out with a line saying so."""
     streams = {}
@@ -518,7 +518,7 @@ def cli_streams(names: list[str], folder: Path) -> dict[str, tuple[Path, list[st
                 continue
             target.mkdir()
             cycle = files + files[-2:0:-1]  # 0 1 2 3 4 5 4 3 2 1, then again
-            for k in range(CLI_SCANS):
+            for k in range(frames):
                 (target / f"{k:06d}.bin").write_bytes(cycle[k % len(cycle)].read_bytes())
             streams[name] = (target, ["--sensor-height", str(SENSOR_HEIGHTS["kitti"])])
             continue
@@ -528,7 +528,7 @@ def cli_streams(names: list[str], folder: Path) -> dict[str, tuple[Path, list[st
             if pair is None:
                 print("av2: no sweeps under ../shared/data; no rows")
                 continue
-            scans = [pair[k % 2] for k in range(CLI_SCANS)]
+            scans = [pair[k % 2] for k in range(frames)]
         else:
             split = ["split=test", "dataset.reader.num_sequences=1", "dataset.reader.frames_per_sequence=40"]
             dataset, _ = open_split(split)
@@ -547,7 +547,7 @@ def cli(args) -> None:
     pairs and the last ``STREAM_DEPTH``, written after the last scan was read, left out)."""
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for name, (scans, options) in cli_streams(args.scans.split(","), Path(tmp)).items():
+        for name, (scans, options) in cli_streams(args.scans.split(","), Path(tmp), args.frames).items():
             for runtime, refine in itertools.product(args.backends.split(","), (False, True)):
                 times = []
                 for run in range(args.passes):
@@ -616,6 +616,7 @@ def main() -> None:
         "torch.export program on --device; default onnxruntime)",
     )
     parser.add_argument("--breakdown", action="store_true", default=None, help="time each step of a call (pair)")
+    parser.add_argument("--frames", type=int, help=f"scans of the KITTI and AV2 streams (default {CLI_SCANS}; cli)")
     args = parser.parse_args()
     defaults = MODES[args.mode]
     for name, value in vars(args).items():
@@ -626,6 +627,9 @@ def main() -> None:
                 parser.error(f"--{name} is not an option of --mode {args.mode}")
         elif value is None:
             setattr(args, name, defaults[name])
+    least = 5 + STREAM_DEPTH  # scans for one timed interval: the first two and the last STREAM_DEPTH are not timed
+    if args.mode == "cli" and args.frames < least:
+        parser.error(f"--frames must be at least {least} (one timed frame), got {args.frames}")
     if args.mode in ("refine", "cli") and args.export is None:
         parser.error(f"--mode {args.mode} needs --export (a trained student's export directory)")
     if getattr(args, "device", None) == "cuda" and not torch.cuda.is_available():

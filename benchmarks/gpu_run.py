@@ -69,6 +69,8 @@ from icpflow.atomic import write_text_atomic
 ROOT = Path(__file__).resolve().parents[1]
 #: the tiny network of --smoke, the tests' (conf/model/fastflow3d_tiny.yaml): as bench_student_latency's --model
 SMOKE_LATENCY_MODEL = ["--model", "fastflow3d_tiny"]
+#: scans of the smoke's CLI stream (bench_student_latency --frames): two timed frames, a third of the full stream's time
+SMOKE_CLI_FRAMES = 8
 
 
 def smoke_model() -> list[str]:
@@ -219,6 +221,7 @@ def steps(args) -> list[Step]:
     cli = ["-m", "benchmarks.bench_student_latency", "--mode", "cli", "--export", str(export), "--threads", "2"]
     if smoke:
         cli += ["--device", "cpu", "--backends", "onnxruntime", "--passes", "1", "--scans", "kitti"]
+        cli += ["--frames", str(SMOKE_CLI_FRAMES)]
     else:
         cli += ["--device", "cuda", "--backends", "pt2", "--passes", "2", "--scans", "kitti,av2,synthetic"]
     result.append(Step(out, "latency_cli", cli, cpus=2))

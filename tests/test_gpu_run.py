@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 
 from benchmarks import gpu_run
-from benchmarks.bench_student_latency import CLI_SCANS
 
 from helpers.labelling import TESTS_ENV
 
@@ -55,7 +54,7 @@ def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
     if (DATA / "kitti_hdl64_scans").is_dir():
         assert report.count("| kitti | 124668 | streamed | eager |") == 1
         for refined in ("no", "yes"):  # the stream as a user runs it (issue 44.6; on a GPU: its pt2 network)
-            assert f"| kitti | {CLI_SCANS} | onnxruntime | {refined} |" in report, refined
+            assert f"| kitti | {gpu_run.SMOKE_CLI_FRAMES} | onnxruntime | {refined} |" in report, refined
 
 
 def test_steps_picks_steps_and_refuses_an_unknown_one(tmp_path):
@@ -84,3 +83,12 @@ def test_a_step_is_done_only_once_its_command_exited_zero(tmp_path):
     assert output.read_text() == "x" and not (tmp_path / "logs" / "eval.done").exists()
     assert gpu_run.Step(tmp_path, "eval", ["-c", write]).run(seconds) and output.read_text() == "xx"
     assert gpu_run.Step(tmp_path, "eval", ["-c", write]).run(seconds) and output.read_text() == "xx"  # skipped
+
+
+def test_the_cli_benchs_stream_length_is_checked(tmp_path):
+    # --frames (the smoke's short CLI stream): refused in one line where no frame would be timed, and outside --mode cli
+    command = [sys.executable, "-m", "benchmarks.bench_student_latency", "--export", str(tmp_path)]
+    short = subprocess.run([*command, "--mode", "cli", "--frames", "6"], cwd=REPO, capture_output=True, text=True)
+    assert short.returncode == 2 and "--frames must be at least 7 (one timed frame), got 6" in short.stderr
+    other = subprocess.run([*command, "--mode", "refine", "--frames", "8"], cwd=REPO, capture_output=True, text=True)
+    assert other.returncode == 2 and "--frames is not an option of --mode refine" in other.stderr
