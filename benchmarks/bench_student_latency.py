@@ -61,7 +61,8 @@ ICP replaced and their median change (m).
 
 ``cli``: the stream as a user runs it, ``fastflow3d-infer EXPORT DIR --out OUT [--refine]`` in a process of its own,
 whole runs (reading, every step and writing), on KITTI (the six HDL-64E scans forth and back, 26 scans), AV2 (the two
-sweeps alternating, 26 scans) and a synthetic test sequence (40 frames), with and without the refinement, per
+sweeps alternating, 26 scans; ``--frames`` sets both lengths, the GPU run's smoke test 8) and a synthetic test sequence
+(40 frames), with and without the refinement, per
 ``--backends`` (the CLI's ``--runtime``, and ``--precision`` after a dash: ``onnxruntime-int8`` runs the export's int8
 network, which ``export.py ... int8=true`` writes; ``pt2``: the export's torch.export program on ``--device``, the
 network on a GPU with ``--device cuda``). Prints median and p90 ms per frame and Hz. The accuracy of the same stream:
