@@ -4,8 +4,8 @@ import os
 
 # OpenMP threads (numba's kernels, torch) that finish their work sleep instead of spinning for their next: the two
 # pytest-xdist workers of CI share 2 cores, and a spinning thread takes one from the other worker (the suite: 13.5 ->
-# 12.1 minutes of user CPU, 475 -> 438 s). Read once, when OpenMP loads: before torch and numba (and inherited by
-# the processes the tests start).
+# 12.1-12.7 minutes of user CPU, 475 -> 438-472 s; BENCHMARKS.md, "The test suite"). Read once, when OpenMP loads:
+# before torch and numba (and inherited by the processes the tests start).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import subprocess  # noqa: E402
