@@ -118,12 +118,10 @@ TEACHERS = {
 STREAM_REGIMES = ("pairwise", "streamed", "overlapped", "given")
 #: metres of each scan's origin above the ground (KITTI's velodyne frame; the AV2 ego frame is the model's own)
 SENSOR_HEIGHTS = {"kitti": 1.73, "av2": None}
-#: each mode's options and their defaults (None: no default); an option of another mode is refused
 #: scans of the shipped KITTI and AV2 streams as the ``cli`` mode plays them (KITTI's six back and forth, AV2's two
-#: alternating): 20 timed frames a run
+#: alternating): 20 timed frames a run (``--frames``)
 CLI_SCANS = 26
-
-
+#: each mode's options and their defaults (None: no default); an option of another mode is refused
 MODES = {
     "pair": {
         "model": "fastflow3d_small", "decoder": None, "set": [], "device": "cpu", "threads": 2, "runs": 20,
