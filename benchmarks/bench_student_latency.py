@@ -98,6 +98,7 @@ from fastflow3d.artifact.file_format import FILE_NAMES, INT8_FILE_NAME, SingleSa
 from fastflow3d.artifact.quantize import write_int8
 from fastflow3d.inference.cli import STREAM_DEPTH
 from fastflow3d.inference.predictor import Predictor
+from fastflow3d.inference.scan_files import read_raw_scan
 from fastflow3d.inference.stream import FlowStream
 from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import compensate
@@ -539,14 +540,39 @@ def cli_streams(names: list[str], folder: Path, frames: int = CLI_SCANS) -> dict
     return streams
 
 
+def network_alone(export: str, runtime: str, scans: Path, options: list[str], calls: int = 10) -> float | None:
+    """Seconds (median of ``calls`` after 3) of the ``runtime`` network alone (``onnxruntime[-precision]``; None
+    for another) on one thread, in this process, on the first pair of the stream in ``scans`` (``options``: its CLI
+    options, ``--sensor-height`` read). The ``cli`` mode's calibration: hosts that report the same CPU name run it
+    up to two times apart (``benchmarks.common.cpu_name``), and a frame's time is compared only beside it."""
+    engine, _, precision = runtime.partition("-")
+    if engine != "onnxruntime":
+        return None
+    height = float(options[options.index("--sensor-height") + 1]) if "--sensor-height" in options else None
+    predictor = Predictor.load(export, runtime=engine, threads=1, precision=precision or "f32", sensor_height=height)
+    first, second = sorted(path for path in scans.iterdir())[:2]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the height-frame lift of velodyne scans
+        pc0, pc1 = read_raw_scan(first), read_raw_scan(second)
+        lift = predictor.frame_lift(pc0)
+        lifted = lift_points(pc0, lift), lift_points(pc1, lift)
+        grounds = [predictor.scan_masks(name, points, None)[0] for name, points in zip(("pc0", "pc1"), lifted)]
+    pair = predictor.network_input(lifted, np.eye(4), *grounds)
+    return statistics.median(timed({"network": lambda: predictor.run_network(pair)}, calls, warmup=3)["network"])
+
+
 def cli(args) -> None:
     """The ``cli`` mode: ``python -m fastflow3d.inference.cli EXPORT DIR --out OUT [--refine]`` as a user runs it,
     ``--passes`` whole runs per stream and setting; a frame's time is the time between the outputs of consecutive
     pairs (their files' modification times: reading, every step and writing included; process start, the first two
     pairs and the last ``STREAM_DEPTH``, written after the last scan was read, left out)."""
-    rows = []
+    rows, calibration = [], None
     with tempfile.TemporaryDirectory() as tmp:
         for name, (scans, options) in cli_streams(args.scans.split(","), Path(tmp), args.frames).items():
+            if calibration is None:
+                runtime = args.backends.split(",")[0]
+                seconds = network_alone(args.export, runtime, scans, options)
+                calibration = "" if seconds is None else f"; {runtime} network alone {1000 * seconds:.1f} ms ({name})"
             for runtime, refine in itertools.product(args.backends.split(","), (False, True)):
                 times = []
                 for run in range(args.passes):
@@ -581,7 +607,7 @@ def cli(args) -> None:
     threads = f"{args.threads} threads" if args.threads else "the CLI's threads"
     print(
         f"{args.passes} runs each, {threads}, {available_cores()} usable CPUs{gpu}; "
-        f"load average {os.getloadavg()[0]:.2f}; {cpu_name()}"
+        f"load average {os.getloadavg()[0]:.2f}; {cpu_name()}{calibration or ''}"
     )
 
 

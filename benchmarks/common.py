@@ -90,14 +90,26 @@ def rss_mb() -> float:
     return float("nan")
 
 
-def cpu_name() -> str:
+def cpu_name(cpuinfo: str | None = None) -> str:
+    """The CPU as a benchmark's table names it: its model name, and on Linux its family, model and widest vector
+    instructions (``cpuinfo``: the text of ``/proc/cpuinfo``, read when None). VMs here report "AMD EPYC" on hosts two
+    times apart in speed (the int8 network alone on a KITTI pair: 57.9 ms in issue 44's eleventh session, 30.7 ms on
+    a family 26 host in its twelfth), so a figure is compared with another only on the same family and model."""
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+        text = Path("/proc/cpuinfo").read_text() if cpuinfo is None else cpuinfo
     except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
+        return platform.processor() or "unknown CPU"
+    fields = {}
+    for line in text.split("\n\n", 1)[0].splitlines():  # the first processor's block
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    name = fields.get("model name") or platform.processor() or "unknown CPU"
+    if "cpu family" not in fields:
+        return name
+    flags = set(fields.get("flags", "").split())
+    labels = (("avx512_vnni", "AVX-512 VNNI"), ("avx512f", "AVX-512"), ("avx2", "AVX2"), ("", "no AVX2"))
+    widest = next(label for flag, label in labels if not flag or flag in flags)
+    return f"{name} (family {fields['cpu family']} model {fields.get('model', '?')}, {widest})"
 
 
 def split_overrides(text: str) -> list[str]:
