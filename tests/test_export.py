@@ -553,6 +553,27 @@ def test_one_thread_rewrite_leaves_other_graphs_and_machines_without_onnx_alone(
     )
 
 
+def test_the_threads_asked_for_run_the_onnx_network_however_it_is_opened(export_dir, int8_export, monkeypatch):
+    """``Predictor.load(..., threads=N)`` (``fastflow3d-infer --threads``, and the stream's one network thread beside
+    its own steps) sizes the ONNX Runtime session whether or not a runtime or precision is named, for an export
+    directory and a bare ``.onnx`` alike (the directory without ``runtime`` had run on every core, and the stream's
+    float32 network on two threads beside its odometry); none given: the usable cores."""
+    import fastflow3d.artifact.engines as engines
+
+    monkeypatch.setattr(engines, "available_cores", lambda: 3)
+    opened = {
+        "directory": {},
+        "directory, runtime": {"runtime": "onnxruntime"},
+        "directory, int8": {"precision": "int8"},
+        "bare .onnx": {"path": export_dir / FILE_NAMES["onnx"]},
+    }
+    for what, options in opened.items():
+        path = options.pop("path", int8_export if options.get("precision") == "int8" else export_dir)
+        for threads, want in ((1, 1), (2, 2), (None, 3)):
+            session = Predictor.load(path, threads=threads, **options).network.session
+            assert session.get_session_options().intra_op_num_threads == want, (what, threads)
+
+
 def test_cpu_runtime_rejects_what_it_cannot_run(export_dir):
     from fastflow3d.artifact.engines import load_network
 

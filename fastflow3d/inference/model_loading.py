@@ -56,7 +56,7 @@ def open_model(
         kind = backend or choose_format(metadata["files"], path)
         if kind not in FORMATS + LEGACY_FORMATS:
             raise PredictorError(f"{path}: unknown backend {kind!r}; use one of {', '.join(FORMATS)}")
-        network = load_network(listed_file(path, metadata, kind), kind, device)
+        network = load_network(listed_file(path, metadata, kind), kind, device, threads=threads)
     else:
         kind = "checkpoint" if path.suffix.lower() == ".ckpt" else SUFFIX_FORMATS.get(path.suffix.lower())
         if kind is None:
@@ -79,7 +79,7 @@ def open_model(
                     f"{path}: this is its export's int8 network; run it with precision 'int8' "
                     "(fastflow3d-infer --precision int8, eval.py precision=int8)"
                 )
-            network = load_network(path, kind, device)
+            network = load_network(path, kind, device, threads=threads)
     return network, kind, metadata
 
 
