@@ -101,7 +101,8 @@ def parse_args(argv):
     parser.add_argument(
         "--threads",
         type=int,
-        help="inference threads of --runtime (default: the usable cores; a stream: one fewer, for its own steps)",
+        help="inference threads of the ONNX engine (ONNX Runtime, or --runtime) (default: the usable cores; a stream: "
+        "one fewer, for its own steps)",
     )
     parser.add_argument(
         "--precision",
