@@ -74,6 +74,7 @@ def test_ensure_compiled_says_what_it_does(monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(warmup, "compile_kernels", lambda: calls.append(1))
     monkeypatch.setattr(warmup, "cold_kernels", lambda: ["icp.icp_point_to_point", "histogram._scores"])
+    monkeypatch.setattr(warmup, "stale_cache", lambda: False)  # nothing of the real cache is emptied or stamped
     assert warmup.ensure_compiled("label") is True and calls == [1]
     lines = capsys.readouterr().err.splitlines()
     assert lines[0].startswith("label: compiling the teacher's 2 numba kernels once for this environment")
@@ -109,3 +110,37 @@ def test_kitti_scans_too_few_for_the_horizon_say_so():
     assert len(open_dataset(cfg, count - 1)) == 1
     with pytest.raises(DatasetError, match=rf"sequence kitti_hdl64_scans has {count} scans: a pair {count} apart"):
         open_dataset(cfg, count)
+
+
+def test_a_kernel_never_runs_the_old_code_of_another_modules_kernel_it_calls(tmp_path):
+    """numba keys a kernel's cache by its own file: a caller cached with a callee of another module kept the old
+    callee after that file changed (g = 10 f(x): 20 where the new f gives 30). ``ensure_compiled`` sees the sources
+    changed (the cache's stamp) and compiles everything afresh."""
+    package = tmp_path / "pk"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    callee = "import numba\n\n\n@numba.njit(cache=True)\ndef f(x):\n    return x + {}\n"
+    (package / "a.py").write_text(callee.format(1))
+    (package / "b.py").write_text(
+        "import numba\n\nfrom pk.a import f\n\n\n@numba.njit(cache=True)\ndef g(x):\n    return f(x) * 10\n"
+    )
+    env = {key: value for key, value in os.environ.items() if key != "NUMBA_CACHE_DIR"}
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), str(REPO)])
+
+    def run(checked: bool) -> str:
+        code = "from pk.b import g; print(g(1))"
+        if checked:
+            code = (
+                "from icpflow.teacher import warmup; warmup.KERNEL_MODULES = ('pk.a', 'pk.b'); "
+                "warmup.compile_kernels = lambda: __import__('pk.b').b.g(1); warmup.ensure_compiled('t'); " + code
+            )
+        done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        return done.stdout.split()[-1]
+
+    assert run(checked=True) == "20"
+    assert (package / "__pycache__" / warmup.SOURCES_STAMP).is_file()
+    (package / "a.py").write_text(callee.format(20))  # another size: numba sees its own file changed
+    assert run(checked=False) == "20"  # numba alone: g's cached code still holds f(x) = x + 1
+    assert run(checked=True) == "210"  # the stamp differs: everything compiled afresh, g with the new f
+    assert run(checked=False) == "210"  # and cached so

@@ -4,16 +4,28 @@ numba compiles each ``@numba.njit(cache=True)`` kernel of the teacher (the modul
 first call and caches the machine code on disk (in ``__pycache__`` next to the sources, or under
 ``NUMBA_CACHE_DIR``); later processes load it in well under a second. Compiling costs about 45 s on 2 idle cores
 (minutes on a busy machine), once per environment and source version. ``setup.sh`` pays it
-(``python -m icpflow.teacher.warmup``); ``label.py`` and ``eval.py`` call :func:`ensure_compiled` before their first
-pair, so a cold cache is filled once, in the main process and with a message, instead of by every worker inside its
-first sample behind a progress bar at 0.
+(``python -m icpflow.teacher.warmup``); ``label.py``, ``eval.py`` and ``fastflow3d-infer`` call
+:func:`ensure_compiled` before their first pair, so a cold cache is filled once, in the main process and with a
+message, instead of by every worker inside its first sample behind a progress bar at 0.
+
+numba keys a kernel's cached code by its own source file only, and a kernel that calls another module's kernel (the
+refinement's batch ICP calls ``icp`` and ``neighbours``) caches the callee's code with its own: after a change to the
+callee's file alone (an edit, a ``git pull`` of an editable install) the caller ran the old callee, silently (a
+two-module check in issue 44's twelfth session: 20 where the new code gives 30). So the cache carries a stamp of the
+sources it was compiled from (:data:`SOURCES_STAMP`, :func:`sources_fingerprint`); where it differs, every kernel is
+cold, and :func:`ensure_compiled` empties the whole cache before it compiles.
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib
+import importlib.util
 import sys
 import time
+from pathlib import Path
+
+from icpflow.atomic import write_text_atomic
 
 #: the modules whose numba kernels the teacher calls on the CPU (the ground's also the Predictor and the stream; the
 #: bird's-eye-view cells only the student's refinement; the plane normals also the odometry)
@@ -27,6 +39,8 @@ KERNEL_MODULES = (
     "icpflow.bev",
     "icpflow.normals",
 )
+#: the file, beside the cached machine code, that holds :func:`sources_fingerprint` of the sources it was compiled from
+SOURCES_STAMP = "kernel-sources.sha256"
 
 
 def kernels() -> dict:
@@ -52,18 +66,49 @@ def _cached(dispatcher) -> bool:
     return any(key[1] == target for key in index)
 
 
+def sources_fingerprint() -> str:
+    """The sha256 (hex) of the source files of ``KERNEL_MODULES``, in order (module docstring)."""
+    digest = hashlib.sha256()
+    for name in KERNEL_MODULES:
+        digest.update(name.encode())
+        digest.update(Path(importlib.util.find_spec(name).origin).read_bytes())
+    return digest.hexdigest()
+
+
+def _cache_folder() -> Path | None:
+    """The folder of the first kernel's cached machine code (None where numba has none)."""
+    dispatcher = next(iter(kernels().values()))
+    try:
+        return Path(dispatcher._cache._cache_path)
+    except Exception:
+        return None
+
+
+def stale_cache() -> bool:
+    """True where the cache's :data:`SOURCES_STAMP` is missing or names other sources than these (module
+    docstring): none of its machine code may be used."""
+    folder = _cache_folder()
+    if folder is None:
+        return False
+    try:
+        return (folder / SOURCES_STAMP).read_text(encoding="utf-8").strip() != sources_fingerprint()
+    except OSError:
+        return True
+
+
 def cold_kernels() -> list[str]:
-    """Names of the kernels (see :func:`kernels`) with no cached machine code: each compiles on its first call."""
-    return [name for name, dispatcher in kernels().items() if not _cached(dispatcher)]
+    """Names of the kernels (see :func:`kernels`) with no usable cached machine code (none cached for these
+    sources, or a stale cache: :func:`stale_cache`): each compiles on its first call."""
+    found = kernels()
+    if stale_cache():
+        return list(found)
+    return [name for name, dispatcher in found.items() if not _cached(dispatcher)]
 
 
 def cache_location() -> str:
     """Where the kernels' machine code is cached (a folder)."""
-    dispatcher = next(iter(kernels().values()))
-    try:
-        return str(dispatcher._cache._cache_path)
-    except Exception:
-        return "numba's cache"
+    folder = _cache_folder()
+    return "numba's cache" if folder is None else str(folder)
 
 
 def compile_kernels() -> None:
@@ -118,7 +163,14 @@ def ensure_compiled(prefix: str = "icpflow", stream=None) -> bool:
         flush=True,
     )
     start = time.perf_counter()
+    stale = stale_cache()
+    if stale:  # code compiled from other sources: none of it is kept (a kernel holds its callees' code)
+        for dispatcher in kernels().values():
+            dispatcher._cache.flush()
     compile_kernels()
+    folder = _cache_folder()
+    if stale and folder is not None:
+        write_text_atomic(folder / SOURCES_STAMP, sources_fingerprint(), make_parents=True)
     print(f"{prefix}: kernels compiled in {time.perf_counter() - start:.0f} s", file=stream, flush=True)
     return True
 
