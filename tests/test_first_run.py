@@ -144,3 +144,22 @@ def test_a_kernel_never_runs_the_old_code_of_another_modules_kernel_it_calls(tmp
     assert run(checked=False) == "20"  # numba alone: g's cached code still holds f(x) = x + 1
     assert run(checked=True) == "210"  # the stamp differs: everything compiled afresh, g with the new f
     assert run(checked=False) == "210"  # and cached so
+
+
+def test_every_module_with_kernels_is_stamped():
+    """The cache's stamp covers the sources of ``KERNEL_MODULES``: a kernel in another module would be warmed by no
+    one and stamped by nothing (a caller of it could keep its old code)."""
+    import ast
+
+    def jitted(path: Path) -> bool:
+        functions = [node for node in ast.walk(ast.parse(path.read_text())) if isinstance(node, ast.FunctionDef)]
+        decorators = [ast.unparse(decorator) for function in functions for decorator in function.decorator_list]
+        return any("jit" in decorator for decorator in decorators)
+
+    defining = {
+        ".".join(path.relative_to(REPO).with_suffix("").parts)
+        for package in ("icpflow", "fastflow3d")
+        for path in (REPO / package).rglob("*.py")
+        if jitted(path)
+    }
+    assert defining == set(warmup.KERNEL_MODULES)
