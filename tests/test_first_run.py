@@ -77,10 +77,28 @@ def test_ensure_compiled_says_what_it_does(monkeypatch, capsys):
     monkeypatch.setattr(warmup, "stale_cache", lambda: False)  # nothing of the real cache is emptied or stamped
     assert warmup.ensure_compiled("label") is True and calls == [1]
     lines = capsys.readouterr().err.splitlines()
-    assert lines[0].startswith("label: compiling the teacher's 2 numba kernels once for this environment")
+    assert lines[0].startswith("label: compiling the teacher's 2 numba kernels once for this environment (about")
     assert lines[1].startswith("label: kernels compiled in ")
+    # a cache of other sources: emptied (each kernel's index), compiled, stamped, and the line says why
+    flushed, stamped = [], []
+
+    class Cache:
+        def flush(self):
+            flushed.append(1)
+
+    class Kernel:
+        _cache = Cache()
+
+    monkeypatch.setattr(warmup, "stale_cache", lambda: True)
+    monkeypatch.setattr(warmup, "kernels", lambda: {"k": Kernel()})
+    monkeypatch.setattr(warmup, "_cache_folder", lambda: Path("cache"))
+    monkeypatch.setattr(warmup, "write_text_atomic", lambda path, text, **_: stamped.append((path, text)))
+    monkeypatch.setattr(warmup, "sources_fingerprint", lambda: "f")
+    assert warmup.ensure_compiled("infer") is True and calls == [1, 1] and flushed == [1]
+    assert stamped == [(Path("cache") / warmup.SOURCES_STAMP, "f")]
+    assert "once for this environment and these sources (about" in capsys.readouterr().err.splitlines()[0]
     monkeypatch.setattr(warmup, "cold_kernels", lambda: [])
-    assert warmup.ensure_compiled("label") is False and calls == [1]
+    assert warmup.ensure_compiled("label") is False and calls == [1, 1]
     assert capsys.readouterr().err == ""  # a warm cache: not a word
 
 

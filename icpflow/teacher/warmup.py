@@ -156,14 +156,14 @@ def ensure_compiled(prefix: str = "icpflow", stream=None) -> bool:
     cold = cold_kernels()
     if not cold:
         return False
+    stale = stale_cache()
     print(
-        f"{prefix}: compiling the teacher's {len(cold)} numba kernels once for this environment (about 1 min on 2 "
-        f"cores; cached in {cache_location()}) ...",
+        f"{prefix}: compiling the teacher's {len(cold)} numba kernels once for this environment"
+        f"{' and these sources' if stale else ''} (about 1 min on 2 cores; cached in {cache_location()}) ...",
         file=stream,
         flush=True,
     )
     start = time.perf_counter()
-    stale = stale_cache()
     if stale:  # code compiled from other sources: none of it is kept (a kernel holds its callees' code)
         for dispatcher in kernels().values():
             dispatcher._cache.flush()
