@@ -574,6 +574,17 @@ def test_the_threads_asked_for_run_the_onnx_network_however_it_is_opened(export_
             assert session.get_session_options().intra_op_num_threads == want, (what, threads)
 
 
+def test_a_predictor_never_runs_kernels_of_a_stale_cache(export_dir, monkeypatch):
+    """Every Predictor (``fastflow3d-infer``, a stream, a Python caller) checks the numba cache first
+    (``icpflow.teacher.warmup.ensure_compiled``: compiled where cold, afresh where the kernel sources changed)."""
+    from fastflow3d.inference import predictor as predictor_module
+
+    asked = []
+    monkeypatch.setattr(predictor_module, "ensure_compiled", asked.append)
+    Predictor.load(export_dir)
+    assert asked == ["fastflow3d"]
+
+
 def test_cpu_runtime_rejects_what_it_cannot_run(export_dir):
     from fastflow3d.artifact.engines import load_network
 

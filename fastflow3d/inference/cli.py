@@ -347,9 +347,6 @@ def main(argv=None) -> int:
 
 
 def _main(args) -> None:
-    from icpflow.teacher.warmup import ensure_compiled
-
-    ensure_compiled("infer")  # the ground's, odometry's and refinement's kernels: compiled here, said, never stale
     if args.scan1 is None:
         with stop_on_signals():  # each flow file is written atomically: a stop leaves the pairs done, whole
             out, written, frames = infer_stream(args)

@@ -54,6 +54,7 @@ from icpflow.errors_and_signals import one_line
 from icpflow.geometry import residual_to_full, rigid_problem
 from icpflow.odometry import MIN_EGO_POINTS
 from icpflow.preprocess import implausible, lift_transform
+from icpflow.teacher.warmup import ensure_compiled
 
 
 class PairResidual(NamedTuple):
@@ -98,6 +99,9 @@ class Predictor(ScanSteps):
             self.refine = RefineConfig.of(refine)
         except (TypeError, ValueError) as error:
             raise PredictorError(one_line(error)) from None
+        # its ground, odometry and refinement kernels: compiled here where the cache lacks them (a line says so) and
+        # never run from a cache of other sources (icpflow.teacher.warmup); a warm cache costs a few milliseconds
+        ensure_compiled("fastflow3d")
 
     @classmethod
     def load(

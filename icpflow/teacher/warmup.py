@@ -4,9 +4,9 @@ numba compiles each ``@numba.njit(cache=True)`` kernel of the teacher (the modul
 first call and caches the machine code on disk (in ``__pycache__`` next to the sources, or under
 ``NUMBA_CACHE_DIR``); later processes load it in well under a second. Compiling costs about 45 s on 2 idle cores
 (minutes on a busy machine), once per environment and source version. ``setup.sh`` pays it
-(``python -m icpflow.teacher.warmup``); ``label.py``, ``eval.py`` and ``fastflow3d-infer`` call
-:func:`ensure_compiled` before their first pair, so a cold cache is filled once, in the main process and with a
-message, instead of by every worker inside its first sample behind a progress bar at 0.
+(``python -m icpflow.teacher.warmup``); ``label.py``, ``eval.py`` and every student ``Predictor`` (``fastflow3d-infer``,
+the stream) call :func:`ensure_compiled` before their first pair, so a cold cache is filled once, in the main process
+and with a message, instead of by every worker inside its first sample behind a progress bar at 0.
 
 numba keys a kernel's cached code by its own source file only, and a kernel that calls another module's kernel (the
 refinement's batch ICP calls ``icp`` and ``neighbours``) caches the callee's code with its own: after a change to the
