@@ -73,7 +73,7 @@ def test_the_warmup_reaches_the_refinements_kernels():
 def test_ensure_compiled_says_what_it_does(monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(warmup, "compile_kernels", lambda: calls.append(1))
-    monkeypatch.setattr(warmup, "cold_kernels", lambda: ["icp.icp_point_to_point", "histogram._scores"])
+    monkeypatch.setattr(warmup, "cold_kernels", lambda stale=None: ["icp.icp_point_to_point", "histogram._scores"])
     monkeypatch.setattr(warmup, "stale_cache", lambda: False)  # nothing of the real cache is emptied or stamped
     assert warmup.ensure_compiled("label") is True and calls == [1]
     lines = capsys.readouterr().err.splitlines()
@@ -97,7 +97,7 @@ def test_ensure_compiled_says_what_it_does(monkeypatch, capsys):
     assert warmup.ensure_compiled("infer") is True and calls == [1, 1] and flushed == [1]
     assert stamped == [(Path("cache") / warmup.SOURCES_STAMP, "f")]
     assert "once for this environment and these sources (about" in capsys.readouterr().err.splitlines()[0]
-    monkeypatch.setattr(warmup, "cold_kernels", lambda: [])
+    monkeypatch.setattr(warmup, "cold_kernels", lambda stale=None: [])
     assert warmup.ensure_compiled("label") is False and calls == [1, 1]
     assert capsys.readouterr().err == ""  # a warm cache: not a word
 

@@ -96,11 +96,12 @@ def stale_cache() -> bool:
         return True
 
 
-def cold_kernels() -> list[str]:
+def cold_kernels(stale: bool | None = None) -> list[str]:
     """Names of the kernels (see :func:`kernels`) with no usable cached machine code (none cached for these
-    sources, or a stale cache: :func:`stale_cache`): each compiles on its first call."""
+    sources, or a stale cache: :func:`stale_cache`, or ``stale`` where the caller has it): each compiles on its first
+    call."""
     found = kernels()
-    if stale_cache():
+    if stale_cache() if stale is None else stale:
         return list(found)
     return [name for name, dispatcher in found.items() if not _cached(dispatcher)]
 
@@ -153,10 +154,10 @@ def ensure_compiled(prefix: str = "icpflow", stream=None) -> bool:
     """Compile the kernels now if the cache lacks any, saying so on ``stream`` (stderr) before and after; returns
     True if it compiled. A warm cache costs only the check (milliseconds)."""
     stream = stream or sys.stderr
-    cold = cold_kernels()
+    stale = stale_cache()
+    cold = cold_kernels(stale)
     if not cold:
         return False
-    stale = stale_cache()
     print(
         f"{prefix}: compiling the teacher's {len(cold)} numba kernels once for this environment"
         f"{' and these sources' if stale else ''} (about 1 min on 2 cores; cached in {cache_location()}) ...",
