@@ -11,7 +11,7 @@ the refinement dial (``refine``).
     .venv/bin/python -m benchmarks.bench_student_latency --mode refine --export <export dir> [--runs 20]
         [--warmup 3] [--scans kitti,av2]
     .venv/bin/python -m benchmarks.bench_student_latency --mode cli --export <export dir> [--passes 3] [--threads 2]
-        [--scans kitti,av2,synthetic] [--backends onnxruntime,onnxruntime-int8,openvino,openvino-bf16,pt2]
+        [--scans kitti,av2,synthetic] [--backends default,onnxruntime,onnxruntime-int8,openvino,openvino-bf16,pt2]
         [--device cpu|cuda]
 
 Scans: KITTI HDL-64E ``000000`` -> ``000001`` (``../shared/data/kitti_hdl64_scans``, ~124k points each) and the
@@ -63,12 +63,14 @@ ICP replaced and their median change (m).
 whole runs (reading, every step and writing), on KITTI (the six HDL-64E scans forth and back, 26 scans), AV2 (the two
 sweeps alternating, 26 scans; ``--frames`` sets both lengths, the GPU run's smoke test 8) and a synthetic test sequence
 (40 frames), with and without the refinement, per
-``--backends`` (the CLI's ``--runtime``, given only where it is not ONNX Runtime, the CLI's default, and ``--precision``
-after a dash: ``onnxruntime-int8`` runs the export's int8 network, which ``export.py ... int8=true`` writes; ``pt2``:
-the export's torch.export program on ``--device``, the network on a GPU with ``--device cuda``). Prints median and p90
-ms per frame and Hz, the host (``benchmarks.common.cpu_name``) and the first engine's network alone on one thread, the
-figure that compares hosts (:func:`network_alone`). The accuracy of the same stream:
-``eval.py ... method=[student-stream,student-stream+refine] [precision=int8]``. A frame's time is the time between
+``--backends`` (``default``: the command as a user types it, neither ``--runtime`` nor ``--precision``, the table naming
+the precision ``auto`` chose from the run's manifest; else the CLI's ``--runtime``, given only where it is not ONNX
+Runtime, the CLI's default engine, and ``--precision`` after a dash, ``f32`` where none: ``onnxruntime-int8`` runs the
+export's int8 network, which ``export.py ... int8=true`` writes; ``pt2``: the export's torch.export program on
+``--device``, the network on a GPU with ``--device cuda``). Prints median and p90 ms per frame and Hz, the host
+(``benchmarks.common.cpu_name``) and the first engine's network alone on one thread, the figure that compares hosts
+(:func:`network_alone`). The accuracy of the same stream: ``eval.py ... method=[student-stream,student-stream+refine]
+[precision=f32|int8]`` (its default, ``auto``, as the CLI). A frame's time is the time between
 consecutive flow files (the first two left out, and the last ``STREAM_DEPTH``, written after the last scan was read:
 until issue 44's ninth session they were timed, and with the six KITTI scans one of a run's two timed intervals was such
 a flush, the last pair's network alone, 50-60 ms against a frame's 70-90).
@@ -79,6 +81,7 @@ from __future__ import annotations
 import argparse
 import copy
 import itertools
+import json
 import os
 import statistics
 import subprocess
@@ -102,6 +105,7 @@ from fastflow3d.inference.cli import STREAM_DEPTH
 from fastflow3d.inference.predictor import Predictor
 from fastflow3d.inference.scan_files import read_raw_scan
 from fastflow3d.inference.stream import FlowStream
+from fastflow3d.inference.stream_folder import MANIFEST
 from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import compensate
 from icpflow.datasets.synthetic import SyntheticDataset
@@ -138,7 +142,7 @@ MODES = {
     "refine": {"export": None, "runs": 20, "warmup": 3, "scans": "kitti,av2"},
     "cli": {
         "export": None, "device": "cpu", "threads": 0, "passes": 3, "scans": "kitti,av2,synthetic",
-        "backends": "onnxruntime", "frames": CLI_SCANS,
+        "backends": "default", "frames": CLI_SCANS,
     },
 }  # fmt: skip
 
@@ -543,11 +547,12 @@ def cli_streams(names: list[str], folder: Path, frames: int = CLI_SCANS) -> dict
 
 
 def network_alone(export: str, runtime: str, scans: Path, options: list[str], calls: int = 10) -> float | None:
-    """Seconds (median of ``calls`` after 3) of the ``runtime`` network alone (``onnxruntime[-precision]``; None
-    for another) on one thread, in this process, on the first pair of the stream in ``scans`` (``options``: its CLI
-    options, ``--sensor-height`` read). The ``cli`` mode's calibration: hosts that report the same CPU name run it
-    up to two times apart (``benchmarks.common.cpu_name``), and a frame's time is compared only beside it."""
-    engine, _, precision = runtime.partition("-")
+    """Seconds (median of ``calls`` after 3) of the ``runtime`` network alone (``onnxruntime[-precision]``, or
+    ``default``: ``auto``'s; None for another) on one thread, in this process, on the first pair of the stream in
+    ``scans`` (``options``: its CLI options, ``--sensor-height`` read). The ``cli`` mode's calibration: hosts that
+    report the same CPU name run it up to two times apart (``benchmarks.common.cpu_name``), and a frame's time is
+    compared only beside it."""
+    engine, _, precision = ("onnxruntime", "", "auto") if runtime == "default" else runtime.partition("-")
     if engine != "onnxruntime":
         return None
     height = float(options[options.index("--sensor-height") + 1]) if "--sensor-height" in options else None
@@ -584,13 +589,13 @@ def cli(args) -> None:
                     command += ["--threads", str(args.threads)] if args.threads else []
                     if runtime == "pt2":  # the torch.export program, on --device
                         command += ["--backend", "pt2", "--device", args.device]
-                    else:
+                    elif runtime != "default":  # default: the command a user types
                         # onnxruntime-int8: --precision int8. ONNX Runtime is the CLI's default engine: named only
                         # where a user would name it (before issue 44's twelfth session the default ignored --threads,
                         # and the bench, which named it, had not timed the command a user types)
                         engine, _, precision = runtime.partition("-")
                         command += [] if engine == "onnxruntime" else ["--runtime", engine]
-                        command += ["--precision", precision] if precision else []
+                        command += ["--precision", precision or "f32"]
                     done = subprocess.run(command + (["--refine"] if refine else []), capture_output=True, text=True)
                     if done.returncode != 0:
                         said = (done.stderr.strip().splitlines() or ["(nothing on stderr)"])[-1]
@@ -600,7 +605,10 @@ def cli(args) -> None:
                     # the last STREAM_DEPTH flows are written after the last scan was read (the pairs in flight): no
                     # frame's steps between them, so they are left out with the first two
                     times.extend(np.diff(written)[2:-STREAM_DEPTH])
-                rows.append((name, len(flows) + 1, runtime, refine, times))
+                if runtime == "default":  # what --precision auto chose (the manifest names a precision but f32)
+                    chosen = json.loads((out / MANIFEST).read_text())["options"].get("precision", "f32")
+                label = f"default ({chosen})" if runtime == "default" else runtime
+                rows.append((name, len(flows) + 1, label, refine, times))
     print("| stream | scans | runtime | refinement | median ms | p90 ms | Hz (median) | Hz (p90) |")
     print("|---|---|---|---|---|---|---|---|")
     for name, scans, runtime, refine, times in rows:
@@ -644,7 +652,7 @@ def main() -> None:
         "--backends",
         help="comma-separated (default onnx,onnx-tuned,openvino,eager; stream: onnx-tuned,openvino; cli: the CLI's "
         "--runtime, onnxruntime and/or openvino, with -int8 / -bf16 for its --precision, or pt2: the export's "
-        "torch.export program on --device; default onnxruntime)",
+        "torch.export program on --device; or default: the CLI's own choice; default default)",
     )
     parser.add_argument("--breakdown", action="store_true", default=None, help="time each step of a call (pair)")
     parser.add_argument("--frames", type=int, help=f"scans of the KITTI and AV2 streams (default {CLI_SCANS}; cli)")

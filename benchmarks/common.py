@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow.threads import cpu_fields
+
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
 #: the shipped samples (a sibling of the checkout)
@@ -95,14 +97,7 @@ def cpu_name(cpuinfo: str | None = None) -> str:
     instructions (``cpuinfo``: the text of ``/proc/cpuinfo``, read when None). VMs here report "AMD EPYC" on hosts two
     times apart in speed (the int8 network alone on a KITTI pair: 57.9 ms in issue 44's eleventh session, 30.7 ms on
     a family 26 host in its twelfth), so a figure is compared with another only on the same family and model."""
-    try:
-        text = Path("/proc/cpuinfo").read_text() if cpuinfo is None else cpuinfo
-    except OSError:
-        return platform.processor() or "unknown CPU"
-    fields = {}
-    for line in text.split("\n\n", 1)[0].splitlines():  # the first processor's block
-        key, _, value = line.partition(":")
-        fields.setdefault(key.strip(), value.strip())
+    fields = cpu_fields(cpuinfo)
     name = fields.get("model name") or platform.processor() or "unknown CPU"
     if "cpu family" not in fields:
         return name

@@ -73,7 +73,7 @@ class EvalOptions:
     method: Any = MISSING  # a method's name or a list of them
     checkpoint: str | None = None
     sensor_height: float | str | None = None  # metres, auto or null (fastflow3d.inference.predictor)
-    precision: str = setting("f32", choices=("f32", "bf16", "int8"))  # the student's network (Predictor.load)
+    precision: str = setting("auto", choices=("auto", "f32", "bf16", "int8"))  # the student's network (Predictor.load)
     shards: str | None = None
     horizon: Any = 1  # a gap, a list of gaps or first..last
     tracker: Any = False  # true, false or [false,true]

@@ -1,5 +1,6 @@
-"""The CPU threads a step may use: how many cores this process has (:func:`available_cores`) and a limit on the
-thread pools of numba, BLAS, OpenMP and torch for a block of work (:func:`thread_limit`).
+"""The CPU a step runs on: how many cores this process has (:func:`available_cores`), what the CPU says of itself
+(:func:`cpu_fields`, Linux), and a limit on the thread pools of numba, BLAS, OpenMP and torch for a block of work
+(:func:`thread_limit`).
 
 A labelling worker runs the teacher on its share of the cores; a stream that overlaps its network with its own steps
 (``fastflow3d.inference.stream``) runs those steps on one thread, so that their thread pools do not spin on the core
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import os
 from contextlib import contextmanager
+from pathlib import Path
 
 
 def available_cores() -> int:
@@ -19,6 +21,20 @@ def available_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux
         return max(1, os.cpu_count() or 1)
+
+
+def cpu_fields(cpuinfo: str | None = None) -> dict[str, str]:
+    """The first processor's fields of ``/proc/cpuinfo`` (``cpuinfo``: its text, read when None), e.g. ``model name``,
+    ``cpu family``, ``flags`` (x86) or ``Features`` (Arm); {} where there is no such file (not Linux)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text() if cpuinfo is None else cpuinfo
+    except OSError:
+        return {}
+    fields = {}
+    for line in text.split("\n\n", 1)[0].splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    return fields
 
 
 @contextmanager

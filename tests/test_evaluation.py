@@ -398,6 +398,8 @@ def test_student_row_reproduces_the_metrics_module(tiny_student, tmp_path, datas
     pairs = [dataset[i] for i in range(len(dataset))]
     flows = [predictor(p.pc0, p.pc1, p.ego1_from_ego0) for p in pairs]
     assert_same_numbers(method_summary(document, "student"), expected_summary(dataset, list(zip(pairs, flows))))
+    # what the student ran (precision auto: float32 for a model without an int8 network) is said under the table
+    assert document["method_descriptions"] == {"student": f"f32 network, {predictor.backend}"}
     # the network moves points off the ego flow: its row is not the ego baseline's
     overall = {
         name: method_summary(document, name)["paper"]["point_weighted"]["overall"]["EPE"] for name in ("ego", "student")

@@ -675,10 +675,102 @@ def test_int8_is_refused_in_one_line_where_it_cannot_be_made_or_run(
     assert err.count("\n") == 1 and "no int8 network" in err
     with pytest.raises(ArtifactError, match="precision 'int8' is not available with openvino"):
         load_network(int8_export / INT8_FILE_NAME, "onnx", runtime="openvino", threads=1, precision="int8")
-    # the export's int8 file given alone, without its precision: the line says which precision runs it
-    assert infer_main([str(int8_export / INT8_FILE_NAME), *scans, "--out", str(tmp_path / "y.npz")]) == 2
+    # the export's int8 file given alone as float32: the line says which precisions run it
+    y = ["--out", str(tmp_path / "y.npz")]
+    assert infer_main([str(int8_export / INT8_FILE_NAME), *scans, *y, "--precision", "f32"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "this is its export's int8 network; run it with precision 'int8'" in err
+    assert err.count("\n") == 1 and "this is its export's int8 network; run it with precision 'int8' or 'auto'" in err
+
+
+def test_auto_precision_runs_the_int8_network_only_where_the_export_ships_it_and_the_cpu_has_dot_products(
+    int8_export, export_dir, checkpoint, pairs, monkeypatch
+):
+    """``precision="auto"`` (the default of ``fastflow3d-infer --precision`` and ``eval.py precision=``) runs the
+    export's int8 network where it ships one, ONNX Runtime runs it on the CPU and the CPU has int8 dot products; in
+    every other case float32: an export without int8, a CPU without them, another format or runtime, ONNX Runtime
+    with its CUDA provider, a checkpoint. A bare int8 ``.onnx`` runs as int8 (no other way). What ran is
+    ``Predictor.precision``, and its flow is that precision's, bit for bit."""
+    from fastflow3d.artifact.file_format import INT8_FILE_NAME
+    from fastflow3d.inference import model_loading
+
+    pair = pairs[0]
+
+    def flow(predictor):
+        return predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0)
+
+    int8_flow, f32_flow = (flow(Predictor.load(int8_export, precision=p)) for p in ("int8", "f32"))
+    assert not np.array_equal(int8_flow, f32_flow)
+    for dot_products, want in ((True, "int8"), (False, "f32")):
+        monkeypatch.setattr(model_loading, "int8_dot_products", lambda answer=dot_products: answer)
+        predictor = Predictor.load(int8_export, precision="auto")
+        assert predictor.precision == want
+        assert np.array_equal(flow(predictor), int8_flow if want == "int8" else f32_flow)
+    monkeypatch.setattr(model_loading, "int8_dot_products", lambda: True)
+    float_only = {
+        "no int8 in the export": (export_dir, None, None),
+        "another format": (int8_export, "pt2", None),
+        "another runtime": (int8_export, None, "openvino"),
+        "the float32 .onnx alone": (int8_export / FILE_NAMES["onnx"], None, None),
+        "a checkpoint": (checkpoint, None, None),
+        "no such path": (int8_export / "missing", None, None),
+    }
+    for what, (path, backend, runtime) in float_only.items():
+        assert model_loading.auto_precision(Path(path), backend, runtime) == "f32", what
+    assert Predictor.load(export_dir, precision="auto").precision == "f32"
+    assert Predictor.load(checkpoint, precision="auto").precision == "f32"
+    assert model_loading.auto_precision(int8_export, None, "onnxruntime") == "int8"
+    bare = Predictor.load(int8_export / INT8_FILE_NAME, precision="auto")
+    assert bare.precision == "int8" and np.array_equal(flow(bare), int8_flow)
+    monkeypatch.setattr(model_loading, "cpu_only", lambda: False)  # ONNX Runtime would run on its CUDA provider
+    assert model_loading.auto_precision(int8_export, None, None) == "f32"
+    assert model_loading.auto_precision(int8_export, None, "onnxruntime") == "int8"  # the CPU session, named
+
+
+def test_the_cli_runs_auto_precision_by_default_and_says_which(int8_export, pairs, tmp_path, monkeypatch, capsys):
+    """``fastflow3d-infer EXPORT ...`` without ``--precision`` runs ``auto``'s network, names it on its last line,
+    and a stream's manifest records it (its flows are that network's)."""
+    from fastflow3d.inference import model_loading
+
+    monkeypatch.setattr(model_loading, "int8_dot_products", lambda: True)
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for k, points in enumerate((pairs[1].pc0, pairs[1].pc1, pairs[2].pc1)):
+        write_scan(scans / f"{k}.npy", points)
+    pair_out = tmp_path / "pair.npz"
+    assert (
+        infer_main([str(int8_export), str(scans / "0.npy"), str(scans / "1.npy"), "--out", str(pair_out), "--no-bev"])
+        == 0
+    )
+    assert capsys.readouterr().out.rstrip().endswith("(int8 network)")
+    want = Predictor.load(int8_export, precision="int8")(pairs[1].pc0, pairs[1].pc1).astype(np.float32)
+    assert np.array_equal(np.load(pair_out)["flow"], want)
+    assert infer_main([str(int8_export), str(scans), "--out", str(tmp_path / "stream")]) == 0
+    assert capsys.readouterr().out.rstrip().endswith("(int8 network)")
+    manifest = json.loads((tmp_path / "stream" / "stream.json").read_text())
+    assert manifest["options"]["precision"] == "int8"
+    monkeypatch.setattr(model_loading, "int8_dot_products", lambda: False)
+    assert infer_main([str(int8_export), str(scans), "--out", str(tmp_path / "stream_f32")]) == 0
+    assert capsys.readouterr().out.rstrip().endswith("(f32 network)")
+    assert "precision" not in json.loads((tmp_path / "stream_f32" / "stream.json").read_text())["options"]
+
+
+def test_int8_dot_products_are_read_from_the_cpus_flags():
+    """``engines.int8_dot_products``: x86 AVX512-VNNI or AVX-VNNI, Arm's asimddp (``/proc/cpuinfo``); an Apple
+    Silicon Mac has them; elsewhere (no cpuinfo) they are not assumed."""
+    from fastflow3d.artifact.engines import int8_dot_products
+
+    def x86(flags):
+        first = f"processor\t: 0\nmodel name\t: some CPU\nflags\t\t: fpu sse2 {flags}\n"
+        return first + "\nprocessor\t: 1\nflags\t: avx512_vnni\n"
+
+    assert int8_dot_products(x86("avx2 avx512f avx512_vnni"))
+    assert int8_dot_products(x86("avx2 avx_vnni"))
+    assert not int8_dot_products(x86("avx2 avx512f avx512bw"))  # the second processor's flags are not read
+    assert int8_dot_products("processor\t: 0\nFeatures\t: fp asimd asimdrdm asimddp\n")
+    assert not int8_dot_products("processor\t: 0\nFeatures\t: fp asimd\n")
+    assert int8_dot_products("", system="Darwin", machine="arm64")
+    assert not int8_dot_products("", system="Darwin", machine="x86_64")
+    assert not int8_dot_products("", system="Windows", machine="AMD64")
 
 
 def test_eval_scores_the_int8_network(int8_export, pairs):
@@ -691,6 +783,7 @@ def test_eval_scores_the_int8_network(int8_export, pairs):
     want = Predictor.load(int8_export, precision="int8")(pairs[0].pc0, pairs[0].pc1, pairs[0].ego1_from_ego0)
     assert np.array_equal(student_method(cfg)(pairs[0], 0), want)
     assert refined_streamed_student_method(cfg).predictor.network.session._model_path.endswith("int8.onnx")
+    assert student_method(cfg).description == "int8 network, onnxruntime"
 
 
 # ------------------------------------------------------------------------------------- height frame, bare files

@@ -2,7 +2,7 @@
 
     python -m fastflow3d.inference.cli MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
         [--bev FILE.png | --no-bev] [--rerun FILE.rrd] [--bin-columns N] [--backend onnx|pt2|torchscript]
-        [--device cpu] [--runtime onnxruntime|openvino] [--threads N] [--precision f32|bf16|int8]
+        [--device cpu] [--runtime onnxruntime|openvino] [--threads N] [--precision auto|f32|bf16|int8]
         [--sensor-height METRES|auto] [--metadata FILE | --remove-ground yes|no]
     python -m fastflow3d.inference.cli MODEL DIR|'GLOB' [--out OUT_DIR] [--rerun FILE.rrd] [...]
 
@@ -54,6 +54,7 @@ import numpy as np
 
 from fastflow3d.artifact.engines import PRECISIONS
 from fastflow3d.artifact.file_format import FORMATS, LEGACY_FORMATS
+from fastflow3d.inference.model_loading import AUTO
 from fastflow3d.inference.scan_files import read_raw_scan, read_transforms, refuse_input_as_output, write_flow
 from fastflow3d.inference.stream_folder import MANIFEST, claim_output_folder, stream_files, stream_manifest
 from icpflow.atomic import write_text_atomic
@@ -106,9 +107,11 @@ def parse_args(argv):
     )
     parser.add_argument(
         "--precision",
-        choices=PRECISIONS,
-        default="f32",
-        help="f32; bf16 (OpenVINO); int8: the export's int8 network (export.py ... int8=true) in ONNX Runtime",
+        choices=(AUTO, *PRECISIONS),
+        default=AUTO,
+        help="auto (default): int8 where the export has its int8 network (export.py ... int8=true) and this CPU has "
+        "int8 dot products (AVX512-VNNI, AVX-VNNI, Arm dotprod), run in ONNX Runtime, else f32; f32; bf16 (OpenVINO); "
+        "int8",
     )
     parser.add_argument(
         "--refine",
@@ -172,8 +175,8 @@ def load_predictor(args):
     )
 
 
-def infer(args) -> tuple[Path, Path | None]:
-    """Read, predict, write; returns the flow path and the picture path (or None)."""
+def infer(args) -> tuple[Path, Path | None, str]:
+    """Read, predict, write; returns the flow path, the picture path (or None) and the network's precision."""
     from fastflow3d.inference.prediction import PredictorWarning
     from icpflow.viz import plot_bev
 
@@ -234,11 +237,12 @@ def infer(args) -> tuple[Path, Path | None]:
             extent=args.extent,
             title=f"{args.scan0.name} -> {args.scan1.name}: FastFlow3D ({predictor.backend}), ego motion {source}",
         )
-    return out, bev
+    return out, bev, predictor.precision
 
 
-def infer_stream(args) -> tuple[Path, int, int]:
-    """Stream mode (module docstring): returns the output folder, the flows written and the scans read."""
+def infer_stream(args) -> tuple[Path, int, int, str]:
+    """Stream mode (module docstring): returns the output folder, the flows written, the scans read and the network's
+    precision."""
     from fastflow3d.inference.stream import FlowStream, overlap_threads
     from icpflow.console import Progress
 
@@ -252,7 +256,7 @@ def infer_stream(args) -> tuple[Path, int, int]:
     if args.threads is None:
         args.threads = overlap_threads()
     predictor = load_predictor(args)
-    manifest = stream_manifest(args, files)
+    manifest = stream_manifest(args, files, predictor.precision)
     claim_output_folder(out, manifest, files)
     outputs = []
     stream = FlowStream(predictor, overlap=True, depth=STREAM_DEPTH)  # each pair's network beside the next scans' steps
@@ -334,7 +338,7 @@ def infer_stream(args) -> tuple[Path, int, int]:
         raise ValueError(
             f"{args.scan0}: no flow: the stream gave none of its {len(files)} scans a pair (see the warnings)"
         )
-    return out, written, len(files)
+    return out, written, len(files), predictor.precision
 
 
 def main(argv=None) -> int:
@@ -349,14 +353,14 @@ def main(argv=None) -> int:
 def _main(args) -> None:
     if args.scan1 is None:
         with stop_on_signals():  # each flow file is written atomically: a stop leaves the pairs done, whole
-            out, written, frames = infer_stream(args)
+            out, written, frames, precision = infer_stream(args)
         rerun = f", 3D -> {args.rerun}" if args.rerun else ""
-        print(f"infer: {written} flows of {frames} scans -> {out}" + rerun)
+        print(f"infer: {written} flows of {frames} scans -> {out}" + rerun + f" ({precision} network)")
         return
     with stop_on_signals():  # the flow file is written atomically: a stop leaves none or the whole file
-        out, bev = infer(args)
+        out, bev, precision = infer(args)
     rerun = f", 3D -> {args.rerun}" if args.rerun else ""
-    print(f"infer: flow -> {out}" + (f", BEV -> {bev}" if bev else "") + rerun)
+    print(f"infer: flow -> {out}" + (f", BEV -> {bev}" if bev else "") + rerun + f" ({precision} network)")
 
 
 if __name__ == "__main__":

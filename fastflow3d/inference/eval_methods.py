@@ -21,8 +21,9 @@ class StudentMethod:
     """A trained FastFlow3D (checkpoint or export): ``method(pair, index) -> (N0, 3) float32 FULL flow``, given the
     pair's ego motion and ground masks as the teacher is (each estimated by the Predictor when the dataset has none)."""
 
-    def __init__(self, path, refine=None, sensor_height=None, precision="f32"):
+    def __init__(self, path, refine=None, sensor_height=None, precision="auto"):
         self.predictor = Predictor.load(path, refine=refine, sensor_height=sensor_height, precision=precision)
+        self.description = network_description(self.predictor)
 
     def __call__(self, pair: FramePair, index: int) -> np.ndarray:
         return self.predictor(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1)
@@ -33,10 +34,11 @@ class StreamedStudentMethod:
     pc0 is the previous pair's pc1, same log) continue the stream; any other pair starts a new one. A pair the
     stream gives no flow (a lost track) gets the pairwise Predictor's, nothing given, with the stream's warning."""
 
-    def __init__(self, path, sensor_height=None, refine=None, precision="f32"):
+    def __init__(self, path, sensor_height=None, refine=None, precision="auto"):
         from fastflow3d.inference.stream import FlowStream
 
         self.predictor = Predictor.load(path, refine=refine, sensor_height=sensor_height, precision=precision)
+        self.description = network_description(self.predictor)
         self.stream = FlowStream(self.predictor)
         self._last: tuple[str | None, np.ndarray] | None = None  # (log, pc1) of the previous pair
 
@@ -50,6 +52,11 @@ class StreamedStudentMethod:
         if step.prediction is None:
             return self.predictor(pair.pc0, pair.pc1)
         return step.prediction.flow
+
+
+def network_description(predictor: Predictor) -> str:
+    """What a student method runs, as ``eval.py`` prints it under its table: ``int8 network, onnxruntime``."""
+    return f"{predictor.precision} network, {predictor.backend}"
 
 
 def streamed_student_method(cfg) -> StreamedStudentMethod:
@@ -72,8 +79,9 @@ def _checkpoint(cfg) -> str:
 
 
 def _precision(cfg) -> str:
-    """The student's ``precision`` (``eval.py precision=``: f32, or int8 for the export's int8 network)."""
-    return cfg.get("precision") or "f32"
+    """The student's ``precision`` (``eval.py precision=``: auto, as ``fastflow3d-infer`` runs it; f32; int8: the
+    export's int8 network; bf16)."""
+    return cfg.get("precision") or "auto"
 
 
 def student_method(cfg, refine=None) -> StudentMethod:

@@ -9,13 +9,14 @@ import json
 import os
 from pathlib import Path
 
-from fastflow3d.artifact.engines import PRECISION_RUNTIMES, choose_format, load_network
+from fastflow3d.artifact.engines import PRECISION_RUNTIMES, choose_format, cpu_only, int8_dot_products, load_network
 from fastflow3d.artifact.file_format import (
     FORMATS,
     INT8,
     LEGACY_FORMATS,
     METADATA_NAME,
     SUFFIX_FORMATS,
+    ArtifactError,
     listed_file,
     network_metadata,
     read_metadata,
@@ -26,15 +27,41 @@ from fastflow3d.inference.prediction import PredictorError
 from fastflow3d.network.contract import ContractError, InputContract, read_grid, upgrade
 from icpflow.errors_and_signals import one_line
 
+#: the precision the CLI and ``eval.py`` run a student in unless told: :func:`auto_precision`
+AUTO = "auto"
+
+
+def auto_precision(path: Path, backend: str | None, runtime: str | None) -> str:
+    """The precision ``auto`` runs the model at ``path`` in (``Predictor.load``'s arguments): ``int8`` where the
+    export ships its int8 network (checked against the float32 one when it was written:
+    ``fastflow3d.artifact.quantize``), ONNX Runtime runs it on the CPU and the CPU has int8 dot products
+    (``fastflow3d.artifact.engines.int8_dot_products``: there its convolutions take half the float32 ones' time, and
+    the stream's frame 0.7x: issue 44); a bare int8 ``.onnx`` of an export, int8 (it runs no other way); else
+    ``f32``: a checkpoint, another format or runtime, ONNX Runtime with its CUDA provider, a CPU without them."""
+    if backend not in (None, "onnx") or runtime not in (None, "onnxruntime"):
+        return "f32"
+    if path.suffix.lower() == ".onnx" and path.is_file():
+        return "int8" if sibling_metadata(path, INT8) else "f32"
+    if not path.is_dir():
+        return "f32"
+    try:
+        shipped = INT8 in read_metadata(path / METADATA_NAME)["files"]
+    except ArtifactError:
+        return "f32"  # opening it says what is wrong
+    # without a runtime named, ONNX Runtime runs on its CUDA provider where it has one
+    return "int8" if shipped and int8_dot_products() and (runtime is not None or cpu_only()) else "f32"
+
 
 def open_model(
     path: Path, backend: str | None, device: str, runtime: str | None, threads: int | None, precision: str
-) -> tuple[object, str, dict]:
-    """``(network, backend, metadata)`` of the model at ``path`` (``Predictor.load``'s arguments): the network
-    numpy in, numpy out; the backend it runs in (a format, ``eager`` for a checkpoint, or the ONNX ``runtime``);
-    the metadata that describes it ({} for a bare exported file without its ``metadata.json``). A ``precision`` other
-    than ``f32`` picks its runtime when none is given (``bf16``: openvino; ``int8``: onnxruntime, on the export's
-    int8 file)."""
+) -> tuple[object, str, dict, str]:
+    """``(network, backend, metadata, precision)`` of the model at ``path`` (``Predictor.load``'s arguments): the
+    network numpy in, numpy out; the backend it runs in (a format, ``eager`` for a checkpoint, or the ONNX
+    ``runtime``); the metadata that describes it ({} for a bare exported file without its ``metadata.json``); the
+    precision it runs in (``auto`` resolved by :func:`auto_precision`). A ``precision`` other than ``f32`` picks its
+    runtime when none is given (``bf16``: openvino; ``int8``: onnxruntime, on the export's int8 file)."""
+    if precision == AUTO:
+        precision = auto_precision(path, backend, runtime)
     runtime = runtime or PRECISION_RUNTIMES.get(precision)
     if runtime is not None:
         entry = INT8 if precision == "int8" else "onnx"
@@ -76,11 +103,11 @@ def open_model(
             metadata = sibling_metadata(path, kind)
             if not metadata and kind == "onnx" and sibling_metadata(path, INT8):
                 raise PredictorError(
-                    f"{path}: this is its export's int8 network; run it with precision 'int8' "
-                    "(fastflow3d-infer --precision int8, eval.py precision=int8)"
+                    f"{path}: this is its export's int8 network; run it with precision 'int8' or 'auto' "
+                    "(the defaults of fastflow3d-infer --precision and eval.py precision=)"
                 )
             network = load_network(path, kind, device, threads=threads)
-    return network, kind, metadata
+    return network, kind, metadata, precision
 
 
 def model_contract(path: Path, metadata: dict, preprocessing) -> InputContract:

@@ -86,15 +86,18 @@ class Predictor(ScanSteps):
         sensor_height=None,
         refine=None,
         metadata=None,
+        precision: str = "f32",
     ):
         """``network(pc0_compensated, pc1) -> (residual, valid)`` on float32 numpy arrays; ``contract`` what the
         network sees (``fastflow3d.network.contract``: the height frame, ground removal and its settings, the ego-motion
         settings, the grid); ``ego_config`` the ego-motion settings (``icpflow.teacher.config.EgoMotionConfig`` or a
         teacher config; default: the contract's); ``sensor_height``: None, ``"auto"`` or metres (module docstring);
         ``refine``: None/False (off), True (``RefineConfig()``), a ``RefineConfig`` or a dict of its fields;
-        ``metadata``: the model's metadata (for those who ask: ``Predictor.metadata``)."""
+        ``metadata``: the model's metadata (for those who ask: ``Predictor.metadata``); ``precision``: the one the
+        network runs in (``f32``, ``bf16``, ``int8``; ``Predictor.precision``)."""
         super().__init__(contract, ego_config, sensor_height)  # the scan steps (ScanSteps)
         self.network, self.contract, self.backend, self.metadata = network, contract, backend, metadata or {}
+        self.precision = precision
         try:
             self.refine = RefineConfig.of(refine)
         except (TypeError, ValueError) as error:
@@ -123,19 +126,20 @@ class Predictor(ScanSteps):
         ``torchscript``; default ONNX when onnxruntime is installed and the export has it). ``device`` applies to
         PyTorch formats and checkpoints; ONNX Runtime uses CUDA when its CUDA provider is installed, else the CPU.
         ``runtime`` (``onnxruntime`` or ``openvino``), ``threads`` and ``precision`` (``f32``, ``bf16`` with
-        OpenVINO, ``int8``: the export's int8 network in ONNX Runtime) run the ONNX file on the CPU as
-        ``fastflow3d.artifact.engines`` tunes it.
+        OpenVINO, ``int8``: the export's int8 network in ONNX Runtime, ``auto``: int8 where the export ships it and
+        this CPU runs it quicker, else f32, ``fastflow3d.inference.model_loading.auto_precision``; the CLI's and
+        ``eval.py``'s default) run the ONNX file on the CPU as ``fastflow3d.artifact.engines`` tunes it.
         ``sensor_height``: see the module docstring. ``preprocessing`` (a ``metadata.json`` path, a metadata dict or
         its ``preprocessing`` entry) replaces the saved one; a bare exported file without its metadata needs it.
         ``refine``: the opt-in ICP refinement (see ``__init__``).
         Raises :class:`ArtifactError` (one line) for a path that is not a readable artifact.
         """
         path = Path(path)
-        network, kind, metadata = open_model(path, backend, device, runtime, threads, precision)
+        network, kind, metadata, precision = open_model(path, backend, device, runtime, threads, precision)
         if kind in LEGACY_FORMATS:  # asked for by name (else refused by open_model)
             warnings.warn(f"{path}: {TORCHSCRIPT_WARNING}", UserWarning, stacklevel=2)
         contract = model_contract(path, metadata, preprocessing)
-        return cls(network, contract, kind, ego_config, sensor_height, refine, metadata)
+        return cls(network, contract, kind, ego_config, sensor_height, refine, metadata, precision)
 
     def __call__(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> np.ndarray:
         """(N0, 3) float32 FULL flow of pc0 (N0, 3) towards pc1 (N1, 3), each in its own ego frame; the ego motion

@@ -27,11 +27,12 @@ def stream_files(where: Path) -> list[Path]:
     return files
 
 
-def stream_manifest(args, files: list[Path]) -> dict:
-    """What identifies a stream's run (``MANIFEST``): its scans, model and the options that change its flows."""
+def stream_manifest(args, files: list[Path], precision: str = "f32") -> dict:
+    """What identifies a stream's run (``MANIFEST``): its scans, model and the options that change its flows, with
+    the ``precision`` its network runs in (what ``--precision auto`` chose)."""
     options = {name: getattr(args, name) for name in ("backend", "bin_columns", "refine", "sensor_height")}
-    if getattr(args, "precision", "f32") != "f32":  # int8 / bf16 flows differ a little; f32 runs keep older manifests
-        options["precision"] = args.precision
+    if precision != "f32":  # int8 / bf16 flows differ a little; f32 runs keep older manifests
+        options["precision"] = precision
     return {
         "version": MANIFEST_VERSION,
         "model": str(args.model.resolve()),

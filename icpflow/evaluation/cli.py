@@ -181,6 +181,10 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
         print(f"eval: no pair could be scored ({len(result.failures)} failed; first: {reason})", file=sys.stderr)
         return 2
     extra = {"dataset": cfg.dataset.name, "split": cfg.split, "config": OmegaConf.to_container(cfg, resolve=True)}
+    # what a method says it runs (its ``description``: a student's network precision and engine), under the table
+    described = {name: method.description for name, method in methods[first].items() if hasattr(method, "description")}
+    if described:
+        extra["method_descriptions"] = described
     weighting = str(cfg.weighting)
     if result.pairs[first]:
         print(
@@ -189,6 +193,8 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
             f"{', '.join(map(str, horizons))}, crop {metric_options.crop} m, {weighting.replace('_', '-')}"
         )
         print(format_table(table_rows(result, weighting)))
+        for name, description in described.items():
+            print(f"  {name}: {description}")
     try:
         with signals_held():  # a second signal waits for the files
             json_path, _ = write_results(result, out_dir, weighting, extra)

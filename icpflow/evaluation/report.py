@@ -12,7 +12,7 @@ gap or several (one gap is a list of one).
      "pairs": {"<k>": [sample ids scored]},
      "failures": [{"index", "sample_id", "horizon", "reason"}],
      "settings": {crop, include_ground, relative_to, dynamic_speed, bucketed_classes, horizons},
-     ...extra (eval.py: "dataset", "split", "config")}
+     ...extra (eval.py: "dataset", "split", "config", and "method_descriptions": what a method says it runs)}
 
 ``metrics.csv``: one row per (method, k, metric): the paper's rows of both weightings, Threeway and bucketed EPE,
 seconds per pair and the mean dt. Readers: :func:`read_metrics` and :func:`method_summary`.
