@@ -6,7 +6,7 @@ An export directory holds ``metadata.json`` and one file per format:
 * ``fastflow3d.onnx``: ONNX (dynamo exporter), run in ONNX Runtime;
 * ``fastflow3d.pt2``: a ``torch.export`` ExportedProgram, run in PyTorch (``torch.export.load``);
 * ``fastflow3d.int8.onnx`` (``export.py ... int8=true``, listed as ``onnx_int8``): the ONNX network with int8
-  convolutions (``fastflow3d.artifact.quantize``), run in ONNX Runtime with ``precision="int8"``;
+  convolutions (``fastflow3d.artifact.quantize``), run in ONNX Runtime with ``precision="int8"`` (or ``"auto"``);
 * ``fastflow3d.pt``: TorchScript, written by older versions of this code. It is only read (``torch.jit`` is
   deprecated): keep it while such exports are in use, re-export their checkpoints to replace them.
 
