@@ -27,7 +27,7 @@ def stream_files(where: Path) -> list[Path]:
     return files
 
 
-def stream_manifest(args, files: list[Path], precision: str = "f32") -> dict:
+def stream_manifest(args, files: list[Path], precision: str) -> dict:
     """What identifies a stream's run (``MANIFEST``): its scans, model and the options that change its flows, with
     the ``precision`` its network runs in (what ``--precision auto`` chose)."""
     options = {name: getattr(args, name) for name in ("backend", "bin_columns", "refine", "sensor_height")}
