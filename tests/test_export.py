@@ -752,6 +752,11 @@ def test_the_cli_runs_auto_precision_by_default_and_says_which(int8_export, pair
     assert infer_main([str(int8_export), str(scans), "--out", str(tmp_path / "stream_f32")]) == 0
     assert capsys.readouterr().out.rstrip().endswith("(f32 network)")
     assert "precision" not in json.loads((tmp_path / "stream_f32" / "stream.json").read_text())["options"]
+    # the float32 run's folder is not replaced by the int8 one's flows, and the line says why
+    monkeypatch.setattr(model_loading, "int8_dot_products", lambda: True)
+    assert infer_main([str(int8_export), str(scans), "--out", str(tmp_path / "stream_f32")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "this stream's flows made with other options (precision f32, now int8)" in err
 
 
 def test_int8_dot_products_are_read_from_the_cpus_flags():

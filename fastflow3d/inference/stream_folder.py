@@ -61,6 +61,12 @@ def claim_output_folder(out: Path, manifest: dict, files: list[Path]) -> None:
         earlier = read_manifest(out / MANIFEST)
         if earlier is None or {k: earlier.get(k) for k in manifest} != manifest:
             what = "another stream's flows" if earlier is not None else f"{len(present)} file(s) of no stream of ours"
+            if earlier is not None and all(earlier.get(k) == manifest[k] for k in ("model", "scans")):
+                before, now = _options(earlier), _options(manifest)
+                changed = ", ".join(
+                    f"{k} {before.get(k)}, now {now.get(k)}" for k in now | before if before.get(k) != now.get(k)
+                )
+                what = f"this stream's flows made with other options ({changed})"
             raise ValueError(f"{out}: holds {what}; give an empty or new --out (outputs are never mixed)")
         own = set(earlier.get("outputs", [])) | {MANIFEST}
         foreign = [path.name for path in present if path.name not in own and not path.name.endswith(".npz")]
@@ -76,6 +82,12 @@ def claim_output_folder(out: Path, manifest: dict, files: list[Path]) -> None:
     write_text_atomic(
         out / MANIFEST, json.dumps({**manifest, "complete": False, "outputs": []}, indent=1), make_parents=True
     )
+
+
+def _options(manifest: dict) -> dict:
+    """A manifest's options, its precision named where it leaves it out (float32: ``stream_manifest``)."""
+    options = manifest.get("options")
+    return {"precision": "f32", **(options if isinstance(options, dict) else {})}
 
 
 def read_manifest(path: Path) -> dict | None:
