@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow.hardware import host_line
 from icpflow.threads import cpu_fields
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,8 +94,9 @@ def rss_mb() -> float:
 
 
 def cpu_name(cpuinfo: str | None = None) -> str:
-    """The CPU as a benchmark's table names it: its model name, and on Linux its family, model and widest vector
-    instructions (``cpuinfo``: the text of ``/proc/cpuinfo``, read when None). VMs here report "AMD EPYC" on hosts two
+    """The CPU as a benchmark's table names it: its model name, and on Linux its family, model, widest vector
+    instructions, the instruction sets reduced precisions need and the switches in effect that hold engines below
+    them (``icpflow.hardware.host_line``) (``cpuinfo``: the text of ``/proc/cpuinfo``, read when None). VMs here report "AMD EPYC" on hosts two
     times apart in speed (the int8 network alone on a KITTI pair: 57.9 ms in issue 44's eleventh session, 30.7 ms on
     a family 26 host in its twelfth), so a figure is compared with another only on the same family and model."""
     fields = cpu_fields(cpuinfo)
@@ -104,7 +106,7 @@ def cpu_name(cpuinfo: str | None = None) -> str:
     flags = set(fields.get("flags", "").split())
     labels = (("avx512_vnni", "AVX-512 VNNI"), ("avx512f", "AVX-512"), ("avx2", "AVX2"), ("", "no AVX2"))
     widest = next(label for flag, label in labels if not flag or flag in flags)
-    return f"{name} (family {fields['cpu family']} model {fields.get('model', '?')}, {widest})"
+    return f"{name} (family {fields['cpu family']} model {fields.get('model', '?')}, {widest}; {host_line(cpuinfo)})"
 
 
 def split_overrides(text: str) -> list[str]:

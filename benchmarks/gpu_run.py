@@ -158,7 +158,7 @@ def steps(args) -> list[Step]:
     out, smoke = args.out, args.smoke
     on_gpu = "" if smoke else gpu_backends()
     labels = out / "labels"
-    trainer = ["trainer=cpu", "trainer.precision=bf16-mixed"] if smoke else ["trainer=gpu"]
+    trainer = ["trainer=cpu"] if smoke else ["trainer=gpu"]  # precision auto in both (conf/trainer)
     quick = ["trainer.max_steps=2", "trainer.num_sanity_val_steps=0", "metrics.bev_every=0", *smoke_model()]
     length = quick if smoke else [f"trainer.max_time=00:00:{args.minutes:02d}:00"]
     reader = ["dataset.reader.num_sequences=1", "dataset.reader.beams=32"] if smoke else []

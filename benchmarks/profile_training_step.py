@@ -62,6 +62,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     from fastflow3d.training import data as data_module
+    from fastflow3d.training.precision import BF16, choose_precision
     from fastflow3d.training.trainer import build_module, training_contract
 
     cfg = compose("train", [f"data.train={args.train.resolve()}", f"data.val={args.train.resolve()}", *args.overrides])
@@ -72,7 +73,9 @@ def main() -> None:
     datamodule.setup("fit")
     dataset, size = datamodule.train_set, plain["data"]["batch_size"]
     optimiser = torch.optim.Adam(module.parameters(), lr=1e-4)
-    bf16 = "bf16" in str(plain["trainer"]["precision"])
+    precision, line, _ = choose_precision(plain["trainer"]["precision"], "cpu")
+    print(line)
+    bf16 = precision in BF16
     network = module.model
     levels = len(network.unet.encoder) + 1
     families, by_side, steps = collections.Counter(), collections.Counter(), []

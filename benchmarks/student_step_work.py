@@ -1,5 +1,5 @@
 """CPU work of one training step of the student, in one process on one thread (``time.process_time``, so the figure
-holds on a shared machine): the network's forward + loss + backward + Adam step under bf16 autocast on a real batch,
+holds on a shared machine): the network's forward + loss + backward + Adam step in the run's precision (bf16 autocast or float32) on a real batch,
 and the DataLoader's work per sample (read, augment, compensate, and, where the tree has it, the crop to the
 network's points). Run by ``bench_training_step --work`` in each source tree (``python -m
 benchmarks.student_step_work <conf dir> <train> <val> <batches> [overrides]``, the tree the working directory): it
@@ -55,6 +55,14 @@ def main() -> None:
         )
     datamodule.setup("fit")
     dataset, size = datamodule.train_set, options["batch_size"]
+    precision = str(plain["trainer"]["precision"])
+    try:  # trees with trainer.precision=auto resolve it as train.py does
+        from fastflow3d.training.precision import choose_precision
+    except ImportError:
+        pass
+    else:
+        precision = choose_precision(precision, "cpu")[0]
+    bf16 = "bf16" in precision
     sample_times, step_times = [], []
     optimiser = torch.optim.Adam(module.parameters(), lr=1e-4)
     for run in range(runs + 1):
@@ -63,7 +71,7 @@ def main() -> None:
         sample_times.append((time.process_time() - tic) / size)
         batch = data_module.collate(samples)
         tic = time.process_time()
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled="bf16" in str(plain["trainer"]["precision"])):
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             pred, valid = module(batch)
             loss = module.loss(pred, valid, batch)
         optimiser.zero_grad()
@@ -72,7 +80,12 @@ def main() -> None:
         step_times.append(time.process_time() - tic)
     print(
         json.dumps(
-            {"step": statistics.median(step_times[1:]), "sample": statistics.median(sample_times[1:]), "batch": size}
+            {
+                "step": statistics.median(step_times[1:]),
+                "sample": statistics.median(sample_times[1:]),
+                "batch": size,
+                "precision": precision,
+            }
         )
     )
 

@@ -36,13 +36,20 @@ def test_the_readme_names_every_module():
     assert modules - named == set()
 
 
-def test_a_benchmarks_cpu_names_the_host_family_model_and_vector_width():
-    # "AMD EPYC" alone named hosts two times apart in speed: the tables name the family, model and vector width
+def test_a_benchmarks_cpu_names_the_host_family_model_and_vector_width(monkeypatch):
+    # "AMD EPYC" alone named hosts two times apart in speed: the tables name the family, model and vector width,
+    # the instruction sets of reduced precisions and the switches that hold the engines below them
     from benchmarks.common import cpu_name
 
+    for name in ("ONEDNN_MAX_CPU_ISA", "ATEN_CPU_CAPABILITY", "MKL_ENABLE_INSTRUCTIONS", "NUMBA_CPU_NAME"):
+        monkeypatch.delenv(name, raising=False)
     first = "processor : 0\nmodel name : AMD EPYC\ncpu family : 26\nmodel : 2\nflags : fpu avx2 avx512f avx512_vnni\n"
     other = "processor : 1\nmodel name : Other\ncpu family : 25\nmodel : 1\nflags : fpu\n"
-    assert cpu_name(f"{first}\n{other}") == "AMD EPYC (family 26 model 2, AVX-512 VNNI)"
-    assert cpu_name(first.replace(" avx512_vnni", "")) == "AMD EPYC (family 26 model 2, AVX-512)"
-    assert cpu_name(other) == "Other (family 25 model 1, no AVX2)"
+    vnni = "AMD EPYC (family 26 model 2, AVX-512 VNNI; instruction sets: AVX2, AVX-512, VNNI)"
+    assert cpu_name(f"{first}\n{other}") == vnni
+    monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", "AVX2")
+    assert cpu_name(first.replace(" avx512_vnni", "")) == (
+        "AMD EPYC (family 26 model 2, AVX-512; instruction sets: AVX2, AVX-512; held by ONEDNN_MAX_CPU_ISA=AVX2)"
+    )
+    assert cpu_name(other) == "Other (family 25 model 1, no AVX2; instruction sets: no AVX2; held by ONEDNN_MAX_CPU_ISA=AVX2)"
     assert cpu_name("model name : Apple M2\n") == "Apple M2"  # no family (not an x86 Linux): the name alone

@@ -759,6 +759,34 @@ def test_the_cli_runs_auto_precision_by_default_and_says_which(int8_export, pair
     assert err.count("\n") == 1 and "this stream's flows made with other options (precision f32, now int8)" in err
 
 
+def test_int8_asked_for_on_a_cpu_without_dot_products_says_its_cost(int8_export, pairs, tmp_path, monkeypatch, capsys):
+    """``--precision int8`` where the CPU has no int8 dot products runs as asked, with one line saying what it costs;
+    ``auto`` there runs f32 and says nothing; bf16 without native bf16 is said the same way."""
+    from fastflow3d.inference import model_loading
+    from fastflow3d.inference.prediction import PredictorWarning
+
+    monkeypatch.setattr(model_loading, "int8_dot_products", lambda: False)
+    with pytest.warns(PredictorWarning, match="precision int8 on a CPU without int8 dot products"):
+        assert Predictor.load(int8_export, precision="int8").precision == "int8"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PredictorWarning)
+        assert Predictor.load(int8_export, precision="auto").precision == "f32"
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for k, points in enumerate((pairs[1].pc0, pairs[1].pc1)):
+        write_scan(scans / f"{k}.npy", points)
+    args = [str(int8_export), str(scans / "0.npy"), str(scans / "1.npy"), "--no-bev", "--precision", "int8"]
+    assert infer_main([*args, "--out", str(tmp_path / "pair.npz")]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert [line for line in err if "dot products" in line] == [
+        "infer: warning: " + model_loading.precision_cost("int8")
+    ]
+    monkeypatch.setattr("icpflow.hardware.native_bf16", lambda: (False, "this CPU has no bf16 instructions"))
+    assert model_loading.precision_cost("bf16").startswith("precision bf16: this CPU has no bf16 instructions")
+    monkeypatch.setattr(model_loading, "int8_dot_products", lambda: True)
+    assert model_loading.precision_cost("int8") is None and model_loading.precision_cost("f32") is None
+
+
 def test_int8_dot_products_are_read_from_the_cpus_flags():
     """``engines.int8_dot_products``: x86 AVX512-VNNI or AVX-VNNI, Arm's asimddp (``/proc/cpuinfo``); an Apple
     Silicon Mac has them; elsewhere (no cpuinfo) they are not assumed."""

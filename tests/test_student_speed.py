@@ -1,5 +1,6 @@
 """The student's exact speed-ups compute what the plain formulation computes: the split head with channels_last
-pseudo-images against ZeroFlow's per-point concatenation (a reference written here), and training batches cut to
+pseudo-images and the decoder's full-resolution layers at the cells they feed only (``fastflow3d.network.cells``)
+against ZeroFlow's dense decoder and per-point concatenation (a reference written here), and training batches cut to
 the network's points in the DataLoader against whole scans masked in the module; DataLoader workers run one BLAS
 thread; the inexact point cap is a switch."""
 
@@ -8,6 +9,7 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
+from fastflow3d.network.cells import CellSets, conv3x3_at, with_zero_row
 from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import FastFlow3D
 from fastflow3d.network.scatter import scatter_mean
@@ -94,6 +96,55 @@ def test_split_head_and_channels_last_match_the_plain_forward():
             atol=2e-6,
             rtol=0,
         )
+
+
+def test_convolutions_at_the_cells_are_the_dense_ones_there():
+    """``CellSets``: the targets and their dilations (a 3 x 3 max-pool each), per sample, clipped at the grid's edges;
+    ``conv3x3_at`` at a set from the next one's rows equals the dense convolution there, at the borders (zero
+    padding) and between the two samples of a batch (no leak from one to the other)."""
+    torch.manual_seed(0)
+    nx, ny = 6, 7
+    targets = torch.tensor([0, 6, 20, 41, nx * ny + 3, nx * ny + 29, 2 * nx * ny, 20])  # corners, a dump id, a repeat
+    sets = CellSets(targets, 2, nx, ny, depth=2)
+    occupied = torch.zeros(2 * nx * ny)
+    occupied[targets[targets < 2 * nx * ny]] = 1
+    image = occupied.reshape(2, 1, nx, ny)
+    for k in range(3):
+        assert torch.equal(sets.cells[k], torch.nonzero(image.reshape(-1)).reshape(-1)), k
+        assert torch.equal(sets.rows[k][sets.cells[k]], torch.arange(len(sets.cells[k])))
+        assert torch.all(sets.rows[k][-1] == len(sets.cells[k]))  # the dump id reads the zero row
+        image = nn.functional.max_pool2d(image, 3, 1, 1)
+    assert len(sets.cells[0]) == 6 < len(sets.cells[1]) < len(sets.cells[2]) < 2 * nx * ny
+    conv = nn.Conv2d(5, 4, 3, 1, 1)
+    dense_input = torch.randn(2, 5, nx, ny)
+    dense = conv(dense_input).permute(0, 2, 3, 1).reshape(-1, 4)
+    inputs = dense_input.permute(0, 2, 3, 1).reshape(-1, 5)[sets.cells[1]]
+    at_cells = conv3x3_at(conv, with_zero_row(inputs), sets.neighbours(0))
+    torch.testing.assert_close(at_cells, dense[sets.cells[0]], atol=1e-6, rtol=0)
+
+
+def test_the_decoder_at_the_cells_of_sparse_scans_is_the_dense_one():
+    """Scans of a few clusters (most of the grid empty, some cells at its edges): the network's flow and every
+    gradient with the full-resolution layers computed where they are read equal the dense decoder's."""
+    torch.manual_seed(2)
+    model = FastFlow3D(**SMALL).train()
+    state = {key: value.clone() for key, value in model.state_dict().items()}
+    gen = torch.Generator().manual_seed(3)
+    centres = torch.tensor([[-7.8, -7.8, 0.0], [7.8, 0.0, 0.0], [1.0, 2.0, 0.0], [-3.0, 7.9, 0.0]])
+    pc0 = (centres[torch.randint(0, 4, (400,), generator=gen)] + 0.4 * torch.randn(400, 3, generator=gen)).clamp(
+        -7.99, 7.99
+    )
+    batch0 = (torch.arange(400) >= 250).long()
+    pc1, batch1, target = pc0 + 0.1, batch0.clone(), 0.3 * torch.randn(400, 3, generator=gen)
+    sets = CellSets(pillar_ids(pc0, batch0, model.grid, 2)[0], 2, model.grid.nx, model.grid.ny, depth=3)
+    assert len(sets.cells[3]) < 0.5 * 2 * model.grid.nx * model.grid.ny  # most cells are skipped
+    plain = loss_and_gradients(model, plain_forward, pc0, batch0, pc1, batch1, target)
+    model.load_state_dict(state)
+    fast = loss_and_gradients(model, FastFlow3D.__call__, pc0, batch0, pc1, batch1, target)
+    assert abs(plain[0] - fast[0]) <= 1e-6 * abs(plain[0])
+    torch.testing.assert_close(fast[2], plain[2], atol=2e-6, rtol=0)
+    for name, gradient in plain[1].items():
+        torch.testing.assert_close(fast[1][name], gradient, atol=3e-6, rtol=1e-4, msg=name)
 
 
 def test_training_on_the_network_points_only_is_the_same_step():

@@ -160,19 +160,38 @@ def given_preprocessing(args):
 
 def load_predictor(args):
     """The Predictor the options ask for (model, engine, height frame, preprocessing, refinement)."""
+    from fastflow3d.inference.prediction import PredictorWarning
     from fastflow3d.inference.predictor import Predictor
 
-    return Predictor.load(
-        args.model,
-        backend=args.backend,
-        device=args.device,
-        runtime=args.runtime,
-        threads=args.threads,
-        precision=args.precision,
-        sensor_height=args.sensor_height,
-        preprocessing=given_preprocessing(args),
-        refine=args.refine,
-    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PredictorWarning)
+        predictor = Predictor.load(
+            args.model,
+            backend=args.backend,
+            device=args.device,
+            runtime=args.runtime,
+            threads=args.threads,
+            precision=args.precision,
+            sensor_height=args.sensor_height,
+            preprocessing=given_preprocessing(args),
+            refine=args.refine,
+        )
+    say_warnings(caught)  # a precision this CPU would emulate, asked for by name: its one line
+    return predictor
+
+
+def say_warnings(caught, keep=lambda message: True) -> None:
+    """Each recorded ``PredictorWarning`` whose message ``keep`` accepts as an ``infer: warning:`` line; any other
+    warning raised again as it was."""
+    from fastflow3d.inference.prediction import PredictorWarning
+
+    for warning in caught:
+        if issubclass(warning.category, PredictorWarning):
+            message = str(warning.message)
+            if keep(message):
+                print(f"infer: warning: {message.removeprefix('Predictor: ')}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
 
 
 def infer(args) -> tuple[Path, Path | None, str]:
@@ -199,13 +218,7 @@ def infer(args) -> tuple[Path, Path | None, str]:
         warnings.simplefilter("always", PredictorWarning)
         prediction = predictor.predict(pc0, pc1, ego)
     nothing_seen = not prediction.in_grid.any()  # said below, more precisely than the implausible-grid warning
-    for warning in caught:
-        if issubclass(warning.category, PredictorWarning):
-            message = str(warning.message)
-            if not (nothing_seen and message.startswith("Predictor: implausible")):
-                print(f"infer: warning: {message.removeprefix('Predictor: ')}", file=sys.stderr)
-        else:
-            warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
+    say_warnings(caught, lambda message: not (nothing_seen and message.startswith("Predictor: implausible")))
     if nothing_seen:
         print(
             f"infer: warning: no point of {args.scan0} lies inside the model's grid (nor is it kept as non-ground): "

@@ -52,6 +52,25 @@ def auto_precision(path: Path, backend: str | None, runtime: str | None) -> str:
     return "int8" if shipped and int8_dot_products() and (runtime is not None or cpu_only()) else "f32"
 
 
+def precision_cost(precision: str) -> str | None:
+    """One line on what a reduced ``precision`` asked for by name costs on this CPU, where it is not native (None
+    where it is, and for f32): int8 without int8 dot products (``engines.int8_dot_products``), bf16 without native
+    bf16 (``icpflow.hardware.native_bf16``)."""
+    from icpflow.hardware import native_bf16
+
+    if precision == "int8" and not int8_dot_products():
+        return (
+            "precision int8 on a CPU without int8 dot products (VNNI, Arm dot product): ONNX Runtime multiplies "
+            "with 16-bit sums that can saturate, so the export's check of the int8 network does not hold here, and "
+            "it is no quicker than f32 (--precision auto runs f32 here)"
+        )
+    if precision == "bf16":
+        native, why = native_bf16()
+        if not native:
+            return f"precision bf16: {why}; OpenVINO runs float32 instead (--precision auto runs f32 here)"
+    return None
+
+
 def open_model(
     path: Path, backend: str | None, device: str, runtime: str | None, threads: int | None, precision: str
 ) -> tuple[object, str, dict, str]:

@@ -45,7 +45,7 @@ import numpy as np
 
 from fastflow3d.artifact.file_format import LEGACY_FORMATS
 from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING
-from fastflow3d.inference.model_loading import model_contract, open_model
+from fastflow3d.inference.model_loading import AUTO, model_contract, open_model, precision_cost
 from fastflow3d.inference.prediction import Prediction, PredictorError, PredictorWarning, as_points
 from fastflow3d.inference.refine import RefineConfig, refine_residual
 from fastflow3d.inference.scan_steps import ScanSteps
@@ -135,7 +135,11 @@ class Predictor(ScanSteps):
         Raises :class:`ArtifactError` (one line) for a path that is not a readable artifact.
         """
         path = Path(path)
+        asked = precision
         network, kind, metadata, precision = open_model(path, backend, device, runtime, threads, precision)
+        cost = precision_cost(precision) if asked != AUTO else None
+        if cost:
+            warnings.warn(f"Predictor: {cost}", PredictorWarning, stacklevel=2)
         if kind in LEGACY_FORMATS:  # asked for by name (else refused by open_model)
             warnings.warn(f"{path}: {TORCHSCRIPT_WARNING}", UserWarning, stacklevel=2)
         contract = model_contract(path, metadata, preprocessing)

@@ -20,6 +20,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from fastflow3d.network.cells import CellSets, conv3x3_at, rows_at, with_zero_row
 from fastflow3d.network.scatter import scatter_mean, to_pseudo_image
 from fastflow3d.network.voxelize import Grid, voxelize
 from icpflow.geometry import transform_points
@@ -67,8 +68,20 @@ class UpsampleSkip(nn.Module):
         self.fuse = nn.Sequential(nn.Conv2d(2 * latent, out, 3, 1, 1), nn.Conv2d(out, out, 3, 1, 1))
 
     def forward(self, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
-        up = nn.functional.interpolate(self.low(low), scale_factor=2.0, mode="bilinear", align_corners=False)
-        return self.fuse(torch.cat([up, self.high(high)], dim=1))
+        return self.fuse(torch.cat([self.upsampled(low), self.high(high)], dim=1))
+
+    def upsampled(self, low: torch.Tensor) -> torch.Tensor:
+        return nn.functional.interpolate(self.low(low), scale_factor=2.0, mode="bilinear", align_corners=False)
+
+    def at_cells(self, low: torch.Tensor, high: torch.Tensor, sets: CellSets, final: nn.Conv2d) -> torch.Tensor:
+        """(M_0, out): ``final(forward(low, high))`` at ``sets.cells[0]`` (``final`` a 3 x 3 convolution), each layer
+        computed only where the next one reads it (``fastflow3d.network.cells``); ``sets`` of depth 3."""
+        cells = sets.cells[3]
+        high_rows = nn.functional.linear(rows_at(high, cells), self.high.weight[:, :, 0, 0], self.high.bias)
+        x = torch.cat([rows_at(self.upsampled(low), cells), high_rows], dim=1)
+        for depth, conv in zip((2, 1, 0), (*self.fuse, final)):
+            x = conv3x3_at(conv, with_zero_row(x), sets.neighbours(depth))
+        return x
 
 
 def local_correlation(features0: torch.Tensor, features1: torch.Tensor, radius: int) -> torch.Tensor:
@@ -134,15 +147,21 @@ class UNet(nn.Module):
             parts.append(local_correlation(image0, image1, self.correlation_radius))
         return torch.cat(parts, dim=1)
 
-    def forward(self, image0: torch.Tensor, image1: torch.Tensor) -> torch.Tensor:
+    def forward(self, image0: torch.Tensor, image1: torch.Tensor, sets: CellSets | None = None) -> torch.Tensor:
+        """The decoded image (B, 2C, H, W), or with ``sets`` (``CellSets`` of depth 3 on this grid) its rows
+        (M_0, 2C) at ``sets.cells[0]`` only: the same numbers, the full-resolution layers computed where they are
+        read (:meth:`UpsampleSkip.at_cells`)."""
         levels = [self.level(0, image0, image1)]
         for index, stage in enumerate(self.encoder, start=1):
             image0, image1 = stage(image0), stage(image1)
             levels.append(self.level(index, image0, image1))
         x = levels[-1]
-        for step, skip in zip(self.decoder, reversed(levels[:-1])):
+        *coarse, finest = self.decoder
+        for step, skip in zip(coarse, reversed(levels[1:-1])):
             x = step(x, skip)
-        return self.final(x)
+        if sets is None:
+            return self.final(finest(x, levels[0]))
+        return finest.at_cells(x, levels[0], sets, self.final)
 
 
 class PillarEmbedder(nn.Module):
@@ -187,22 +206,19 @@ class PillarEmbedder(nn.Module):
         return scatter_mean(points, ids, num_slots), points
 
 
-def pillar_rows(image: torch.Tensor) -> torch.Tensor:
-    """(B * nx * ny, C) rows of a (B, C, nx, ny) image: a view for a channels_last image."""
-    return image.permute(0, 2, 3, 1).reshape(-1, image.shape[1])
-
-
-def split_linear(linear: nn.Linear, images, ids: torch.Tensor, point_features: torch.Tensor | None = None):
-    """(P, out): ``linear`` applied per point to ``[images[0] at its pillar, ..., point_features]`` without
-    gathering the images: their part of the weight runs once per pillar row (bias included), then one (P, out)
-    gather by pillar id, plus the per-point part (if any). Ids of points outside the grid (the dump id) read an
-    arbitrary row: the caller masks those points."""
+def split_linear(linear: nn.Linear, parts, sets: CellSets, ids: torch.Tensor, point_features=None):
+    """(P, out): ``linear`` applied per point to ``[parts[0] at its pillar, ..., point_features]`` without
+    gathering the parts per point: their part of the weight runs once per pillar of ``sets.cells[0]`` (bias
+    included), then one (P, out) gather by pillar id, plus the per-point part (if any). ``parts``: (B, C, nx, ny)
+    images, or (M_0, C) rows at ``sets.cells[0]`` (the decoded features, ``UNet``). Points outside the grid (the
+    dump id) read a zero row: the caller masks those points."""
     weight, start, pillar = linear.weight, 0, linear.bias
-    for image in images:
-        channels = image.shape[1]
-        part = nn.functional.linear(pillar_rows(image), weight[:, start : start + channels])
-        pillar, start = part + pillar, start + channels
-    per_point = pillar.index_select(0, ids.clamp(max=pillar.shape[0] - 1))
+    cells = sets.cells[0]
+    for part in parts:
+        channels = part.shape[1]
+        rows = rows_at(part, cells) if part.dim() == 4 else part
+        pillar, start = nn.functional.linear(rows, weight[:, start : start + channels]) + pillar, start + channels
+    per_point = with_zero_row(pillar).index_select(0, sets.rows[0].index_select(0, ids))
     return per_point if point_features is None else per_point + nn.functional.linear(point_features, weight[:, start:])
 
 
@@ -214,9 +230,10 @@ class LinearDecoder(nn.Sequential):
     def __init__(self, pillar_channels: int):
         super().__init__(nn.Linear(4 * pillar_channels + 3, 32), nn.GELU(), nn.Linear(32, 3))
 
-    def decode(self, images, point_embedding: torch.Tensor, features: torch.Tensor, ids: torch.Tensor):
-        """Residual flow (P, 3) from the (B, *, nx, ny) images (pc0, pc1, decoded) and the point features (P, 9)."""
-        hidden = split_linear(self[0], images, ids, features[:, 6:9])
+    def decode(self, parts, sets: CellSets, point_embedding: torch.Tensor, features: torch.Tensor, ids: torch.Tensor):
+        """Residual flow (P, 3) from the pillar features ``parts`` (pc0 and pc1 images, decoded rows, see
+        ``split_linear``) and the point features (P, 9)."""
+        hidden = split_linear(self[0], parts, sets, ids, features[:, 6:9])
         return self[2](self[1](hidden))
 
 
@@ -243,13 +260,13 @@ class GRUDecoder(nn.Module):
         self.hidden_gates = nn.Linear(hidden, 3 * hidden)
         self.flow = nn.Sequential(nn.Linear(hidden + point, 32), nn.GELU(), nn.Linear(32, 3))
 
-    def decode(self, images, point_embedding: torch.Tensor, features: torch.Tensor, ids: torch.Tensor):
-        """Residual flow (P, 3) from the (B, *, nx, ny) images (pc0, pc1, decoded), the per-point embeddings (P, C)
-        and the point features (P, 9)."""
+    def decode(self, parts, sets: CellSets, point_embedding: torch.Tensor, features: torch.Tensor, ids: torch.Tensor):
+        """Residual flow (P, 3) from the pillar features ``parts`` (pc0 and pc1 images, decoded rows, see
+        ``split_linear``), the per-point embeddings (P, C) and the point features (P, 9)."""
         point = torch.cat([point_embedding, features[:, 6:9]], dim=1)
         # the input's part of the gates once; the z and r gates' hidden bias folded into it (fewer passes per step)
         x_gates = self.input_gates(point)
-        h = split_linear(self.initial, images, ids).to(x_gates.dtype)  # bf16 under autocast, as the gates
+        h = split_linear(self.initial, parts, sets, ids).to(x_gates.dtype)  # bf16 under autocast, as the gates
         hidden = h.shape[1]
         x_zr = x_gates[:, : 2 * hidden] + self.hidden_gates.bias[: 2 * hidden].to(x_gates.dtype)
         x_n = x_gates[:, 2 * hidden :]
@@ -332,6 +349,7 @@ class FastFlow3D(nn.Module):
     ):
         image0, features0, ids0, valid0, embedding0 = self.embed(pc0, batch0, batch_size)
         image1 = self.embed(pc1, batch1, batch_size)[0]
-        decoded = self.unet(image0, image1)
-        residual = self.head.decode((image0, image1, decoded), embedding0, features0, ids0)
+        sets = CellSets(ids0, batch_size, self.grid.nx, self.grid.ny, depth=3)  # where the decoder's last layers run
+        decoded = self.unet(image0, image1, sets)
+        residual = self.head.decode((image0, image1, decoded), sets, embedding0, features0, ids0)
         return torch.where(valid0[:, None], residual, torch.zeros_like(residual)), valid0

@@ -19,6 +19,7 @@ import lightning as L
 from hydra.utils import instantiate
 from lightning.fabric.plugins.environments import SLURMEnvironment
 from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from fastflow3d.artifact.checkpoint import build_student
@@ -27,6 +28,7 @@ from fastflow3d.artifact.file_format import FORMATS
 from fastflow3d.network.contract import ContractError, InputContract, read_grid
 from fastflow3d.training.callbacks import AtomicCheckpointIO, LastCheckpoint, ModelSize, TrainingStopped, progress_bar
 from fastflow3d.training.data import DataError, ShardDataModule, StudentDataset, labeller_contract
+from fastflow3d.training.precision import choose_precision
 from fastflow3d.training.run_folder import (
     TrainError,
     check_fresh_start,
@@ -150,13 +152,19 @@ def export_formats(cfg: DictConfig) -> tuple[str, ...]:
 
 
 def build_trainer(cfg: DictConfig) -> L.Trainer:
-    """The Lightning Trainer of ``cfg.trainer`` (Trainer keyword arguments) with the configured logger and callbacks
+    """The Lightning Trainer of ``cfg.trainer`` (Trainer keyword arguments; ``precision: auto`` chosen for this host
+    and said, ``fastflow3d.training.precision``) with the configured logger and callbacks
     (``LastCheckpoint`` after the other checkpoint callbacks, so it saves their state after theirs) and checkpoint
     files written atomically; in a SLURM job, Lightning's SLURM environment without its SIGUSR1 auto-requeue."""
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     callbacks = [instantiate(callback) for callback in (cfg.get("callbacks") or {}).values()]
     callbacks.sort(key=lambda callback: isinstance(callback, LastCheckpoint))
     trainer_kwargs = OmegaConf.to_container(cfg.trainer, resolve=True)
+    requested = trainer_kwargs.get("precision") or "32-true"
+    precision, line, emulated = choose_precision(requested, str(trainer_kwargs.get("accelerator", "auto")))
+    trainer_kwargs["precision"] = precision
+    if rank_zero_only.rank == 0:
+        (log.warning if emulated else log.info)(line)
     for name, ours in (("enable_progress_bar", True), ("enable_model_summary", False)):
         if trainer_kwargs.get(name) is None:  # Lightning's default (None): ours
             trainer_kwargs[name] = ours
@@ -285,7 +293,8 @@ def fit(cfg: DictConfig) -> L.Trainer:
         trainer = build_trainer(cfg)
         effective, line = settle_batch(cfg, trainer)
         check_sizes(cfg, trainer, counts, effective)
-        module.hparams["cfg"]["effective_batch"] = effective  # the logged and saved config say it
+        module.hparams["cfg"]["effective_batch"] = effective  # the logged and saved config say it, and the
+        module.hparams["cfg"]["trainer"]["precision"] = str(trainer.precision)  # precision that auto chose
         if trainer.is_global_zero:
             log.info(line)
         try:
