@@ -95,10 +95,11 @@ def rss_mb() -> float:
 
 def cpu_name(cpuinfo: str | None = None) -> str:
     """The CPU as a benchmark's table names it: its model name, and on Linux its family, model, widest vector
-    instructions, the instruction sets reduced precisions need and the switches in effect that hold engines below
-    them (``icpflow.hardware.host_line``) (``cpuinfo``: the text of ``/proc/cpuinfo``, read when None). VMs here report "AMD EPYC" on hosts two
-    times apart in speed (the int8 network alone on a KITTI pair: 57.9 ms in issue 44's eleventh session, 30.7 ms on
-    a family 26 host in its twelfth), so a figure is compared with another only on the same family and model."""
+    instructions, the instruction sets reduced precisions need and the switches in effect that hold engines below them
+    (``icpflow.hardware.host_line``; ``cpuinfo``: the text of ``/proc/cpuinfo``, read when None). VMs here report "AMD
+    EPYC" on hosts two times apart in speed (the int8 network alone on a KITTI pair: 57.9 ms in issue 44's eleventh
+    session, 30.7 ms on a family 26 host in its twelfth), so a figure is compared with another only on the same family
+    and model."""
     fields = cpu_fields(cpuinfo)
     name = fields.get("model name") or platform.processor() or "unknown CPU"
     if "cpu family" not in fields:

@@ -1,9 +1,9 @@
 """CPU work of one training step of the student, in one process on one thread (``time.process_time``, so the figure
-holds on a shared machine): the network's forward + loss + backward + Adam step in the run's precision (bf16 autocast or float32) on a real batch,
-and the DataLoader's work per sample (read, augment, compensate, and, where the tree has it, the crop to the
-network's points). Run by ``bench_training_step --work`` in each source tree (``python -m
-benchmarks.student_step_work <conf dir> <train> <val> <batches> [overrides]``, the tree the working directory): it
-uses only that tree's own code."""
+holds on a shared machine): the network's forward + loss + backward + Adam step in the run's precision (bf16 autocast or
+float32, ``auto`` resolved as ``train.py`` does) on a real batch, and the DataLoader's work per sample (read, augment,
+compensate, and, where the tree has it, the crop to the network's points). Run by ``bench_training_step --work`` in each
+source tree (``python -m benchmarks.student_step_work <conf dir> <train> <val> <batches> [overrides]``, the tree the
+working directory): it uses only that tree's own code."""
 
 import json
 import statistics

@@ -492,6 +492,7 @@ def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
     expected["input"] = second.lightning_module.contract.to_dict()  # the teacher's part from the shards
     batch = expected["data"]["batch_size"] * expected["trainer"]["accumulate_grad_batches"]
     expected["effective_batch"] = batch  # what ran: batch x accumulation x 1 device x 1 node
+    expected["trainer"]["precision"] = str(second.precision)  # and the precision trainer.precision=auto chose
     assert second.lightning_module.contract.preprocessing == Preprocessing.from_teacher(TEACHER)
     assert not model.training and cfg == expected
     assert cfg["model"]["cell"] == TINY_MODEL["cell"] and cfg["model"]["stage_channels"] == TINY_MODEL["stage_channels"]

@@ -33,15 +33,17 @@ class CellSets:
 
     def __init__(self, targets: torch.Tensor, batch_size: int, nx: int, ny: int, depth: int):
         self.shape, slots = (batch_size, nx, ny), batch_size * nx * ny
-        ones = torch.ones_like(targets, dtype=torch.float32)[:, None]
-        occupied = (scatter_sum(ones, targets, slots + 1)[:slots, 0] > 0).to(torch.float32)
-        image = occupied.reshape(batch_size, 1, nx, ny)
+        counts = scatter_sum(targets.new_ones((targets.shape[0], 1), dtype=torch.float32), targets, slots + 1)
+        image = (counts[:slots, 0] > 0).to(torch.float32).reshape(batch_size, 1, nx, ny)
         self.cells, self.rows = [], []
         for _ in range(depth + 1):
-            cells = torch.nonzero(image.reshape(-1) > 0).reshape(-1)
-            rows = torch.full((slots + 1,), cells.shape[0], dtype=torch.int64, device=targets.device)
+            member = torch.cat([image.reshape(-1) > 0, member_of_none(image)])  # the dump id: in no set
+            cells = torch.nonzero(member).reshape(-1)
+            # a member's row is its rank among the members (no scatter: one in an export would be one more of the
+            # pillar sums that a one-thread session rewrites, fastflow3d.artifact.sequential_scatter)
+            rank = torch.cumsum(member.to(torch.int64), 0) - 1
             self.cells.append(cells)
-            self.rows.append(rows.scatter(0, cells, torch.arange(cells.shape[0], device=targets.device)))
+            self.rows.append(torch.where(member, rank, cells.shape[0]))
             image = F.max_pool2d(image, 3, 1, 1)
 
     def neighbours(self, k: int) -> torch.Tensor:
@@ -57,6 +59,11 @@ class CellSets:
         return self.rows[k + 1][flat]
 
 
+def member_of_none(image: torch.Tensor) -> torch.Tensor:
+    """(1,) False: the dump id's entry of a set's membership (made from ``image`` so that it follows its device)."""
+    return image.reshape(-1)[:1] < 0
+
+
 def with_zero_row(rows: torch.Tensor) -> torch.Tensor:
     """(M + 1, C): ``rows`` (M, C) and a zero row, the one that cells outside a set and beyond the grid read."""
     return torch.cat([rows, rows.new_zeros((1, rows.shape[1]))], dim=0)
@@ -64,9 +71,15 @@ def with_zero_row(rows: torch.Tensor) -> torch.Tensor:
 
 def conv3x3_at(conv: nn.Conv2d, inputs: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
     """(M, C_out): ``conv`` (3 x 3, stride 1, padding 1) at M cells from ``inputs`` (R + 1, C_in), the rows of the
-    cells it reads with a zero row last, and ``neighbours`` (M, 9) their rows in ``inputs``. One gather and product
-    per tap, summed: the (M, 9 C_in) matrix of all taps at once and its gradient cost 1.15x more here, in memory
-    traffic (BENCHMARKS.md, "Every CPU")."""
+    cells it reads with a zero row last, and ``neighbours`` (M, 9) their rows in ``inputs``. In training one gather
+    and product per tap, summed: the (M, 9 C_in) matrix of all taps at once and its gradient cost 1.15x more there, in
+    memory traffic (BENCHMARKS.md, "Every CPU"); an export takes that matrix (one Gather and one MatMul a layer,
+    quicker to trace than nine of each)."""
+    if torch.compiler.is_exporting():
+        channels = inputs.shape[1]
+        gathered = inputs.index_select(0, neighbours.reshape(-1)).reshape(-1, 9 * channels)
+        weight = conv.weight.permute(0, 2, 3, 1).reshape(conv.weight.shape[0], 9 * channels)
+        return F.linear(gathered, weight, conv.bias)
     out = conv.bias
     for tap, rows in enumerate(neighbours.T):
         out = F.linear(inputs.index_select(0, rows), conv.weight[:, :, tap // 3, tap % 3]) + out
