@@ -189,15 +189,11 @@ def test_torch_export_dynamic_point_counts():
 
 def test_torch_export_program_moves_to_another_device():
     """The CPU-exported program runs where it is moved (``artifact.engines.load_network`` does this for a GPU):
-    checked on the meta device (no GPU needed; there the occupied cells' ``nonzero`` has no data, so it is told to
-    take every cell as occupied)."""
-    from torch.fx.experimental import _config
-
+    checked on the meta device (no GPU needed)."""
     _, program = exported_small_model()
     moved = move_to_device_pass(program, "meta")
     (pc0, b0), (pc1, b1) = random_flat(120, 0, 9), random_flat(90, 0, 10)
-    with _config.patch(meta_nonzero_assume_all_nonzero=True):
-        residual, valid = moved.module()(pc0.to("meta"), b0.to("meta"), pc1.to("meta"), b1.to("meta"))
+    residual, valid = moved.module()(pc0.to("meta"), b0.to("meta"), pc1.to("meta"), b1.to("meta"))
     assert residual.device.type == valid.device.type == "meta"
     assert residual.shape == (120, 3) and valid.shape == (120,)
 

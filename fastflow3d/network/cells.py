@@ -9,6 +9,10 @@ product (exported as Gather / MatMul). The result is the dense network's at thos
 (``tests/test_fastflow3d_model.py``): every neighbour that a set's cell reads lies in the next set, and a neighbour
 outside the grid reads a zero row, as the dense convolution's zero padding.
 
+Training and eager inference run this; an export keeps the dense layers (``FastFlow3D.forward``): in ONNX Runtime
+the gathers and products cost about what the skipped convolutions saved, and they would stay float32 in the int8
+network.
+
 Rows are flat cell indices ``b * nx * ny + x * ny + y`` (the pillar ids of ``fastflow3d.network.voxelize``; the dump
 id ``B * nx * ny`` is the points outside the grid), as the channels_last pseudo-images lay them out.
 """
@@ -71,15 +75,9 @@ def with_zero_row(rows: torch.Tensor) -> torch.Tensor:
 
 def conv3x3_at(conv: nn.Conv2d, inputs: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
     """(M, C_out): ``conv`` (3 x 3, stride 1, padding 1) at M cells from ``inputs`` (R + 1, C_in), the rows of the
-    cells it reads with a zero row last, and ``neighbours`` (M, 9) their rows in ``inputs``. In training one gather
-    and product per tap, summed: the (M, 9 C_in) matrix of all taps at once and its gradient cost 1.15x more there, in
-    memory traffic (BENCHMARKS.md, "Every CPU"); an export takes that matrix (one Gather and one MatMul a layer,
-    quicker to trace than nine of each)."""
-    if torch.compiler.is_exporting():
-        channels = inputs.shape[1]
-        gathered = inputs.index_select(0, neighbours.reshape(-1)).reshape(-1, 9 * channels)
-        weight = conv.weight.permute(0, 2, 3, 1).reshape(conv.weight.shape[0], 9 * channels)
-        return F.linear(gathered, weight, conv.bias)
+    cells it reads with a zero row last, and ``neighbours`` (M, 9) their rows in ``inputs``. One gather and product
+    per tap, summed: the (M, 9 C_in) matrix of all taps at once and its gradient cost 1.15x more, in memory traffic
+    (BENCHMARKS.md, "Every CPU")."""
     out = conv.bias
     for tap, rows in enumerate(neighbours.T):
         out = F.linear(inputs.index_select(0, rows), conv.weight[:, :, tap // 3, tap % 3]) + out

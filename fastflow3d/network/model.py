@@ -206,19 +206,23 @@ class PillarEmbedder(nn.Module):
         return scatter_mean(points, ids, num_slots), points
 
 
-def split_linear(linear: nn.Linear, parts, sets: CellSets, ids: torch.Tensor, point_features=None):
+def split_linear(linear: nn.Linear, parts, sets: CellSets | None, ids: torch.Tensor, point_features=None):
     """(P, out): ``linear`` applied per point to ``[parts[0] at its pillar, ..., point_features]`` without
-    gathering the parts per point: their part of the weight runs once per pillar of ``sets.cells[0]`` (bias
-    included), then one (P, out) gather by pillar id, plus the per-point part (if any). ``parts``: (B, C, nx, ny)
-    images, or (M_0, C) rows at ``sets.cells[0]`` (the decoded features, ``UNet``). Points outside the grid (the
-    dump id) read a zero row: the caller masks those points."""
+    gathering the parts per point: their part of the weight runs once per pillar (bias included), then one (P, out)
+    gather by pillar id, plus the per-point part (if any). ``parts``: (B, C, nx, ny) images, or (M_0, C) rows at
+    ``sets.cells[0]`` (the decoded features, ``UNet``); with ``sets`` the pillars are those cells, without them
+    every cell of the images. Points outside the grid (the dump id) read a zero row (with ``sets``) or an arbitrary
+    one: the caller masks those points."""
     weight, start, pillar = linear.weight, 0, linear.bias
-    cells = sets.cells[0]
     for part in parts:
         channels = part.shape[1]
-        rows = rows_at(part, cells) if part.dim() == 4 else part
-        pillar, start = nn.functional.linear(rows, weight[:, start : start + channels]) + pillar, start + channels
-    per_point = with_zero_row(pillar).index_select(0, sets.rows[0].index_select(0, ids))
+        if part.dim() == 4:
+            part = rows_at(part, sets.cells[0]) if sets is not None else part.permute(0, 2, 3, 1).reshape(-1, channels)
+        pillar, start = nn.functional.linear(part, weight[:, start : start + channels]) + pillar, start + channels
+    if sets is None:
+        per_point = pillar.index_select(0, ids.clamp(max=pillar.shape[0] - 1))
+    else:
+        per_point = with_zero_row(pillar).index_select(0, sets.rows[0].index_select(0, ids))
     return per_point if point_features is None else per_point + nn.functional.linear(point_features, weight[:, start:])
 
 
@@ -349,7 +353,8 @@ class FastFlow3D(nn.Module):
     ):
         image0, features0, ids0, valid0, embedding0 = self.embed(pc0, batch0, batch_size)
         image1 = self.embed(pc1, batch1, batch_size)[0]
-        sets = CellSets(ids0, batch_size, self.grid.nx, self.grid.ny, depth=3)  # where the decoder's last layers run
+        # the decoder's last layers where they are read (fastflow3d.network.cells); an export keeps them dense
+        sets = None if torch.compiler.is_exporting() else CellSets(ids0, batch_size, self.grid.nx, self.grid.ny, 3)
         decoded = self.unet(image0, image1, sets)
         residual = self.head.decode((image0, image1, decoded), sets, embedding0, features0, ids0)
         return torch.where(valid0[:, None], residual, torch.zeros_like(residual)), valid0
