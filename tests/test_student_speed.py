@@ -75,6 +75,14 @@ def loss_and_gradients(model, forward, pc0, batch0, pc1, batch1, target):
     return loss.item(), {name: p.grad.clone() for name, p in model.named_parameters()}, residual.detach()
 
 
+def assert_same_step(plain, fast):
+    """The loss, the residual and every gradient of two ``loss_and_gradients`` results agree to float rounding."""
+    assert abs(plain[0] - fast[0]) <= 1e-6 * abs(plain[0])
+    torch.testing.assert_close(fast[2], plain[2], atol=2e-6, rtol=0)
+    for name, gradient in plain[1].items():
+        torch.testing.assert_close(fast[1][name], gradient, atol=3e-6, rtol=1e-4, msg=name)
+
+
 def test_split_head_and_channels_last_match_the_plain_forward():
     torch.manual_seed(0)
     model = FastFlow3D(**SMALL).train()
@@ -84,10 +92,7 @@ def test_split_head_and_channels_last_match_the_plain_forward():
     plain = loss_and_gradients(model, plain_forward, pc0, batch0, pc1, batch1, target)
     model.load_state_dict(state)
     fast = loss_and_gradients(model, FastFlow3D.__call__, pc0, batch0, pc1, batch1, target)
-    assert abs(plain[0] - fast[0]) <= 1e-6 * abs(plain[0])
-    torch.testing.assert_close(fast[2], plain[2], atol=2e-6, rtol=0)
-    for name, gradient in plain[1].items():
-        torch.testing.assert_close(fast[1][name], gradient, atol=3e-6, rtol=1e-4, msg=name)
+    assert_same_step(plain, fast)
     model.eval()
     with torch.no_grad():
         torch.testing.assert_close(
@@ -141,10 +146,7 @@ def test_the_decoder_at_the_cells_of_sparse_scans_is_the_dense_one():
     plain = loss_and_gradients(model, plain_forward, pc0, batch0, pc1, batch1, target)
     model.load_state_dict(state)
     fast = loss_and_gradients(model, FastFlow3D.__call__, pc0, batch0, pc1, batch1, target)
-    assert abs(plain[0] - fast[0]) <= 1e-6 * abs(plain[0])
-    torch.testing.assert_close(fast[2], plain[2], atol=2e-6, rtol=0)
-    for name, gradient in plain[1].items():
-        torch.testing.assert_close(fast[1][name], gradient, atol=3e-6, rtol=1e-4, msg=name)
+    assert_same_step(plain, fast)
 
 
 def test_training_on_the_network_points_only_is_the_same_step():
