@@ -70,18 +70,32 @@ def _onednn_bf16() -> bool:
     return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
-def native_bf16(cpuinfo: str | None = None, environ=None, engine=None, system: str | None = None) -> tuple[bool, str]:
+def torch_bf16_flags() -> set[str]:
+    """The bf16 instruction sets torch's own CPU probe finds (``torch.cpu``'s AVX512-BF16 and AMX checks): the answer
+    where there is no ``/proc/cpuinfo`` to read (Windows, macOS)."""
+    import torch
+
+    probes = (("avx512_bf16", "_is_avx512_bf16_supported"), ("amx_bf16", "_is_amx_tile_supported"))
+    return {flag for flag, probe in probes if getattr(torch.cpu, probe, lambda: False)()}
+
+
+def native_bf16(
+    cpuinfo: str | None = None, environ=None, engine=None, system: str | None = None, probe=None
+) -> tuple[bool, str]:
     """Does torch compute bf16 natively on this CPU? ``(answer, reason)``, the reason a phrase for a log line.
 
-    Native means all three: the CPU has bf16 arithmetic (:data:`BF16_FLAGS`; on a Mac, Apple Silicon past M1 has it
-    but torch runs no oneDNN there, so no); oneDNN runs bf16 (``engine()``, default torch's
+    Native means all three: the CPU has bf16 arithmetic (:data:`BF16_FLAGS` in ``/proc/cpuinfo``, else torch's own
+    probe, ``probe()`` (:func:`torch_bf16_flags`); a Mac's Apple Silicon is not counted: torch runs no oneDNN there);
+    oneDNN runs bf16 (``engine()``, default torch's
     ``_is_mkldnn_bf16_supported``, which honours ``ONEDNN_MAX_CPU_ISA``); and ``ONEDNN_MAX_CPU_ISA``, where set, is at
     or above ``AVX512_CORE_BF16``. An AVX-512 CPU without bf16 instructions passes oneDNN's check (it emulates bf16
     with AVX-512 there) and is refused by the first."""
     flags = cpu_flags(cpuinfo)
     if not flags:
-        where = system or platform.system()
-        return False, f"this CPU's instruction sets are unknown here ({where}: no /proc/cpuinfo)"
+        flags = (probe or torch_bf16_flags)()
+        if not flags:
+            where = system or platform.system()
+            return False, f"no bf16 instructions found ({where}: no /proc/cpuinfo; torch's probe finds none)"
     native = sorted(flag for flag in BF16_FLAGS if flag in flags)
     if not native:
         return False, "this CPU has no bf16 instructions (no AVX512_BF16, AMX or Arm bf16): bf16 would be emulated"

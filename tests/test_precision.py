@@ -53,12 +53,23 @@ def no():
         (BF16_HOST, {"ONEDNN_MAX_CPU_ISA": "AVX512_CORE_BF16"}, yes, True, "natively"),
         (BF16_HOST, {"ONEDNN_MAX_CPU_ISA": "ALL"}, yes, True, "natively"),
         (BF16_HOST, {}, no, False, "oneDNN does not run bf16"),
-        ("", {}, yes, False, "instruction sets are unknown"),
     ],
 )
 def test_native_bf16_needs_the_instructions_and_onednn_under_its_cap(cpuinfo, environ, engine, native, reason):
     answer, why = native_bf16(cpuinfo, environ, engine, system="Linux")
     assert answer is native and reason in why
+
+
+def test_without_cpuinfo_torchs_own_probe_answers():
+    """Windows and macOS have no ``/proc/cpuinfo``: torch's CPU probe names the bf16 instructions there."""
+    assert native_bf16("", {}, yes, "Windows", probe=lambda: {"avx512_bf16"}) == (
+        True,
+        "this CPU computes bf16 natively (avx512_bf16; oneDNN runs it)",
+    )
+    answer, why = native_bf16("", {"ONEDNN_MAX_CPU_ISA": "AVX2"}, yes, "Windows", probe=lambda: {"amx_bf16"})
+    assert not answer and "held to AVX2" in why
+    answer, why = native_bf16("", {}, yes, "Darwin", probe=set)
+    assert not answer and "no bf16 instructions found (Darwin: no /proc/cpuinfo" in why
 
 
 def test_an_unknown_onednn_isa_is_one_line():
