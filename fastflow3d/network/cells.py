@@ -9,9 +9,11 @@ product (exported as Gather / MatMul). The result is the dense network's at thos
 (``tests/test_fastflow3d_model.py``): every neighbour that a set's cell reads lies in the next set, and a neighbour
 outside the grid reads a zero row, as the dense convolution's zero padding.
 
-Training and eager inference run this; an export keeps the dense layers (``FastFlow3D.forward``): in ONNX Runtime
-the gathers and products cost about what the skipped convolutions saved, and they would stay float32 in the int8
-network.
+Float32 training and eager inference run this (``FastFlow3D.forward``). Under autocast (bf16) the dense layers run:
+each tap's product is rounded to bf16 before the taps are summed, where the dense convolution rounds once, the seeds
+did not rule out a cost to accuracy, and the step there was only 1.07x quicker (BENCHMARKS.md, "Every CPU"). An export
+keeps the dense layers too: in ONNX Runtime the gathers and products cost about what the skipped convolutions saved,
+and they would stay float32 in the int8 network.
 
 Rows are flat cell indices ``b * nx * ny + x * ny + y`` (the pillar ids of ``fastflow3d.network.voxelize``; the dump
 id ``B * nx * ny`` is the points outside the grid), as the channels_last pseudo-images lay them out.

@@ -353,8 +353,9 @@ class FastFlow3D(nn.Module):
     ):
         image0, features0, ids0, valid0, embedding0 = self.embed(pc0, batch0, batch_size)
         image1 = self.embed(pc1, batch1, batch_size)[0]
-        # the decoder's last layers where they are read (fastflow3d.network.cells); an export keeps them dense
-        sets = None if torch.compiler.is_exporting() else CellSets(ids0, batch_size, self.grid.nx, self.grid.ny, 3)
+        # the decoder's last layers where they are read, in float32 (fastflow3d.network.cells says why not otherwise)
+        dense = torch.compiler.is_exporting() or torch.is_autocast_enabled(pc0.device.type)
+        sets = None if dense else CellSets(ids0, batch_size, self.grid.nx, self.grid.ny, 3)
         decoded = self.unet(image0, image1, sets)
         residual = self.head.decode((image0, image1, decoded), sets, embedding0, features0, ids0)
         return torch.where(valid0[:, None], residual, torch.zeros_like(residual)), valid0
