@@ -86,6 +86,11 @@ def conv3x3_at(conv: nn.Conv2d, inputs: torch.Tensor, neighbours: torch.Tensor) 
     return out
 
 
+def image_rows(image: torch.Tensor) -> torch.Tensor:
+    """(B * nx * ny, C) rows of a (B, C, nx, ny) image, by flat cell index: a view for a channels_last image."""
+    return image.permute(0, 2, 3, 1).reshape(-1, image.shape[1])
+
+
 def rows_at(image: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
     """(M, C): the rows of a (B, C, nx, ny) image at flat cell indices ``cells``."""
-    return image.permute(0, 2, 3, 1).reshape(-1, image.shape[1]).index_select(0, cells)
+    return image_rows(image).index_select(0, cells)

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from fastflow3d.network.cells import CellSets, conv3x3_at, rows_at, with_zero_row
+from fastflow3d.network.cells import CellSets, conv3x3_at, image_rows, rows_at, with_zero_row
 from fastflow3d.network.scatter import scatter_mean, to_pseudo_image
 from fastflow3d.network.voxelize import Grid, voxelize
 from icpflow.geometry import transform_points
@@ -217,7 +217,7 @@ def split_linear(linear: nn.Linear, parts, sets: CellSets | None, ids: torch.Ten
     for part in parts:
         channels = part.shape[1]
         if part.dim() == 4:
-            part = rows_at(part, sets.cells[0]) if sets is not None else part.permute(0, 2, 3, 1).reshape(-1, channels)
+            part = image_rows(part) if sets is None else rows_at(part, sets.cells[0])
         pillar, start = nn.functional.linear(part, weight[:, start : start + channels]) + pillar, start + channels
     if sets is None:
         per_point = pillar.index_select(0, ids.clamp(max=pillar.shape[0] - 1))
