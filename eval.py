@@ -1,5 +1,6 @@
 """Evaluate scene-flow methods against ground truth (see conf/eval.yaml and icpflow.evaluation); the student comes
-from fastflow3d.inference.eval_methods.
+from fastflow3d.inference.eval_methods. The same as the console script ``fastflow3d-eval``
+(``fastflow3d.inference.eval_cli.main``). ``--help``: the options, ``--cfg job``: the whole config.
 
     python eval.py [dataset=<name>] [split=val]
         [method=[zero,ego,icpflow,icpflow-raw,student,student+refine,student-stream,student-stream+refine,shards]]
@@ -10,39 +11,7 @@ from fastflow3d.inference.eval_methods.
 Several horizons give the long-horizon table (EPE against the time gap, one row per method and horizon).
 """
 
-import sys
-
-import hydra
-from omegaconf import DictConfig
-
-from fastflow3d.inference.eval_methods import (
-    refined_streamed_student_method,
-    refined_student_method,
-    streamed_student_method,
-    student_method,
-)
-from icpflow.console import quiet
-from icpflow.errors_and_signals import reported, run
-from icpflow.evaluation import run_eval
-from icpflow.options import register
-
-register()  # eval_schema in Hydra's ConfigStore: the structured config conf/eval.yaml extends
-
-
-@hydra.main(version_base="1.3", config_path="conf", config_name="eval")
-def main(cfg: DictConfig) -> None:
-    quiet()
-    with reported("eval"):
-        methods = {
-            "student": student_method,
-            "student+refine": refined_student_method,
-            "student-stream": streamed_student_method,  # nothing given: the stream's ego motion and ground
-            "student-stream+refine": refined_streamed_student_method,  # the same, refined (fastflow3d-infer --refine)
-        }
-        status = run_eval(cfg, extra_methods=methods)
-        if status:
-            sys.exit(status)
-
+from fastflow3d.inference.eval_cli import main
 
 if __name__ == "__main__":
-    run("eval", main)
+    main()

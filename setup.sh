@@ -25,9 +25,16 @@ fi
 
 [ -x .venv/bin/python ] || "$python" -m venv .venv
 pip=(.venv/bin/python -m pip install -q --disable-pip-version-check)
-# The CPU build first: an unpinned torch would pull a multi-GB CUDA build. Elsewhere than this machine use
-# --index-url https://download.pytorch.org/whl/cpu for the same effect.
-"${pip[@]}" torch==2.13.0
+# torch's CPU build first (PyPI's torch is a multi-GB CUDA build): from PyTorch's CPU index where it answers, else the
+# pin from pip's own indexes, which hold the CPU build only where a machine keeps a local wheel of it (as CI's does).
+cpu_index=https://download.pytorch.org/whl/cpu
+if .venv/bin/python -c "import urllib.request; urllib.request.urlopen('$cpu_index/torch/', timeout=10)" 2>/dev/null \
+  && "${pip[@]}" torch==2.13.0 --index-url "$cpu_index"; then
+  echo "setup.sh: torch's CPU build from $cpu_index"
+else
+  echo "setup.sh: $cpu_index unreachable here: torch==2.13.0 from pip's indexes (the CPU build where they hold it)"
+  "${pip[@]}" torch==2.13.0
+fi
 "${pip[@]}" -c .ci/constraints.txt -e ".[dev]"
 # bucketed-scene-flow-eval (metric parity tests) declares the CUDA open3d: install it without its dependencies.
 "${pip[@]}" -c .ci/constraints.txt --no-deps bucketed-scene-flow-eval==2.0.25

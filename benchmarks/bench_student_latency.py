@@ -53,9 +53,10 @@ against true poses, streamed and pairwise: ``benchmarks/bench_ego_motion.py``.
 ``refine``: the refinement dial, whole-call time of a trained student (``--export``) alone, with the Predictor's
 ICP refinement (``fastflow3d.inference.refine``) and of the teacher. Ego motion and ground masks are given (computed
 once beforehand with the student's preprocessing: KISS-ICP and Patchwork++), as in the pair mode's ``given`` regime;
-the teacher gets the same ego motion and masks. The student runs as ``Predictor.load`` picks (ONNX Runtime, tuned,
-on the CPU); the three calls take turns within each run. These scans have no ground-truth flow: the accuracy side
-of the dial is ``eval.py ... method=[ego,icpflow,student,student+refine]`` on the synthetic test split
+the teacher gets the same ego motion and masks. The student runs in float32 as ``Predictor.load`` picks its engine
+(ONNX Runtime, tuned, on the CPU; precision f32 by name, as BENCHMARKS.md's figures: the default, auto, would run an
+export's int8 network); the three calls take turns within each run. These scans have no ground-truth flow: the
+accuracy side of the dial is ``eval.py ... method=[ego,icpflow,student,student+refine]`` on the synthetic test split
 (BENCHMARKS.md). Prints median and p90 ms, Hz, and for the refinement the share of the network's points whose flow
 ICP replaced and their median change (m).
 
@@ -470,7 +471,7 @@ def play(network, contract, backend, scans, regimes, passes):
 def scan_calls(export: str, scan: str, pc0: np.ndarray, pc1: np.ndarray):
     """({method: call}, note on the refinement) for one scan pair; ego motion and ground masks computed once."""
     preprocessing = {"remove_ground": True, "teacher": TEACHERS[scan].to_dict()}
-    options = {"preprocessing": preprocessing, "sensor_height": SENSOR_HEIGHTS[scan]}
+    options = {"preprocessing": preprocessing, "sensor_height": SENSOR_HEIGHTS[scan], "precision": "f32"}
     student = Predictor.load(export, **options)
     refined = Predictor.load(export, **options, refine=True)
     estimate = student.predict(pc0, pc1)  # the given regime's inputs, outside the timing

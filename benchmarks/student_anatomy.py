@@ -10,10 +10,10 @@ synthetic world by default, ``eval.py``'s test split of 16 sequences = 64 pairs)
 dynamic foreground of ``eval.py`` (non-ground, inside the dataset's ``eval_crop``, true residual speed > 0.5 m/s,
 class > 0). Methods: ``ego`` (ego flow only), ``teacher`` (``--teacher``: the dataset's teacher as ``eval.py`` runs
 it; its flows are kept in ``--cache`` and reused), each ``--model`` (the Predictor on the pair's given ego motion
-and ground, as ``eval.py``'s ``student``), and ``NAME+refine`` for each ``--refine NAME`` (the same model with the
-Predictor's ICP refinement, ``fastflow3d.inference.refine``), and ``labels`` (``--labels``: the pseudo-labels
-``label.py`` stored for these very pairs, e.g. a student's own training pairs with ``--set split=train``; issue 43's
-fit).
+and ground, as ``eval.py``'s ``student`` with ``precision=f32``), and ``NAME+refine`` for each ``--refine NAME``
+(the same model with the Predictor's ICP refinement, ``fastflow3d.inference.refine``), and ``labels``
+(``--labels``: the pseudo-labels ``label.py`` stored for these very pairs, e.g. a student's own training pairs with
+``--set split=train``; issue 43's fit).
 
 Prints, per method:
 1. per ground-truth class: share of the dynamic points, EPE (m), the median over points of
@@ -261,9 +261,10 @@ def main() -> None:
     predictors = {}
     for item in args.model:
         name, _, path = item.partition("=")
-        predictors[name] = Predictor.load(path)
+        # float32 by name, as the recorded anatomies (the default, auto, would run an export's int8 network)
+        predictors[name] = Predictor.load(path, precision="f32")
         if name in args.refine:
-            predictors[f"{name}+refine"] = Predictor.load(path, refine=RefineConfig())
+            predictors[f"{name}+refine"] = Predictor.load(path, precision="f32", refine=RefineConfig())
     teacher = teacher_flows(dataset, cfg, args.cache) if args.teacher else {}
     labels = None
     if args.labels is not None:

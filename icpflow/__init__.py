@@ -2,7 +2,7 @@
 
 from icpflow.frames import FramePair, FramePairError, FrameSequence
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = ["FramePair", "FramePairError", "FrameSequence", "ICPFlow", "ICPFlowConfig", "__version__"]
 

@@ -19,6 +19,9 @@ from icpflow.errors_and_signals import one_line
 #: the soname of the system library open3d's ``libOpen3D.so`` needs
 LIBUSB = "libusb-1.0.so.0"
 
+#: how to get open3d itself, for what needs it (the odometry of pairs without poses, the ``.ply`` / ``.pcd`` readers)
+OPEN3D_FIX = "pip install open3d-cpu (Linux x86-64) or pip install open3d (macOS, Windows, Linux Arm)"
+
 #: how to get :data:`LIBUSB`, for the message of an open3d that cannot load it
 LIBUSB_FIX = "pip install libusb-package (or, as root: apt-get install libusb-1.0-0)"
 
@@ -48,10 +51,13 @@ def provide_libusb() -> str | None:
 
 def load_open3d():
     """The ``open3d`` module, imported after :func:`provide_libusb`. An open3d that still cannot load
-    :data:`LIBUSB` raises an ImportError of one line naming the fix (:data:`LIBUSB_FIX`)."""
+    :data:`LIBUSB` raises an ImportError of one line naming the fix (:data:`LIBUSB_FIX`); an install without open3d,
+    one naming how to install it (:data:`OPEN3D_FIX`)."""
     provide_libusb()
     try:
         import open3d
+    except ModuleNotFoundError as error:  # an install without it (a platform where its marker did not apply)
+        raise ImportError(f"open3d is not installed; {OPEN3D_FIX}") from error
     except ImportError as error:
         if "libusb" not in str(error):
             raise

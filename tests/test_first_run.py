@@ -102,6 +102,21 @@ def test_ensure_compiled_says_what_it_does(monkeypatch, capsys):
     assert capsys.readouterr().err == ""  # a warm cache: not a word
 
 
+def test_a_lazy_check_empties_a_stale_cache_and_compiles_nothing(monkeypatch, capsys):
+    """``eager=False`` (the Predictor): a cache of other sources is emptied and stamped with one line, nothing is
+    compiled; a cache of these sources, however cold, is left to compile each kernel on its first call, silently."""
+    calls, restarted = [], []
+    monkeypatch.setattr(warmup, "compile_kernels", lambda: calls.append(1))
+    monkeypatch.setattr(warmup, "_restart_cache", lambda: restarted.append(1))
+    monkeypatch.setattr(warmup, "cold_kernels", lambda stale=None: ["icp.icp_point_to_point"])
+    monkeypatch.setattr(warmup, "stale_cache", lambda: True)
+    assert warmup.ensure_compiled("fastflow3d", eager=False) is True and restarted == [1] and calls == []
+    assert capsys.readouterr().err.startswith("fastflow3d: the numba kernels it calls compile on their first call")
+    monkeypatch.setattr(warmup, "stale_cache", lambda: False)
+    assert warmup.ensure_compiled("fastflow3d", eager=False) is False and restarted == [1] and calls == []
+    assert capsys.readouterr().err == ""
+
+
 def _label_cfg(*overrides):
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         return compose("label", list(overrides))

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from icpflow.open3d_loader import LIBUSB, LIBUSB_FIX
+from icpflow.open3d_loader import LIBUSB, LIBUSB_FIX, OPEN3D_FIX
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -112,3 +112,14 @@ def test_open3d_loads_without_the_system_libusb():
 
     last = neither.stderr.strip().splitlines()[-1]
     assert last.startswith(f"ImportError: open3d cannot load {LIBUSB} (") and last.endswith(LIBUSB_FIX)
+
+
+def test_an_install_without_open3d_says_in_one_line_how_to_get_it():
+    # a child process: this one has open3d loaded already
+    code = (
+        "import sys; sys.modules['open3d'] = None\n"
+        "from icpflow.open3d_loader import load_open3d\n"
+        "try:\n    load_open3d()\nexcept ImportError as error:\n    print(error)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out == f"open3d is not installed; {OPEN3D_FIX}\n"

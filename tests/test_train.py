@@ -16,6 +16,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+import icpflow
 from fastflow3d.artifact.checkpoint import CheckpointError, build_student, load_student
 from fastflow3d.artifact.file_format import FILE_NAMES, INT8, INT8_FILE_NAME, METADATA_NAME
 from fastflow3d.network.model import FastFlow3D
@@ -389,6 +390,31 @@ def test_export_falls_back_to_last_checkpoint_and_says_so(shards, tmp_path, capl
         fit(_cfg(tmp_path, shards["gt"], shards["gt"], "export.formats=[tflite]"))
 
 
+def test_a_missing_export_package_is_refused_before_training(tmp_path, monkeypatch):
+    """Without the export extra a run trained to its end, then failed to export: refused first, before any folder is
+    made, naming the package, the fix and the formats that need none (the check itself is monkeypatched: nothing
+    is uninstalled)."""
+    from fastflow3d.artifact import export
+    from fastflow3d.training import trainer
+
+    monkeypatch.setattr(trainer, "missing_packages", lambda formats: ["onnxscript"] if "onnx" in formats else [])
+    absent = tmp_path / "none"
+    with pytest.raises(TrainError) as refused:
+        fit(_cfg(tmp_path, absent, absent, "export.formats=[onnx,pt2]", "export.int8=true"))
+    assert str(refused.value) == (
+        "export.formats=[onnx,pt2]: the export at the end of training needs onnxscript, not installed here: "
+        'pip install "icpflow[export]", or export.formats=[pt2] (torch alone) or export.formats=[] (no export)'
+    )
+    assert not (tmp_path / "run").exists()
+    for formats in ("[pt2]", "[]"):  # nothing missing: on to the data, the next check
+        with pytest.raises(TrainError, match="data.train"):
+            fit(_cfg(tmp_path, absent, absent, f"export.formats={formats}"))
+    # what each format needs, found (not imported) in this environment, which has the export extra
+    assert export.missing_packages(["onnx", "pt2"]) == [] and export.missing_packages([]) == []
+    monkeypatch.setitem(export.FORMAT_PACKAGES, "pt2", ("torch", "no_such_package_for_pt2"))
+    assert export.missing_packages(["onnx", "pt2"]) == ["no_such_package_for_pt2"]
+
+
 def test_tensorboard_holds_loss_lr_val_metrics_and_bev(shards, tmp_path):
     """A short real run (4 steps, validation every 2): the event file holds train/loss, the learning rate, the
     validation metrics and the BEV image, each validation once (the last step is a scheduled one: no extra)."""
@@ -482,6 +508,7 @@ def test_resume_continues_steps_and_checkpoint_rebuilds_model(shards, tmp_path):
     second = fit(_cfg(tmp_path, shards["gt"], shards["gt"], "trainer.max_steps=5", "ckpt_path=last", *common))
     checkpoint = torch.load(last, weights_only=True)
     assert second.global_step == 5 and checkpoint["global_step"] == 5
+    assert checkpoint["package_version"] == icpflow.__version__  # as shards and exports record it
     adam_steps = {float(state["step"]) for state in checkpoint["optimizer_states"][0]["state"].values()}
     assert adam_steps == {5.0}  # the optimiser continued: a fresh start would have taken 2 steps
 

@@ -12,6 +12,7 @@ shards, and compared with the float32 one.
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import json
 import logging
 import os
@@ -44,6 +45,17 @@ from icpflow.atomic import atomic_directory
 from icpflow.errors_and_signals import Stop, exit_status, one_line, os_error_line, signal_words, stop_on_signals
 
 PARITY_TOLERANCE = 1e-4  # metres, max abs difference between an export and eager
+
+#: the packages each format's export needs beyond torch (the ``export`` extra): the dynamo ONNX exporter (onnxscript,
+#: onnx), the parity check and the int8 network's calibration (onnxruntime); a torch.export program needs none
+FORMAT_PACKAGES = {"onnx": ("onnx", "onnxscript", "onnxruntime"), "pt2": ()}
+
+
+def missing_packages(formats) -> list[str]:
+    """The packages of :data:`FORMAT_PACKAGES` that exporting ``formats`` needs and that cannot be imported here
+    (found, not imported: checking costs nothing)."""
+    needed = dict.fromkeys(name for kind in formats for name in FORMAT_PACKAGES.get(kind, ()))
+    return [name for name in needed if importlib.util.find_spec(name) is None]
 
 
 class ExportError(ValueError):

@@ -1,12 +1,16 @@
 """Scene flow of raw scan files with a trained FastFlow3D: a pair (the flow and a bird's-eye-view PNG) or a stream.
 
-    python -m fastflow3d.inference.cli MODEL SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
+    fastflow3d-infer [MODEL] SCAN0 SCAN1 [--poses FILE | --ego FILE] [--out FILE.npz|FILE.npy]
         [--bev FILE.png | --no-bev] [--rerun FILE.rrd] [--bin-columns N] [--backend onnx|pt2|torchscript]
         [--device cpu] [--runtime onnxruntime|openvino] [--threads N] [--precision auto|f32|bf16|int8]
         [--sensor-height METRES|auto] [--metadata FILE | --remove-ground yes|no]
-    python -m fastflow3d.inference.cli MODEL DIR|'GLOB' [--out OUT_DIR] [--rerun FILE.rrd] [...]
+    fastflow3d-infer [MODEL] DIR|'GLOB' [--out OUT_DIR] [--rerun FILE.rrd] [...]
 
-Stream mode (one argument after MODEL: a folder of scans or a quoted glob, in natural name order, ``2.bin`` before
+Without MODEL the shipped model runs (``fastflow3d.artifact.shipped``: ``experiment=synthetic_cpu``'s student), and the
+first line says so. A first path is MODEL when three paths are given, or when it is a model file (``.onnx``, ``.pt2``,
+``.pt``, ``.ckpt``) or a folder holding an export's files.
+
+Stream mode (one scan argument: a folder of scans or a quoted glob, in natural name order, ``2.bin`` before
 ``10.bin``: ``icpflow.datasets.io.list_scans``, as ``dataset=sequence`` reads them; two scans of one name stem are
 refused): the scans are one stream (``fastflow3d.inference.stream.FlowStream``: nothing given, the ego motion and ground
 kept across frames), and each consecutive pair's flow is written to ``OUT_DIR/<first scan's stem>.npz`` (default
@@ -52,9 +56,16 @@ from pathlib import Path
 
 import numpy as np
 
-from fastflow3d.artifact.engines import PRECISIONS
-from fastflow3d.artifact.file_format import FORMATS, LEGACY_FORMATS
-from fastflow3d.inference.model_loading import AUTO
+import icpflow
+from fastflow3d.artifact.file_format import (
+    FILE_NAMES,
+    FORMATS,
+    LEGACY_FILE_NAMES,
+    LEGACY_FORMATS,
+    METADATA_NAME,
+    SUFFIX_FORMATS,
+)
+from fastflow3d.inference.model_loading import AUTO, PRECISION_CHOICES
 from fastflow3d.inference.scan_files import read_raw_scan, read_transforms, refuse_input_as_output, write_flow
 from fastflow3d.inference.stream_folder import MANIFEST, claim_output_folder, stream_files, stream_manifest
 from icpflow.atomic import write_text_atomic
@@ -69,69 +80,93 @@ from icpflow.geometry import relative_transform
 STREAM_DEPTH = 2
 
 
+#: what a first positional path that names a model looks like (:func:`is_model`)
+MODEL_SUFFIXES = (*SUFFIX_FORMATS, ".ckpt")
+MODEL_FILES = (*FILE_NAMES.values(), *LEGACY_FILE_NAMES)
+PROG = "fastflow3d-infer"
+USAGE = f"{PROG} [MODEL] SCAN0 SCAN1 [options]  |  {PROG} [MODEL] DIR|'GLOB' [options]"
+EXAMPLES = f"""examples:
+  {PROG} ../shared/data/kitti_hdl64_scans --out flows/kitti   # a stream, the shipped model
+  {PROG} a.bin b.bin --ego ego.txt --refine                   # one pair, its ego motion given
+  {PROG} outputs/train/synthetic/export scans/ --precision f32  # a model of your own
+
+MODEL (first, optional): an export directory, .onnx, .pt2, .pt or .ckpt; without it the shipped synthetic_cpu
+student runs (its card: fastflow3d/artifact/models/synthetic_cpu/MODEL_CARD.md). Conventions, outputs and errors:
+the README's "Inference" section and this module's docstring (python -m pydoc fastflow3d.inference.cli)."""
+
+
 def parse_args(argv):
-    parser = argparse.ArgumentParser(prog="python -m fastflow3d.inference.cli", description=__doc__.splitlines()[0])
-    parser.add_argument("model", type=Path, help="export directory, .onnx, .pt2, .pt (older TorchScript) or .ckpt")
-    parser.add_argument(
-        "scan0", type=Path, help="scan at t (.npz, .npy, .bin, .ply, .pcd); or a folder / glob of scans: a stream"
+    """The options, with ``model`` (None: the shipped model), ``scan0`` and ``scan1`` (None: a stream) resolved."""
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        usage=USAGE,
+        description=__doc__.splitlines()[0],
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("scan1", type=Path, nargs="?", help="scan at t + dt (none: SCAN0 is a stream)")
+    parser.add_argument("paths", type=Path, nargs="+", metavar="PATH", help="[MODEL] SCAN0 [SCAN1], or a stream")
+    parser.add_argument("--version", action="version", version=f"{PROG} {icpflow.__version__}")
     ego = parser.add_mutually_exclusive_group()
     ego.add_argument("--poses", type=Path, help="two world_from_ego poses (scan0, scan1)")
     ego.add_argument("--ego", type=Path, help="one ego1_from_ego0 transform")
-    parser.add_argument("--out", type=Path, help="flow file, .npz or .npy (default outputs/infer/<scan0>_flow.npz)")
+    parser.add_argument("--out", type=Path, help="flow .npz/.npy (default outputs/infer/...); a stream: a folder")
     pictures = parser.add_mutually_exclusive_group()
     pictures.add_argument("--bev", type=Path, help="BEV PNG (default: the output's name with .png)")
     pictures.add_argument("--no-bev", action="store_true", help="write no picture")
     parser.add_argument("--extent", type=float, default=40.0, help="half-width of the picture in metres")
-    parser.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="also a 3D recording (icpflow.viz_rerun)")
-    parser.add_argument(
-        "--bin-columns",
-        type=int,
-        choices=range(3, 17),
-        metavar="N",
-        help="float32 values per row of a .bin scan, x, y, z first (default: x, y, z, r, checked)",
-    )
-    parser.add_argument("--backend", choices=(*FORMATS, *LEGACY_FORMATS), help="format of an export directory")
-    parser.add_argument("--device", default="cpu", help="torch device for .pt2, .pt and checkpoints")
-    parser.add_argument(
-        "--runtime",
-        choices=("onnxruntime", "openvino"),
-        help="CPU engine for the ONNX file (fastflow3d.artifact.engines)",
-    )
-    parser.add_argument(
-        "--threads",
-        type=int,
-        help="inference threads of the ONNX engine (ONNX Runtime, or --runtime) (default: the usable cores; a stream: "
-        "one fewer, for its own steps)",
-    )
+    parser.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="also a 3D recording")
     parser.add_argument(
         "--precision",
-        choices=(AUTO, *PRECISIONS),
+        choices=PRECISION_CHOICES,
         default=AUTO,
-        help="auto (default): int8 where the export has its int8 network (export.py ... int8=true) and this CPU has "
-        "int8 dot products (AVX512-VNNI, AVX-VNNI, Arm dotprod), run in ONNX Runtime, else f32; f32; bf16 (OpenVINO); "
-        "int8",
+        help="auto (default): int8 where the export has it and the CPU has int8 dot products, else f32",
     )
-    parser.add_argument(
-        "--refine",
-        action="store_true",
-        help="refine the flow per object with the teacher's ICP (fastflow3d.inference.refine)",
-    )
+    parser.add_argument("--refine", action="store_true", help="refine the flow per object with the teacher's ICP")
     parser.add_argument(
         "--sensor-height",
         type=sensor_height,
-        metavar="METRES|auto",
-        help="height of the scans' origin above the ground (1.73: KITTI velodyne), or auto (estimated from scan0)",
+        metavar="M|auto",
+        help="the scans' origin above the ground (KITTI: 1.73), or auto",
     )
-    bare = parser.add_mutually_exclusive_group()
+    engine = parser.add_argument_group("engine and file formats")
+    engine.add_argument("--threads", type=int, help="engine threads (default: the usable cores; a stream: one fewer)")
+    engine.add_argument("--runtime", choices=("onnxruntime", "openvino"), help="CPU engine for the ONNX file")
+    engine.add_argument("--backend", choices=(*FORMATS, *LEGACY_FORMATS), help="format of an export directory")
+    engine.add_argument("--device", default="cpu", help="torch device for .pt2, .pt and checkpoints")
+    engine.add_argument(
+        "--bin-columns", type=int, choices=range(3, 17), metavar="N", help="float32 values per row of a .bin scan"
+    )
+    bare = engine.add_mutually_exclusive_group()
     bare.add_argument("--metadata", type=Path, help="metadata.json of a bare .onnx/.pt2 (its preprocessing)")
     bare.add_argument(
-        "--remove-ground",
-        choices=("yes", "no"),
-        help="for a bare .onnx/.pt2 without metadata: trained on non-ground points (yes) or on all (no)",
+        "--remove-ground", choices=("yes", "no"), help="a bare .onnx/.pt2 without metadata: trained without ground?"
     )
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    try:
+        args.model, args.scan0, args.scan1 = split_paths(args.paths)
+    except ValueError as error:
+        parser.error(str(error))
+    return args
+
+
+def is_model(path: Path) -> bool:
+    """Whether a first positional path names a model: a model file by its suffix, or a folder holding an export's
+    files (a folder of scans holds none)."""
+    if path.suffix.lower() in MODEL_SUFFIXES:
+        return True
+    return path.is_dir() and any((path / name).exists() for name in (METADATA_NAME, *MODEL_FILES))
+
+
+def split_paths(paths: list[Path]) -> tuple[Path | None, Path, Path | None]:
+    """``(model, scan0, scan1)`` of the positional paths: three are MODEL SCAN0 SCAN1; of two or one, a first that
+    :func:`is_model` names the model, else the shipped model runs (model None); scan1 None: a stream."""
+    if len(paths) > 3:
+        raise ValueError(f"at most three paths ([MODEL] SCAN0 [SCAN1]), got {len(paths)}")
+    model = paths[0] if len(paths) == 3 or (len(paths) == 2 and is_model(paths[0])) else None
+    scans = paths[1:] if model is not None else paths
+    if len(paths) == 1 and is_model(paths[0]):
+        raise ValueError(f"{paths[0]} is a model: name the scans after it ([MODEL] SCAN0 SCAN1, or a folder of scans)")
+    return model, scans[0], scans[1] if len(scans) == 2 else None
 
 
 def sensor_height(text: str):
@@ -178,6 +213,14 @@ def load_predictor(args):
         )
     say_warnings(caught)  # a precision this CPU would emulate, asked for by name: its one line
     return predictor
+
+
+def shipped_description(path: Path) -> str:
+    """The shipped model at ``path`` as a run names it (its name, release and card)."""
+    from fastflow3d.artifact.file_format import read_metadata
+    from fastflow3d.artifact.shipped import shipped_label
+
+    return shipped_label(read_metadata(path / METADATA_NAME)) or str(path)
 
 
 def say_warnings(caught, keep=lambda message: True) -> None:
@@ -364,6 +407,11 @@ def main(argv=None) -> int:
 
 
 def _main(args) -> None:
+    if args.model is None:
+        from fastflow3d.artifact.shipped import shipped_model
+
+        args.model = shipped_model()
+        print(f"infer: model: {shipped_description(args.model)}", file=sys.stderr)
     if args.scan1 is None:
         with stop_on_signals():  # each flow file is written atomically: a stop leaves the pairs done, whole
             out, written, frames, precision = infer_stream(args)

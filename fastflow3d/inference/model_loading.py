@@ -9,7 +9,14 @@ import json
 import os
 from pathlib import Path
 
-from fastflow3d.artifact.engines import PRECISION_RUNTIMES, choose_format, cpu_only, int8_dot_products, load_network
+from fastflow3d.artifact.engines import (
+    PRECISION_RUNTIMES,
+    PRECISIONS,
+    choose_format,
+    cpu_only,
+    int8_dot_products,
+    load_network,
+)
 from fastflow3d.artifact.file_format import (
     FORMATS,
     INT8,
@@ -27,8 +34,17 @@ from fastflow3d.inference.prediction import PredictorError
 from fastflow3d.network.contract import ContractError, InputContract, read_grid, upgrade
 from icpflow.errors_and_signals import one_line
 
-#: the precision the CLI and ``eval.py`` run a student in unless told: :func:`auto_precision`
+#: the precision the CLI, ``eval.py`` and ``Predictor.load`` run a student in unless told: :func:`auto_precision`
 AUTO = "auto"
+#: the precisions a student runs in when asked by name (``fastflow3d-infer --precision``, ``Predictor.load``)
+PRECISION_CHOICES = (AUTO, *PRECISIONS)
+
+
+def check_precision(precision) -> None:
+    """Refuse a precision that is not one of :data:`PRECISION_CHOICES` (``"INT8"``, ``"fp32"``, None, 8 ran float32
+    silently before) in one line naming them."""
+    if not (isinstance(precision, str) and precision in PRECISION_CHOICES):
+        raise PredictorError(f"precision={precision!r}: use one of {', '.join(PRECISION_CHOICES)}")
 
 
 def auto_precision(path: Path, backend: str | None, runtime: str | None) -> str:

@@ -36,6 +36,7 @@ A bare ``.onnx`` / ``.pt2`` / ``.pt`` without its ``metadata.json`` carries none
 
 from __future__ import annotations
 
+import logging
 import os
 import warnings
 from pathlib import Path
@@ -45,16 +46,19 @@ import numpy as np
 
 from fastflow3d.artifact.file_format import LEGACY_FORMATS
 from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING
-from fastflow3d.inference.model_loading import AUTO, model_contract, open_model, precision_cost
+from fastflow3d.artifact.shipped import shipped_label, shipped_model
+from fastflow3d.inference.model_loading import AUTO, check_precision, model_contract, open_model, precision_cost
 from fastflow3d.inference.prediction import Prediction, PredictorError, PredictorWarning, as_points
 from fastflow3d.inference.refine import RefineConfig, refine_residual
-from fastflow3d.inference.scan_steps import ScanSteps
+from fastflow3d.inference.scan_steps import ScanSteps, check_sensor_height
 from fastflow3d.network.contract import InputContract, PreparedPair
 from icpflow.errors_and_signals import one_line
 from icpflow.geometry import residual_to_full, rigid_problem
 from icpflow.odometry import MIN_EGO_POINTS
 from icpflow.preprocess import implausible, lift_transform
 from icpflow.teacher.warmup import ensure_compiled
+
+log = logging.getLogger(__package__)
 
 
 class PairResidual(NamedTuple):
@@ -98,43 +102,50 @@ class Predictor(ScanSteps):
         super().__init__(contract, ego_config, sensor_height)  # the scan steps (ScanSteps)
         self.network, self.contract, self.backend, self.metadata = network, contract, backend, metadata or {}
         self.precision = precision
+        self.model_name = "a network given in memory"  # Predictor.load names the model file (or the shipped model)
         try:
             self.refine = RefineConfig.of(refine)
         except (TypeError, ValueError) as error:
             raise PredictorError(one_line(error)) from None
-        # its ground, odometry and refinement kernels: compiled here where the cache lacks them (a line says so) and
-        # never run from a cache of other sources (icpflow.teacher.warmup); a warm cache costs a few milliseconds
-        ensure_compiled("fastflow3d")
+        # its ground, odometry and refinement kernels: never run from a cache of other sources (icpflow.teacher.warmup,
+        # a line says when it empties one); each compiles on its first call, the few it uses rather than all 39
+        ensure_compiled("fastflow3d", eager=False)
 
     @classmethod
     def load(
         cls,
-        path: str | os.PathLike,
+        path: str | os.PathLike | None = None,
         backend: str | None = None,
         device: str = "cpu",
         ego_config=None,
         runtime: str | None = None,
         threads: int | None = None,
-        precision: str = "f32",
+        precision: str = AUTO,
         sensor_height=None,
         preprocessing=None,
         refine=None,
     ) -> Predictor:
-        """From an export directory, a ``.onnx``, a ``.pt2``, a legacy ``.pt`` (TorchScript) or a ``.ckpt``.
+        """From an export directory, a ``.onnx``, a ``.pt2``, a legacy ``.pt`` (TorchScript) or a ``.ckpt``; without
+        ``path``, the model that ships with the package (``fastflow3d.artifact.shipped``), named in a log line and in
+        ``Predictor.model_name``.
 
         ``backend`` picks the format of an export directory (``onnx``, ``pt2`` or, for older exports,
         ``torchscript``; default ONNX when onnxruntime is installed and the export has it). ``device`` applies to
         PyTorch formats and checkpoints; ONNX Runtime uses CUDA when its CUDA provider is installed, else the CPU.
-        ``runtime`` (``onnxruntime`` or ``openvino``), ``threads`` and ``precision`` (``f32``, ``bf16`` with
-        OpenVINO, ``int8``: the export's int8 network in ONNX Runtime, ``auto``: int8 where the export ships it and
-        this CPU runs it quicker, else f32, ``fastflow3d.inference.model_loading.auto_precision``; the CLI's and
-        ``eval.py``'s default) run the ONNX file on the CPU as ``fastflow3d.artifact.engines`` tunes it.
+        ``runtime`` (``onnxruntime`` or ``openvino``), ``threads`` and ``precision`` (``auto``, the default, as the
+        CLI's and ``eval.py``'s: int8 where the export ships it and this CPU runs it quicker, else f32,
+        ``fastflow3d.inference.model_loading.auto_precision``; ``f32``; ``bf16`` with OpenVINO; ``int8``: the export's
+        int8 network in ONNX Runtime; anything else is refused) run the ONNX file on the CPU as
+        ``fastflow3d.artifact.engines`` tunes it; what ran is ``Predictor.precision``.
         ``sensor_height``: see the module docstring. ``preprocessing`` (a ``metadata.json`` path, a metadata dict or
         its ``preprocessing`` entry) replaces the saved one; a bare exported file without its metadata needs it.
         ``refine``: the opt-in ICP refinement (see ``__init__``).
-        Raises :class:`ArtifactError` (one line) for a path that is not a readable artifact.
+        Raises :class:`ArtifactError` (one line) for a path that is not a readable artifact, and its subclass
+        ``PredictorError`` for a ``precision`` or ``sensor_height`` that ``fastflow3d-infer`` would refuse too.
         """
-        path = Path(path)
+        check_precision(precision)  # both refused before the model is opened
+        check_sensor_height(sensor_height)
+        path = shipped_model() if path is None else Path(path)
         asked = precision
         network, kind, metadata, precision = open_model(path, backend, device, runtime, threads, precision)
         cost = precision_cost(precision) if asked != AUTO else None
@@ -143,7 +154,11 @@ class Predictor(ScanSteps):
         if kind in LEGACY_FORMATS:  # asked for by name (else refused by open_model)
             warnings.warn(f"{path}: {TORCHSCRIPT_WARNING}", UserWarning, stacklevel=2)
         contract = model_contract(path, metadata, preprocessing)
-        return cls(network, contract, kind, ego_config, sensor_height, refine, metadata, precision)
+        predictor = cls(network, contract, kind, ego_config, sensor_height, refine, metadata, precision)
+        predictor.model_name = shipped_label(metadata) or str(path)
+        if shipped_label(metadata):
+            log.info("Predictor: %s", predictor.model_name)
+        return predictor
 
     def __call__(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> np.ndarray:
         """(N0, 3) float32 FULL flow of pc0 (N0, 3) towards pc1 (N1, 3), each in its own ego frame; the ego motion

@@ -25,8 +25,7 @@ class ScanSteps:
     def __init__(self, contract: InputContract, ego_config=None, sensor_height=None):
         """``ego_config``: the ego-motion settings (``icpflow.teacher.config.EgoMotionConfig`` or a teacher config;
         default: the contract's); ``sensor_height``: None, ``"auto"`` or metres (``Predictor``'s module docstring)."""
-        if not (sensor_height is None or sensor_height == "auto" or _is_number(sensor_height)):
-            raise PredictorError(f"sensor_height={sensor_height!r} must be None, 'auto' or metres above the ground")
+        check_sensor_height(sensor_height)
         #: how many more given ego motions to compare with the identity and their inverse (:meth:`check_given_ego`):
         #: a wrong convention is the same on every pair, so the first few calls are checked (0: none)
         self.ego_checks_left = 3
@@ -137,5 +136,13 @@ class ScanSteps:
         return ego
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and value == value
+def check_sensor_height(sensor_height) -> None:
+    """Refuse a ``sensor_height`` other than None, ``"auto"`` or finite metres >= 0 (as ``fastflow3d-infer
+    --sensor-height`` does) in one line."""
+    if not (sensor_height is None or sensor_height == "auto" or _is_height(sensor_height)):
+        raise PredictorError(f"sensor_height={sensor_height!r} must be None, 'auto' or metres >= 0 above the ground")
+
+
+def _is_height(value) -> bool:
+    """A finite number of metres >= 0 (not a bool)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and 0 <= value < float("inf")

@@ -55,6 +55,7 @@ import numpy as np
 from fastflow3d.inference.prediction import Prediction, PredictorWarning, as_points
 from fastflow3d.inference.predictor import PairResidual, Predictor, scans_frame_ego
 from fastflow3d.network.contract import PreparedPair
+from icpflow.deprecation import moved_message
 from icpflow.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
 from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
 from icpflow.threads import available_cores, thread_limit
@@ -129,9 +130,11 @@ class FlowStream:
     """See the module docstring. ``max_gap_s``: a larger time between two scans restarts the odometry (default
     0.25 s: 2.5 frames at 10 Hz); ``min_fitness``: below it a step is estimated afresh from its two scans (under
     ``icpflow.odometry.LOST_FITNESS`` after that, the track is lost); ``check_every``: scans between
-    checks of the height frame; ``refine``: refine each odometry step (off: KISS-ICP alone); ``overlap``: run each
-    pair's network beside the next scan's steps, the steps one push late (module docstring); ``depth``: with
-    ``overlap``, the pairs in flight, the steps that many pushes late (module docstring)."""
+    checks of the height frame; ``refine_odometry``: refine each odometry step (off: KISS-ICP alone; not the
+    flow's refinement, which is the Predictor's ``refine``); ``overlap``: run each pair's network beside the next
+    scan's steps, the steps one push late (module docstring); ``depth``: with ``overlap``, the pairs in flight, the
+    steps that many pushes late (module docstring). ``refine``: the old name of ``refine_odometry`` (until 0.3, with a
+    DeprecationWarning; given, it wins)."""
 
     def __init__(
         self,
@@ -139,15 +142,21 @@ class FlowStream:
         max_gap_s: float = 0.25,
         min_fitness: float = 0.5,
         check_every: int = 10,
-        refine: bool = True,
+        refine_odometry: bool = True,
         overlap: bool = False,
         depth: int = 1,
+        *,
+        refine: bool | None = None,
     ):
+        if refine is not None:  # one meaning per name: Predictor.load(refine=...) refines the flow
+            message = moved_message("FlowStream(refine=...)", "FlowStream(refine_odometry=...)")
+            warnings.warn(message, DeprecationWarning, stacklevel=2)
+            refine_odometry = refine
         self.predictor = predictor
         self.max_gap_s, self.check_every = float(max_gap_s), int(check_every)
         # overlapped: one thread for KISS-ICP too, beside the network (module docstring)
         self.odometry = Odometry(
-            predictor.ego_config, min_fitness=min_fitness, refine=refine, threads=1 if overlap else None
+            predictor.ego_config, min_fitness=min_fitness, refine=refine_odometry, threads=1 if overlap else None
         )
         self.lift: float | None = None
         self._previous: _Scan | None = None

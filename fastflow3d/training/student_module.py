@@ -30,6 +30,7 @@ import lightning as L
 import numpy as np
 import torch
 
+import icpflow
 from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import FastFlow3D
 from fastflow3d.training.data import split_samples
@@ -225,6 +226,10 @@ class StudentModule(L.LightningModule):
             self.validations += 1
 
     # ------------------------------------------------------------------------------------------------ optimiser
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """Every checkpoint records the package version that wrote it, as shards and exports do."""
+        checkpoint["package_version"] = icpflow.__version__
 
     def configure_optimizers(self):
         """The optimiser and its schedule (``fastflow3d.training.schedules``) from the partials given, stepped every

@@ -23,7 +23,7 @@ from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from fastflow3d.artifact.checkpoint import build_student
-from fastflow3d.artifact.export import export_checkpoint
+from fastflow3d.artifact.export import export_checkpoint, missing_packages
 from fastflow3d.artifact.file_format import FORMATS
 from fastflow3d.network.contract import ContractError, InputContract, read_grid
 from fastflow3d.training.callbacks import AtomicCheckpointIO, LastCheckpoint, ModelSize, TrainingStopped, progress_bar
@@ -140,13 +140,21 @@ def check_length(cfg: DictConfig) -> None:
 
 
 def export_formats(cfg: DictConfig) -> tuple[str, ...]:
-    """``export.formats`` checked before training (an unknown name would otherwise fail only at the end)."""
+    """``export.formats`` checked before training, their names and the packages they need (either would otherwise
+    fail only at the end, after the whole run: "training finished but exporting ... failed")."""
     formats = tuple(cfg.export.formats or ())
     unknown = [name for name in formats if name not in FORMATS]
     if unknown:
         raise TrainError(
             f"export.formats: unknown {', '.join(map(str, unknown))}; use a list of "
             f"{', '.join(FORMATS)}, or [] for no export"
+        )
+    missing = missing_packages(formats)
+    if missing:
+        raise TrainError(
+            f"export.formats=[{','.join(formats)}]: the export at the end of training needs {', '.join(missing)}, "
+            'not installed here: pip install "icpflow[export]", or export.formats=[pt2] (torch alone) or '
+            "export.formats=[] (no export)"
         )
     return formats
 
@@ -276,9 +284,9 @@ def fit(cfg: DictConfig) -> L.Trainer:
     """
     check_config(cfg)  # the schema's rules (fastflow3d.training.options.TrainOptions)
     check_length(cfg)
+    formats = export_formats(cfg)  # before the run folder: a missing package is refused before anything is written
     with stop_on_signals(), run_folder(cfg):
         counts = check_data(cfg)
-        formats = export_formats(cfg)
         plain = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
         contract = training_contract(cfg)
         plain["input"] = contract.to_dict()

@@ -1,4 +1,5 @@
-"""``eval.py``: from the Hydra config (``conf/eval.yaml``) to an evaluation, its report and an exit status.
+"""``eval.py``: from the Hydra config (``conf/eval.yaml``) to an evaluation, its report and an exit status; :func:`main`
+is the entry point with the methods of other packages (``fastflow3d-eval`` and ``eval.py`` add the student's).
 
 Exit status: 0 every pair scored; 1 some pairs skipped (listed in metrics.json); 2 the run could not start (a bad
 option or file, an ``out_dir`` that cannot be written, checked before the long work) or its results could not be
@@ -19,12 +20,17 @@ import tempfile
 import time
 from pathlib import Path
 
+from omegaconf import DictConfig
+
 from icpflow.atomic import WriteError, write_text_atomic
-from icpflow.errors_and_signals import Stop, one_line, stop_on_signals, stop_signum
+from icpflow.console import quiet
+from icpflow.entry_points import hydra_entry
+from icpflow.errors_and_signals import Stop, one_line, reported, stop_on_signals, stop_signum
 from icpflow.evaluation.methods import EvaluationError, MethodFactory, build_methods, parse_horizons
 from icpflow.evaluation.report import check_writable, format_table, metrics_json, table_rows, write_results
 from icpflow.evaluation.run import Evaluation, PairHook, PairPredictions, signals_held
 from icpflow.evaluation.scoring import MetricOptions
+from icpflow.options import register
 from icpflow.settings import check_config
 from icpflow.teacher.config import teacher_config
 
@@ -225,3 +231,23 @@ def _save_elsewhere(result, weighting: str, extra: dict) -> str:
     except WriteError as error:
         return f"nor in {path.parent} ({one_line(error)}); the table above holds the scores"
     return f"the scores were saved to {path} instead; free space or choose another out_dir=... and rerun"
+
+
+def evaluation_task(extra_methods: dict[str, MethodFactory] | None = None):
+    """The Hydra task of :func:`main`: :func:`run_eval` with ``extra_methods``, exiting with its status."""
+
+    def task(cfg: DictConfig) -> None:
+        quiet()
+        with reported("eval"):
+            status = run_eval(cfg, extra_methods=extra_methods)
+            if status:
+                sys.exit(status)
+
+    return task
+
+
+def main(extra_methods: dict[str, MethodFactory] | None = None) -> None:
+    """Evaluate as ``conf/eval.yaml`` and the command line say, with this package's methods and ``extra_methods``
+    (``fastflow3d.inference.eval_cli.main``, ``fastflow3d-eval``, adds the student's)."""
+    register()  # eval_schema in Hydra's ConfigStore: the structured config conf/eval.yaml extends
+    hydra_entry("eval", "eval", evaluation_task(extra_methods))

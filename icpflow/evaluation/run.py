@@ -173,6 +173,9 @@ def _predict(pair: FramePair, index: int, methods: dict[str, Method]):
 @contextmanager
 def signals_held():
     """Hold SIGINT and SIGTERM for the block (they are delivered after it), so a stop never splits a pair's sums."""
+    if not hasattr(signal, "pthread_sigmask"):  # Windows: no signal masks; a stop there may end a pair half-summed
+        yield
+        return
     held = {signal.SIGINT, signal.SIGTERM}
     previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:

@@ -1,4 +1,5 @@
-"""``label.py``: from the Hydra config to a labelling run, a summary and an exit status."""
+"""``icpflow-label`` and ``label.py`` (:func:`main`): from the Hydra config to a labelling run, a summary and an
+exit status (:func:`label`)."""
 
 from __future__ import annotations
 
@@ -8,14 +9,19 @@ import signal
 import sys
 from pathlib import Path
 
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from icpflow.atomic import WriteError
+from icpflow.console import quiet
 from icpflow.datasets.from_config import dataset_root, open_dataset
-from icpflow.errors_and_signals import Stop, one_line, stop_on_signals, stop_signum
+from icpflow.entry_points import hydra_entry
+from icpflow.errors_and_signals import Stop, one_line, reported, stop_on_signals, stop_signum
 from icpflow.labelling.job import LabelError, LabelJob
 from icpflow.labelling.plan import plan_shards
 from icpflow.labelling.run import run_labelling
+from icpflow.options import register
 from icpflow.preprocess import Preprocessing
 from icpflow.settings import check_config
 from icpflow.teacher.config import teacher_config
@@ -125,3 +131,20 @@ def summary_line(summary: dict, out_dir: Path) -> str:
         f"{summary['failed']} failed; mean {summary['seconds_per_sample']:.2f} s/sample per worker, "
         f"{rate:.2f} samples/s in {summary['seconds']:.1f} s -> {out_dir}"
     )
+
+
+def labelling_task(cfg: DictConfig) -> None:
+    """The Hydra task of :func:`main`: :func:`label`, exiting with its status."""
+    quiet()
+    with reported("label"):
+        status = label(cfg)
+        if status == 1 and HydraConfig.get().mode == RunMode.MULTIRUN:
+            return  # failed samples are in failures.jsonl and the summary; the sweep goes on with its other jobs
+        if status:
+            sys.exit(status)
+
+
+def main() -> None:
+    """``icpflow-label`` and ``label.py``: label a dataset as ``conf/label.yaml`` and the command line say."""
+    register()  # label_schema in Hydra's ConfigStore: the structured config conf/label.yaml extends
+    hydra_entry("label", "label", labelling_task)

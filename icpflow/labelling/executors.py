@@ -52,7 +52,7 @@ def _end_with_parent() -> None:
         while os.getppid() == parent_pid:
             time.sleep(PARENT_CHECK_S)
         _end_helpers()
-        os.kill(os.getpid(), signal.SIGKILL)
+        os.kill(os.getpid(), getattr(signal, "SIGKILL", signal.SIGTERM))  # Windows has no SIGKILL; its SIGTERM kills
 
     threading.Thread(target=watch, name="end-with-parent", daemon=True).start()
 

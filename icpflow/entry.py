@@ -1,0 +1,46 @@
+"""Deprecated, removed in 0.3: the last release's ``icpflow.entry``, today ``icpflow.errors_and_signals``."""
+
+from icpflow.deprecation import warn_moved
+from icpflow.errors_and_signals import (
+    FIXES,
+    FULL_ERROR,
+    MARKER,
+    STOP_SIGNALS,
+    Stop,
+    error_line,
+    exit_status,
+    launching_process,
+    on_signals,
+    one_line,
+    os_error_line,
+    raise_stop,
+    reported,
+    run,
+    signal_words,
+    signals_held,
+    stop_on_signals,
+    stop_signum,
+)
+
+__all__ = [
+    "FIXES",
+    "FULL_ERROR",
+    "MARKER",
+    "STOP_SIGNALS",
+    "Stop",
+    "error_line",
+    "exit_status",
+    "launching_process",
+    "on_signals",
+    "one_line",
+    "os_error_line",
+    "raise_stop",
+    "reported",
+    "run",
+    "signal_words",
+    "signals_held",
+    "stop_on_signals",
+    "stop_signum",
+]
+
+warn_moved("icpflow.entry", "icpflow.errors_and_signals")
