@@ -1,0 +1,25 @@
+"""The real KITTI sequence 00 pairs as ``benchmarks.teacher_real_pairs`` reads them: in the project's frame (x forward,
+y left, z up, the road near z = 0) with an ego motion that lays the static points of one scan onto the other."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from benchmarks.teacher_real_pairs import PAIRS, read_pair
+from icpflow.geometry import transform_points
+
+FILES = sorted(PAIRS.glob("*.npz"))
+pytestmark = pytest.mark.skipif(not FILES, reason=f"the KITTI 00 pairs are absent: {PAIRS}")
+
+
+def test_a_pair_is_read_into_the_height_frame_with_its_exact_ego_motion():
+    pair = read_pair(FILES[0])
+    ground = pair["pc0"][pair["ground0"]]
+    assert abs(np.median(ground[:, 2])) < 0.2  # the road near z = 0
+    assert np.median(pair["pc0"][:, 0]) > 5 and abs(np.median(pair["pc0"][:, 1])) < 10  # in front of the car
+    assert -1.2 < pair["ego1_from_ego0"][0, 3] < -0.5  # the car drives 0.5-1.2 m forward: the world moves back
+    static = pair["pc0"][~pair["moving0"] & ~pair["ground0"]]
+    moved = transform_points(pair["ego1_from_ego0"], static)
+    gap, _ = cKDTree(pair["pc1"]).query(moved)
+    still, _ = cKDTree(pair["pc1"]).query(static)
+    assert np.median(gap) < 0.1 and np.median(gap) < 0.5 * np.median(still)  # static structure laid onto pc1
