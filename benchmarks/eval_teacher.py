@@ -52,7 +52,8 @@ def dataset_teacher(name: str, fields: dict) -> ICPFlowConfig:
 def run_variant(overrides, pairs, dataset: str, crop: float, use_ground: bool, use_times: bool, base: dict):
     """(point-weighted table of ``icpflow.metrics``, median s/pair, mean EPE over each pair's ``dynamic`` points)."""
     overrides = None if overrides is None else dict(overrides)
-    use_ground = use_ground and not (overrides or {}).pop(OWN_GROUND, False)
+    withheld = (overrides or {}).pop(OWN_GROUND, False)  # popped whatever use_ground says: not a teacher field
+    use_ground = use_ground and not withheld
     teacher = None if overrides is None else ICPFlow(dataset_teacher(dataset, {**base, **overrides}))
     scores, seconds, dynamic_errors = metrics.MetricAccumulator(), [], []
     if teacher is not None:  # warm-up: numba caches, hdbscan's worker pool

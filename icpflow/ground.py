@@ -33,6 +33,10 @@ FILL_REACH = 4.0
 #: metres: beyond the ground-height map, the odometry's surface mask takes the points up to this far above the frame's
 #: ground plane (the far rings of the ground, which Patchwork++ does not reach, are the sensor's pattern too)
 FAR_SLACK = 0.3
+#: a ground seed lies at most DROP_M + DROP_GRADE x its horizontal range below the frame's ground plane: a 15 % fall
+#: over the whole range, and a metre more (:func:`below_any_road`)
+DROP_M = 1.0
+DROP_GRADE = 0.15
 
 
 class GroundSegmenter:
@@ -102,7 +106,7 @@ class GroundSegmenter:
             ground = self(points)
             return ground, ground
         settings = self.settings.ground
-        seeds = self.patchwork(points)
+        seeds = self.patchwork(points) & ~below_any_road(points, self.settings.frame.ground_z)
         height = points[:, 2] - ground_height(
             points, seeds, settings.cell, settings.slope, settings.patchwork_max_range
         )
@@ -116,6 +120,15 @@ class GroundSegmenter:
     def local(self, points: np.ndarray) -> np.ndarray:
         """(N,) bool mask of the ``local`` method (module docstring)."""
         return self.masks(points)[0]
+
+
+def below_any_road(points: np.ndarray, ground_z: float) -> np.ndarray:
+    """(N,) bool: points further below the frame's ground plane (``ground_z``) than any road falls, more than
+    :data:`DROP_M` plus :data:`DROP_GRADE` of their horizontal range. Patchwork++ can call such returns (a reflection
+    through a grate, multipath) ground; as the local map's lowest seeds they would pull the ground under every
+    point around them metres down, and nothing would be ground there."""
+    reach = np.hypot(points[:, 0], points[:, 1])
+    return points[:, 2] < ground_z - DROP_M - DROP_GRADE * reach
 
 
 def ground_height(points: np.ndarray, seeds: np.ndarray, cell: float, slope: float, reach: float) -> np.ndarray:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.ground import GroundSegmenter, ground_height, object_columns
+from icpflow.ground import GroundSegmenter, below_any_road, ground_height, object_columns
 from icpflow.preprocess import HeightFrame, Preprocessing, lift_points
 from icpflow.synthetic.scene import CAR, PEDESTRIAN
 from icpflow.teacher.config import GroundConfig
@@ -130,3 +130,25 @@ def test_the_odometry_leaves_out_the_whole_surface_the_network_sees_objects_whol
     assert surface[-2] and not surface[-1] and not ground[-2]
     both = _with("both")
     assert all(np.array_equal(mask, both(points)) for mask in both.masks(points))
+
+
+def test_returns_far_below_any_road_are_no_ground_seeds():
+    points = np.array([[15.0, -2.0, -4.5], [15.0, -2.0, -0.5], [60.0, 0.0, -9.5], [60.0, 0.0, -11.0]], np.float32)
+    assert below_any_road(points, 0.0).tolist() == [True, False, False, True]  # 1 m + 15 % of the range
+    assert below_any_road(points + [0, 0, -0.32], -0.32).tolist() == [True, False, False, True]  # AV2's frame
+
+
+PAIR_28 = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_seq00_pairs" / "000028_000029.npz"
+
+
+@pytest.mark.skipif(not PAIR_28.is_file(), reason=f"the KITTI 00 pairs are absent: {PAIR_28.parent}")
+def test_a_few_returns_below_the_road_leave_the_ground_found():
+    """KITTI 00, frame 28: Patchwork++ calls a few returns 4.5 m below the road ground; as the lowest seeds of the
+    local map they once pulled the ground height metres down, and 2 % of the labelled ground was found (a whole-scene
+    cluster then slid 0.9 m along the road)."""
+    from benchmarks.teacher_real_pairs import read_pair
+
+    pair = read_pair(PAIR_28)
+    settings = Preprocessing(HeightFrame(0.0), GroundConfig(sensor_height=1.73, patchwork_z_offset=-1.73))
+    called = _with("local", settings)(pair["pc0"])
+    assert called[pair["ground0"]].mean() > 0.9 and called[~pair["ground0"]].mean() < 0.05
