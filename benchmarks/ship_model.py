@@ -27,6 +27,7 @@ from benchmarks.common import DATA, ROOT, cpu_name
 from fastflow3d.artifact.file_format import METADATA_NAME
 from fastflow3d.artifact.shipped import CARD_NAME, SHIPPED_NAME
 from icpflow.atomic import write_text_atomic
+from icpflow.evaluation import is_complete, method_summary, read_metrics
 
 TARGET = ROOT / "fastflow3d" / "artifact" / "models" / SHIPPED_NAME
 SHIPPED_FILES = ("onnx", "onnx_int8")
@@ -57,15 +58,10 @@ def commands(work: Path, seed: int) -> dict[str, list[str]]:
 
 def done(step: str, work: Path) -> bool:
     """Whether ``work`` already holds ``step``'s result."""
-    results = {
-        "label_train": work / "train1024" / "index.json",
-        "label_val": work / "val" / "index.json",
-        "train": work / "train" / "export" / METADATA_NAME,
-        "test_f32": work / "eval_test_f32" / "metrics.json",
-        "test_auto": work / "eval_test_auto" / "metrics.json",
-        "av2": work / "eval_av2" / "metrics.json",
-    }
-    return results[step].is_file()
+    results = {"label_train": work / "train1024", "label_val": work / "val", "train": work / "train" / "export"}
+    if step in results:
+        return (results[step] / ("index.json" if step.startswith("label") else METADATA_NAME)).is_file()
+    return is_complete(work / f"eval_{step}")
 
 
 def run_steps(work: Path, seed: int) -> dict[str, float]:
@@ -90,13 +86,14 @@ def step_seconds(work: Path) -> dict[str, float]:
 
 
 def scores(metrics_path: Path) -> dict[str, dict[str, float]]:
-    """Method -> category -> point-weighted EPE (m) of an ``eval.py`` metrics.json (the one-frame horizon)."""
-    if not metrics_path.is_file():
+    """Method -> category -> point-weighted EPE (m) of an ``eval.py`` metrics.json (its first horizon); {} where it
+    is absent."""
+    if not is_complete(metrics_path):
         return {}
-    methods = json.loads(metrics_path.read_text())["methods"]
+    document = read_metrics(metrics_path)
     return {
-        method: {category: by_horizon["1"]["paper"]["point_weighted"][category]["EPE"] for category in CATEGORIES}
-        for method, by_horizon in methods.items()
+        method: {c: method_summary(document, method)["paper"]["point_weighted"][c]["EPE"] for c in CATEGORIES}
+        for method in document["methods"]
     }
 
 
@@ -130,7 +127,7 @@ def shipped_metadata(export: Path, work: Path, command: list[str], commit: str) 
 
 def card(work: Path, metadata: dict, commit: str, host: str, train_minutes: float | None) -> str:
     """MODEL_CARD.md: what the model is, how it was made, what it scores, what it is not."""
-    test, auto, av2 = (scores(work / name / "metrics.json") for name in ("eval_test_f32", "eval_test_auto", "eval_av2"))
+    test, auto, av2 = (scores(work / name) for name in ("eval_test_f32", "eval_test_auto", "eval_av2"))
     if "student" in auto:
         test[f"student, as `--precision auto` ran it here ({auto_precision(work)})"] = auto["student"]
     minutes = f"{train_minutes:.0f} min of wall time" if train_minutes else "(not timed here)"
@@ -150,7 +147,7 @@ def card(work: Path, metadata: dict, commit: str, host: str, train_minutes: floa
 def auto_precision(work: Path) -> str:
     """The network ``--precision auto`` ran in the auto evaluation, as ``eval.py`` recorded it (``int8 network,
     onnxruntime``)."""
-    descriptions = json.loads((work / "eval_test_auto" / "metrics.json").read_text()).get("method_descriptions", {})
+    descriptions = read_metrics(work / "eval_test_auto").get("method_descriptions", {})
     return str(descriptions.get("student", "auto"))
 
 

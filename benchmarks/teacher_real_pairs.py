@@ -22,7 +22,8 @@ import numpy as np
 
 from benchmarks.common import DATA, cpu_name
 from benchmarks.eval_teacher import dataset_teacher
-from icpflow.geometry import ego_flow, invert, pose_error, transform_points
+from icpflow.geometry import ego_flow, invert, pose_error, relative_transform, transform_points
+from icpflow.preprocess import lift_points, lift_transform
 from icpflow.teacher import ICPFlow
 
 PAIRS = DATA / "kitti_seq00_pairs"
@@ -37,24 +38,17 @@ MOVING_M = 0.1
 VARIANTS = ("given", "own", "given no ground", "own no ground")
 
 
-def frame_transform() -> np.ndarray:
-    """(4, 4): the folder's frame into the project's height frame (axes turned, lifted by :data:`LIFT`)."""
-    transform = np.eye(4)
-    transform[:3, :3] = AXES
-    transform[2, 3] = LIFT
-    return transform
-
-
 def read_pair(path: Path) -> dict:
     """One pair in the project's conventions: pc0, pc1 (N, 3) float32, ego1_from_ego0, moving0 and ground0 masks."""
     data = np.load(path)
-    to_ego = frame_transform()
-    ego = to_ego @ invert(data["pose_t"]) @ data["pose_s"] @ invert(to_ego)
+    turn = np.eye(4)
+    turn[:3, :3] = AXES
+    ego = turn @ relative_transform(data["pose_s"], data["pose_t"]) @ invert(turn)
     return {
         "name": path.stem,
-        "pc0": transform_points(to_ego, data["pc1"]).astype(np.float32),
-        "pc1": transform_points(to_ego, data["pc2"]).astype(np.float32),
-        "ego1_from_ego0": ego,
+        "pc0": lift_points(transform_points(turn, data["pc1"]).astype(np.float32), LIFT),
+        "pc1": lift_points(transform_points(turn, data["pc2"]).astype(np.float32), LIFT),
+        "ego1_from_ego0": lift_transform(ego, LIFT),
         "moving0": data["mot_label_s"] > 0,
         "ground0": np.isin(data["sem_label_s"] & 0xFFFF, GROUND_CLASSES),
         "ground1": np.isin(data["sem_label_t"] & 0xFFFF, GROUND_CLASSES),

@@ -212,15 +212,9 @@ def load_predictor(args):
             refine=args.refine,
         )
     say_warnings(caught)  # a precision this CPU would emulate, asked for by name: its one line
+    if getattr(args, "shipped", False):
+        print(f"infer: model: {predictor.model_name}", file=sys.stderr)
     return predictor
-
-
-def shipped_description(path: Path) -> str:
-    """The shipped model at ``path`` as a run names it (its name, release and card)."""
-    from fastflow3d.artifact.file_format import read_metadata
-    from fastflow3d.artifact.shipped import shipped_label
-
-    return shipped_label(read_metadata(path / METADATA_NAME)) or str(path)
 
 
 def say_warnings(caught, keep=lambda message: True) -> None:
@@ -411,7 +405,7 @@ def _main(args) -> None:
         from fastflow3d.artifact.shipped import shipped_model
 
         args.model = shipped_model()
-        print(f"infer: model: {shipped_description(args.model)}", file=sys.stderr)
+        args.shipped = True  # load_predictor names it
     if args.scan1 is None:
         with stop_on_signals():  # each flow file is written atomically: a stop leaves the pairs done, whole
             out, written, frames, precision = infer_stream(args)

@@ -155,9 +155,10 @@ class Predictor(ScanSteps):
             warnings.warn(f"{path}: {TORCHSCRIPT_WARNING}", UserWarning, stacklevel=2)
         contract = model_contract(path, metadata, preprocessing)
         predictor = cls(network, contract, kind, ego_config, sensor_height, refine, metadata, precision)
-        predictor.model_name = shipped_label(metadata) or str(path)
-        if shipped_label(metadata):
-            log.info("Predictor: %s", predictor.model_name)
+        shipped = shipped_label(metadata)
+        predictor.model_name = shipped or str(path)
+        if shipped:
+            log.info("Predictor: %s", shipped)
         return predictor
 
     def __call__(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> np.ndarray:
