@@ -235,7 +235,7 @@ def test_yaw_only_icp_keeps_objects_upright():
 def test_settings_come_from_the_config():
     cfg = ICPFlowConfig.preset("av2", histogram={"max_points": 123, "top_k": 2}, icp={"max_points": 456, "dof": "yaw"})
     assert cfg.histogram == HistogramConfig(max_points=123, top_k=2, axis_min_extent=3.0)
-    assert cfg.icp == ICPConfig(max_points=456, dof="yaw", static_tolerance=0.25)
+    assert cfg.icp == ICPConfig(max_points=456, dof="yaw", static_tolerance=0.25, plane_gain=1.0)
     src = _box_surface(200)
     translation, score = initial_translation(src, src + np.float32([0.5, 0.0, 0.0]), 2.0, cfg.histogram, cfg.seed)
     np.testing.assert_allclose(translation, [0.5, 0.0, 0.0], atol=1e-9)
@@ -467,3 +467,50 @@ def test_k_nearest_neighbours_are_exact():
     squared, index = k_nearest(query, few, build_grid(few, 0.5), 0.5, 6, np.inf, MAX_KNN_SHELL, True)
     assert np.array_equal(index[:, :4], cKDTree(few).query(query, k=4)[1]) and (index[:, 4:] == -1).all()
     assert np.isinf(squared[:, 4:]).all()
+
+
+def _scan_lines(heights, seed):
+    """A 6 m x 3 m wall (the plane y = 0) as a scan draws it: horizontal lines at ``heights`` (m), points 0.05 m
+    apart along them."""
+    rng = np.random.default_rng(seed)
+    x = np.arange(0.0, 6.0, 0.05)
+    rows = [np.column_stack([x, rng.normal(0, 0.005, len(x)), np.full(len(x), h)]) for h in heights]
+    return np.concatenate(rows).astype(np.float32)
+
+
+def test_plane_errors_do_not_reward_a_slide_along_a_surface():
+    from icpflow.teacher.registration import plane_errors
+
+    wall0, wall1 = _scan_lines(np.arange(0, 3, 0.1), 0), _scan_lines(np.arange(0.05, 3, 0.1), 1)
+    slide = make_transform(translation=(0.0, 0.0, 0.05))  # lays the lines of one scan onto the other's
+    push = make_transform(translation=(0.0, 0.1, 0.0))  # off the wall
+    still, moved = plane_errors([(wall0, wall1)] * 2, np.stack([slide, push]), max_points=10000)
+    assert still[0] < 0.01 and moved[0] < 0.01  # on the plane either way
+    assert moved[1] > 0.09  # a motion off the plane is measured in full
+    empty = plane_errors([(wall0, np.zeros((0, 3), np.float32))], slide[None], max_points=10000)
+    assert np.isinf(empty[0]).all() and np.isinf(empty[1]).all()
+
+
+def test_a_wall_drawn_by_other_scan_lines_stays_static_and_movers_keep_their_motion():
+    import dataclasses
+
+    from icpflow.teacher.pipeline import _prefer_static
+
+    # The next scan draws the wall 0.05 m higher: a 0.05 m slide up lays its lines onto the first scan's, a better
+    # point-to-point fit than no motion (what the static tolerance alone keeps), and no better a plane's fit.
+    # A car that moved 0.15 m (under plane_reach) and one that moved 0.8 m fit the plane far better at their motion.
+    wall0, wall1 = _scan_lines(np.arange(0, 3, 0.1), 0), _scan_lines(np.arange(0.05, 3, 0.1), 1)
+    car = _box_surface(600, seed=3)
+    slow, fast = make_transform(translation=(0.15, 0.05, 0.0)), make_transform(0.05, (0.8, 0.1, 0.0))
+    clouds = [(wall0, wall1), (car, _noisy(transform_points(slow, car), 0.01, 4))]
+    clouds.append((car, _noisy(transform_points(fast, car), 0.01, 5)))
+    transforms = np.stack([make_transform(translation=(0.0, 0.0, 0.05)), slow, fast])
+    tolerance_only = dataclasses.replace(ICP, static_tolerance=0.25)
+    result = register_clusters(clouds, transforms, dataclasses.replace(ICP, max_iter=0))
+    _prefer_static(result, clouds, tolerance_only)
+    np.testing.assert_array_equal(result.transforms[0], transforms[0])  # the slide fits better point to point
+    result = register_clusters(clouds, transforms, dataclasses.replace(ICP, max_iter=0))
+    _prefer_static(result, clouds, dataclasses.replace(tolerance_only, plane_gain=1.0))
+    np.testing.assert_array_equal(result.transforms[0], np.eye(4))
+    np.testing.assert_array_equal(result.transforms[1], slow)
+    np.testing.assert_array_equal(result.transforms[2], fast)

@@ -143,6 +143,14 @@ class ICPConfig(_Checked):
     # extension: a registered pair whose mean error at the identity (no motion) is within this fraction of the
     # registered error stays static (identity); 0 = off (the reference)
     static_tolerance: float = setting(0.0, "non_negative")
+    # extension: a registered pair keeps its motion only where its mean point-to-plane distance at the identity
+    # exceeds (1 + plane_gain) x the registered one + plane_margin metres (pipeline._prefer_static); 0 = off (the
+    # reference). Scan lines draw a static wall at other heights in the next scan, and point-to-point ICP slides it
+    # along its own surface, which a plane's distance does not reward
+    plane_gain: float = setting(0.0, "non_negative")
+    plane_margin: float = setting(0.01, "non_negative")
+    # m: a centroid moving further than this needs only the margin's gain (a long vehicle gains at its ends alone)
+    plane_reach: float = setting(0.3, "positive")
 
 
 @dataclass(frozen=True)
@@ -348,6 +356,8 @@ def _deprecated(message: str) -> None:
 # Issue 30 (every preset): long, fast vehicles. histogram.axis_min_extent 3.0 (the line search along a long
 # cluster's main axis when the vote says it moves) and merging.distance 0.5 (split clusters registered as one):
 # measured with benchmarks/teacher_anatomy.py and eval_teacher.py, see BENCHMARKS.md "Issue 30".
+# icp.plane_gain 1.0 (every preset, pipeline._prefer_static): static structure stays static on real scans
+# (BENCHMARKS.md, "The teacher on real points"), the synthetic and AV2 scores equal to the digit.
 LONG_VEHICLES = {"histogram": dict(axis_min_extent=3.0), "merging": dict(distance=0.5, static_iou=0.8)}
 
 PRESETS: dict[str, dict] = {
@@ -357,7 +367,7 @@ PRESETS: dict[str, dict] = {
         crop_xy=32.0,
         clustering=dict(min_cluster_size=30, max_clusters=200, epsilon=0.25),
         pairing=dict(speed=1.67, extent_ratio=0.1),
-        icp=dict(max_corr=0.1, max_points=10000, static_tolerance=0.25),
+        icp=dict(max_corr=0.1, max_points=10000, static_tolerance=0.25, plane_gain=1.0),
         checks=dict(max_error=0.3, min_iou=0.2),
         **LONG_VEHICLES,
     ),
@@ -367,7 +377,7 @@ PRESETS: dict[str, dict] = {
         crop_xy=32.0,
         clustering=dict(min_cluster_size=20, max_clusters=200, epsilon=0.25),
         pairing=dict(speed=0.833333, extent_ratio=0.1),
-        icp=dict(max_corr=0.1, max_points=5000, static_tolerance=0.25),
+        icp=dict(max_corr=0.1, max_points=5000, static_tolerance=0.25, plane_gain=1.0),
         checks=dict(max_error=0.2, min_iou=0.2),
         **LONG_VEHICLES,
     ),
@@ -391,7 +401,7 @@ PRESETS: dict[str, dict] = {
         clustering=dict(min_cluster_size=20, max_clusters=200, epsilon=0.25, voxel_size=0.25),
         pairing=dict(speed=1.0, extent_ratio=0.1),
         histogram=dict(max_points=300, **LONG_VEHICLES["histogram"]),
-        icp=dict(max_corr=0.1, max_points=10000, static_tolerance=0.25),
+        icp=dict(max_corr=0.1, max_points=10000, static_tolerance=0.25, plane_gain=1.0),
         deskew=dict(enabled=True),
         checks=dict(max_error=0.2, min_iou=0.2),
         flow=dict(absorb_radius=0.5),

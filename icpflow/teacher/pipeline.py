@@ -105,13 +105,30 @@ def _prefer_static(result, clouds, params: ICPConfig, seed: int = 0) -> None:
     better than no motion at all; a real motion fits far better than the identity. The errors compared are the
     mean errors (the smaller of the two directions). The identity's quality is the one
     ``result`` holds (``register_clusters(identity=True)``), else measured here by a registration with no
-    iteration."""
+    iteration.
+
+    With ``params.plane_gain`` > 0 a pair that moves must also fit its destination's local planes better than the
+    identity does (``registration.plane_errors``): by ``(1 + plane_gain)`` times plus ``plane_margin`` where its
+    centroid moves at most ``plane_reach`` m, by ``plane_margin`` where it moves further. A real scan draws a static
+    wall or trunk with other scan lines in the next frame, and point-to-point ICP slides it along its own surface to
+    lay the lines onto each other; a plane's distance does not reward that slide, and a real motion gains on it
+    many times over. A long vehicle sliding along itself gains less (only its ends), hence the weaker test for
+    long motions."""
     identity = np.tile(np.eye(4), (len(clouds), 1, 1))
     if result.identity_error is None:
         still = registration.register_clusters(clouds, identity, dataclasses.replace(params, max_iter=0), seed)
         result.identity_error, result.identity_iou = still.mean_error, still.iou_ratio
         result.identity_symmetric_error = still.symmetric_error
     static = result.identity_error <= result.mean_error * (1.0 + params.static_tolerance)
+    if params.plane_gain > 0:
+        centroids = np.array([a.mean(axis=0) if len(a) else np.zeros(3) for a, _ in clouds]).reshape(-1, 3)
+        shift = np.einsum("pij,pj->pi", result.transforms[:, :3, :3], centroids) + result.transforms[:, :3, 3]
+        short = np.linalg.norm(shift - centroids, axis=1) <= params.plane_reach
+        test = np.flatnonzero(~static)
+        tested = [clouds[p] for p in test]
+        still, moved = registration.plane_errors(tested, result.transforms[test], params.max_points, seed)
+        gain = np.where(short[test], params.plane_gain, 0.0)
+        static[test[still <= moved * (1.0 + gain) + params.plane_margin]] = True
     result.transforms[static] = identity[static]
     result.mean_error[static] = result.identity_error[static]
     result.iou_ratio[static] = result.identity_iou[static]

@@ -17,6 +17,9 @@ Two backends give the same transforms: ``cpu`` (``registration_cpu``: numba, par
 neighbours from a sorted voxel grid per cluster) and ``torch`` (``registration_torch``: padded batch,
 ``torch.cdist``; meant for GPUs, runs on CPU).
 
+:func:`plane_errors` measures how well a transform lays a cluster onto its partner's local planes, against the
+identity: the static test of ``pipeline._prefer_static``.
+
 :func:`register_plane` is the point-to-plane variant used by the de-skew refinement (``teacher.deskew``) on the
 few moving matches, CPU only: src -> dst from the given transform (``icp.icp_point_to_plane``). Quality (error,
 IoU ratio) is measured as above, without the keep-the-initial rule.
@@ -73,6 +76,28 @@ def register_plane(
     fixeds = [subsample(np.asarray(b, np.float64).reshape(-1, 3), int(params.max_points), seed) for _, b in pairs]
     out = register_batch_cpu(movings, fixeds, inits, params, [normals(b) for b in fixeds])
     return RegistrationResult(*out[:4], symmetric_error=out[6])
+
+
+def plane_errors(
+    pairs: list[tuple[np.ndarray, np.ndarray]], transforms: np.ndarray, max_points: int, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean point-to-plane distances (m) of each src (Ns, 3) onto the local planes of its dst (Nd, 3), at the
+    identity and at ``transforms`` (P, 4, 4) src -> dst: two (P,) arrays (infinite for an empty cluster). Each point
+    takes its nearest dst point's plane (``icp.normals``); clusters capped at ``max_points`` by a seeded subsample."""
+    from scipy.spatial import cKDTree
+
+    transforms = np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4)
+    still, moved = np.full(len(pairs), np.inf), np.full(len(pairs), np.inf)
+    for p, (src, dst) in enumerate(pairs):
+        src = subsample(np.asarray(src, np.float64).reshape(-1, 3), int(max_points), seed)
+        dst = subsample(np.asarray(dst, np.float64).reshape(-1, 3), int(max_points), seed)
+        if len(src) == 0 or len(dst) == 0:
+            continue
+        tree, planes = cKDTree(dst), normals(dst)
+        for out, points in ((still, src), (moved, src @ transforms[p, :3, :3].T + transforms[p, :3, 3])):
+            _, nearest = tree.query(points)
+            out[p] = np.abs(np.einsum("ij,ij->i", points - dst[nearest], planes[nearest])).mean()
+    return still, moved
 
 
 def register_clusters(
