@@ -37,6 +37,7 @@ Settings: the ``ego_motion`` block (``icpflow.teacher.config.EgoMotionConfig``: 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 
@@ -85,6 +86,9 @@ FIRST_STAGES = ((1.0, 0.3, 15), (0.3, 0.1, 30))
 #: fits) under which, or a result this far (m) from KISS-ICP's start, it is also refined from the identity and from
 #: KISS-ICP's reverse registration, the best fit winning (BENCHMARKS.md, "One odometry")
 RETRY_FIT, RETRY_JUMP = 0.45, 0.5
+#: a step's normal spread (:func:`normal_spread`) under this: the scans' surfaces leave the motion along one direction
+#: unfixed (two parallel walls of a corridor: 0.003; real KITTI scans 0.12-0.23, with their ground or without it)
+MIN_SPREAD = 0.02
 
 
 def ego_settings(cfg) -> EgoMotionConfig:
@@ -306,6 +310,15 @@ class Odometry:
         source = source[:: max(1, len(source) // SOURCE_POINTS)]
         return _staged(source, current.planes(), transform, ((2 * self.voxel, TUKEY, ITERATIONS),))
 
+    def _spread(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> float | None:
+        """:func:`normal_spread` of the previous whole scan (``SOURCE_POINTS`` of it) moved by ``transform`` onto this
+        one; None without the refinement (KISS-ICP alone) or points. Measured for a lone pair only
+        (:func:`estimate_ego_motion`): a drive's step would take about twice as long with it."""
+        if not self.refine or not len(previous.source.points) or not len(current.cloud.points):
+            return None
+        source = previous.whole_cloud()
+        return normal_spread(source[:: max(1, len(source) // SOURCE_POINTS)], current.planes(), transform)
+
     def _match(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> tuple[float, float]:
         """(fitness, tight share) of ``transform``: the fitness (module docstring) is the share of the previous
         scan's non-ground source points whose nearest point of this scan's whole cloud is a non-ground one within
@@ -409,6 +422,18 @@ def _fit(source: np.ndarray, target: TargetPlanes, transform: np.ndarray, width:
     return float(weight.mean())
 
 
+def normal_spread(source: np.ndarray, target: TargetPlanes, transform: np.ndarray) -> float:
+    """The smallest eigenvalue of the mean ``n n^T`` over the target normals that ``source`` (K, 3) moved by
+    ``transform`` lands on (within 0.5 m): 1/3 where the surfaces face every way, near 0 where none faces one
+    direction, along which a point-to-plane fit then slides freely. 0 with fewer than 3 such points."""
+    moved = transform_points(transform, source)
+    _, distance, _, normals = target.near(moved)
+    normals = normals[distance < 0.5]
+    if len(normals) < 3:
+        return 0.0
+    return float(np.linalg.eigvalsh(normals.T @ normals / len(normals))[0])
+
+
 def _kiss_registration(points0: np.ndarray, points1: np.ndarray, cfg, threads: int = 0) -> np.ndarray:
     """``ego1_from_ego0`` by a fresh KISS-ICP's registration (on ``threads`` threads, 0: every core) of ``points1``
     onto the map of ``points0``."""
@@ -421,12 +446,25 @@ def _kiss_registration(points0: np.ndarray, points1: np.ndarray, cfg, threads: i
 def estimate_ego_motion(pc0: np.ndarray, pc1: np.ndarray, cfg, ground0=None, ground1=None) -> np.ndarray | None:
     """(4, 4) float64 ``ego1_from_ego0`` of the scans (N0, 3) and (N1, 3) (their (N,) bool ground masks left out
     where given): a two-scan sequence of :class:`Odometry`. The identity if either has fewer than
-    ``MIN_EGO_POINTS`` points; None if no estimate fits (the scans do not overlap)."""
+    ``MIN_EGO_POINTS`` points; None if no estimate fits (the scans do not overlap). Where the scans' surfaces leave
+    a direction unfixed (:data:`MIN_SPREAD`: a corridor, a single wall) the estimate comes with a one-line
+    ``UserWarning`` saying so."""
     if len(pc0) < MIN_EGO_POINTS or len(pc1) < MIN_EGO_POINTS:
         return np.eye(4)
     odometry = Odometry(cfg)
     odometry.step(pc0, ground0)
-    return odometry.step(pc1, ground1).ego1_from_ego0
+    first = odometry._previous
+    step = odometry.step(pc1, ground1)
+    if step.ego1_from_ego0 is None:
+        return None
+    spread = odometry._spread(first, odometry._previous, step.ego1_from_ego0)
+    if spread is not None and spread < MIN_SPREAD:
+        text = (
+            f"estimate_ego_motion: the scans' surfaces do not fix the motion along one direction (normal spread "
+            f"{spread:.3f} < {MIN_SPREAD}): the ego motion may be wrong; pass ego1_from_ego0 if it is known"
+        )
+        warnings.warn_explicit(text, UserWarning, "icpflow.odometry", 0)
+    return step.ego1_from_ego0
 
 
 __all__ = [
@@ -436,6 +474,8 @@ __all__ = [
     "ego_settings",
     "estimate_ego_motion",
     "kiss_odometry",
+    "MIN_SPREAD",
+    "normal_spread",
     "TargetPlanes",
     "voxel_cloud",
 ]

@@ -272,3 +272,29 @@ def test_kiss_icp_takes_the_callers_thread_limit(moving, monkeypatch):
             Odometry(EGO, threads=threads).step(pair.pc0, pair.ground0)
     assert made == [numba.get_num_threads(), 1, 0, 2]
     np.testing.assert_allclose(limited, free, atol=1e-9)
+
+
+def _corridor(seed: int, shift: float = 0.0) -> np.ndarray:
+    """Two parallel walls 6 m apart, 40 m long and 3 m high, as a scan would see them (x forward), moved back by
+    ``shift`` m: nothing in them fixes the motion along x."""
+    rng = np.random.default_rng(seed)
+    walls = [
+        np.column_stack([rng.uniform(-20, 20, 15000), np.full(15000, side) + rng.normal(0, 0.01, 15000)])
+        for side in (-3.0, 3.0)
+    ]
+    points = np.concatenate([np.column_stack([w, rng.uniform(0.2, 3.0, len(w))]) for w in walls])
+    points[:, 0] -= shift
+    return points.astype(np.float32)
+
+
+def test_surfaces_that_leave_a_direction_free_are_said_in_one_line_and_real_ones_are_not(moving):
+    import warnings
+
+    pairs, _ = moving
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="estimate_ego_motion")  # the synthetic world: every direction fixed
+        estimate_ego_motion(pairs[0].pc0, pairs[0].pc1, EGO, pairs[0].ground0, pairs[0].ground1)
+    unfixed = r"^estimate_ego_motion: the scans' surfaces do not fix the motion along one direction \(normal spread"
+    with pytest.warns(UserWarning, match=unfixed) as caught:
+        estimate_ego_motion(_corridor(0), _corridor(1, shift=0.8), EGO)
+    assert "\n" not in str(caught[0].message)
