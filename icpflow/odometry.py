@@ -86,8 +86,8 @@ FIRST_STAGES = ((1.0, 0.3, 15), (0.3, 0.1, 30))
 #: fits) under which, or a result this far (m) from KISS-ICP's start, it is also refined from the identity and from
 #: KISS-ICP's reverse registration, the best fit winning (BENCHMARKS.md, "One odometry")
 RETRY_FIT, RETRY_JUMP = 0.45, 0.5
-#: a step's normal spread (:func:`normal_spread`) under this: the scans' surfaces leave the motion along one direction
-#: unfixed (two parallel walls of a corridor: 0.003; real KITTI scans 0.12-0.23, with their ground or without it)
+#: a pair's normal spread (:func:`normal_spread`) under this: the scans' surfaces leave the motion along one direction
+#: unfixed (a corridor of two parallel walls; real scans lie far above it, BENCHMARKS.md "The teacher on real points")
 MIN_SPREAD = 0.02
 
 

@@ -34,10 +34,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from icpflow.geometry import invert
+from icpflow.geometry import invert, transform_points
+from icpflow.normals import plane_normals
 from icpflow.teacher.config import ICPConfig
 from icpflow.teacher.histogram import subsample
-from icpflow.teacher.icp import normals
+from icpflow.teacher.icp import PLANE_NEIGHBOURS, normals
 from icpflow.teacher.registration_cpu import register_batch_cpu
 from icpflow.teacher.registration_torch import register_batch_torch
 
@@ -93,8 +94,11 @@ def plane_errors(
         dst = subsample(np.asarray(dst, np.float64).reshape(-1, 3), int(max_points), seed)
         if len(src) == 0 or len(dst) == 0:
             continue
-        tree, planes = cKDTree(dst), normals(dst)
-        for out, points in ((still, src), (moved, src @ transforms[p, :3, :3].T + transforms[p, :3, 3])):
+        tree = cKDTree(dst)
+        planes = plane_normals(dst, tree.query(dst, min(PLANE_NEIGHBOURS, len(dst)))[1]) if len(dst) >= 3 else None
+        if planes is None:
+            planes = np.tile([0.0, 0.0, 1.0], (len(dst), 1))
+        for out, points in ((still, src), (moved, transform_points(transforms[p], src))):
             _, nearest = tree.query(points)
             out[p] = np.abs(np.einsum("ij,ij->i", points - dst[nearest], planes[nearest])).mean()
     return still, moved
