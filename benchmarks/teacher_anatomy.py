@@ -27,6 +27,22 @@ Prints:
 3. the ``--list`` worst objects (summed EPE) with their figures.
 The true motion of an object is the rigid fit (``geometry.kabsch``) of its ego-compensated pc0 points onto
 pc0 + the true flow, in pc1's frame (the teacher's registration frame).
+
+On real pairs (``--kitti00 [VARIANT]``: the KITTI 00 pairs of ``benchmarks.teacher_real_pairs``, which hold exact
+static flow and labelled movers but no movers' flow) the failing objects are of two kinds, each given the first step
+that went wrong (:func:`diagnose_real`):
+- a teacher cluster whose static points (labelled ground left out) are more than :data:`FALSE_MOTION_M` off their
+  exact flow: ``ground`` (half its points are labelled ground: the ground step left them), ``cluster`` (a fifth are
+  labelled movers: merged with one), ``ego motion`` (no match: the ego motion alone is off), ``pairing`` (matched to
+  a cluster other than the one its points truly land in, the true pair never a candidate), ``checks`` (the true
+  pair was a candidate and failed the checks), ``association`` (it passed, the wrong one was chosen), ``vote`` (the
+  right partner, the start translation more than 0.3 m from the truth), ``ICP`` (the right partner and a good
+  start, the registration slid and the checks and the static test let it through);
+- a labelled mover (an instance of >= ``MIN_OBJECT_POINTS`` moving points) of which under half move by more than
+  ``teacher_real_pairs.MOVING_M``: ``ground``, ``noise`` (half its points in no cluster: fewer than the clustering's
+  minimum, or cropped), ``cluster`` (its cluster is mostly static points), ``not paired`` (no candidate pair),
+  ``checks`` (no candidate passed), ``static test`` (the match kept the identity: ``pipeline._prefer_static``),
+  ``ICP`` (matched and moved too little).
 """
 
 from __future__ import annotations
@@ -40,7 +56,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from benchmarks.common import literal_overrides, open_split
-from icpflow.geometry import euler_angles, kabsch, transform_points
+from icpflow.geometry import ego_flow, euler_angles, kabsch, transform_points
 from icpflow.metrics import PairTruth
 from icpflow.teacher.histogram import main_axis
 
@@ -60,6 +76,10 @@ CAUSES = (
     "other",
     "ok",
 )
+#: residual (m) of a static cluster's points above which it is a failing object on real pairs
+FALSE_MOTION_M = 0.05
+STATIC_CAUSES = ("ground", "cluster", "ego motion", "pairing", "checks", "association", "vote", "ICP")
+MOVER_CAUSES = ("ground", "noise", "cluster", "not paired", "checks", "static test", "ICP")
 
 
 def share_of(labels: np.ndarray) -> Counter:
@@ -224,6 +244,139 @@ def report(records: list[dict], long_from: float, listed: int) -> str:
     return "\n".join(lines)
 
 
+def _true_partner(result, tree: cKDTree, landed: np.ndarray) -> int:
+    """The pc1 cluster most of ``landed`` (points at their true place in pc1) fall on within 0.3 m (-1: none)."""
+    distance, nearest = tree.query(landed, distance_upper_bound=0.3)
+    counts = share_of(result.labels1[nearest[np.isfinite(distance)]])
+    return counts.most_common(1)[0][0] if counts else -1
+
+
+def _static_cause(pair: dict, result, cluster: int, tree: cKDTree) -> dict:
+    """The first step that went wrong for a teacher cluster of ``pair`` (``teacher_real_pairs.read_pair``) whose
+    static points moved (``STATIC_CAUSES``), with its match's figures."""
+    members = result.labels0 == cluster
+    record = {"kind": "static", "id": f"{pair['name']}#{cluster}", "points": int(members.sum())}
+    if pair["ground0"][members].mean() >= 0.5:
+        return record | {"cause": "ground"}
+    if pair["moving0"][members].mean() >= 0.2:
+        return record | {"cause": "cluster"}
+    rows = np.flatnonzero(result.pairs[:, 0] == cluster)
+    if len(rows) == 0:
+        return record | {"cause": "ego motion"}
+    ego = result.ego1_from_ego0
+    src = transform_points(ego, pair["pc0"][members].astype(np.float64))  # the teacher's registration frame
+    landed = transform_points(pair["ego1_from_ego0"], pair["pc0"][members].astype(np.float64))
+    centroid = src.mean(axis=0)
+    true_shift = landed.mean(axis=0) - centroid
+    transform = result.transforms[rows[0]]
+    record["moved"] = float(np.linalg.norm(transform_points(transform, centroid[None])[0] - centroid - true_shift))
+    record["iou"] = float(result.iou_ratios[rows[0]])
+    partner, chosen = _true_partner(result, tree, landed), int(result.pairs[rows[0], 1])
+    candidates = result.candidates
+    tried = np.flatnonzero((candidates["src"] == cluster) & (candidates["dst"] == partner))
+    if chosen != partner:
+        if len(tried) == 0:
+            return record | {"cause": "pairing"}
+        return record | {"cause": "association" if candidates["passed"][tried].any() else "checks"}
+    k = np.flatnonzero((candidates["src"] == cluster) & (candidates["dst"] == chosen) & candidates["chosen"])
+    start = candidates["init"][k[0]] if len(k) and int(result.stage[rows[0]]) != 3 else None
+    if start is not None and np.linalg.norm(start - true_shift) > 0.3:
+        return record | {"cause": "vote"}
+    return record | {"cause": "ICP"}
+
+
+def _mover_cause(pair: dict, result, members: np.ndarray) -> str:
+    """The first step that went wrong for a labelled mover (``members``: its pc0 points) that the teacher left
+    static (``MOVER_CAUSES``)."""
+    if result.ground0[members].mean() >= 0.5:
+        return "ground"
+    counts = share_of(result.labels0[members])
+    if sum(counts.values()) < 0.5 * members.sum():
+        return "noise"
+    main = counts.most_common(1)[0][0]
+    in_main = result.labels0 == main
+    if (in_main & ~pair["moving0"]).sum() >= 0.5 * in_main.sum():
+        return "cluster"
+    candidates = result.candidates
+    tried = candidates["src"] == main
+    if not tried.any():
+        return "not paired"
+    if not candidates["passed"][tried].any():
+        return "checks"
+    chosen = np.flatnonzero(tried & candidates["chosen"])
+    if len(chosen) and np.allclose(candidates["transforms"][chosen[0]], np.eye(4)):
+        return "static test"
+    return "ICP"
+
+
+def diagnose_real(pair: dict, result) -> list[dict]:
+    """The failing objects of one real pair (``teacher_real_pairs.read_pair``) under the teacher's ``result`` (with
+    its candidates): static clusters moved by more than ``FALSE_MOTION_M`` and labelled movers left static, each with
+    its kind, id, points, residual (the static points' mean residual, or the movers' share found) and cause."""
+    from benchmarks.teacher_real_pairs import MOVING_M
+
+    truth = ego_flow(pair["pc0"], pair["ego1_from_ego0"])
+    residual = np.linalg.norm(result.flow - truth, axis=1)
+    scored = ~pair["moving0"] & ~pair["ground0"]
+    tree = cKDTree(pair["pc1"])
+    records = []
+    for cluster in np.unique(result.labels0[result.labels0 >= 0]):
+        members = (result.labels0 == cluster) & scored
+        if members.any() and residual[members].mean() > FALSE_MOTION_M:
+            record = _static_cause(pair, result, int(cluster), tree)
+            records.append(record | {"residual": float(residual[members].mean())})
+    instances = pair["instance0"]
+    for instance in np.unique(instances[pair["moving0"]]):
+        members = pair["moving0"] & (instances == instance)
+        found = float((residual[members] > MOVING_M).mean())
+        if members.sum() >= MIN_OBJECT_POINTS and found < 0.5:
+            record = {"kind": "mover", "id": f"{pair['name']}#{int(instance)}", "points": int(members.sum())}
+            records.append(record | {"residual": found, "cause": _mover_cause(pair, result, members)})
+    return records
+
+
+def report_real(records: list[dict], pairs: int) -> str:
+    """The failing objects of ``pairs`` real pairs: per kind, the objects and points per cause, then each object."""
+    lines = []
+    for kind, causes, title in (
+        ("static", STATIC_CAUSES, "static clusters moved (residual over 5 cm)"),
+        ("mover", MOVER_CAUSES, "labelled movers left static"),
+    ):
+        picked = [r for r in records if r["kind"] == kind]
+        lines += ["", f"{len(picked)} {title} in {pairs} pairs", "", "| cause | objects | points |", "|---|---|---|"]
+        for cause in causes:
+            chosen = [r for r in picked if r["cause"] == cause]
+            if chosen:
+                lines.append(f"| {cause} | {len(chosen)} | {sum(r['points'] for r in chosen)} |")
+    lines += [
+        "",
+        "| object | kind | points | static residual (m) or movers found | cause | match off the truth (m) | IoU |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in sorted(records, key=lambda r: (r["kind"], -r["residual"] * r["points"])):
+        match = f"{r['moved']:.3f} | {r['iou']:.2f}" if "moved" in r else "- | -"
+        lines.append(f"| {r['id']} | {r['kind']} | {r['points']} | {r['residual']:.3f} | {r['cause']} | {match} |")
+    return "\n".join(lines)
+
+
+def main_real(variant: str, fields: dict, count: int) -> None:
+    """``--kitti00``: the failing objects of the real KITTI 00 pairs under one ``teacher_real_pairs`` variant."""
+    from benchmarks.eval_teacher import dataset_teacher
+    from benchmarks.teacher_real_pairs import PAIRS, read_pair, variant_inputs
+    from icpflow.teacher import ICPFlow
+
+    files = sorted(PAIRS.glob("*.npz"))[:count]
+    if not files:
+        raise SystemExit(f"teacher_anatomy: no pairs in {PAIRS}")
+    teacher = ICPFlow(dataset_teacher("kitti", fields))
+    records = []
+    for path in files:
+        pair, inputs = variant_inputs(read_pair(path), variant)
+        records += diagnose_real(pair, teacher(*inputs, candidates=True))
+    print(f"KITTI 00 pairs: {len(files)}, variant {variant!r}; teacher overrides {fields or 'none'}")
+    print(report_real(records, len(files)))
+
+
 def main() -> None:
     from icpflow.teacher import ICPFlow
     from icpflow.teacher.config import teacher_config
@@ -239,7 +392,17 @@ def main() -> None:
     )
     parser.add_argument("--objects", type=float, default=8.0, help="extent (m) from which objects count as long")
     parser.add_argument("--list", type=int, default=20, help="worst objects to list")
+    parser.add_argument(
+        "--kitti00",
+        nargs="?",
+        const="given",
+        metavar="VARIANT",
+        help="the failing objects of the real KITTI 00 pairs instead, under a teacher_real_pairs variant (given)",
+    )
+    parser.add_argument("--pairs", type=int, default=30, help="real pairs with --kitti00")
     args = parser.parse_args()
+    if args.kitti00:
+        return main_real(args.kitti00, literal_overrides(args.teacher, parser, "--teacher"), args.pairs)
     overrides = args.set or ["split=test", "dataset.reader.num_sequences=8"]
     dataset, cfg = open_split(overrides)
     fields = literal_overrides(args.teacher, parser, "--teacher")

@@ -514,3 +514,52 @@ def test_a_wall_drawn_by_other_scan_lines_stays_static_and_movers_keep_their_mot
     np.testing.assert_array_equal(result.transforms[0], np.eye(4))
     np.testing.assert_array_equal(result.transforms[1], slow)
     np.testing.assert_array_equal(result.transforms[2], fast)
+
+
+def _poles(xs, y=3.0, seed=0):
+    """Vertical poles 0.15 m in radius and 2 m tall at (x, y) for each x in ``xs``, drawn 0.1 m apart in height."""
+    rng = np.random.default_rng(seed)
+    angle = rng.uniform(0, 2 * np.pi, (len(xs), 400))
+    height = rng.uniform(0, 2, (len(xs), 400))
+    xs = np.asarray(xs, float)[:, None]
+    return np.stack([xs + 0.15 * np.cos(angle), y + 0.15 * np.sin(angle), height], axis=-1).reshape(-1, 3)
+
+
+def test_a_scan_view_covers_the_azimuths_of_its_points():
+    from icpflow.teacher.visibility import ScanView
+
+    turn = np.linspace(-np.pi, np.pi, 5000, endpoint=False)
+    assert ScanView.of(np.column_stack([10 * np.cos(turn), 10 * np.sin(turn), np.zeros_like(turn)])).full
+    front = turn[np.abs(turn) <= np.pi / 4]  # a front camera's 90 degrees
+    view = ScanView.of(np.column_stack([10 * np.cos(front), 10 * np.sin(front), np.zeros_like(front)]))
+    assert not view.full
+    np.testing.assert_array_equal(view.sees(np.array([[5.0, 1.0, 0.0], [1.0, 5.0, 0.0], [-5.0, 0.0, 2.0]])), [1, 0, 0])
+
+
+def test_the_plane_test_leaves_out_what_the_next_scan_could_not_see():
+    import dataclasses
+
+    from icpflow.teacher.pipeline import _prefer_static
+    from icpflow.teacher.visibility import ScanView
+
+    # A row of five static poles along y = 3 at the edge of a front view (azimuth <= 45 degrees): the next scan sees
+    # the three at x >= 3.5. Slid one gap (1.5 m) along the row, the whole row overlays the three drawn poles better
+    # than where it stands, since its two unseen poles have no partner there; left out as unseen, the identity fits
+    # them exactly. A car in the view that moved 0.8 m keeps its motion either way.
+    row, drawn = _poles([0.5, 2.0, 3.5, 5.0, 6.5]), _poles([3.5, 5.0, 6.5], seed=1)
+    car = _box_surface(600, seed=3) + np.array([12.0, 0.0, 0.0])
+    fast = make_transform(0.05, (0.8, 0.1, 0.0))
+    clouds = [(row, drawn), (car, _noisy(transform_points(fast, car), 0.01, 5))]
+    transforms = np.stack([make_transform(translation=(1.5, 0.0, 0.0)), fast])
+    sector = np.linspace(-np.pi / 4, np.pi / 4, 2000)
+    view = ScanView.of(np.column_stack([20 * np.cos(sector), 20 * np.sin(sector), np.zeros_like(sector)]))
+    params = dataclasses.replace(ICP, static_tolerance=0.25, plane_gain=1.0)
+    decisions = []
+    for seen in (None, view):
+        result = register_clusters(clouds, transforms, dataclasses.replace(ICP, max_iter=0), identity=True)
+        result.identity_error = 2 * result.mean_error + 0.1  # a point-to-point fit that prefers the slide
+        _prefer_static(result, clouds, params, view=seen)
+        decisions.append(result.transforms.copy())
+    np.testing.assert_array_equal(decisions[0], transforms)  # without the view the slide is kept
+    np.testing.assert_array_equal(decisions[1][0], np.eye(4))
+    np.testing.assert_array_equal(decisions[1][1], fast)

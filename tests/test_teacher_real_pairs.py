@@ -30,7 +30,7 @@ def _static_and_movers(teacher, pair):
     from benchmarks.teacher_real_pairs import score
 
     result = teacher(pair["pc0"], pair["pc1"], pair["ego1_from_ego0"])
-    row = score(pair, result.flow, result.ego1_from_ego0, np.ones(len(pair["pc0"]), bool))
+    row = score(pair, result.flow, result.ego1_from_ego0)
     return row["static_mean"], row["movers_found"]
 
 
@@ -48,3 +48,34 @@ def test_static_structure_stays_static_on_real_scans_and_the_moving_car_moves():
     assert static < 0.005 < 0.012 < slid
     static, found = _static_and_movers(teacher, read_pair(pairs["000010_000011"]))  # a car of 68 points, 1.2 m
     assert static < 0.005 and found > 0.9
+
+
+def test_the_anatomy_names_the_step_that_failed_each_object(monkeypatch):
+    """``teacher_anatomy --kitti00``: a static cluster at the edge of the view slid along itself (the plane test
+    without the next scan's view), and a car beyond the teacher's crop left as noise, until the crop reaches it."""
+    from benchmarks.eval_teacher import dataset_teacher
+    from benchmarks.teacher_anatomy import diagnose_real
+    from icpflow.teacher import ICPFlow, pipeline
+    from icpflow.teacher.visibility import AZIMUTH_BINS
+
+    pairs = {path.stem: path for path in FILES}
+    if not {"000017_000018", "000020_000021"} <= set(pairs):
+        pytest.skip("pairs 000017_000018 and 000020_000021 are absent")
+    teacher = ICPFlow(dataset_teacher("kitti", {"crop_xy": 32.0}))
+    edge = read_pair(pairs["000017_000018"])
+    assert [
+        r
+        for r in diagnose_real(edge, teacher(edge["pc0"], edge["pc1"], edge["ego1_from_ego0"], candidates=True))
+        if r["kind"] == "static"
+    ] == []
+    with monkeypatch.context() as patch:
+        patch.setattr(pipeline.ScanView, "of", classmethod(lambda cls, points: cls(np.ones(AZIMUTH_BINS, bool))))
+        result = teacher(edge["pc0"], edge["pc1"], edge["ego1_from_ego0"], candidates=True)
+    moved = [r for r in diagnose_real(edge, result) if r["kind"] == "static"]
+    assert moved and {r["cause"] for r in moved} <= {"vote", "ICP"} and max(r["moved"] for r in moved) > 0.5
+    far = read_pair(pairs["000020_000021"])  # a car of 43 points 32.4 m ahead
+    result = teacher(far["pc0"], far["pc1"], far["ego1_from_ego0"], candidates=True)
+    assert [(r["kind"], r["cause"]) for r in diagnose_real(far, result)] == [("mover", "noise")]
+    wide = ICPFlow(dataset_teacher("kitti", {}))
+    assert wide.cfg.crop_xy > 35  # KITTI's scene-flow pairs reach 35 m ahead
+    assert diagnose_real(far, wide(far["pc0"], far["pc1"], far["ego1_from_ego0"], candidates=True)) == []

@@ -32,6 +32,7 @@ from icpflow.teacher.clustering import cluster_points
 from icpflow.teacher.config import ICPConfig, ICPFlowConfig
 from icpflow.teacher.flow import absorb, match_confidence, point_flow
 from icpflow.teacher.pairing import cluster_stats, stage1_pairs, stage2_pairs
+from icpflow.teacher.visibility import ScanView
 
 STAGES = ("ego_motion", "ground", "clustering", "pairing", "histogram", "icp", "merging", "deskew", "flow")
 
@@ -98,7 +99,7 @@ def _as_mask(name: str, value, count: int) -> np.ndarray | None:
     return array
 
 
-def _prefer_static(result, clouds, params: ICPConfig, seed: int = 0) -> None:
+def _prefer_static(result, clouds, params: ICPConfig, seed: int = 0, view: ScanView | None = None) -> None:
     """Pairs whose error at the identity is at most ``(1 + params.static_tolerance)`` times their registered error
     keep the identity (no motion), with its error and IoU ratio (``result`` is updated in place). Scans sample a
     static surface differently (scan lines move with the ego), so a small slide along walls often fits slightly
@@ -113,7 +114,9 @@ def _prefer_static(result, clouds, params: ICPConfig, seed: int = 0) -> None:
     wall or trunk with other scan lines in the next frame, and point-to-point ICP slides it along its own surface to
     lay the lines onto each other; a plane's distance does not reward that slide, and a real motion gains on it
     many times over. A long vehicle sliding along itself gains less (only its ends), hence the weaker test for
-    long motions."""
+    long motions. With ``view`` (pc1's ``ScanView``) the test leaves out the src points pc1 could not see where the
+    identity puts them: a static object leaving a one-sided view is half drawn in pc1, and its unseen half would
+    reward sliding the whole onto the drawn part."""
     identity = np.tile(np.eye(4), (len(clouds), 1, 1))
     if result.identity_error is None:
         still = registration.register_clusters(clouds, identity, dataclasses.replace(params, max_iter=0), seed)
@@ -125,7 +128,7 @@ def _prefer_static(result, clouds, params: ICPConfig, seed: int = 0) -> None:
         shift = np.einsum("pij,pj->pi", result.transforms[:, :3, :3], centroids) + result.transforms[:, :3, 3]
         short = np.linalg.norm(shift - centroids, axis=1) <= params.plane_reach
         test = np.flatnonzero(~static)
-        tested = [clouds[p] for p in test]
+        tested = [_in_view(clouds[p], view) for p in test]
         still, moved = registration.plane_errors(tested, result.transforms[test], params.max_points, seed)
         gain = np.where(short[test], params.plane_gain, 0.0)
         static[test[still <= moved * (1.0 + gain) + params.plane_margin]] = True
@@ -133,6 +136,16 @@ def _prefer_static(result, clouds, params: ICPConfig, seed: int = 0) -> None:
     result.mean_error[static] = result.identity_error[static]
     result.iou_ratio[static] = result.identity_iou[static]
     result.symmetric_error[static] = result.identity_symmetric_error[static]
+
+
+def _in_view(cloud: tuple[np.ndarray, np.ndarray], view: ScanView | None) -> tuple[np.ndarray, np.ndarray]:
+    """A (src, dst) pair with the src points outside ``view`` dropped (all kept without a view, with a full one, or
+    where fewer than 3 would be left)."""
+    src, dst = cloud
+    if view is None or view.full or len(src) == 0:
+        return cloud
+    seen = view.sees(src)
+    return (src[seen], dst) if seen.sum() >= 3 else cloud
 
 
 class ICPFlow:
@@ -217,7 +230,8 @@ class ICPFlow:
         timings["clustering"] = time.perf_counter() - tic
 
         window = cfg.pairing.window(np.linalg.norm(ego[:3, 3]), int(gap))
-        matches, tried, src_stats, dst_stats = self._match(src, dst, src_labels, dst_labels, window, timings)
+        view = ScanView.of(pc1_ok)
+        matches, tried, src_stats, dst_stats = self._match(src, dst, src_labels, dst_labels, window, timings, view)
         if cfg.merging.distance > 0:
             tic = time.perf_counter()
             _, src_stats, dst_stats = merging.merge_split_clusters(
@@ -229,7 +243,7 @@ class ICPFlow:
                 dst_stats,
                 matches,
                 lambda clouds, centroids, max_points: self._register_clouds(
-                    clouds, centroids, window, dict.fromkeys(STAGES, 0.0), max_points
+                    clouds, centroids, window, dict.fromkeys(STAGES, 0.0), max_points, view
                 ),
                 cfg.merging,
                 cfg.icp,
@@ -301,7 +315,7 @@ class ICPFlow:
             **matches,
         )
 
-    def _match(self, src, dst, src_labels, dst_labels, window, timings) -> tuple:
+    def _match(self, src, dst, src_labels, dst_labels, window, timings, view=None) -> tuple:
         """Steps 4 to 8 over both stages: the chosen matches as arrays, every candidate tried (see
         ``ICPFlowResult``) and the two scans' ``ClusterStats``."""
         cfg = self.cfg
@@ -311,7 +325,7 @@ class ICPFlow:
         dst_stats = cluster_stats(dst, dst_labels, n_labels)
         s1, d1 = stage1_pairs(src_stats, dst_stats, window, cfg.pairing, cfg.clustering.min_cluster_size)
         timings["pairing"] += time.perf_counter() - tic
-        first = self._register(src, dst, src_stats, dst_stats, s1, d1, window, timings)
+        first = self._register(src, dst, src_stats, dst_stats, s1, d1, window, timings, view)
 
         tic = time.perf_counter()
         src_free = np.ones(n_labels, dtype=bool)
@@ -322,7 +336,7 @@ class ICPFlow:
             src_stats, dst_stats, src_free, dst_free, window, cfg.pairing, cfg.clustering.min_cluster_size
         )
         timings["pairing"] += time.perf_counter() - tic
-        second = self._register(src, dst, src_stats, dst_stats, s2, d2, window, timings)
+        second = self._register(src, dst, src_stats, dst_stats, s2, d2, window, timings, view)
 
         out = {key: np.concatenate([first[key], second[key]]) for key in first if key not in ("n_candidates", "tried")}
         out["stage"] = np.concatenate(
@@ -333,12 +347,12 @@ class ICPFlow:
         tried["stage"] = np.repeat(np.array([1, 2], np.int8), [first["n_candidates"], second["n_candidates"]])
         return out, tried, src_stats, dst_stats
 
-    def _register(self, src, dst, src_stats, dst_stats, src_ids, dst_ids, window, timings) -> dict:
+    def _register(self, src, dst, src_stats, dst_stats, src_ids, dst_ids, window, timings, view) -> dict:
         """Initialise, register, check and associate candidate pairs; the chosen ones as arrays."""
         cfg = self.cfg
         n = len(src_ids)
         clouds = [(src_stats.points(src, s), dst_stats.points(dst, d)) for s, d in zip(src_ids, dst_ids)]
-        tried = self._register_clouds(clouds, src_stats.centroid[src_ids], window, timings)
+        tried = self._register_clouds(clouds, src_stats.centroid[src_ids], window, timings, view=view)
         tic = time.perf_counter()
         chosen = association.associate(
             src_ids, dst_ids, tried["errors"], tried["passed"], method=cfg.association.method
@@ -360,9 +374,12 @@ class ICPFlow:
             },
         }
 
-    def _register_clouds(self, clouds, src_centroids, window, timings, max_points: int | None = None) -> dict:
+    def _register_clouds(
+        self, clouds, src_centroids, window, timings, max_points: int | None = None, view: ScanView | None = None
+    ) -> dict:
         """Steps 5 to 7 for P candidate pairs ``clouds`` ((src (Ns, 3), dst (Nd, 3)), pc1's frame) with their
-        source centroids (P, 3), ICP on at most ``max_points`` per cluster if given (else ``icp.max_points``):
+        source centroids (P, 3), ICP on at most ``max_points`` per cluster if given (else ``icp.max_points``),
+        ``view`` pc1's ``ScanView`` for the static test (``_prefer_static``):
         ``init`` (P, 3) start translations, ``transforms`` (P, 4, 4), ``errors``,
         ``symmetric_errors`` (``registration.RegistrationResult``), ``iou_ratios``, ``match_confidence`` (P,),
         ``passed`` (P,) bool."""
@@ -395,7 +412,7 @@ class ICPFlow:
         )
         result = registration.register_clusters(clouds, inits, icp, cfg.seed, identity=icp.static_tolerance > 0)
         if icp.static_tolerance > 0:
-            _prefer_static(result, clouds, icp, cfg.seed)
+            _prefer_static(result, clouds, icp, cfg.seed, view)
         ok = checks.passes(
             result.transforms,
             result.mean_error,
