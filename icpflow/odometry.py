@@ -28,6 +28,8 @@ this scan within twice the voxel). Under ``min_fitness`` the step is estimated a
 track); if that fits under ``LOST_FITNESS`` too (another place: 0.03-0.18 on spliced synthetic drives, where the
 correct steps of the hardest drives fit 0.42-0.44), the step has no estimate (``OdometryStep.ego1_from_ego0`` None),
 never a silent wrong pose.
+Whether the scans fix the step: its normal spread (:func:`normal_spread`, ``OdometryStep.spread``); under
+:data:`MIN_SPREAD` the step is ``unfixed`` and its callers say so in one line.
 
 Settings: the ``ego_motion`` block (``icpflow.teacher.config.EgoMotionConfig``: KISS-ICP's voxel and range), or a
 ``Preprocessing`` or teacher config holding it (:func:`ego_settings`). Measured: BENCHMARKS.md, "One odometry"
@@ -89,6 +91,8 @@ RETRY_FIT, RETRY_JUMP = 0.45, 0.5
 #: a pair's normal spread (:func:`normal_spread`) under this: the scans' surfaces leave the motion along one direction
 #: unfixed (a corridor of two parallel walls; real scans lie far above it, BENCHMARKS.md "The teacher on real points")
 MIN_SPREAD = 0.02
+#: source points the spread is measured on (a 3 x 3 statistic: on KITTI 00 pairs within 0.02 of its value on 2,500)
+SPREAD_POINTS = 300
 
 
 def ego_settings(cfg) -> EgoMotionConfig:
@@ -187,11 +191,26 @@ class OdometryStep:
     scan's (None when the track is lost: no estimate for this pair); ``fitness``: the fraction of the previous scan's
     non-ground points (down-sampled) with a point of this scan within twice the voxel after the motion;
     ``restarted``: the track's own estimate fitted worse than ``min_fitness``, so the pair was estimated afresh from
-    the two scans and the track starts again from it."""
+    the two scans and the track starts again from it; ``spread``: :func:`normal_spread` at the estimate (None without
+    the refinement)."""
 
     ego1_from_ego0: np.ndarray | None
     fitness: float
     restarted: bool = False
+    spread: float | None = None
+
+    @property
+    def unfixed(self) -> bool:
+        """The scans' surfaces leave the motion along one direction unfixed (spread under :data:`MIN_SPREAD`): the
+        estimate may be wrong along it."""
+        return self.spread is not None and self.spread < MIN_SPREAD
+
+    def unfixed_warning(self) -> str:
+        """The one line that says so (for a caller that found ``unfixed``)."""
+        return (
+            f"the scans' surfaces do not fix the ego motion along one direction (normal spread {self.spread:.3f} < "
+            f"{MIN_SPREAD}: a corridor, a single wall): it may be wrong; pass the poses if they are known"
+        )
 
 
 @dataclasses.dataclass
@@ -285,7 +304,7 @@ class Odometry:
             self._last_match = self._match(previous, current, transform)
         fitness = self._last_match[0]
         if fitness >= self.min_fitness:
-            return OdometryStep(transform, fitness)
+            return OdometryStep(transform, fitness, spread=self._spread(previous, current, transform))
         if self._steps > 1:  # the two scans alone, a new track from this pair
             self._kiss = kiss_odometry(self.settings, self.kiss_threads())
             self._kiss.register_frame(previous.kept, np.zeros(0))
@@ -296,7 +315,7 @@ class Odometry:
             self._last_match = self._match(previous, current, transform)  # the new track's yardstick
             fitness = self._last_match[0]
         if fitness >= LOST_FITNESS:
-            return OdometryStep(transform, fitness, restarted=True)
+            return OdometryStep(transform, fitness, True, self._spread(previous, current, transform))
         self.reset()
         self.step(points, ground)  # this scan starts the new track
         return OdometryStep(None, fitness, restarted=True)
@@ -311,13 +330,12 @@ class Odometry:
         return _staged(source, current.planes(), transform, ((2 * self.voxel, TUKEY, ITERATIONS),))
 
     def _spread(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> float | None:
-        """:func:`normal_spread` of the previous whole scan (``SOURCE_POINTS`` of it) moved by ``transform`` onto this
-        one; None without the refinement (KISS-ICP alone) or points. Measured for a lone pair only
-        (:func:`estimate_ego_motion`): a drive's step would take about twice as long with it."""
+        """:func:`normal_spread` of the previous whole scan (``SPREAD_POINTS`` of it) moved by ``transform`` onto this
+        one; None without the refinement (KISS-ICP alone) or points."""
         if not self.refine or not len(previous.source.points) or not len(current.cloud.points):
             return None
         source = previous.whole_cloud()
-        return normal_spread(source[:: max(1, len(source) // SOURCE_POINTS)], current.planes(), transform)
+        return normal_spread(source[:: max(1, len(source) // SPREAD_POINTS)], current.planes(), transform)
 
     def _match(self, previous: _Scan, current: _Scan, transform: np.ndarray) -> tuple[float, float]:
         """(fitness, tight share) of ``transform``: the fitness (module docstring) is the share of the previous
@@ -445,25 +463,23 @@ def _kiss_registration(points0: np.ndarray, points1: np.ndarray, cfg, threads: i
 
 def estimate_ego_motion(pc0: np.ndarray, pc1: np.ndarray, cfg, ground0=None, ground1=None) -> np.ndarray | None:
     """(4, 4) float64 ``ego1_from_ego0`` of the scans (N0, 3) and (N1, 3) (their (N,) bool ground masks left out
-    where given): a two-scan sequence of :class:`Odometry`. The identity if either has fewer than
-    ``MIN_EGO_POINTS`` points; None if no estimate fits (the scans do not overlap). Where the scans' surfaces leave
-    a direction unfixed (:data:`MIN_SPREAD`: a corridor, a single wall) the estimate comes with a one-line
-    ``UserWarning`` saying so."""
+    where given): a two-scan sequence of :class:`Odometry`. None if no estimate fits (the scans do not overlap).
+    The identity, with a one-line ``UserWarning``, if either has fewer than ``MIN_EGO_POINTS`` points; where the
+    scans' surfaces leave a direction unfixed (:attr:`OdometryStep.unfixed`) the estimate comes with one too."""
     if len(pc0) < MIN_EGO_POINTS or len(pc1) < MIN_EGO_POINTS:
+        text = (
+            f"estimate_ego_motion: a scan of {min(len(pc0), len(pc1))} points (fewer than {MIN_EGO_POINTS}) cannot "
+            "be registered: the identity is assumed; pass ego1_from_ego0 if it is known"
+        )
+        warnings.warn_explicit(text, UserWarning, "icpflow.odometry", 0)
         return np.eye(4)
     odometry = Odometry(cfg)
     odometry.step(pc0, ground0)
-    first = odometry._previous
     step = odometry.step(pc1, ground1)
     if step.ego1_from_ego0 is None:
         return None
-    spread = odometry._spread(first, odometry._previous, step.ego1_from_ego0)
-    if spread is not None and spread < MIN_SPREAD:
-        text = (
-            f"estimate_ego_motion: the scans' surfaces do not fix the motion along one direction (normal spread "
-            f"{spread:.3f} < {MIN_SPREAD}): the ego motion may be wrong; pass ego1_from_ego0 if it is known"
-        )
-        warnings.warn_explicit(text, UserWarning, "icpflow.odometry", 0)
+    if step.unfixed:
+        warnings.warn_explicit(f"estimate_ego_motion: {step.unfixed_warning()}", UserWarning, "icpflow.odometry", 0)
     return step.ego1_from_ego0
 
 

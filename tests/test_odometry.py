@@ -12,7 +12,7 @@ from icpflow.odometry import NORMAL_NEIGHBOURS, Odometry, TargetPlanes, estimate
 from icpflow.open3d_loader import load_open3d
 from icpflow.teacher.config import ICPFlowConfig
 
-from helpers.drives import synthetic_drive
+from helpers.drives import corridor, synthetic_drive
 
 EGO = ICPFlowConfig.preset("waymo").ego_motion
 
@@ -274,19 +274,6 @@ def test_kiss_icp_takes_the_callers_thread_limit(moving, monkeypatch):
     np.testing.assert_allclose(limited, free, atol=1e-9)
 
 
-def _corridor(seed: int, shift: float = 0.0) -> np.ndarray:
-    """Two parallel walls 6 m apart, 40 m long and 3 m high, as a scan would see them (x forward), moved back by
-    ``shift`` m: nothing in them fixes the motion along x."""
-    rng = np.random.default_rng(seed)
-    walls = [
-        np.column_stack([rng.uniform(-20, 20, 15000), np.full(15000, side) + rng.normal(0, 0.01, 15000)])
-        for side in (-3.0, 3.0)
-    ]
-    points = np.concatenate([np.column_stack([w, rng.uniform(0.2, 3.0, len(w))]) for w in walls])
-    points[:, 0] -= shift
-    return points.astype(np.float32)
-
-
 def test_surfaces_that_leave_a_direction_free_are_said_in_one_line_and_real_ones_are_not(moving):
     import warnings
 
@@ -294,7 +281,34 @@ def test_surfaces_that_leave_a_direction_free_are_said_in_one_line_and_real_ones
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message="estimate_ego_motion")  # the synthetic world: every direction fixed
         estimate_ego_motion(pairs[0].pc0, pairs[0].pc1, EGO, pairs[0].ground0, pairs[0].ground1)
-    unfixed = r"^estimate_ego_motion: the scans' surfaces do not fix the motion along one direction \(normal spread"
+    unfixed = r"^estimate_ego_motion: the scans' surfaces do not fix the ego motion along one direction \(normal"
     with pytest.warns(UserWarning, match=unfixed) as caught:
-        estimate_ego_motion(_corridor(0), _corridor(1, shift=0.8), EGO)
+        estimate_ego_motion(corridor(0), corridor(1, shift=0.8), EGO)
     assert "\n" not in str(caught[0].message)
+
+
+def test_a_drive_says_which_steps_its_surfaces_leave_unfixed_and_a_tiny_scan_is_said(tmp_path, caplog):
+    """Each step of a drive measures its normal spread: ``label.py``'s trajectory of a drive down a corridor logs one
+    line per such step naming its scans; a lone pair with a scan too small to register says the identity is
+    assumed."""
+    from icpflow.datasets.sequence import ScanSequenceDataset
+    from icpflow.labelling.job import LabelJob
+    from icpflow.labelling.trajectory import drive_trajectory
+
+    odometry = Odometry(EGO)
+    odometry.step(corridor(0))
+    steps = [odometry.step(corridor(k, shift=0.8 * k)) for k in (1, 2)]
+    assert all(step.unfixed and step.spread < 0.02 for step in steps)
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for k in range(3):
+        np.save(folder / f"{k}.npy", corridor(k, shift=0.8 * k))
+    teacher = ICPFlowConfig.preset("waymo")
+    job = LabelJob(ScanSequenceDataset(folder, sensor_height=0.0), teacher, tmp_path / "labels", "x")
+    job.out_dir.mkdir()
+    with caplog.at_level("WARNING", logger="label"):
+        drive_trajectory(job, progress=False)
+    said = [record.getMessage() for record in caplog.records]
+    assert len(said) == 2 and said[0].startswith("1.npy: from 0.npy, the scans' surfaces do not fix"), said
+    with pytest.warns(UserWarning, match=r"^estimate_ego_motion: a scan of 50 points \(fewer than 100\) cannot"):
+        assert np.array_equal(estimate_ego_motion(corridor(0)[:50], corridor(1), EGO), np.eye(4))

@@ -22,7 +22,7 @@ from icpflow.geometry import invert
 from icpflow.threads import available_cores
 
 from helpers.disk import fail_fsync_after
-from helpers.drives import synthetic_drive
+from helpers.drives import corridor, synthetic_drive
 
 
 @pytest.fixture(scope="module")
@@ -109,6 +109,16 @@ def test_a_scan_with_too_few_points_gets_ego_only_flow_and_a_warning(tiny_studen
         assert step.prediction.ego_assumed and np.array_equal(step.prediction.ego1_from_ego0, np.eye(4))
         assert not step.prediction.in_grid.any() and not step.prediction.flow.any()
     assert steps[2].restarted and steps[2].prediction.ego_estimated  # then a new track
+
+
+def test_a_step_whose_surfaces_leave_a_direction_unfixed_is_said(tiny_student):
+    """A drive down a corridor (two parallel walls): each pair's ego motion comes with one line saying that the walls
+    do not fix it along one direction."""
+    scans = [corridor(k, shift=0.8 * k) for k in range(3)]
+    steps, said = _pushed(FlowStream(Predictor.load(tiny_student)), scans, sources=["c0", "c1", "c2"])
+    assert [line.split(":")[1].strip() for line in said] == ["c1", "c2"], said
+    assert all("do not fix the ego motion along one direction" in line for line in said)
+    assert steps[1].prediction is not None
 
 
 def test_splicing_two_places_is_a_lost_track_without_flow(tiny_student, moving, other_place):

@@ -158,8 +158,8 @@ def test_defaults_and_presets_are_the_previous_releases():
     """Every setting the teacher used before the blocks keeps its value, defaults and presets alike (the
     histogram vote's points included: 1000 by default, 300 for av2, as the pipeline read them), but for the steps
     added since: issue 30's for long vehicles, issue 42's ground that keeps moving objects (``ground.method``
-    ``local``; the older ``both`` is named in every stored form) and the plane test of static matches
-    (``icp.plane_gain``)."""
+    ``local``; the older ``both`` is named in every stored form), the plane test of static matches
+    (``icp.plane_gain``) and the twin check (``checks.max_twin_share``)."""
     assert _quiet(lambda: ICPFlowConfig.from_dict(OLD_DEFAULTS, warn=False)) == ICPFlowConfig(
         ground={**ICPFlowConfig().to_dict()["ground"], "method": "both"}
     )
@@ -172,6 +172,7 @@ def test_defaults_and_presets_are_the_previous_releases():
                 merging={"distance": 0.0, "static_iou": 0.0},
                 ground={"method": "both"},
                 icp={"plane_gain": 0.0},
+                checks={"max_twin_share": 1.0},
             )
         )
         assert ICPFlowConfig.preset(name).ground.method == "local"
@@ -440,7 +441,7 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
         stored = yaml.safe_load(handle.attrs["config"])["teacher"]
     rebuilt = _quiet(lambda: ICPFlowConfig.from_dict(stored, warn=False))
     # as those labels were made: without the steps a later release added (issue 30's and the plane test, off by
-    # their defaults; the ground they named, not issue 42's)
+    # their defaults, as the twin check; the ground they named, not issue 42's)
     assert rebuilt == ICPFlowConfig.preset(
         "waymo",
         ground={"sensor_height": 1.9, "method": "both"},
@@ -448,6 +449,7 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
         histogram={"axis_min_extent": 0.0},
         merging={"distance": 0.0, "static_iou": 0.0},
         icp={"plane_gain": 0.0},
+        checks={"max_twin_share": 1.0},
     )
 
 

@@ -294,6 +294,8 @@ class FlowStream:
             return _Staged(StreamStep(None, source, previous.source, None, step.fitness, True))
         if step.restarted and not forced:
             self._warn(f"{source or 'scan'}: the odometry lost track and restarted (fitness {step.fitness:.2f})")
+        if step.unfixed:
+            self._warn(f"{source or 'scan'}: {step.unfixed_warning()}")
         ego, lift = step.ego1_from_ego0, float(self.lift)
         pair = self.predictor.network_input((previous.lifted, lifted), ego, previous.ground, ground)
         self._pose = self._pose @ np.linalg.inv(scans_frame_ego(ego, lift))

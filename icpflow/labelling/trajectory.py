@@ -107,6 +107,8 @@ def drive_trajectory(job, progress: bool = True) -> dict | None:
                         if step.restarted:
                             log.warning(f"{names[scan]}: the odometry lost track and started again from this pair "
                                         f"(fitness {step.fitness:.2f})")  # fmt: skip
+                        if step.unfixed:
+                            log.warning(f"{names[scan]}: from {names[scan - 1]}, {step.unfixed_warning()}")
                 bar.update(scan - done)
                 done = scan
                 if done % SAVE_EVERY == 0:

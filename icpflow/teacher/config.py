@@ -170,6 +170,10 @@ class ChecksConfig(_Checked):
     min_iou: float = setting(0.2, "fraction")
     max_roll_pitch_deg: float = setting(9.0, "positive")
     max_error: float = setting(0.3, "positive")  # also the error at which the confidence reaches 0 (step 10)
+    # a moving candidate fails where more than this share of its points, where they stand, have a point of another
+    # pc1 cluster within 0.2 m (pipeline._twin_shares): its own static twin is still there, so it was matched to a
+    # different object; 1.0 = off (the reference)
+    max_twin_share: float = setting(1.0, "fraction")
 
 
 @dataclass(frozen=True)
@@ -368,7 +372,7 @@ PRESETS: dict[str, dict] = {
         clustering=dict(min_cluster_size=30, max_clusters=200, epsilon=0.25),
         pairing=dict(speed=1.67, extent_ratio=0.1),
         icp=dict(max_corr=0.1, max_points=10000, static_tolerance=0.25, plane_gain=1.0),
-        checks=dict(max_error=0.3, min_iou=0.2),
+        checks=dict(max_error=0.3, min_iou=0.2, max_twin_share=0.5),
         **LONG_VEHICLES,
     ),
     # nuScenes at 20 Hz: 0.833 m per 0.05 s frame, i.e. the same 16.7 m/s as Waymo per frame of its own.
@@ -378,7 +382,7 @@ PRESETS: dict[str, dict] = {
         clustering=dict(min_cluster_size=20, max_clusters=200, epsilon=0.25),
         pairing=dict(speed=0.833333, extent_ratio=0.1),
         icp=dict(max_corr=0.1, max_points=5000, static_tolerance=0.25, plane_gain=1.0),
-        checks=dict(max_error=0.2, min_iou=0.2),
+        checks=dict(max_error=0.2, min_iou=0.2, max_twin_share=0.5),
         **LONG_VEHICLES,
     ),
     # AV2: the reference disables the z threshold (range_z -10000, slack 0); ground comes from the map or
@@ -403,7 +407,7 @@ PRESETS: dict[str, dict] = {
         histogram=dict(max_points=300, **LONG_VEHICLES["histogram"]),
         icp=dict(max_corr=0.1, max_points=10000, static_tolerance=0.25, plane_gain=1.0),
         deskew=dict(enabled=True),
-        checks=dict(max_error=0.2, min_iou=0.2),
+        checks=dict(max_error=0.2, min_iou=0.2, max_twin_share=0.5),
         flow=dict(absorb_radius=0.5),
         merging=LONG_VEHICLES["merging"],
     ),
