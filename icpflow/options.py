@@ -41,11 +41,25 @@ class RayOptions:
 
 
 @dataclass
+class LabellerOptions:
+    """``conf/labeller/<name>.yaml``: what labels the samples. ``teacher``: the ICP-Flow teacher; any other names a
+    ``_target_`` class built with the block's other fields (``icpflow.labelling.labeller``), e.g. a student export
+    with the refinement (``conf/labeller/student.yaml``)."""
+
+    name: str = "teacher"
+    _target_: str | None = None
+    checkpoint: str | None = None
+    refine: bool = True
+    precision: str = setting("auto", choices=("auto", "f32", "bf16", "int8"))
+
+
+@dataclass
 class LabelOptions:
     """``label.py`` (``conf/label.yaml``)."""
 
     dataset: DatasetOptions = MISSING
     icpflow: TeacherOverrides = MISSING
+    labeller: LabellerOptions = field(default_factory=LabellerOptions)
     split: str = MISSING
     workers: int | None = setting(None, "count")
     out_dir: str = MISSING

@@ -19,6 +19,7 @@ from icpflow.datasets.from_config import dataset_root, open_dataset
 from icpflow.entry_points import hydra_entry
 from icpflow.errors_and_signals import Stop, one_line, reported, stop_on_signals, stop_signum
 from icpflow.labelling.job import LabelError, LabelJob
+from icpflow.labelling.labeller import identity
 from icpflow.labelling.plan import plan_shards
 from icpflow.labelling.run import run_labelling
 from icpflow.options import register
@@ -32,10 +33,11 @@ from icpflow.threads import available_cores
 SHOWN_FAILURES = 10
 
 
-def labeller_yaml(cfg: DictConfig, teacher) -> str:
+def labeller_yaml(cfg: DictConfig, teacher, labeller: dict | None = None) -> str:
     """The config that identifies a run (hashed): which samples are read (dataset reader, its absolute root,
-    split), the teacher fields, horizon, tracker and shard size. Workers, runner, limit, the job split and
-    compression change neither the samples nor the labels and are left out."""
+    split), the teacher fields, horizon, tracker and shard size, and a labeller other than the teacher
+    (``icpflow.labelling.labeller.identity``: its block, checkpoint and the checkpoint's hash). Workers, runner,
+    limit, the job split and compression change neither the samples nor the labels and are left out."""
     reader = OmegaConf.to_container(cfg.dataset.reader, resolve=True)
     reader.pop("root", None)
     content = {
@@ -47,6 +49,8 @@ def labeller_yaml(cfg: DictConfig, teacher) -> str:
         "tracker": bool(cfg.tracker),
         "shard_size": int(cfg.shard_size),
     }
+    if labeller is not None:  # absent for the teacher: the runs made before labellers keep their hash
+        content["labeller"] = labeller
     return OmegaConf.to_yaml(OmegaConf.create(content), sort_keys=True)
 
 
@@ -76,16 +80,20 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
                     f"horizon={horizon} exceeds the teacher's max_frame_gap {teacher.pairing.max_frame_gap} "
                     f"(icpflow.pairing.max_frame_gap=...)"
                 )
+            labeller = identity(OmegaConf.to_container(cfg.labeller, resolve=True))
+            if labeller is not None and (horizon != 1 or cfg.tracker):
+                raise LabelError(f"labeller={labeller['name']} labels pairs one frame apart: horizon=1, tracker=false")
             dataset = open_dataset(cfg, horizon)
             workers = int(cfg.workers) if cfg.workers else available_cores()
             job = LabelJob(
                 dataset,
                 teacher,
                 Path(cfg.out_dir),
-                labeller_yaml(cfg, teacher),
+                labeller_yaml(cfg, teacher, labeller),
                 horizon,
                 bool(cfg.tracker),
                 compression,
+                labeller,
             )
             plan = plan_shards(len(dataset), int(cfg.shard_size), cfg.limit, int(cfg.shard_index), int(cfg.num_shards))
             ensure_compiled("label")  # once per environment, here rather than in every worker's first sample

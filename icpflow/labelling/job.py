@@ -20,7 +20,8 @@ class LabelError(RuntimeError):
 
 @dataclass
 class LabelJob:
-    """Everything a worker needs to label a sample (picklable): dataset, teacher config and output settings."""
+    """Everything a worker needs to label a sample (picklable): dataset, teacher config, output settings and the
+    ``labeller`` (None: the teacher; else its spec, ``icpflow.labelling.labeller.identity``)."""
 
     dataset: object
     teacher_cfg: object
@@ -29,6 +30,7 @@ class LabelJob:
     horizon: int = 1
     tracker: bool = False
     compression: str | None = None
+    labeller: dict | None = None
     hash: str = field(init=False)
 
     def __post_init__(self):

@@ -10,6 +10,7 @@ import numpy as np
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.errors_and_signals import Stop
 from icpflow.frames import FramePairError
+from icpflow.labelling.labeller import build_labeller
 from icpflow.teacher.long_horizon import SampleFlow, teacher_on_sample
 from icpflow.threads import thread_limit
 
@@ -64,7 +65,7 @@ def check_finite_labels(labels: SampleFlow) -> None:
         if not np.isfinite(value).all()
     ]
     if bad:
-        raise NonFiniteLabels(f"the teacher's labels are not finite: {', '.join(bad)}")
+        raise NonFiniteLabels(f"the labeller's labels are not finite: {', '.join(bad)}")
 
 
 def failure_record(dataset, index: int, pair, error: Exception) -> dict:
@@ -79,16 +80,21 @@ def failure_record(dataset, index: int, pair, error: Exception) -> dict:
 
 
 def label_sample(job, index: int, threads: int) -> dict:
-    """Label sample ``index`` of ``job`` with the teacher on at most ``threads`` threads (numba, BLAS, hdbscan's
-    n_jobs). Returns ``{"index", "seconds", "sample": shard rows}`` or, when the reader or the teacher raises,
-    ``{"index", "seconds", "failure": record}`` (:func:`failure_record`): a bad sample is not fatal."""
+    """Label sample ``index`` of ``job`` with its labeller (the teacher, or ``job.labeller``'s) on at most
+    ``threads`` threads (numba, BLAS, hdbscan's n_jobs, torch). Returns ``{"index", "seconds", "sample": shard
+    rows}`` or, when the reader or the labeller raises, ``{"index", "seconds", "failure": record}``
+    (:func:`failure_record`): a bad sample is not fatal."""
     start = time.perf_counter()
-    teacher = build_teacher(job.teacher_cfg, threads)
     pair = None
     try:
-        with thread_limit(threads, torch_too=job.teacher_cfg.icp.backend == "torch"):
+        torch_too = job.labeller is not None or job.teacher_cfg.icp.backend == "torch"
+        with thread_limit(threads, torch_too=torch_too):
             pair = job.dataset.pair(index, horizon=job.horizon)
-            labels = teacher_on_sample(teacher, job.dataset, index, pair, job.horizon, job.tracker)
+            if job.labeller is None:
+                teacher = build_teacher(job.teacher_cfg, threads)
+                labels = teacher_on_sample(teacher, job.dataset, index, pair, job.horizon, job.tracker)
+            else:
+                labels = build_labeller(job.labeller, threads)(job.dataset, index, pair, job.horizon)
         check_finite_labels(labels)
         outcome = {"sample": shard_rows(job.dataset, index, pair, labels)}
     except Exception as error:  # any reader or teacher failure skips this sample only
