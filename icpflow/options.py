@@ -51,6 +51,7 @@ class LabellerOptions:
     checkpoint: str | None = None
     refine: bool = True
     precision: str = setting("auto", choices=("auto", "f32", "bf16", "int8"))
+    agree: float | None = setting(None, "positive")  # agreement's: m within which the teacher's flow is kept
 
 
 @dataclass

@@ -56,3 +56,28 @@ def test_the_teachers_runs_keep_their_config_and_a_bad_labeller_is_one_line(refe
         assert label(label_cfg(tmp_path / "labels", "labeller=student", *overrides), progress=False) == 2
         err = capsys.readouterr().err.strip()
         assert words in err and "\n" not in err, err
+
+
+def test_the_agreement_keeps_the_teachers_flow_where_the_student_agrees_and_the_students_elsewhere(
+    tiny_student, reference, tmp_path
+):
+    """``labeller=agreement``: per point, the teacher's labels where the refined student lies within ``agree`` m of
+    them, the student's elsewhere; ``agree`` huge gives the teacher's labels exactly."""
+    out, everything = tmp_path / "agreement", tmp_path / "teacher"
+    common = ("labeller=agreement", f"labeller.checkpoint={tiny_student}", "limit=2")
+    assert label(label_cfg(out, *common, "labeller.agree=0.05"), progress=False) == 0
+    assert label(label_cfg(everything, *common, "labeller.agree=1000"), progress=False) == 0
+    assert yaml.safe_load((out / "config.yaml").read_text())["labeller"]["agree"] == 0.05
+    student = Predictor.load(tiny_student, refine=True)
+    taught, data = read_samples(reference), SyntheticDataset(**READER)
+    mixed = 0
+    for index, (got, whole) in enumerate(zip(read_samples(out), read_samples(everything))):
+        for key in ("flow", "confidence", "cluster", "ground0", "ground1"):
+            np.testing.assert_array_equal(whole[key], taught[index][key])  # the teacher's labels
+        pair = data.pair(index)
+        want = student.predict(pair.pc0, pair.pc1, pair.ego1_from_ego0, pair.ground0, pair.ground1).flow
+        agree = np.linalg.norm(taught[index]["flow"] - want, axis=1) < 0.05
+        np.testing.assert_array_equal(got["flow"][agree], taught[index]["flow"][agree])
+        np.testing.assert_allclose(got["flow"][~agree], want[~agree], atol=1e-6)
+        mixed += int(agree.any() and (~agree).any())
+    assert mixed == 2

@@ -4,8 +4,9 @@ A labeller is built once per process from its spec (:func:`build_labeller`; the 
 dict: ``conf/labeller/``) and called per sample as ``labeller(dataset, index, pair, horizon, threads)``, returning the
 sample's labels (``icpflow.teacher.long_horizon.SampleFlow``: full flow in the ego frame of t + horizon, confidence,
 ego motion, cluster ids, ground masks). ``teacher`` is the ICP-Flow teacher of the job's config; any other spec
-names its class by ``_target_`` (``fastflow3d.inference.labeller.StudentLabeller``: a student export with the
-refinement), built with the block's other fields. The labeller's identity (its spec and, for a checkpoint, the hash
+names its class by ``_target_`` (``fastflow3d.inference.labeller``: a student export with the refinement, or the
+teacher and a student in agreement), built with the block's other fields, the thread count and the job's teacher
+config. The labeller's identity (its spec and, for a checkpoint, the hash
 of its files: :func:`identity`) enters the run's config, so the shards record which labeller made them and a rerun
 with another one is refused as another config.
 """
@@ -43,11 +44,11 @@ def files_hash(path: Path) -> str:
 
 def identity(spec: dict | None) -> dict | None:
     """What identifies a labeller in a run's config: None for the teacher (its settings are the config's ``teacher``
-    block), else the spec with its ``checkpoint`` made absolute and the checkpoint's ``sha256``
+    block), else the spec's set fields with its ``checkpoint`` made absolute and the checkpoint's ``sha256``
     (:func:`files_hash`). Raises ``ValueError`` (one line) for a spec without ``_target_`` or a missing checkpoint."""
     if is_teacher(spec):
         return None
-    spec = dict(spec)
+    spec = {key: value for key, value in spec.items() if value is not None}  # the fields another labeller has
     if not spec.get("_target_"):
         raise ValueError(f"labeller {spec.get('name')!r}: no _target_ names the class that labels")
     if spec.get("checkpoint") is not None:
@@ -58,15 +59,19 @@ def identity(spec: dict | None) -> dict | None:
     return spec
 
 
-def build_labeller(spec: dict, threads: int):
+def build_labeller(spec: dict, threads: int, teacher):
     """The labeller of a non-teacher ``spec`` (:func:`identity`'s form): its ``_target_`` class built with the
-    other fields and ``threads``; one per process, spec and thread count (a student loads its network once)."""
-    return _built(json.dumps(spec, sort_keys=True), int(threads))
+    other fields, ``threads`` and the run's ``teacher`` config (an ``ICPFlowConfig``: a labeller that runs the
+    teacher too takes it); one per process, spec, thread count and teacher (a student loads its network once)."""
+    return _built(json.dumps(spec, sort_keys=True), int(threads), json.dumps(teacher.to_dict(), sort_keys=True))
 
 
 @functools.lru_cache(maxsize=2)
-def _built(text: str, threads: int):
+def _built(text: str, threads: int, teacher: str):
+    from icpflow.teacher.config import ICPFlowConfig
+
     spec = json.loads(text)
     module, _, name = spec["_target_"].rpartition(".")
     options = {key: value for key, value in spec.items() if key not in (*SPEC_KEYS, "sha256")}
-    return getattr(importlib.import_module(module), name)(**options, threads=threads)
+    cls = getattr(importlib.import_module(module), name)
+    return cls(**options, threads=threads, teacher=ICPFlowConfig.from_dict(json.loads(teacher), warn=False))

@@ -94,7 +94,7 @@ def label_sample(job, index: int, threads: int) -> dict:
                 teacher = build_teacher(job.teacher_cfg, threads)
                 labels = teacher_on_sample(teacher, job.dataset, index, pair, job.horizon, job.tracker)
             else:
-                labels = build_labeller(job.labeller, threads)(job.dataset, index, pair, job.horizon)
+                labels = build_labeller(job.labeller, threads, job.teacher_cfg)(job.dataset, index, pair, job.horizon)
         check_finite_labels(labels)
         outcome = {"sample": shard_rows(job.dataset, index, pair, labels)}
     except Exception as error:  # any reader or teacher failure skips this sample only
