@@ -45,10 +45,12 @@ def test_the_labeller_fails_a_sample_whose_labels_are_not_finite(pairs, monkeypa
     )
     monkeypatch.setattr(labelling_sample, "teacher_on_sample", lambda *args: labels)
     dataset = SimpleNamespace(pair=lambda index, horizon: pair, sample_id=lambda index: "s0")
-    job = SimpleNamespace(dataset=dataset, teacher_cfg=ICPFlowConfig.preset("waymo"), horizon=1, tracker=False)
+    job = SimpleNamespace(
+        dataset=dataset, teacher_cfg=ICPFlowConfig.preset("waymo"), horizon=1, tracker=False, labeller=None
+    )
     outcome = labelling_sample.label_sample(job, 0, 1)
     assert "sample" not in outcome
-    assert outcome["failure"]["reason"] == "NonFiniteLabels: the teacher's labels are not finite: flow (15 values)"
+    assert outcome["failure"]["reason"] == "NonFiniteLabels: the labeller's labels are not finite: flow (15 values)"
 
 
 def test_training_stops_at_the_first_non_finite_loss_naming_step_and_samples(pairs, tmp_path, monkeypatch):
