@@ -148,39 +148,33 @@ def _in_view(cloud: tuple[np.ndarray, np.ndarray], view: ScanView | None) -> tup
     return (src[seen], dst) if seen.sum() >= 3 else cloud
 
 
-class _Twins:
-    """pc1's clusters, for :meth:`shares`: ``dst`` (M, 3) pc1's non-ground points and their ``ClusterStats``."""
+def _twin_shares(dst, dst_stats, clouds, dst_ids, transforms, ask, radius: float = 0.2) -> np.ndarray:
+    """(P,) for P candidates (src points ``clouds[p][0]``, dst cluster ``dst_ids[p]``, ``transforms`` (P, 4, 4))
+    where ``ask`` (P,) bool, with ``dst`` (M, 3) pc1's non-ground points and their ``ClusterStats``: the share of
+    the src points that, where they stand (pc1's frame, ego-compensated), have a point of a pc1 cluster other than
+    the candidate's dst within ``radius`` m; 0 elsewhere and for a pair that keeps the identity. A real mover leaves
+    its place empty or to its own next points; a static object matched to a neighbour (a row of poles, a parked car
+    beside another) finds its own next points, labelled otherwise, still where it stands. Only the clusters whose
+    boxes reach the src's are searched."""
+    from scipy.spatial import cKDTree
 
-    def __init__(self, dst: np.ndarray, stats):
-        self.dst, self.stats = dst, stats
-
-    def shares(self, clouds, dst_ids, transforms, ask, radius: float = 0.2) -> np.ndarray:
-        """(P,) for P candidates (src points ``clouds[p][0]``, dst cluster ``dst_ids[p]``, ``transforms`` (P, 4,
-        4)) where ``ask`` (P,) bool: the share of the src points that, where they stand (pc1's frame,
-        ego-compensated), have a point of a pc1 cluster other than the candidate's dst within ``radius`` m; 0
-        elsewhere and for a pair that keeps the identity. A real mover leaves its place empty or to its own next
-        points; a static object matched to a neighbour (a row of poles, a parked car beside another) finds its own
-        next points, labelled otherwise, still where it stands. Only the clusters whose boxes reach the src's are
-        searched."""
-        from scipy.spatial import cKDTree
-
-        shares = np.zeros(len(dst_ids))
-        moves = np.abs(transforms - np.eye(4)).reshape(len(transforms), -1).max(axis=1, initial=0.0) > 0
-        present = np.flatnonzero(self.stats.count > 0)
-        for p in np.flatnonzero(moves & ask):
-            points = clouds[p][0]
-            if not len(points):
-                continue
-            low, high = points.min(axis=0) - radius, points.max(axis=0) + radius
-            reach = (self.stats.lower[present] <= high).all(axis=1) & (self.stats.upper[present] >= low).all(axis=1)
-            others = [label for label in present[reach] if label != dst_ids[p]]
-            if not others:
-                continue
-            distance, _ = cKDTree(np.concatenate([self.stats.points(self.dst, label) for label in others])).query(
-                points, distance_upper_bound=radius
-            )
-            shares[p] = float(np.isfinite(distance).mean())
-        return shares
+    shares = np.zeros(len(dst_ids))
+    moves = np.abs(transforms - np.eye(4)).reshape(len(transforms), -1).max(axis=1, initial=0.0) > 0
+    present = np.flatnonzero(dst_stats.count > 0)
+    for p in np.flatnonzero(moves & ask):
+        points = clouds[p][0]
+        if not len(points):
+            continue
+        low, high = points.min(axis=0) - radius, points.max(axis=0) + radius
+        reach = (dst_stats.lower[present] <= high).all(axis=1) & (dst_stats.upper[present] >= low).all(axis=1)
+        others = [label for label in present[reach] if label != dst_ids[p]]
+        if not others:
+            continue
+        distance, _ = cKDTree(np.concatenate([dst_stats.points(dst, label) for label in others])).query(
+            points, distance_upper_bound=radius
+        )
+        shares[p] = float(np.isfinite(distance).mean())
+    return shares
 
 
 class ICPFlow:
@@ -360,8 +354,7 @@ class ICPFlow:
         dst_stats = cluster_stats(dst, dst_labels, n_labels)
         s1, d1 = stage1_pairs(src_stats, dst_stats, window, cfg.pairing, cfg.clustering.min_cluster_size)
         timings["pairing"] += time.perf_counter() - tic
-        twins = _Twins(dst, dst_stats)
-        first = self._register(src, dst, src_stats, dst_stats, s1, d1, window, timings, view, twins)
+        first = self._register(src, dst, src_stats, dst_stats, s1, d1, window, timings, view)
 
         tic = time.perf_counter()
         src_free = np.ones(n_labels, dtype=bool)
@@ -372,7 +365,7 @@ class ICPFlow:
             src_stats, dst_stats, src_free, dst_free, window, cfg.pairing, cfg.clustering.min_cluster_size
         )
         timings["pairing"] += time.perf_counter() - tic
-        second = self._register(src, dst, src_stats, dst_stats, s2, d2, window, timings, view, twins)
+        second = self._register(src, dst, src_stats, dst_stats, s2, d2, window, timings, view)
 
         out = {key: np.concatenate([first[key], second[key]]) for key in first if key not in ("n_candidates", "tried")}
         out["stage"] = np.concatenate(
@@ -383,14 +376,14 @@ class ICPFlow:
         tried["stage"] = np.repeat(np.array([1, 2], np.int8), [first["n_candidates"], second["n_candidates"]])
         return out, tried, src_stats, dst_stats
 
-    def _register(self, src, dst, src_stats, dst_stats, src_ids, dst_ids, window, timings, view, twins) -> dict:
+    def _register(self, src, dst, src_stats, dst_stats, src_ids, dst_ids, window, timings, view) -> dict:
         """Initialise, register, check and associate candidate pairs; the chosen ones as arrays."""
         cfg = self.cfg
         n = len(src_ids)
         clouds = [(src_stats.points(src, s), dst_stats.points(dst, d)) for s, d in zip(src_ids, dst_ids)]
         tried = self._register_clouds(clouds, src_stats.centroid[src_ids], window, timings, view=view)
         if cfg.checks.max_twin_share < 1 and n:
-            shares = twins.shares(clouds, dst_ids, tried["transforms"], tried["passed"])
+            shares = _twin_shares(dst, dst_stats, clouds, dst_ids, tried["transforms"], tried["passed"])
             tried["passed"] &= shares <= cfg.checks.max_twin_share
         tic = time.perf_counter()
         chosen = association.associate(
