@@ -957,14 +957,15 @@ def test_infer_cli_sensor_height(export_dir, pairs, expected, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_model_options_export_with_parity_and_the_predictor_runs_them(pairs, tmp_path):
-    """The network's options beyond ZeroFlow's, both in one network (DeFlow's GRU decoder; the cost volume at two
-    levels): the export keeps parity and the Predictor and the CLI run it."""
+    """The network's options beyond ZeroFlow's, all in one network (DeFlow's GRU decoder; the cost volume at two
+    levels; the centroid shift at two windows): the export keeps parity and the Predictor and the CLI run it."""
     options = {
         "decoder": "gru",
         "gru_iterations": 2,
         "gru_channels": 8,
         "correlation_levels": [0, 2],
         "correlation_radius": 2,
+        "motion_windows": [1, 3],
     }
     pair = pairs[0]
     near0 = np.flatnonzero(np.abs(pair.pc0[:, :2]).max(axis=1) < NEAR)[:3000]

@@ -8,7 +8,7 @@ import torch
 import yaml
 from torch.export.passes import move_to_device_pass
 
-from fastflow3d.network.model import FastFlow3D, compensate, local_correlation
+from fastflow3d.network.model import FastFlow3D, centroid_shift, compensate, local_correlation, pillar_sums
 from fastflow3d.network.scatter import scatter_mean, scatter_sum
 from fastflow3d.network.voxelize import Grid, voxelize
 from fastflow3d.training.loss import flow_loss, object_loss, speed_weight
@@ -361,7 +361,7 @@ def test_gru_decoder_follows_the_gru_equations():
     pc0, b0 = flat_batch([torch.rand(50, 3) * scale - low])
     pc1, b1 = flat_batch([torch.rand(60, 3) * scale - low])
     with torch.no_grad():
-        image0, features0, ids0, valid0, embedding0 = model.embed(pc0, b0, 1)
+        image0, features0, ids0, valid0, embedding0, _ = model.embed(pc0, b0, 1)
         image1 = model.embed(pc1, b1, 1)[0]
         decoded = model.unet(image0, image1)
 
@@ -436,6 +436,60 @@ def test_correlation_is_an_option_and_off_is_zeroflows_network():
         both = model(pc0, b0, pc1, b1, 2)[0]
         alone = model(pc0[:300], b0[:300], pc1[:300], b1[:300], 1)[0]
     torch.testing.assert_close(alone, both[:300], atol=1e-5, rtol=0)
+
+
+def test_centroid_shift_is_the_clusters_sub_pillar_motion_and_zero_where_a_scan_is_empty():
+    grid = Grid(**SMALL)
+    gen = torch.Generator().manual_seed(5)
+    # a pedestrian-sized cluster inside one 0.5 m pillar, moved by (0.10, -0.05, 0.02) m: less than a pillar
+    cluster = torch.tensor([1.1, 2.1, 0.5]) + 0.2 * torch.rand(20, 3, generator=gen)
+    motion = torch.tensor([0.10, -0.05, 0.02])
+    far = torch.tensor([[-6.2, -6.2, 0.0]])  # a point of pc0 alone: nothing of pc1 within 3 x 3 pillars
+    pc0, pc1 = torch.cat([cluster, far]), cluster + motion
+    sums = []
+    for points in (pc0, pc1):
+        points, batch = flat_batch([points])
+        features, ids, valid = voxelize(points, batch, grid, 1)
+        slots = grid.nx * grid.ny + 1
+        sums.append(
+            pillar_sums(points, ids, valid, slots)[: slots - 1].reshape(1, grid.nx, grid.ny, 4).permute(0, 3, 1, 2)
+        )
+    shift = centroid_shift(*sums, (1, 3))
+    assert shift.shape == (1, 8, grid.nx, grid.ny)
+    ix, iy = int((1.2 + 8.0) // 0.5), int((2.2 + 8.0) // 0.5)  # the cluster's pillar
+    torch.testing.assert_close(shift[0, 0:3, ix, iy], motion, atol=1e-5, rtol=0)
+    torch.testing.assert_close(shift[0, 4:7, ix, iy], motion, atol=1e-5, rtol=0)
+    assert shift[0, 3, ix, iy] == 1 and shift[0, 7, ix, iy] == 1
+    fx, fy = int((-6.2 + 8.0) // 0.5), int((-6.2 + 8.0) // 0.5)
+    assert torch.all(shift[0, :, fx, fy] == 0)  # pc1 has no point there: no shift, and it says so
+    # the 3 x 3 window sees the cluster from a neighbouring (empty) pillar; the single pillar does not
+    assert torch.all(shift[0, 0:4, ix + 1, iy - 1] == 0)
+    torch.testing.assert_close(shift[0, 4:7, ix + 1, iy - 1], motion, atol=1e-5, rtol=0)
+    assert torch.all(shift[0, 4:, ix + 2, iy] == 0)  # two pillars away: outside the window
+
+
+def test_motion_windows_are_an_option_widening_only_the_decoders_first_layer():
+    plain = FastFlow3D(**SMALL_MODEL)
+    assert plain.motion_windows == ()
+    for bad in ([2], [0], [-1]):
+        with pytest.raises(ValueError, match="motion_windows must be odd sizes >= 1"):
+            FastFlow3D(**{**SMALL_MODEL, "motion_windows": bad})
+    for decoder, first in (("linear", "head.0.weight"), ("gru", "head.initial.weight")):
+        base = FastFlow3D(**{**SMALL_MODEL, "decoder": decoder})
+        model = FastFlow3D(**{**SMALL_MODEL, "decoder": decoder, "motion_windows": [1, 3]}).train()
+        shapes = {name: tuple(p.shape) for name, p in base.state_dict().items()}
+        changed = {name for name, p in model.state_dict().items() if shapes.get(name) != tuple(p.shape)}
+        assert changed == {first} and model.state_dict()[first].shape[1] == shapes[first][1] + 8
+        pc0, b0 = random_flat(300, 200, 31)
+        pc1, b1 = random_flat(300, 200, 32)
+        residual, valid = model(pc0, b0, pc1, b1, batch_size=2)
+        flow_loss(residual, torch.randn_like(residual), b0, valid, 2).backward()
+        assert [n for n, p in model.named_parameters() if p.grad is None or not torch.any(p.grad != 0)] == []
+        model.eval()
+        with torch.no_grad():  # a sample's flow does not depend on the other sample of the batch
+            both = model(pc0, b0, pc1, b1, 2)[0]
+            alone = model(pc0[:300], b0[:300], pc1[:300], b1[:300], 1)[0]
+        torch.testing.assert_close(alone, both[:300], atol=1e-5, rtol=0)
 
 
 def test_a_training_batch_with_one_point_in_the_grid_trains_on_the_running_statistics():

@@ -21,7 +21,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from fastflow3d.network.cells import CellSets, conv3x3_at, image_rows, rows_at, with_zero_row
-from fastflow3d.network.scatter import scatter_mean, to_pseudo_image
+from fastflow3d.network.scatter import scatter_mean, scatter_sum, to_pseudo_image
 from fastflow3d.network.voxelize import Grid, voxelize
 from icpflow.geometry import transform_points
 
@@ -98,6 +98,31 @@ def local_correlation(features0: torch.Tensor, features1: torch.Tensor, radius: 
         for dx in range(2 * radius + 1)
     ]
     return torch.cat(costs, dim=1) * scale
+
+
+def centroid_shift(sums0: torch.Tensor, sums1: torch.Tensor, windows) -> torch.Tensor:
+    """Sub-pillar motion (B, 4 * len(windows), nx, ny) from the pillar sums (B, 4, nx, ny) of both scans (x, y, z
+    summed over a pillar's in-grid points, and their count): per odd window of ``w`` x ``w`` pillars centred on a
+    cell, the centroid of pc1's points in it minus that of pc0's (3 channels, metres; 0 unless both scans have points
+    there) and whether pc1 has any (1 channel). A pedestrian moves a fifth of a 0.5 m pillar per frame: the pillar
+    features see it in no cell, the centroids do."""
+    parts = []
+    for window in windows:
+        pooled0, pooled1 = sums0, sums1
+        if window > 1:  # box sums (the mean's divisor cancels in the centroid); zero beyond the border
+            pooled0 = F.avg_pool2d(sums0, window, 1, window // 2, count_include_pad=True)
+            pooled1 = F.avg_pool2d(sums1, window, 1, window // 2, count_include_pad=True)
+        count0, count1 = pooled0[:, 3:], pooled1[:, 3:]
+        both = ((count0 > 0) & (count1 > 0)).to(sums0.dtype)
+        shift = pooled1[:, :3] / count1.clamp(min=1e-6) - pooled0[:, :3] / count0.clamp(min=1e-6)
+        parts += [shift * both, (count1 > 0).to(sums0.dtype)]
+    return torch.cat(parts, dim=1)
+
+
+def pillar_sums(points: torch.Tensor, ids: torch.Tensor, valid: torch.Tensor, slots: int) -> torch.Tensor:
+    """(slots, 4): per pillar id the sum of its in-grid points' (P, 3) coordinates and their count."""
+    inside = valid[:, None].to(points.dtype)
+    return scatter_sum(torch.cat([points * inside, inside], dim=1), ids, slots)
 
 
 class UNet(nn.Module):
@@ -228,11 +253,11 @@ def split_linear(linear: nn.Linear, parts, sets: CellSets | None, ids: torch.Ten
 
 class LinearDecoder(nn.Sequential):
     """ZeroFlow's head: Linear(4C + 3 -> 32) + GELU + Linear(32 -> 3) on each point's [pc0 pillar, pc1 pillar,
-    decoded pillar features, offset of the point from its pillar centre]; parameters ``0.*`` and ``2.*`` as
-    ZeroFlow's ``nn.Sequential``."""
+    decoded pillar features, (``motion`` channels of sub-pillar motion, ``centroid_shift``,) offset of the point from
+    its pillar centre]; parameters ``0.*`` and ``2.*`` as ZeroFlow's ``nn.Sequential``."""
 
-    def __init__(self, pillar_channels: int):
-        super().__init__(nn.Linear(4 * pillar_channels + 3, 32), nn.GELU(), nn.Linear(32, 3))
+    def __init__(self, pillar_channels: int, motion: int = 0):
+        super().__init__(nn.Linear(4 * pillar_channels + motion + 3, 32), nn.GELU(), nn.Linear(32, 3))
 
     def decode(self, parts, sets: CellSets, point_embedding: torch.Tensor, features: torch.Tensor, ids: torch.Tensor):
         """Residual flow (P, 3) from the pillar features ``parts`` (pc0 and pc1 images, decoded rows, see
@@ -247,19 +272,20 @@ class GRUDecoder(nn.Module):
     maps [refined state, point feature] to the flow.
 
     Here the pillar feature is a linear projection (``hidden`` channels) of [pc0 pillar, pc1 pillar, decoded pillar]
-    features (computed per pillar, see ``split_linear``), and the point feature is the point's embedding (the
-    pillar embedder's per-point output, C channels) with its offset from the pillar centre. The GRU cell is the
+    features (and the ``motion`` channels of ``centroid_shift``), computed per pillar (see ``split_linear``), and the
+    point feature is the point's embedding (the pillar embedder's per-point output, C channels) with its offset from
+    the pillar centre. The GRU cell is the
     standard one (update gate z, reset gate r, candidate n; ``h <- (1 - z) n + z h``); the input's part of its
     gates is computed once for all iterations. The MLP is Linear(hidden + C + 3 -> 32) + GELU + Linear(32 -> 3).
     """
 
-    def __init__(self, pillar_channels: int, hidden: int, iterations: int):
+    def __init__(self, pillar_channels: int, hidden: int, iterations: int, motion: int = 0):
         super().__init__()
         if iterations < 1 or hidden < 1:
             raise ValueError(f"FastFlow3D: gru_iterations and gru_channels must be >= 1, got {iterations}, {hidden}")
         point = pillar_channels + 3
         self.iterations = int(iterations)
-        self.initial = nn.Linear(4 * pillar_channels, hidden)
+        self.initial = nn.Linear(4 * pillar_channels + motion, hidden)
         self.input_gates = nn.Linear(point, 3 * hidden)
         self.hidden_gates = nn.Linear(hidden, 3 * hidden)
         self.flow = nn.Sequential(nn.Linear(hidden + point, 32), nn.GELU(), nn.Linear(32, 3))
@@ -295,7 +321,8 @@ class FastFlow3D(nn.Module):
     (``GRUDecoder`` with ``gru_channels`` hidden channels and ``gru_iterations`` refinements).
     ``correlation_levels`` / ``correlation_radius``: the UNet levels that also carry a local cost volume of the two
     scans (``UNet``, ``local_correlation``); empty (the default, and what older checkpoints get) is ZeroFlow's
-    network exactly.
+    network exactly. ``motion_windows``: odd window sizes (pillars) at which the decoder also sees
+    ``centroid_shift``, the two scans' centroid difference (empty, the default and what older checkpoints get: none).
     """
 
     def __init__(
@@ -314,8 +341,12 @@ class FastFlow3D(nn.Module):
         gru_channels: int = 32,
         correlation_levels: tuple[int, ...] = (),
         correlation_radius: int = 3,
+        motion_windows: tuple[int, ...] = (),
     ):
         super().__init__()
+        self.motion_windows = tuple(int(window) for window in motion_windows)
+        if any(window < 1 or window % 2 == 0 for window in self.motion_windows):
+            raise ValueError(f"FastFlow3D: motion_windows must be odd sizes >= 1, got {list(motion_windows)}")
         if norm not in NORMS:
             raise ValueError(f"FastFlow3D: norm must be one of {', '.join(NORMS)}, got {norm!r}")
         if decoder not in DECODERS:
@@ -335,27 +366,36 @@ class FastFlow3D(nn.Module):
             tuple(correlation_levels),
             int(correlation_radius),
         )
+        motion = 4 * len(self.motion_windows)
         if decoder == "linear":
-            self.head = LinearDecoder(pillar_channels)
+            self.head = LinearDecoder(pillar_channels, motion)
         else:
-            self.head = GRUDecoder(pillar_channels, int(gru_channels), int(gru_iterations))
+            self.head = GRUDecoder(pillar_channels, int(gru_channels), int(gru_iterations), motion)
         self.to(memory_format=torch.channels_last)
 
     def embed(self, points: torch.Tensor, batch: torch.Tensor, batch_size: int):
-        """Pseudo-image (B, C, nx, ny) (channels_last), per-point features (P, 9), pillar ids, in-range mask and
-        per-point embeddings (P, C) of one scan."""
+        """Pseudo-image (B, C, nx, ny) (channels_last), per-point features (P, 9), pillar ids, in-range mask,
+        per-point embeddings (P, C) of one scan, and its pillar sums (B, 4, nx, ny) (``pillar_sums``; None without
+        ``motion_windows``)."""
         features, ids, valid = voxelize(points, batch, self.grid, batch_size)
-        rows, embedding = self.embedder(features, ids, valid, batch_size * self.grid.nx * self.grid.ny + 1)
-        return to_pseudo_image(rows, batch_size, self.grid.nx, self.grid.ny), features, ids, valid, embedding
+        slots, (nx, ny) = batch_size * self.grid.nx * self.grid.ny + 1, (self.grid.nx, self.grid.ny)
+        rows, embedding = self.embedder(features, ids, valid, slots)
+        sums = None
+        if self.motion_windows:
+            sums = to_pseudo_image(pillar_sums(points, ids, valid, slots), batch_size, nx, ny)
+        return to_pseudo_image(rows, batch_size, nx, ny), features, ids, valid, embedding, sums
 
     def forward(
         self, pc0: torch.Tensor, batch0: torch.Tensor, pc1: torch.Tensor, batch1: torch.Tensor, batch_size: int = 1
     ):
-        image0, features0, ids0, valid0, embedding0 = self.embed(pc0, batch0, batch_size)
-        image1 = self.embed(pc1, batch1, batch_size)[0]
+        image0, features0, ids0, valid0, embedding0, sums0 = self.embed(pc0, batch0, batch_size)
+        image1, *_, sums1 = self.embed(pc1, batch1, batch_size)
         # the decoder's last layers where they are read, in float32 (fastflow3d.network.cells says why not otherwise)
         dense = torch.compiler.is_exporting() or torch.is_autocast_enabled(pc0.device.type)
         sets = None if dense else CellSets(ids0, batch_size, self.grid.nx, self.grid.ny, 3)
         decoded = self.unet(image0, image1, sets)
-        residual = self.head.decode((image0, image1, decoded), sets, embedding0, features0, ids0)
+        parts = (image0, image1, decoded)
+        if self.motion_windows:
+            parts += (centroid_shift(sums0.float(), sums1.float(), self.motion_windows),)
+        residual = self.head.decode(parts, sets, embedding0, features0, ids0)
         return torch.where(valid0[:, None], residual, torch.zeros_like(residual)), valid0
