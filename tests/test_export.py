@@ -574,16 +574,31 @@ def test_the_threads_asked_for_run_the_onnx_network_however_it_is_opened(export_
             assert session.get_session_options().intra_op_num_threads == want, (what, threads)
 
 
-def test_a_predictor_never_runs_kernels_of_a_stale_cache(export_dir, monkeypatch):
-    """Every Predictor (``fastflow3d-infer``, a stream, a Python caller) checks the numba cache first
-    (``icpflow.teacher.warmup.ensure_compiled``: a cache of other sources emptied; each kernel it calls compiled on
-    its first call, not all of the teacher's)."""
+def test_a_predictor_never_runs_kernels_of_a_stale_cache(export_dir, pairs, monkeypatch):
+    """Every Predictor (``fastflow3d-infer``, a stream, a Python caller) checks the numba cache before its first
+    pair, never in its constructor (``icpflow.teacher.warmup.prepare_kernels``: a cache of other sources emptied;
+    each kernel it calls compiled on its first call, not all of the teacher's), and once per process."""
     from fastflow3d.inference import predictor as predictor_module
+    from fastflow3d.inference.stream import FlowStream
+    from icpflow.teacher import warmup
 
     asked = []
-    monkeypatch.setattr(predictor_module, "ensure_compiled", lambda prefix, eager: asked.append((prefix, eager)))
-    Predictor.load(export_dir)
-    assert asked == [("fastflow3d", False)]
+    monkeypatch.setattr(predictor_module, "prepare_kernels", lambda prefix: asked.append(prefix))
+    predictor = Predictor.load(export_dir)
+    assert asked == []  # loading compiles, empties and prints nothing
+    predictor.predict(pairs[0].pc0, pairs[0].pc1, pairs[0].ego1_from_ego0)
+    assert asked == ["fastflow3d"]
+    FlowStream(predictor).push(pairs[0].pc0)
+    assert asked == ["fastflow3d"] * 2
+    # the step itself runs once per process: a stale cache is emptied, and said, at the first call only
+    emptied = []
+    monkeypatch.setattr(warmup, "ensure_compiled", lambda prefix, eager: emptied.append((prefix, eager)) or True)
+    warmup.prepare_kernels.cache_clear()
+    try:
+        assert warmup.prepare_kernels("fastflow3d") is True and warmup.prepare_kernels("fastflow3d") is True
+        assert emptied == [("fastflow3d", False)]
+    finally:
+        warmup.prepare_kernels.cache_clear()
 
 
 def test_cpu_runtime_rejects_what_it_cannot_run(export_dir):

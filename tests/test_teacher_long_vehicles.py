@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +18,7 @@ from icpflow.teacher.config import HistogramConfig, MergingConfig
 from icpflow.teacher.histogram import main_axis
 from icpflow.teacher.merging import adjacent_labels, merge_split_clusters
 from icpflow.teacher.pairing import cluster_stats
+from icpflow.teacher.pipeline import StageClock
 
 ROOT = Path(__file__).resolve().parents[1]
 OFF = {"histogram": {"axis_min_extent": 0.0}, "merging": {"distance": 0.0}}
@@ -122,7 +122,7 @@ def _merge(src, dst, labels0, labels1, matches, cfg: ICPFlowConfig):
         src_stats,
         dst_stats,
         matches,
-        lambda clouds, centroids, cap: teacher._register_clouds(clouds, centroids, window, defaultdict(float), cap),
+        lambda clouds, centroids, cap: teacher._register_clouds(clouds, centroids, window, StageClock(), cap),
         cfg.merging,
         cfg.icp,
         cfg.clustering.min_cluster_size,

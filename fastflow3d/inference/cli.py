@@ -48,6 +48,7 @@ the grid) gets a one-line warning.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import warnings
@@ -74,9 +75,8 @@ from icpflow.errors_and_signals import exit_status, one_line, stop_on_signals
 from icpflow.frames import FramePair
 from icpflow.geometry import relative_transform
 
-#: a stream's pairs in flight (``FlowStream(overlap=True, depth=...)``): a pair slow on one thread holds the other up
-#: less (AV2 and synthetic streams refined, int8: median 93.0 -> 91.5 and 75.3 -> 72.8 ms a frame, issue 44); the last
-#: ``STREAM_DEPTH`` flows are written after the last scan is read
+#: a stream's pairs in flight (``FlowStream(overlap=True, depth=...)``): with two, a pair slow on one thread holds the
+#: other up less (BENCHMARKS.md, "Student latency and the stream"); the last ``STREAM_DEPTH`` flows are written after the last scan is read
 STREAM_DEPTH = 2
 
 
@@ -290,6 +290,74 @@ def infer(args) -> tuple[Path, Path | None, str]:
     return out, bev, predictor.precision
 
 
+def read_ahead(files: list[Path], columns, reader: ThreadPoolExecutor):
+    """Each scan's path with the future of its read in ``reader``, the next scan's read submitted before this one is
+    waited on: a scan is read while the frame before it is worked on. A lazy generator: the reads follow the loop."""
+    reading = reader.submit(read_raw_scan, files[0], columns)
+    for index, path in enumerate(files):
+        read = reading
+        if index + 1 < len(files):
+            reading = reader.submit(read_raw_scan, files[index + 1], columns)
+        yield path, read
+
+
+class StreamOutputs:
+    """What a stream writes into ``out`` as its steps come out: each pair's flow file (written in ``writer``, one at
+    a time beside the next frame; its error, a full disk, raised at the next write or at :meth:`close`), the rerun
+    recording (or None) and the trajectory. ``outputs``: the file names written, in order. It keeps the points of the
+    scans whose step is still to come (a recording draws them), none longer."""
+
+    def __init__(self, out: Path, writer: ThreadPoolExecutor, recording, remove_ground: bool, depth: int):
+        self.out, self.writer, self.recording = out, writer, recording
+        self.remove_ground, self.depth = remove_ground, depth
+        self.outputs, self.trajectory, self.scans, self.pushed, self.writing = [], [], {}, [], None
+
+    def push(self, stream, source: str, read):
+        """The scan of ``read`` (a future of its points) into ``stream``; its step, or None (a scan that cannot be
+        read is skipped with its reason, the stream's warning)."""
+        try:
+            points = read.result()
+        except (ValueError, OSError) as error:
+            stream.skip(source, one_line(error))
+            return None
+        self.scans[source] = points
+        self.pushed.append(source)
+        return stream.push(points, source=source)
+
+    def write(self, step) -> None:
+        """A step of the stream out: its flow file, the recording, the trajectory."""
+        prediction = step.prediction
+        if prediction is not None:
+            name = f"{Path(step.previous).stem}.npz"
+            self.close()  # the previous file is written first
+            self.writing = self.writer.submit(write_flow, self.out / name, prediction)
+            self.outputs.append(name)
+            if self.recording is not None:
+                pair = FramePair(
+                    pc0=self.scans[step.previous],
+                    pc1=self.scans[step.source],
+                    ego1_from_ego0=prediction.ego1_from_ego0,
+                    ground0=prediction.ground0 if self.remove_ground else None,
+                    source=step.previous,
+                )
+                self.recording.log_pair(len(self.outputs), pair, {"fastflow3d": prediction.flow}, prediction.in_grid)
+        if step.pose is not None:
+            if step.restarted and prediction is None:
+                self.trajectory.clear()
+            self.trajectory.append(step.pose[:3, 3])
+            if self.recording is not None:
+                self.recording.log_trajectory(len(self.outputs), np.array(self.trajectory))
+        still = (step.source, *self.pushed[-1 - self.depth :])  # this step's pc1, the scans whose step is to come
+        for name in [name for name in self.scans if name not in still]:
+            del self.scans[name]
+
+    def close(self) -> None:
+        """Wait for the file being written (its error raised here)."""
+        writing, self.writing = self.writing, None
+        if writing is not None:
+            writing.result()
+
+
 def infer_stream(args) -> tuple[Path, int, int, str]:
     """Stream mode (module docstring): returns the output folder, the flows written, the scans read and the network's
     precision."""
@@ -308,81 +376,33 @@ def infer_stream(args) -> tuple[Path, int, int, str]:
     predictor = load_predictor(args)
     manifest = stream_manifest(args, files, predictor.precision)
     claim_output_folder(out, manifest, files)
-    outputs = []
     stream = FlowStream(predictor, overlap=True, depth=STREAM_DEPTH)  # each pair's network beside the next scans' steps
     recording = None
     if args.rerun is not None:
         from icpflow.viz_rerun import PairRecording
 
         recording = PairRecording(args.rerun, application="fastflow3d-infer")
-    trajectory, scans = [], {}  # scans: the points of the scans whose step is not out yet, by name
-    # the flow file being written, one at a time in a thread beside the next frame (7 ms of a frame's own thread: plain
-    # synthetic stream 85-86 -> 72 ms a frame, issue 44; once the numba kernels released the GIL it paid)
-    writing = []
-
-    def write(step) -> None:
-        """A step of the stream out: its flow file, the recording, the trajectory."""
-        if step.prediction is not None:
-            name = f"{Path(step.previous).stem}.npz"
-            if writing:
-                writing.pop().result()  # the previous file is written (its error, a full disk, is raised here)
-            writing.append(writer.submit(write_flow, out / name, step.prediction))
-            outputs.append(name)
-            if recording is not None:
-                pair = FramePair(
-                    pc0=scans[step.previous],
-                    pc1=scans[step.source],
-                    ego1_from_ego0=step.prediction.ego1_from_ego0,
-                    ground0=step.prediction.ground0 if predictor.remove_ground else None,
-                    source=step.previous,
-                )
-                recording.log_pair(len(outputs), pair, {"fastflow3d": step.prediction.flow}, step.prediction.in_grid)
-        if step.pose is not None:
-            trajectory[:] = [] if step.restarted and step.prediction is None else trajectory
-            trajectory.append(step.pose[:3, 3])
-            if recording is not None:
-                recording.log_trajectory(len(outputs), np.array(trajectory))
-        for name in [name for name in scans if name not in (step.source, *pushed[-1 - stream.depth :])]:
-            del scans[name]  # done with: neither this step's pc1 nor a scan whose step is still to come
-
-    pushed = []
     with (
         ThreadPoolExecutor(1, thread_name_prefix="infer-writer") as writer,
         ThreadPoolExecutor(1, thread_name_prefix="infer-reader") as reader,
         Progress(total=len(files), unit="frame", desc="infer") as bar,  # its rate: frames per second
     ):
-        # each scan read in a thread while the frame before it is worked on (a KITTI .bin: 2-3.5 ms of the stream's
-        # own thread, issue 44); its error comes out of result() as the read's own
-        reading = reader.submit(read_raw_scan, files[0], args.bin_columns)
-        for index, path in enumerate([*files] + [None] * stream.depth):  # None: a step still in flight (flush)
+        sink = StreamOutputs(out, writer, recording, predictor.remove_ground, stream.depth)
+        flush = itertools.repeat((None, None), stream.depth)  # the steps still in flight after the last scan
+        for path, read in itertools.chain(read_ahead(files, args.bin_columns, reader), flush):
             with recorded_warnings() as caught:
-                points = None
-                if path is not None:
-                    read, reading = reading, None
-                    if index + 1 < len(files):
-                        reading = reader.submit(read_raw_scan, files[index + 1], args.bin_columns)
-                    try:
-                        points = read.result()
-                    except (ValueError, OSError) as error:
-                        stream.skip(str(path), one_line(error))
-                if points is not None:
-                    scans[str(path)] = points
-                    pushed.append(str(path))
-                    step = stream.push(points, source=str(path))
-                else:
-                    step = stream.flush() if path is None else None
+                step = sink.push(stream, str(path), read) if path is not None else stream.flush()
             for warning in caught:
                 bar.write(f"infer: warning: {str(warning.message).split(': ', 1)[-1]}", file=sys.stderr)
             if step is not None:
-                write(step)
+                sink.write(step)
             if path is not None:
                 bar.update(1)
-        if writing:
-            writing.pop().result()
-    written = len(outputs)
+        sink.close()
+    written = len(sink.outputs)
     if recording is not None:
         recording.close()
-    document = {**manifest, "complete": True, "outputs": outputs}
+    document = {**manifest, "complete": True, "outputs": sink.outputs}
     write_text_atomic(out / MANIFEST, json.dumps(document, indent=1))
     if not written:
         raise ValueError(

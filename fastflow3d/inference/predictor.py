@@ -56,7 +56,7 @@ from icpflow.errors_and_signals import one_line
 from icpflow.geometry import residual_to_full, rigid_problem
 from icpflow.odometry import MIN_EGO_POINTS
 from icpflow.preprocess import implausible, lift_transform
-from icpflow.teacher.warmup import ensure_compiled
+from icpflow.teacher.warmup import prepare_kernels
 
 log = logging.getLogger(__package__)
 
@@ -107,9 +107,6 @@ class Predictor(ScanSteps):
             self.refine = RefineConfig.of(refine)
         except (TypeError, ValueError) as error:
             raise PredictorError(one_line(error)) from None
-        # its ground, odometry and refinement kernels: never run from a cache of other sources (icpflow.teacher.warmup,
-        # a line says when it empties one); each compiles on its first call, the few it uses rather than all 39
-        ensure_compiled("fastflow3d", eager=False)
 
     @classmethod
     def load(
@@ -169,6 +166,7 @@ class Predictor(ScanSteps):
     def predict(self, pc0, pc1, ego1_from_ego0: np.ndarray | None = None, ground0=None, ground1=None) -> Prediction:
         """Full flow with the residual, masks and ego motion behind it (see :class:`Prediction`)."""
         pc0, pc1 = as_points("pc0", pc0), as_points("pc1", pc1)
+        self.prepare_kernels()
         lift = self.frame_lift(pc0)
         lifted = self.contract.lifted(pc0, pc1, lift)  # the scans in the height frame, lifted once
         estimated, assumed = ego1_from_ego0 is None, False
@@ -194,6 +192,13 @@ class Predictor(ScanSteps):
         check_ego = ego1_from_ego0 is not None and self.ego_checks_left > 0
         surfaces = (surface0, surface1)
         return self.flow_in_frame(lifted, ego_frame, ground0, ground1, lift, estimated, assumed, check_ego, surfaces)
+
+    @staticmethod
+    def prepare_kernels() -> None:
+        """The kernels' once-per-process step (``icpflow.teacher.warmup.prepare_kernels``): its ground, odometry and
+        refinement kernels never run from a cache of other sources (one line on stderr where one is emptied); each
+        compiles on its first call. :meth:`predict` and a stream's first scan call it; a caller may call it first."""
+        prepare_kernels("fastflow3d")
 
     def flow_in_frame(
         self,

@@ -1,16 +1,15 @@
 """The Predictor's opt-in refinement: the teacher's ICP started from the student's flow, per cheap object.
 
-The student's flow is right in direction and often short in length (issue 29: it predicts 56 % of a bus's motion);
-the teacher's ICP is exact where it starts close enough. This stage joins them, per pair:
+The student's flow is right in direction and often short in length (a bus moves by about half its motion: BENCHMARKS.md,
+"Refinement"); the teacher's ICP is exact where it starts close enough. This stage joins them, per pair:
 
 1. Objects: the 8-connected components of the bird's-eye-view occupancy (``RefineConfig.cell`` metres) of the
    network's pc0 points (ego-compensated, non-ground, inside the grid). Components with fewer than ``min_points``
    points or longer than ``max_extent`` (walls, kerbs, hedges) are left as they are. Where the scans' ground
    surfaces are known (an estimated ground leaves the ring the sensor draws around each object's foot:
    ``icpflow.ground.GroundSegmenter.masks``), only the points above them occupy cells; a surface point joins the
-   object in its cell (its feet) or none, and stays out of the ICP and its checks (steps 3, 4) on both scans.
-   Issue 44: the ring had joined moving objects to parked ones, and the refinement with estimated ground scored
-   0.175 m dynamic-foreground EPE against 0.145 with the dataset's ground; 0.161 with it kept out.
+   object in its cell (its feet) or none, and stays out of the ICP and its checks (steps 3, 4) on both scans: the
+   ring would join moving objects to parked ones.
 2. Candidates: components whose median predicted residual is at least ``min_motion`` metres per pair (the moving
    ones; the rest keep the student's flow).
 3. Registration: the component's points are moved onto the pc1 points near them by point-to-point ICP (the
@@ -31,8 +30,8 @@ the teacher's ICP is exact where it starts close enough. This stage joins them, 
 5. Points: an accepted motion replaces the student's flow only at the component's points it fits: a point whose
    nearest pc1 point (within the component's targets; exact, ``icpflow.teacher.neighbours``) is farther after the
    ICP motion than after the student's own flow by more than ``point_slack`` keeps the student's flow. A parked
-   car or a wall that the occupancy grid joins to a passing bus is not carried along with it (issue 44: the
-   refinement had made the static foreground 1.4x worse than the network alone; now it is no worse).
+   car or a wall that the occupancy grid joins to a passing bus is not carried along with it, so the refinement
+   leaves the static foreground no worse than the network alone.
 
 Frames: every array is in the ego frame of t + dt (pc0 already compensated); flows are residual (ego-compensated)
 flows in metres per pair, float32 in and out.
@@ -159,6 +158,38 @@ def median_at_least(values: np.ndarray, starts: np.ndarray, sizes: np.ndarray, t
     return (2 * count > sizes) | halved
 
 
+@dataclass(frozen=True)
+class _Components:
+    """The pc0 points grouped by component (``order`` sorts them by component, ``bounds`` (count + 1,) the slices),
+    sorted points and residuals (float64), and per component its box (``lows`` / ``highs``), mean residual
+    ``means``, point count ``sizes``; ``above`` (N0,) the rows above the ground's surface, in sorted order."""
+
+    order: np.ndarray
+    bounds: np.ndarray
+    points: np.ndarray
+    residual: np.ndarray
+    lows: np.ndarray
+    highs: np.ndarray
+    means: np.ndarray
+    sizes: np.ndarray
+    above: np.ndarray
+
+
+@dataclass
+class _Candidates:
+    """The moving components with enough targets, one entry each: ``groups`` their pc0 rows (input order),
+    ``movings`` the (thinned) points ICP moves and ``student_moved`` those moved by the student, ``fixeds`` the
+    (thinned) pc1 targets above the ground, ``windows`` every pc1 point of the component's box, ``starts`` (K, 3) the
+    mean predicted residual (ICP's initial translation)."""
+
+    groups: list
+    movings: list
+    student_moved: list
+    fixeds: list
+    windows: list
+    starts: np.ndarray
+
+
 def refine_residual(
     pc0: np.ndarray,
     residual: np.ndarray,
@@ -172,67 +203,95 @@ def refine_residual(
     ``surface0`` (N0,) / ``surface1`` (N1,) bool: points of the ground's surface left in the scans (objects' feet,
     the ring the sensor draws around them: ``icpflow.ground.GroundSegmenter.masks``); they belong to components
     and get an accepted motion where it fits them, but stay out of the ICP and its checks, whose matches they pull
-    towards no motion."""
-    from icpflow.bev import in_box_cells
-    from icpflow.teacher.checks import passes
-    from icpflow.teacher.config import ChecksConfig, ICPConfig
-    from icpflow.teacher.neighbours import build_grid, nearest_distances
-    from icpflow.teacher.registration_cpu import grid_cell, register_stages_cpu
-
+    towards no motion. The stages are the module docstring's steps."""
     out, refined = np.array(residual, np.float32, copy=True), np.zeros(len(pc0), bool)
     if len(pc0) < cfg.min_points or len(pc1) < cfg.min_points:
         return out, refined
-    # objects from the points above the ground's surface; a surface point (an object's foot) joins the object in
-    # its cell, and one in no object's cell (the ground a moving object is joined to by) keeps the student's flow
     above0 = np.ones(len(pc0), bool) if surface0 is None else ~np.asarray(surface0, bool)
+    found = _components(pc0, residual, cfg, above0)
+    if found is None:
+        return out, refined
+    parts, chosen = found
+    candidates = _candidates(parts, chosen, pc1, cfg, surface1)
+    if candidates is None:
+        return out, refined
+    transforms, accepted = _register(candidates, cfg)
+    _apply(pc0, residual, candidates, transforms, accepted, cfg, out, refined)
+    return out, refined
+
+
+def _components(pc0, residual, cfg: RefineConfig, above0):
+    """Steps 1 and 2: the components of pc0 and the moving ones among them (their indices), or None where there
+    is none. Objects come from the points above the ground's surface; a surface point (an object's foot) joins the
+    object in its cell, and one in no object's cell (the ground a moving object is joined to by) keeps the
+    student's flow."""
     label, count = components(pc0, cfg.cell, above0)
     order = np.argsort(label.astype(np.int16) if count < 2**15 else label, kind="stable")  # 16 bits: a radix sort
     bounds = np.searchsorted(label[order], np.arange(count + 1))
     if count == 0:
-        return out, refined
+        return None
     # per component at once (each has >= 1 point): box, mean residual; candidates by size, extent, speed
     # (np.take gathers rows 4x quicker than indexing)
-    sorted_points = np.take(pc0, order, axis=0).astype(np.float64)
-    sorted_residual = np.take(residual, order, axis=0).astype(np.float64)
+    points = np.take(pc0, order, axis=0).astype(np.float64)
+    moved = np.take(residual, order, axis=0).astype(np.float64)
     firsts = bounds[:-1]
-    lows, highs = np.minimum.reduceat(sorted_points, firsts), np.maximum.reduceat(sorted_points, firsts)
+    lows, highs = np.minimum.reduceat(points, firsts), np.maximum.reduceat(points, firsts)
     sizes = np.diff(bounds)
-    means = np.add.reduceat(sorted_residual, firsts) / sizes[:, None]
+    means = np.add.reduceat(moved, firsts) / sizes[:, None]
     extents = np.linalg.norm((highs - lows)[:, :2], axis=1)
-    fast = median_at_least(lengths(sorted_residual), firsts, sizes, cfg.min_motion)
+    fast = median_at_least(lengths(moved), firsts, sizes, cfg.min_motion)
     chosen = np.flatnonzero((sizes >= cfg.min_points) & (extents <= cfg.max_extent) & fast)
     if not len(chosen):
-        return out, refined
+        return None
+    return _Components(order, bounds, points, moved, lows, highs, means, sizes, above0[order]), chosen
+
+
+def _candidates(parts: _Components, chosen, pc1, cfg: RefineConfig, surface1) -> _Candidates | None:
+    """Step 3's input: each chosen component's points and its pc1 targets, the points of pc1 in its box moved by
+    its mean residual and widened by ``margin``; None where no component has ``min_points`` of both."""
+    from icpflow.bev import in_box_cells
+
+    lows, highs, means, bounds = parts.lows, parts.highs, parts.means, parts.bounds
     # pc1 sorted along x (each candidate's targets from one slice), of the points in the cells the candidates' boxes
     # cover only: the same targets in the same order as the whole scan sorted, at a fraction of the sort
     shifted = means[chosen] + np.array([[-cfg.margin], [cfg.margin]])[:, None]  # (2, K, 3): the boxes' two shifts
     by_x = in_box_cells(pc1, lows[chosen] + shifted[0], highs[chosen] + shifted[1], cfg.cell)
     by_x = by_x[np.argsort(pc1[by_x, 0], kind="stable")]
     pc1_x, pc1_sorted = pc1[by_x, 0], np.asarray(pc1[by_x], np.float64)
-    registered0 = above0[order]
     registered1 = np.ones(len(pc1), bool) if surface1 is None else ~np.asarray(surface1, bool)[by_x]
-    groups, movings, student_moved, fixeds, windows, kept = [], [], [], [], [], []
+    found = _Candidates([], [], [], [], [], np.zeros((0, 3)))
+    kept = []
     for k in chosen:
         low, high = lows[k] + means[k] - cfg.margin, highs[k] + means[k] + cfg.margin
         first, last = np.searchsorted(pc1_x, low[0]), np.searchsorted(pc1_x, high[0], side="right")
         inside = np.all((pc1_sorted[first:last] >= low) & (pc1_sorted[first:last] <= high), axis=1)
         target = pc1_sorted[first:last][inside]
         fixed = target[registered1[first:last][inside]]
-        rows = bounds[k] + np.flatnonzero(registered0[bounds[k] : bounds[k + 1]])
+        rows = bounds[k] + np.flatnonzero(parts.above[bounds[k] : bounds[k + 1]])
         if len(fixed) < cfg.min_points or len(rows) < cfg.min_points:
             continue
         stride = -(-len(rows) // cfg.max_points)  # every stride-th point: at most max_points in pc0, and the
         rows = rows[::stride]  # targets thinned alike (the IoU ratio compares like densities)
-        groups.append(order[bounds[k] : bounds[k + 1]])
-        movings.append(sorted_points[rows])
-        student_moved.append(sorted_points[rows] + sorted_residual[rows])
-        fixeds.append(fixed[::stride])
-        windows.append(target)
+        found.groups.append(parts.order[bounds[k] : bounds[k + 1]])
+        found.movings.append(parts.points[rows])
+        found.student_moved.append(parts.points[rows] + parts.residual[rows])
+        found.fixeds.append(fixed[::stride])
+        found.windows.append(target)
         kept.append(k)
-    if not groups:
-        return out, refined
-    starts = means[kept]  # (K, 3): each candidate's mean predicted residual, ICP's initial translation
-    transforms = np.tile(np.eye(4), (len(groups), 1, 1))
+    if not kept:
+        return None
+    found.starts = means[kept]
+    return found
+
+
+def _register(candidates: _Candidates, cfg: RefineConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 3 and 4: each candidate's ICP motion (K, 4, 4) from its start and whether it is accepted (K,) bool."""
+    from icpflow.teacher.checks import passes
+    from icpflow.teacher.config import ChecksConfig, ICPConfig
+    from icpflow.teacher.registration_cpu import register_stages_cpu
+
+    starts, movings = candidates.starts, candidates.movings
+    transforms = np.tile(np.eye(4), (len(movings), 1, 1))
     transforms[:, :3, 3] = starts
     # the teacher's rule (icp.static_tolerance): what no motion fits nearly as well stays static; only these
     # components need the match of no motion
@@ -240,7 +299,15 @@ def refine_residual(
     # every stage of the coarse-to-fine ICP and the quality (at the last truncation) of its motion, of no motion
     # (the slow ones) and of the student's own flow, in one compiled call
     transforms, errors, ious, still_errors, still_ious, student_errors, _ = register_stages_cpu(
-        movings, fixeds, student_moved, transforms, cfg.max_corr, cfg.max_iter, ICPConfig().rel_rmse, True, slow
+        movings,
+        candidates.fixeds,
+        candidates.student_moved,
+        transforms,
+        cfg.max_corr,
+        cfg.max_iter,
+        ICPConfig().rel_rmse,
+        True,
+        slow,
     )
     static = slow & (still_errors <= errors * (1.0 + cfg.static_tolerance))
     transforms[static], errors[static], ious[static] = np.eye(4), still_errors[static], still_ious[static]
@@ -249,20 +316,28 @@ def refine_residual(
     change = np.linalg.norm(moved_centroids - centroids - starts, axis=1)
     checks = ChecksConfig(min_iou=cfg.min_iou, max_error=cfg.max_error)
     accepted = passes(transforms, errors, ious, np.inf, checks) & (errors < student_errors) & (change <= cfg.max_change)
+    return transforms, accepted
+
+
+def _apply(pc0, residual, candidates: _Candidates, transforms, accepted, cfg: RefineConfig, out, refined) -> None:
+    """Step 5: each accepted motion written into ``out`` (and ``refined``) at the component's points it fits."""
+    from icpflow.teacher.neighbours import build_grid, nearest_distances
+    from icpflow.teacher.registration_cpu import grid_cell
+
     cell = grid_cell(cfg.max_corr[-1])
     for k in np.flatnonzero(accepted):
-        members, points = groups[k], np.asarray(pc0[groups[k]], np.float64)
+        members, window = candidates.groups[k], candidates.windows[k]
+        points = np.asarray(pc0[members], np.float64)
         flow = rigid_flow(points, transforms[k])
-        grid = build_grid(windows[k], cell)
-        icp_gap = nearest_distances(points + flow, windows[k], grid, cell, np.full(len(points), np.inf))
+        grid = build_grid(window, cell)
+        icp_gap = nearest_distances(points + flow, window, grid, cell, np.full(len(points), np.inf))
         # fits: icp_gap <= student_gap + point_slack; where the ICP's gap is within the slack, it fits whatever the
         # student's; elsewhere only a target nearer the student's flow than icp_gap - slack (a hair more: the
-        # comparison below stays exact) can fail it, and a query bounded so stops early (issue 44)
+        # comparison below stays exact) can fail it, and a query bounded so stops early
         fits = icp_gap <= cfg.point_slack
         ask = np.flatnonzero(~fits)
         reach = (icp_gap[ask] - cfg.point_slack) * (1.0 + 1e-9)
-        student_gap = nearest_distances(points[ask] + residual[members[ask]], windows[k], grid, cell, reach)
+        student_gap = nearest_distances(points[ask] + residual[members[ask]], window, grid, cell, reach)
         fits[ask] = icp_gap[ask] <= student_gap + cfg.point_slack
         out[members[fits]] = flow[fits]
         refined[members[fits]] = True
-    return out, refined

@@ -196,6 +196,7 @@ class FlowStream:
         """Take the next scan (N, 3) (``timestamp`` in seconds, ``source`` its name); see :class:`StreamStep`. With
         ``overlap``: the step of the scan pushed ``depth`` pushes before this one (None for the first ``depth``
         pushes; :meth:`flush`)."""
+        self.predictor.prepare_kernels()
         if not self.overlap:
             staged = self._stage(scan, timestamp, source)
             return self._complete(staged, None if staged.step is not None else self._residual(staged))

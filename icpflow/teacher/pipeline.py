@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -177,6 +178,64 @@ def _twin_shares(dst, dst_stats, clouds, dst_ids, transforms, ask, radius: float
     return shares
 
 
+class StageClock:
+    """Seconds per teacher stage of one call: ``with clock("icp"): ...`` adds the block's wall time to
+    ``clock.seconds["icp"]`` (every stage of :data:`STAGES` starts at 0; a stage may run several times)."""
+
+    def __init__(self):
+        self.seconds = dict.fromkeys(STAGES, 0.0)
+
+    @contextmanager
+    def __call__(self, stage: str):
+        tic = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] += time.perf_counter() - tic
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """One call's checked input: ``pc0`` / ``pc1`` the input rows (N0, 3) / (N1, 3), ``valid0`` / ``valid1`` the
+    finite ones, ``pc0_ok`` / ``pc1_ok`` those rows; the optional (N,) ground masks and per-point times of the
+    input rows, ``gap``, ``dt`` and whether the de-skew runs."""
+
+    pc0: np.ndarray
+    pc1: np.ndarray
+    valid0: np.ndarray
+    valid1: np.ndarray
+    ground0: np.ndarray | None
+    ground1: np.ndarray | None
+    time0: np.ndarray | None
+    time1: np.ndarray | None
+    gap: int
+    dt: float | None
+    deskew: bool
+
+    @property
+    def pc0_ok(self) -> np.ndarray:
+        return self.pc0[self.valid0]
+
+    @property
+    def pc1_ok(self) -> np.ndarray:
+        return self.pc1[self.valid1]
+
+
+@dataclass(frozen=True)
+class _Scans:
+    """The finite rows of both scans split for the teacher: ``ground*`` the ground masks, ``surface*`` the ground
+    left out of the odometry, ``keep*`` the non-ground rows inside the crop."""
+
+    pc0: np.ndarray
+    pc1: np.ndarray
+    ground0: np.ndarray
+    ground1: np.ndarray
+    surface0: np.ndarray
+    surface1: np.ndarray
+    keep0: np.ndarray
+    keep1: np.ndarray
+
+
 class ICPFlow:
     """Learning-free scene flow between two LiDAR scans (see the module docstring)."""
 
@@ -207,165 +266,171 @@ class ICPFlow:
         rolling-shutter refinement (``deskew``), which then needs all three. Without them nothing is de-skewed.
         ``candidates``: also return every registered candidate pair (``ICPFlowResult.candidates``).
         """
-        cfg = self.cfg
-        timings = dict.fromkeys(STAGES, 0.0)
-        pc0_in = check_points(pc0, "ICPFlow", "pc0", finite=False)  # non-finite rows are dropped below
-        pc1_in = check_points(pc1, "ICPFlow", "pc1", finite=False)
-        ground0 = _as_mask("ground0", ground0, len(pc0_in))
-        ground1 = _as_mask("ground1", ground1, len(pc1_in))
-        time0 = _as_times("time0", time0, len(pc0_in))
-        time1 = _as_times("time1", time1, len(pc1_in))
-        max_gap = cfg.pairing.max_frame_gap
-        if isinstance(gap, bool) or not isinstance(gap, (int, np.integer)) or not 1 <= gap <= max_gap:
-            raise ValueError(f"ICPFlow: gap must be an integer in [1, {max_gap}], got {gap!r}")
-        deskew_on = cfg.deskew.enabled and (time0 is not None or time1 is not None)
-        if deskew_on and (time0 is None or time1 is None or dt is None):
-            raise ValueError("ICPFlow: de-skew needs time0, time1 and dt together (or cfg.deskew.enabled=False)")
-        if deskew_on and not (isinstance(dt, (int, float, np.integer, np.floating)) and np.isfinite(dt) and dt > 0):
-            raise ValueError(f"ICPFlow: dt must be a positive number of seconds, got {dt!r}")
-        valid0 = np.isfinite(pc0_in).all(axis=1)
-        valid1 = np.isfinite(pc1_in).all(axis=1)
-        pc0_ok, pc1_ok = pc0_in[valid0], pc1_in[valid1]
-
-        tic = time.perf_counter()
-        g0, s0 = self.ground.masks(pc0_ok) if ground0 is None else (ground0[valid0], ground0[valid0])
-        g1, s1 = self.ground.masks(pc1_ok) if ground1 is None else (ground1[valid1], ground1[valid1])
-        keep0 = ~g0 & (np.abs(pc0_ok[:, :2]) < cfg.crop_xy).all(axis=1)
-        keep1 = ~g1 & (np.abs(pc1_ok[:, :2]) < cfg.crop_xy).all(axis=1)
-        timings["ground"] = time.perf_counter() - tic
-
-        tic = time.perf_counter()
-        if ego1_from_ego0 is None or cfg.ego_motion.method == "kiss_icp":
-            try:
-                ego = estimate_ego_motion(pc0_ok, pc1_ok, cfg, s0, s1)  # the ground's surface left out
-            except (RuntimeError, ValueError, MemoryError) as error:
-                raise ValueError(f"ICPFlow: ego-motion estimation failed ({type(error).__name__}: {error})") from None
-            if ego is None:
-                raise ValueError("ICPFlow: no ego motion fits the two scans (do they overlap?); pass ego1_from_ego0")
-            if rigid_problem(ego):
-                raise ValueError(f"ICPFlow: the estimated ego motion {rigid_problem(ego)}")
-        else:
-            ego = np.asarray(ego1_from_ego0, dtype=np.float64)
-            problem = rigid_problem(ego)
-            if problem:
-                raise ValueError(f"ICPFlow: ego1_from_ego0 {problem}")
-        timings["ego_motion"] = time.perf_counter() - tic
-
-        tic = time.perf_counter()
-        src = transform_points(ego, pc0_ok[keep0])
-        dst = pc1_ok[keep1]
-        fused = cluster_points(np.concatenate([src, dst]), cfg.clustering)
-        src_labels, dst_labels = fused[: len(src)], fused[len(src) :]
-        timings["clustering"] = time.perf_counter() - tic
-
-        window = cfg.pairing.window(np.linalg.norm(ego[:3, 3]), int(gap))
-        view = ScanView.of(pc1_ok)
-        matches, tried, src_stats, dst_stats = self._match(src, dst, src_labels, dst_labels, window, timings, view)
-        if cfg.merging.distance > 0:
-            tic = time.perf_counter()
-            _, src_stats, dst_stats = merging.merge_split_clusters(
-                src,
-                dst,
-                src_labels,
-                dst_labels,
-                src_stats,
-                dst_stats,
-                matches,
-                lambda clouds, centroids, max_points: self._register_clouds(
-                    clouds, centroids, window, dict.fromkeys(STAGES, 0.0), max_points, view
-                ),
-                cfg.merging,
-                cfg.icp,
-                cfg.clustering.min_cluster_size,
-                cfg.seed,
-            )
-            timings["merging"] = time.perf_counter() - tic
-
-        tic = time.perf_counter()
-        n_deskewed = 0
-        if deskew_on:
-            n_deskewed = deskew.refine(
-                src,
-                dst,
-                src_stats,
-                dst_stats,
-                time0[valid0][keep0],
-                time1[valid1][keep1],
-                matches,
-                float(dt),
-                window,
-                cfg,
-            )
-        timings["deskew"] = time.perf_counter() - tic
-
-        tic = time.perf_counter()
-        labels_ok0 = np.full(len(pc0_ok), -1, dtype=np.int32)
-        labels_ok0[keep0] = src_labels
-        flow_labels = labels_ok0
-        if cfg.flow.absorb_radius > 0:
-            flow_labels = absorb(
-                pc0_ok,
-                labels_ok0,
-                ego,
-                matches["pairs"][:, 0],
-                cfg.flow.absorb_radius,
-                (np.abs(pc0_ok[:, :2]) < cfg.crop_xy).all(axis=1),
-            )
-        flow_ok, conf_ok = point_flow(
-            pc0_ok, flow_labels, ego, matches["pairs"][:, 0], matches["transforms"], matches["match_confidence"]
-        )
-        flow = np.zeros((len(pc0_in), 3), dtype=np.float32)
-        confidence = np.zeros(len(pc0_in), dtype=np.float32)
-        flow[valid0], confidence[valid0] = flow_ok, conf_ok
-        labels0 = np.full(len(pc0_in), -1, dtype=np.int32)
-        labels0[valid0] = labels_ok0
-        labels1 = np.full(len(pc1_in), -1, dtype=np.int32)
-        labels1[np.flatnonzero(valid1)[keep1]] = dst_labels
-        full_g0 = np.zeros(len(pc0_in), dtype=bool)
-        full_g0[valid0] = g0
-        full_g1 = np.zeros(len(pc1_in), dtype=bool)
-        full_g1[valid1] = g1
-        timings["flow"] = time.perf_counter() - tic
+        inputs = self._checked(pc0, pc1, ground0, ground1, time0, time1, gap, dt)
+        clock = StageClock()
+        with clock("ground"):
+            scans = self._split(inputs)
+        with clock("ego_motion"):
+            ego = self._ego_motion(scans, ego1_from_ego0)
+        with clock("clustering"):
+            src, dst = transform_points(ego, scans.pc0[scans.keep0]), scans.pc1[scans.keep1]
+            fused = cluster_points(np.concatenate([src, dst]), self.cfg.clustering)
+            src_labels, dst_labels = fused[: len(src)], fused[len(src) :]
+        window = self.cfg.pairing.window(np.linalg.norm(ego[:3, 3]), int(inputs.gap))
+        view = ScanView.of(scans.pc1)
+        matches, tried, src_stats, dst_stats = self._match(src, dst, src_labels, dst_labels, window, clock, view)
+        if self.cfg.merging.distance > 0:
+            with clock("merging"):
+                src_stats, dst_stats = self._merge(
+                    src, dst, src_labels, dst_labels, src_stats, dst_stats, matches, window, view
+                )
+        with clock("deskew"):
+            n_deskewed = self._deskew(inputs, scans, src, dst, src_stats, dst_stats, matches, window)
+        with clock("flow"):
+            arrays = self._flow(inputs, scans, ego, src_labels, dst_labels, matches)
         return ICPFlowResult(
-            flow=flow,
-            confidence=confidence,
-            labels0=labels0,
-            labels1=labels1,
+            **arrays,
             ego1_from_ego0=ego,
-            ground0=full_g0,
-            ground1=full_g1,
-            valid0=valid0,
-            valid1=valid1,
-            dropped0=int((~valid0).sum()),
-            dropped1=int((~valid1).sum()),
+            valid0=inputs.valid0,
+            valid1=inputs.valid1,
+            dropped0=int((~inputs.valid0).sum()),
+            dropped1=int((~inputs.valid1).sum()),
             n_deskewed=n_deskewed,
-            timings=timings,
+            timings=clock.seconds,
             candidates=tried if candidates else None,
             **matches,
         )
 
-    def _match(self, src, dst, src_labels, dst_labels, window, timings, view=None) -> tuple:
+    def _checked(self, pc0, pc1, ground0, ground1, time0, time1, gap, dt) -> _Inputs:
+        """The call's arguments checked (one-line ``ValueError`` otherwise) and the finite rows found; non-finite
+        rows are not an error: they are dropped and counted."""
+        pc0 = check_points(pc0, "ICPFlow", "pc0", finite=False)
+        pc1 = check_points(pc1, "ICPFlow", "pc1", finite=False)
+        ground0, ground1 = _as_mask("ground0", ground0, len(pc0)), _as_mask("ground1", ground1, len(pc1))
+        time0, time1 = _as_times("time0", time0, len(pc0)), _as_times("time1", time1, len(pc1))
+        max_gap = self.cfg.pairing.max_frame_gap
+        if isinstance(gap, bool) or not isinstance(gap, (int, np.integer)) or not 1 <= gap <= max_gap:
+            raise ValueError(f"ICPFlow: gap must be an integer in [1, {max_gap}], got {gap!r}")
+        deskew_on = self.cfg.deskew.enabled and (time0 is not None or time1 is not None)
+        if deskew_on and (time0 is None or time1 is None or dt is None):
+            raise ValueError("ICPFlow: de-skew needs time0, time1 and dt together (or cfg.deskew.enabled=False)")
+        if deskew_on and not (isinstance(dt, (int, float, np.integer, np.floating)) and np.isfinite(dt) and dt > 0):
+            raise ValueError(f"ICPFlow: dt must be a positive number of seconds, got {dt!r}")
+        valid0, valid1 = np.isfinite(pc0).all(axis=1), np.isfinite(pc1).all(axis=1)
+        return _Inputs(pc0, pc1, valid0, valid1, ground0, ground1, time0, time1, gap, dt, deskew_on)
+
+    def _split(self, inputs: _Inputs) -> _Scans:
+        """Step 1: the ground of each scan (given, or segmented here) and the non-ground rows inside the crop."""
+        crop = self.cfg.crop_xy
+        parts = []
+        for points, given, valid in (
+            (inputs.pc0_ok, inputs.ground0, inputs.valid0),
+            (inputs.pc1_ok, inputs.ground1, inputs.valid1),
+        ):
+            ground, surface = self.ground.masks(points) if given is None else (given[valid], given[valid])
+            parts.append((points, ground, surface, ~ground & (np.abs(points[:, :2]) < crop).all(axis=1)))
+        (pc0, g0, s0, keep0), (pc1, g1, s1, keep1) = parts
+        return _Scans(pc0, pc1, g0, g1, s0, s1, keep0, keep1)
+
+    def _ego_motion(self, scans: _Scans, given) -> np.ndarray:
+        """Step 2: ``given`` (4, 4) checked, or the ego motion estimated on the scans without the ground's surface
+        (also when ``ego_motion.method`` is ``kiss_icp``)."""
+        if given is not None and self.cfg.ego_motion.method != "kiss_icp":
+            ego = np.asarray(given, dtype=np.float64)
+            problem = rigid_problem(ego)
+            if problem:
+                raise ValueError(f"ICPFlow: ego1_from_ego0 {problem}")
+            return ego
+        try:
+            ego = estimate_ego_motion(scans.pc0, scans.pc1, self.cfg, scans.surface0, scans.surface1)
+        except (RuntimeError, ValueError, MemoryError) as error:
+            raise ValueError(f"ICPFlow: ego-motion estimation failed ({type(error).__name__}: {error})") from None
+        if ego is None:
+            raise ValueError("ICPFlow: no ego motion fits the two scans (do they overlap?); pass ego1_from_ego0")
+        if rigid_problem(ego):
+            raise ValueError(f"ICPFlow: the estimated ego motion {rigid_problem(ego)}")
+        return ego
+
+    def _merge(self, src, dst, src_labels, dst_labels, src_stats, dst_stats, matches, window, view) -> tuple:
+        """Step 8b: recombine the clusters of one rigid object that the fused clustering split (``merging``;
+        ``matches`` updated in place); the two scans' ``ClusterStats`` after it."""
+        cfg = self.cfg
+        _, src_stats, dst_stats = merging.merge_split_clusters(
+            src,
+            dst,
+            src_labels,
+            dst_labels,
+            src_stats,
+            dst_stats,
+            matches,
+            lambda clouds, centroids, max_points: self._register_clouds(
+                clouds, centroids, window, StageClock(), max_points, view
+            ),
+            cfg.merging,
+            cfg.icp,
+            cfg.clustering.min_cluster_size,
+            cfg.seed,
+        )
+        return src_stats, dst_stats
+
+    def _deskew(self, inputs: _Inputs, scans: _Scans, src, dst, src_stats, dst_stats, matches, window) -> int:
+        """Step 8c: the rolling-shutter refinement of the moving matches where the call gave times; how many."""
+        if not inputs.deskew:
+            return 0
+        time0 = inputs.time0[inputs.valid0][scans.keep0]
+        time1 = inputs.time1[inputs.valid1][scans.keep1]
+        return deskew.refine(src, dst, src_stats, dst_stats, time0, time1, matches, float(inputs.dt), window, self.cfg)
+
+    def _flow(self, inputs: _Inputs, scans: _Scans, ego, src_labels, dst_labels, matches) -> dict:
+        """Step 9: flow and confidence per point (absorbing unclustered points near a match's cluster), the labels
+        and ground masks, all put back on the input rows (0 / -1 / False on the non-finite ones)."""
+        cfg, pc0, valid0, valid1 = self.cfg, scans.pc0, inputs.valid0, inputs.valid1
+        labels_ok0 = np.full(len(pc0), -1, dtype=np.int32)
+        labels_ok0[scans.keep0] = src_labels
+        flow_labels = labels_ok0
+        if cfg.flow.absorb_radius > 0:
+            inside = (np.abs(pc0[:, :2]) < cfg.crop_xy).all(axis=1)
+            flow_labels = absorb(pc0, labels_ok0, ego, matches["pairs"][:, 0], cfg.flow.absorb_radius, inside)
+        flow_ok, conf_ok = point_flow(
+            pc0, flow_labels, ego, matches["pairs"][:, 0], matches["transforms"], matches["match_confidence"]
+        )
+        count0, count1 = len(inputs.pc0), len(inputs.pc1)
+        flow, confidence = np.zeros((count0, 3), dtype=np.float32), np.zeros(count0, dtype=np.float32)
+        flow[valid0], confidence[valid0] = flow_ok, conf_ok
+        labels0, labels1 = np.full(count0, -1, dtype=np.int32), np.full(count1, -1, dtype=np.int32)
+        labels0[valid0] = labels_ok0
+        labels1[np.flatnonzero(valid1)[scans.keep1]] = dst_labels
+        ground0, ground1 = np.zeros(count0, dtype=bool), np.zeros(count1, dtype=bool)
+        ground0[valid0], ground1[valid1] = scans.ground0, scans.ground1
+        return {
+            "flow": flow,
+            "confidence": confidence,
+            "labels0": labels0,
+            "labels1": labels1,
+            "ground0": ground0,
+            "ground1": ground1,
+        }
+
+    def _match(self, src, dst, src_labels, dst_labels, window, clock: StageClock, view=None) -> tuple:
         """Steps 4 to 8 over both stages: the chosen matches as arrays, every candidate tried (see
         ``ICPFlowResult``) and the two scans' ``ClusterStats``."""
         cfg = self.cfg
-        tic = time.perf_counter()
-        n_labels = int(max(src_labels.max(initial=-1), dst_labels.max(initial=-1))) + 1
-        src_stats = cluster_stats(src, src_labels, n_labels)
-        dst_stats = cluster_stats(dst, dst_labels, n_labels)
-        s1, d1 = stage1_pairs(src_stats, dst_stats, window, cfg.pairing, cfg.clustering.min_cluster_size)
-        timings["pairing"] += time.perf_counter() - tic
-        first = self._register(src, dst, src_stats, dst_stats, s1, d1, window, timings, view)
+        with clock("pairing"):
+            n_labels = int(max(src_labels.max(initial=-1), dst_labels.max(initial=-1))) + 1
+            src_stats = cluster_stats(src, src_labels, n_labels)
+            dst_stats = cluster_stats(dst, dst_labels, n_labels)
+            s1, d1 = stage1_pairs(src_stats, dst_stats, window, cfg.pairing, cfg.clustering.min_cluster_size)
+        first = self._register(src, dst, src_stats, dst_stats, s1, d1, window, clock, view)
 
-        tic = time.perf_counter()
-        src_free = np.ones(n_labels, dtype=bool)
-        dst_free = np.ones(n_labels, dtype=bool)
-        src_free[first["pairs"][:, 0]] = False
-        dst_free[first["pairs"][:, 1]] = False
-        s2, d2 = stage2_pairs(
-            src_stats, dst_stats, src_free, dst_free, window, cfg.pairing, cfg.clustering.min_cluster_size
-        )
-        timings["pairing"] += time.perf_counter() - tic
-        second = self._register(src, dst, src_stats, dst_stats, s2, d2, window, timings, view)
+        with clock("pairing"):
+            src_free = np.ones(n_labels, dtype=bool)
+            dst_free = np.ones(n_labels, dtype=bool)
+            src_free[first["pairs"][:, 0]] = False
+            dst_free[first["pairs"][:, 1]] = False
+            s2, d2 = stage2_pairs(
+                src_stats, dst_stats, src_free, dst_free, window, cfg.pairing, cfg.clustering.min_cluster_size
+            )
+        second = self._register(src, dst, src_stats, dst_stats, s2, d2, window, clock, view)
 
         out = {key: np.concatenate([first[key], second[key]]) for key in first if key not in ("n_candidates", "tried")}
         out["stage"] = np.concatenate(
@@ -376,20 +441,19 @@ class ICPFlow:
         tried["stage"] = np.repeat(np.array([1, 2], np.int8), [first["n_candidates"], second["n_candidates"]])
         return out, tried, src_stats, dst_stats
 
-    def _register(self, src, dst, src_stats, dst_stats, src_ids, dst_ids, window, timings, view) -> dict:
+    def _register(self, src, dst, src_stats, dst_stats, src_ids, dst_ids, window, clock, view) -> dict:
         """Initialise, register, check and associate candidate pairs; the chosen ones as arrays."""
         cfg = self.cfg
         n = len(src_ids)
         clouds = [(src_stats.points(src, s), dst_stats.points(dst, d)) for s, d in zip(src_ids, dst_ids)]
-        tried = self._register_clouds(clouds, src_stats.centroid[src_ids], window, timings, view=view)
+        tried = self._register_clouds(clouds, src_stats.centroid[src_ids], window, clock, view=view)
         if cfg.checks.max_twin_share < 1 and n:
             shares = _twin_shares(dst, dst_stats, clouds, dst_ids, tried["transforms"], tried["passed"])
             tried["passed"] &= shares <= cfg.checks.max_twin_share
-        tic = time.perf_counter()
-        chosen = association.associate(
-            src_ids, dst_ids, tried["errors"], tried["passed"], method=cfg.association.method
-        )
-        timings["icp"] += time.perf_counter() - tic
+        with clock("icp"):
+            chosen = association.associate(
+                src_ids, dst_ids, tried["errors"], tried["passed"], method=cfg.association.method
+            )
         pick = np.flatnonzero(chosen)
         return {
             "pairs": np.stack([src_ids[pick], dst_ids[pick]], axis=1).astype(np.int32).reshape(-1, 2),
@@ -407,7 +471,7 @@ class ICPFlow:
         }
 
     def _register_clouds(
-        self, clouds, src_centroids, window, timings, max_points: int | None = None, view: ScanView | None = None
+        self, clouds, src_centroids, window, clock, max_points: int | None = None, view: ScanView | None = None
     ) -> dict:
         """Steps 5 to 7 for P candidate pairs ``clouds`` ((src (Ns, 3), dst (Nd, 3)), pc1's frame) with their
         source centroids (P, 3), ICP on at most ``max_points`` per cluster if given (else ``icp.max_points``),
@@ -427,33 +491,24 @@ class ICPFlow:
                 "match_confidence": np.zeros(0, np.float32),
                 "passed": np.zeros(0, bool),
             }
-        tic = time.perf_counter()
-        if cfg.histogram.init == "histogram":
-            translations, _ = histogram.initial_translations(clouds, np.full(n, window), cfg.histogram, cfg.seed)
-        else:
-            translations = np.array([histogram.centroid_translation(a, b) for a, b in clouds]).reshape(n, 3)
-        inits = np.tile(np.eye(4), (n, 1, 1))
-        inits[:, :3, 3] = translations
-        timings["histogram"] += time.perf_counter() - tic
-
-        tic = time.perf_counter()
-        icp = (
-            cfg.icp
-            if max_points is None
-            else dataclasses.replace(cfg.icp, max_points=min(cfg.icp.max_points, max_points))
-        )
-        result = registration.register_clusters(clouds, inits, icp, cfg.seed, identity=icp.static_tolerance > 0)
-        if icp.static_tolerance > 0:
-            _prefer_static(result, clouds, icp, cfg.seed, view)
-        ok = checks.passes(
-            result.transforms,
-            result.mean_error,
-            result.iou_ratio,
-            np.full(n, window),
-            cfg.checks,
-            src_centroids=src_centroids,
-        )
-        timings["icp"] += time.perf_counter() - tic
+        with clock("histogram"):
+            if cfg.histogram.init == "histogram":
+                translations, _ = histogram.initial_translations(clouds, np.full(n, window), cfg.histogram, cfg.seed)
+            else:
+                translations = np.array([histogram.centroid_translation(a, b) for a, b in clouds]).reshape(n, 3)
+            inits = np.tile(np.eye(4), (n, 1, 1))
+            inits[:, :3, 3] = translations
+        with clock("icp"):
+            icp = cfg.icp
+            if max_points is not None:
+                icp = dataclasses.replace(cfg.icp, max_points=min(cfg.icp.max_points, max_points))
+            result = registration.register_clusters(clouds, inits, icp, cfg.seed, identity=icp.static_tolerance > 0)
+            if icp.static_tolerance > 0:
+                _prefer_static(result, clouds, icp, cfg.seed, view)
+            windows = np.full(n, window)
+            ok = checks.passes(
+                result.transforms, result.mean_error, result.iou_ratio, windows, cfg.checks, src_centroids=src_centroids
+            )
         errors = result.mean_error.astype(np.float64)
         ious = result.iou_ratio.astype(np.float64)
         return {

@@ -4,20 +4,22 @@ numba compiles each ``@numba.njit(cache=True)`` kernel of the teacher (the modul
 first call and caches the machine code on disk (in ``__pycache__`` next to the sources, or under
 ``NUMBA_CACHE_DIR``); later processes load it in well under a second. Compiling costs about 45 s on 2 idle cores
 (minutes on a busy machine), once per environment and source version. ``setup.sh`` pays it
-(``python -m icpflow.teacher.warmup``); ``label.py``, ``eval.py`` and every student ``Predictor`` (``fastflow3d-infer``,
-the stream) call :func:`ensure_compiled` before their first pair, so a cold cache is filled once, in the main process
-and with a message, instead of by every worker inside its first sample behind a progress bar at 0.
+(``python -m icpflow.teacher.warmup``); ``label.py`` and ``eval.py`` call :func:`ensure_compiled` before their first
+pair, so a cold cache is filled once, in the main process and with a message, instead of by every worker inside its
+first sample behind a progress bar at 0; a student ``Predictor`` calls :func:`prepare_kernels` (once per process) on
+its first pair, never from its constructor.
 
 numba keys a kernel's cached code by its own source file only, and a kernel that calls another module's kernel (the
 refinement's batch ICP calls ``icp`` and ``neighbours``) caches the callee's code with its own: after a change to the
-callee's file alone (an edit, a ``git pull`` of an editable install) the caller ran the old callee, silently (a
-two-module check in issue 44's twelfth session: 20 where the new code gives 30). So the cache carries a stamp of the
+callee's file alone (an edit, a ``git pull`` of an editable install) the caller would run the old callee, silently.
+So the cache carries a stamp of the
 sources it was compiled from (:data:`SOURCES_STAMP`, :func:`sources_fingerprint`); where it differs, every kernel is
 cold, and :func:`ensure_compiled` empties the whole cache before it compiles.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib
 import importlib.util
@@ -185,6 +187,16 @@ def ensure_compiled(prefix: str = "icpflow", stream=None, eager: bool = True) ->
         _stamp()
     print(f"{prefix}: kernels compiled in {time.perf_counter() - start:.0f} s", file=stream, flush=True)
     return True
+
+
+@functools.cache
+def prepare_kernels(prefix: str = "fastflow3d") -> bool:
+    """The student side's kernel step, once per process (later calls return the first one's answer and do nothing):
+    a cache compiled from other sources is emptied and stamped, with one line on stderr saying so; nothing compiles
+    here, each kernel compiles (and is cached) on its first call: the few a Predictor calls rather than all of the
+    teacher's. True where it emptied a cache. ``Predictor.predict`` and a stream's first scan call it; so may a
+    caller who wants it done (and said) before the first pair."""
+    return ensure_compiled(prefix, eager=False)
 
 
 def _restart_cache() -> None:
