@@ -91,10 +91,10 @@ def reference(tmp_path_factory):
 def tiny_student(tmp_path_factory):
     """The tiny student (helpers.training.TINY_MODEL) trained once per session, 5 Adam steps towards the true flow of
     a small synthetic pair (32 beams; every point): ``<session folder>/run/checkpoints/tiny.ckpt``, its stored run
-    folders that folder's. Tests copy it (students.place_checkpoint) rather than change it."""
+    folders that folder's. Tests copy it (helpers.students.place_checkpoint) rather than change it."""
     from icpflow.datasets.synthetic import SyntheticDataset
 
-    from students import tiny_checkpoint
+    from helpers.students import tiny_checkpoint
 
     pair = SyntheticDataset(split="test", beams=32, num_sequences=1, frames_per_sequence=2, seed=0)[0]
     return tiny_checkpoint(tmp_path_factory.mktemp("tiny_student") / "run" / "checkpoints" / "tiny.ckpt", pair, 5)

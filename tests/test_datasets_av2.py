@@ -2,7 +2,6 @@
 
 import pickle
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -11,13 +10,15 @@ import pytest
 from icpflow.frames import FramePairError
 from icpflow.geometry import ego_flow
 
+from helpers.data import needs_shared, shared
+
 pytest.importorskip("av2", reason="the av2 package is an optional dependency (pip install icpflow[av2])")
 from icpflow.datasets.av2 import AV2Dataset  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "av2"
 LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+ROOT = shared("av2")
 STAMP0, STAMP1 = 315966265259836000, 315966265360032000
-pytestmark = pytest.mark.skipif(not (ROOT / "sensor" / "val" / LOG).is_dir(), reason=f"real AV2 sample absent: {ROOT}")
+pytestmark = needs_shared("av2", "sensor", "val", LOG, what="the real Argoverse 2 log")
 
 
 @pytest.fixture(scope="module")
@@ -76,6 +77,7 @@ def test_classes_and_dynamic_equal_official_labels(real_pair, labels):
 
 def test_static_points_have_ego_flow(real_pair):
     static = ~real_pair.dynamic & (real_pair.classes == 0)
+    assert static.sum() > 80_000  # 89,832 of the 99,229 points: the check below is not over an empty selection
     np.testing.assert_allclose(real_pair.flow[static], real_pair.ego_flow()[static], atol=1e-5)
 
 
@@ -89,6 +91,7 @@ def test_ground_threshold_is_an_option(labels):
     wider = AV2Dataset(ROOT, "val", ground_threshold=0.4, with_flow=False).pair(0)
     official = labels["is_ground_0"].to_numpy()
     assert wider.flow is None
+    assert official.sum() > 15_000  # 17,374 official ground points (18,694 within 0.4 m): a check of some points
     assert wider.ground0[official].all()  # a wider band only adds ground points
     assert wider.ground0.sum() > official.sum()
 
@@ -210,6 +213,7 @@ def test_longer_horizon(log_copy):
     residual = np.linalg.norm(pair.residual_flow(), axis=1)
     np.testing.assert_array_equal(pair.dynamic, residual >= 0.1)  # 0.5 m/s over two sweeps
     static = pair.classes == 0
+    assert static.sum() > 80_000  # 89,832 of 99,229 points of class 0 (background): not an empty selection
     np.testing.assert_allclose(pair.flow[static], pair.ego_flow()[static], atol=1e-5)
     one_step = AV2Dataset(root, "val", max_horizon=2).pair(0, horizon=1)
     moving = one_step.dynamic & pair.dynamic

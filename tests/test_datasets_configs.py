@@ -14,8 +14,9 @@ from icpflow.preprocess import Preprocessing
 from icpflow.teacher import ICPFlowConfig
 from icpflow.teacher.config import teacher_config
 
+from helpers.data import needs_shared, shared
+
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 NAMES = ["av2", "waymo", "nuscenes", "zeroflow_av2", "kitti", "pairs", "sequence", "synthetic"]
 FILE_LESS = {"synthetic"}  # generated: root is null, nothing is read
 
@@ -113,15 +114,15 @@ def test_pairs_config_instantiates(tmp_path):
     assert len(dataset) == 1 and dataset.pair(0).pc1.shape == (6, 3)
 
 
-@pytest.mark.skipif(not (DATA / "av2").is_dir(), reason=f"real AV2 sample absent: {DATA / 'av2'}")
+@needs_shared("av2", what="the real Argoverse 2 sample")
 def test_av2_config_instantiates_on_the_real_sample():
     pytest.importorskip("av2")
-    dataset = instantiate(load("av2", DATA / "av2").dataset.reader)
+    dataset = instantiate(load("av2", shared("av2")).dataset.reader)
     assert len(dataset) == 1 and dataset.name == "av2"
 
 
-@pytest.mark.skipif(not (DATA / "kitti_hdl64_scans").is_dir(), reason="real KITTI scans absent")
+@needs_shared("kitti_hdl64_scans", what="the real KITTI HDL-64 scans")
 @pytest.mark.parametrize("name", ["kitti", "sequence"])
 def test_scan_folder_configs_instantiate_on_real_scans(name):
-    dataset = instantiate(load(name, DATA / "kitti_hdl64_scans").dataset.reader)
+    dataset = instantiate(load(name, shared("kitti_hdl64_scans")).dataset.reader)
     assert len(dataset) == 5

@@ -1,7 +1,6 @@
 """KITTI odometry reader: the real sequence-01 frames laid out as the official download, and the bare HDL-64 scans."""
 
 import pickle
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,10 +11,11 @@ from icpflow.frames import FramePairError
 from icpflow.geometry import make_transform, relative_transform, transform_points
 from icpflow.preprocess import estimate_ground_height, lift_pose, lift_transform
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-SEQ01 = DATA / "kitti_odometry_seq01"
-SCANS = DATA / "kitti_hdl64_scans"
-needs_seq01 = pytest.mark.skipif(not SEQ01.is_dir(), reason=f"real KITTI sample absent: {SEQ01}")
+from helpers.data import needs_shared, shared
+
+SEQ01 = shared("kitti_odometry_seq01")
+SCANS = shared("kitti_hdl64_scans")
+needs_seq01 = needs_shared("kitti_odometry_seq01", what="the real KITTI sequence 01 frames")
 
 
 @pytest.fixture
@@ -95,7 +95,7 @@ def test_split_selects_sequences(kitti_root):
         KittiOdometryDataset(kitti_root, split="everything")
 
 
-@pytest.mark.skipif(not SCANS.is_dir(), reason=f"real KITTI scans absent: {SCANS}")
+@needs_shared("kitti_hdl64_scans", what="the real KITTI HDL-64 scans")
 def test_bare_scan_folder_has_no_poses():
     dataset = KittiOdometryDataset(SCANS)
     assert len(dataset) == 5 and dataset.sample_id(4) == "kitti_hdl64_scans/000004"

@@ -11,7 +11,10 @@ from icpflow.frames import FramePairError
 from icpflow.geometry import invert, make_transform, transform_points
 from icpflow.open3d_loader import load_open3d
 
-SCANS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_hdl64_scans"
+from helpers.data import needs_shared, shared
+
+SCANS = shared("kitti_hdl64_scans")
+needs_scans = needs_shared("kitti_hdl64_scans", what="the real KITTI HDL-64 scans")
 RNG = np.random.default_rng(5)
 CLOUDS = [RNG.uniform(-30, 30, (200 + 10 * i, 3)).astype(np.float32) for i in range(4)]
 POSES = np.stack([make_transform(yaw=0.01 * i, translation=(0.8 * i, 0.0, 0.0)) for i in range(4)])
@@ -72,7 +75,7 @@ def test_other_pose_formats(tmp_path, name):
     np.testing.assert_allclose(dataset.pair(0).pose1, POSES[1], atol=1e-12)
 
 
-@pytest.mark.skipif(not SCANS.is_dir(), reason=f"real KITTI scans absent: {SCANS}")
+@needs_scans
 def test_real_scans_without_poses():
     dataset = ScanSequenceDataset(SCANS)
     assert len(dataset) == 5
@@ -119,7 +122,7 @@ def test_scans_already_in_the_height_frame_stay(tmp_path):
     np.testing.assert_array_equal(dataset.pair(0).pc0, street(-0.3, 0))
 
 
-@pytest.mark.skipif(not SCANS.is_dir(), reason=f"real KITTI scans absent: {SCANS}")
+@needs_scans
 def test_real_scans_are_lifted_by_their_estimated_height():
     """The HDL-64E sits about 1.73 m above the road: auto finds that within 0.1 m; a given height is used as is."""
     assert ScanSequenceDataset(SCANS).lift() == pytest.approx(1.73, abs=0.1)

@@ -32,8 +32,8 @@ from icpflow.open3d_loader import load_open3d
 from icpflow.preprocess import Preprocessing, lift_points, lift_transform
 from icpflow.teacher.config import ICPFlowConfig
 
+from helpers.students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
 from helpers.training import TINY_MODEL
-from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
 
 pytest.importorskip("onnxruntime")
 pytest.importorskip("onnxscript")

@@ -16,8 +16,8 @@ from hydra import compose, initialize_config_dir
 from icpflow.datasets.from_config import DatasetError, open_dataset
 from icpflow.teacher import warmup
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
+from helpers.data import REPO, needs_shared, shared
+
 AV2_LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
 
 
@@ -122,22 +122,22 @@ def _label_cfg(*overrides):
         return compose("label", list(overrides))
 
 
-@pytest.mark.skipif(not (DATA / "av2" / "sensor" / "val" / AV2_LOG).is_dir(), reason=f"AV2 sample absent: {DATA}")
+@needs_shared("av2", "sensor", "val", AV2_LOG, what="the real Argoverse 2 log")
 def test_av2_log_too_short_for_the_horizon_says_so():
     pytest.importorskip("av2", reason="the av2 package is an optional dependency (pip install icpflow[av2])")
-    cfg = _label_cfg("dataset=av2", f"dataset.root={DATA / 'av2'}", "split=val")
+    cfg = _label_cfg("dataset=av2", f"dataset.root={shared('av2')}", "split=val")
     assert len(open_dataset(cfg, 1)) == 1
     with pytest.raises(DatasetError) as error:
         open_dataset(cfg, 2)
     assert str(error.value) == (
-        f"dataset av2: no samples under {(DATA / 'av2').resolve()} (split val): log {AV2_LOG} has 2 sweeps: "
+        f"dataset av2: no samples under {shared('av2').resolve()} (split val): log {AV2_LOG} has 2 sweeps: "
         "a pair 2 apart needs at least 3 (horizon=2)"
     )
 
 
-@pytest.mark.skipif(not (DATA / "kitti_hdl64_scans").is_dir(), reason=f"KITTI scans absent: {DATA}")
+@needs_shared("kitti_hdl64_scans", what="the real KITTI HDL-64 scans")
 def test_kitti_scans_too_few_for_the_horizon_say_so():
-    root = DATA / "kitti_hdl64_scans"
+    root = shared("kitti_hdl64_scans")
     count = len(list(root.glob("*.bin")))
     cfg = _label_cfg("dataset=kitti", f"dataset.root={root}")
     assert len(open_dataset(cfg, count - 1)) == 1

@@ -13,8 +13,8 @@ from fastflow3d.inference.predictor import Predictor
 from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import invert
 
+from helpers.students import tiny_network  # tests/ is on sys.path (pytest prepend import mode)
 from helpers.training import TINY_MODEL
-from students import tiny_network  # tests/ is on sys.path (pytest prepend import mode)
 
 
 @pytest.fixture(scope="module")

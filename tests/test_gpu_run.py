@@ -10,10 +10,9 @@ import pytest
 
 from benchmarks import gpu_run
 
+from helpers.data import REPO, shared
 from helpers.labelling import TESTS_ENV
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
 STEPS = ("labels_train", "labels_val", "train_paper", "train_small", "eval_paper", "eval_small", "teacher")
 
 
@@ -51,7 +50,7 @@ def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
         assert report.count(f"| given | {backend} |") == 2, backend
     assert "| cpu | cpu (numba" in report and "| torch | cpu" in report  # the teacher's two backends
     assert "| stream | points | regime | engine |" in report  # the stream's table (issue 33.7), rows with the data
-    if (DATA / "kitti_hdl64_scans").is_dir():
+    if shared("kitti_hdl64_scans").is_dir():
         assert report.count("| kitti | 124668 | streamed | eager |") == 1
         for refined in ("no", "yes"):  # the stream as a user runs it (issue 44.6; on a GPU: its pt2 network)
             assert f"| kitti | {gpu_run.SMOKE_CLI_FRAMES} | onnxruntime | {refined} |" in report, refined

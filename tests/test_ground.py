@@ -3,7 +3,6 @@ the synthetic world's exact masks (by class) and on SemanticKITTI's labels of re
 keep the ground of their time (tests/test_preprocess.py, tests/test_release_fixtures.py)."""
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,13 +13,10 @@ from icpflow.preprocess import HeightFrame, Preprocessing, lift_points
 from icpflow.synthetic.scene import CAR, PEDESTRIAN
 from icpflow.teacher.config import GroundConfig
 
-SEQ01 = (
-    Path(__file__).resolve().parents[2]
-    / "shared"
-    / "data"
-    / "kitti_odometry_seq01"
-    / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"
-)
+from helpers.data import needs_shared, shared
+
+SEQ01_FRAMES = ("kitti_odometry_seq01", "kitti_odom_seq01_frames000-002_with_gt_poses.npz")
+SEQ01 = shared(*SEQ01_FRAMES)
 GROUND_CLASSES = (9, 10, 11, 12, 17)  # SemanticKITTI: road, parking, sidewalk, other-ground, terrain
 
 
@@ -96,7 +92,7 @@ def test_moving_objects_are_kept_whole_on_the_synthetic_world(synthetic_pairs):
     assert share["local", "ground"] > 0.93, share
 
 
-@pytest.mark.skipif(not SEQ01.is_file(), reason="needs ../shared/data/kitti_odometry_seq01 (real KITTI scans)")
+@needs_shared(*SEQ01_FRAMES, what="the real KITTI sequence 01 frames", kind="file")
 def test_semantickitti_ground_agrees_and_cars_stay_whole():
     """On KITTI sequence 01 (lifted 1.73 m into the height frame): agreement with SemanticKITTI's ground classes at
     least the 88.6 % of the older ``both`` (measured: 95.4 %), and under 1 % of the car points called ground (the
@@ -138,10 +134,10 @@ def test_returns_far_below_any_road_are_no_ground_seeds():
     assert below_any_road(points + [0, 0, -0.32], -0.32).tolist() == [True, False, False, True]  # AV2's frame
 
 
-PAIR_28 = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_seq00_pairs" / "000028_000029.npz"
+PAIR_28 = shared("kitti_seq00_pairs", "000028_000029.npz")
 
 
-@pytest.mark.skipif(not PAIR_28.is_file(), reason=f"the KITTI 00 pairs are absent: {PAIR_28.parent}")
+@needs_shared("kitti_seq00_pairs", "000028_000029.npz", what="a real KITTI sequence 00 pair", kind="file")
 def test_a_few_returns_below_the_road_leave_the_ground_found():
     """KITTI 00, frame 28: Patchwork++ calls a few returns 4.5 m below the road ground; as the lowest seeds of the
     local map they once pulled the ground height metres down, and 2 % of the labelled ground was found (a whole-scene

@@ -6,7 +6,6 @@ points where neighbours tie in distance (the real sweep at other settings, a lat
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +15,8 @@ from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.teacher.clustering import voxel_downsample
 from icpflow.teacher.hdbscan_labels import hdbscan_labels, labels_from_spanning_tree, single_linkage
 
-AV2_LOGS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "av2" / "sensor" / "val"
+from helpers.data import require_shared
+
 SETTINGS = [  # (min_cluster_size, min_samples, epsilon): the presets' (av2, waymo) and others
     (20, 20, 0.25),
     (30, 30, 0.25),
@@ -58,9 +58,8 @@ def synthetic_scene() -> np.ndarray:
 
 def av2_sweep() -> np.ndarray:
     """One real AV2 sweep above 0.3 m within 51.2 m, on the av2 preset's 0.25 m voxels (about 25k points)."""
-    sweeps = sorted(AV2_LOGS.glob("*/sensors/lidar/*.feather"))
-    if not sweeps:
-        pytest.skip(f"real AV2 sample absent: {AV2_LOGS}")
+    logs = require_shared("av2", "sensor", "val", what="the real Argoverse 2 sweeps", glob="*/sensors/lidar/*.feather")
+    sweeps = sorted(logs.glob("*/sensors/lidar/*.feather"))
     points = read_feather(sweeps[0], ("x", "y", "z"))[["x", "y", "z"]].to_numpy().astype(np.float32)
     keep = (points[:, 2] > 0.3) & (np.abs(points[:, :2]).max(axis=1) < 51.2)
     return voxel_downsample(points[keep], 0.25)[0].astype(np.float64)

@@ -6,7 +6,6 @@ Each run labels one sample (``limit=1``) and the shard is read back with ``Shard
 
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -16,13 +15,12 @@ from hydra import compose, initialize_config_dir
 from icpflow.labelling.cli import label
 from icpflow.shards import ShardDataset
 
+from helpers.data import REPO, needs_shared, shared
 from helpers.pcaccumulation import FORMATS, WAYMO_CLASSES, world, write_dataset  # tests/ is on sys.path
 from helpers.zeroflow import LOG, dump_arrays, write_dump
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
-AV2_ROOT = DATA / "av2"
-KITTI_SCANS = DATA / "kitti_hdl64_scans"
+AV2_ROOT = shared("av2")
+KITTI_SCANS = shared("kitti_hdl64_scans")
 #: one sample, in this process's worker, HDBSCAN without its process pool (the same labels, no pool start-up)
 ONE = ["limit=1", "workers=1", "icpflow.clustering.n_jobs=1"]
 
@@ -50,7 +48,7 @@ def label_script(tmp_path, *overrides) -> dict:
     return shards[0]
 
 
-@pytest.mark.skipif(not AV2_ROOT.is_dir(), reason=f"real Argoverse 2 sample absent: {AV2_ROOT}")
+@needs_shared("av2", what="the real Argoverse 2 sample")
 def test_label_py_on_the_real_av2_log(tmp_path):
     pytest.importorskip("av2", reason="the av2 package is not installed (pip install icpflow[av2])")
     from icpflow.datasets.av2 import AV2Dataset
@@ -75,7 +73,7 @@ def test_label_py_on_the_real_av2_log(tmp_path):
     assert error[moving].mean() < 0.3 and error[still].mean() < 0.05  # the teacher follows the moving objects
 
 
-@pytest.mark.skipif(not KITTI_SCANS.is_dir(), reason=f"real KITTI scans absent: {KITTI_SCANS}")
+@needs_shared("kitti_hdl64_scans", what="the real KITTI HDL-64 scans")
 def test_label_py_on_the_bare_kitti_scans(tmp_path):
     sample = label_script(tmp_path, "dataset=kitti", f"dataset.root={KITTI_SCANS}")  # a bare folder: no poses
     scans = [np.fromfile(KITTI_SCANS / f"{frame:06d}.bin", np.float32).reshape(-1, 4) for frame in (0, 1)]

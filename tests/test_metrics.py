@@ -1,5 +1,3 @@
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -19,6 +17,8 @@ from icpflow.metrics import (
     threeway_epe,
 )
 from icpflow.open3d_loader import provide_libusb
+
+from helpers.data import needs_shared, shared
 
 I4 = np.eye(4)
 
@@ -212,21 +212,13 @@ def test_meta_mapping_matches_package():
     assert theirs == AV2_META
 
 
-AV2_LOG = (
-    Path(__file__).resolve().parents[1].parent
-    / "shared"
-    / "data"
-    / "av2"
-    / "sensor"
-    / "val"
-    / "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
-)
+AV2_LOG_PARTS = ("av2", "sensor", "val", "7fab2350-7eaf-3b7e-a39d-6937a4c1bede")
+AV2_LOG = shared(*AV2_LOG_PARTS)
 
 
+@needs_shared(*AV2_LOG_PARTS, "flow_labels.feather", what="the real Argoverse 2 log's flow labels", kind="exists")
 def test_parity_on_real_av2_pair(tmp_path):
     pytest.importorskip("bucketed_scene_flow_eval", reason="bucketed-scene-flow-eval not installed")
-    if not (AV2_LOG / "flow_labels.feather").exists():
-        pytest.skip(f"real AV2 sample absent: {AV2_LOG}")
     import pandas as pd
     from bucketed_scene_flow_eval.datasets.argoverse2.argoverse_scene_flow import CATEGORY_MAP
     from bucketed_scene_flow_eval.datasets.argoverse2.av2_metacategories import (

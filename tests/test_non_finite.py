@@ -21,8 +21,8 @@ from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.long_horizon import SampleFlow
 
 from helpers.shards import write_pseudo_labels
+from helpers.students import tiny_network  # tests/ is on sys.path (pytest prepend import mode)
 from helpers.training import TINY_MODEL, train_cfg
-from students import tiny_network  # tests/ is on sys.path (pytest prepend import mode)
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ from icpflow.datasets.synthetic import SyntheticDataset
 from icpflow.geometry import full_to_residual, transform_points
 
 from helpers.shards import write_labels
-from students import tiny_network
+from helpers.students import tiny_network
 
 
 def _lrs(make, total: int) -> list[float]:

@@ -124,7 +124,7 @@ def test_an_accepted_motion_moves_only_the_points_it_fits():
     flow; the bus gets its full motion (issue 44: the refinement must not make static points worse than the network
     alone). Where the student smears some of the bus's motion onto the post, the points that the bus's motion fits
     as well (within ``point_slack``) may take it: a few, never the post."""
-    from teacher_scenes import box_surface  # tests/ is on sys.path (pytest's prepend import mode)
+    from helpers.teacher_scenes import box_surface  # tests/ is on sys.path (pytest's prepend import mode)
 
     rng = np.random.default_rng(0)
     # sparse enough to enter ICP whole (max_points): pc1 holds the very points of pc0, moved or not
@@ -156,7 +156,7 @@ def test_ground_surface_left_in_the_scans_joins_no_objects_and_stays_out_of_icp(
     surfaces, the refinement builds objects from the points above them: the car is refined, the parked one and the
     strip keep the student's flow, and the car's own feet (surface points in its cells) move with it. Surfaces
     that hold nothing change nothing."""
-    from teacher_scenes import box_surface  # tests/ is on sys.path (pytest's prepend import mode)
+    from helpers.teacher_scenes import box_surface  # tests/ is on sys.path (pytest's prepend import mode)
 
     rng = np.random.default_rng(1)
     car = box_surface((4.4, 1.8, 1.4), rng, spacing=0.2) + np.float64([4.0, 0.0, 0.2])

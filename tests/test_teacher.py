@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from teacher_scenes import scene  # tests/ is on sys.path (pytest prepend import mode)
 
 from icpflow.geometry import ego_flow, make_transform
 from icpflow.ground import GroundSegmenter
@@ -18,6 +17,8 @@ from icpflow.teacher.config import from_hydra
 from icpflow.teacher.flow import match_confidence
 from icpflow.teacher.long_horizon import long_horizon_flow
 from icpflow.teacher.pairing import cluster_stats, plausible
+
+from helpers.teacher_scenes import scene  # tests/ is on sys.path (pytest prepend import mode)
 
 EGO = make_transform(yaw=0.02, translation=(0.8, 0.1, 0.0))
 CFG = ICPFlowConfig.preset(

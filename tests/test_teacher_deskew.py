@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from teacher_scenes import box_surface  # tests/ is on sys.path (pytest prepend import mode)
 
 from icpflow.geometry import make_transform, transform_points
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.config import ICPConfig
 from icpflow.teacher.icp import normals
 from icpflow.teacher.registration import register_plane
+
+from helpers.teacher_scenes import box_surface  # tests/ is on sys.path (pytest prepend import mode)
 
 EGO = make_transform(yaw=0.02, translation=(0.8, 0.1, 0.0))
 CFG = ICPFlowConfig.preset(

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from teacher_scenes import box_surface  # tests/ is on sys.path (pytest prepend import mode)
 
 from icpflow.geometry import make_transform, transform_points
 from icpflow.teacher import ICPFlow, ICPFlowConfig
@@ -19,6 +18,8 @@ from icpflow.teacher.histogram import main_axis
 from icpflow.teacher.merging import adjacent_labels, merge_split_clusters
 from icpflow.teacher.pairing import cluster_stats
 from icpflow.teacher.pipeline import StageClock
+
+from helpers.teacher_scenes import box_surface  # tests/ is on sys.path (pytest prepend import mode)
 
 ROOT = Path(__file__).resolve().parents[1]
 OFF = {"histogram": {"axis_min_extent": 0.0}, "merging": {"distance": 0.0}}

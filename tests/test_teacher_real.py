@@ -2,24 +2,20 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from icpflow.geometry import ego_flow, pose_error, relative_transform
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-AV2_ROOT = DATA / "av2"
-KITTI = DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"
+from helpers.data import require_shared, shared
+
+SEQ01_FRAMES = ("kitti_odometry_seq01", "kitti_odom_seq01_frames000-002_with_gt_poses.npz")
 
 
 @pytest.fixture(scope="module")
 def kitti():
-    if not KITTI.is_file():
-        pytest.skip(f"real KITTI sample absent: {KITTI}")
-    return np.load(KITTI)
+    return np.load(require_shared(*SEQ01_FRAMES, what="the real KITTI sequence 01 frames", kind="file"))
 
 
 @pytest.fixture(scope="module")
@@ -47,11 +43,10 @@ def test_kitti_ego_motion_and_static_flow(kitti, kitti_result):
 @pytest.fixture(scope="module")
 def av2_pair():
     pytest.importorskip("av2", reason="the av2 package is an optional dependency")
-    if not (AV2_ROOT / "sensor" / "val").is_dir():
-        pytest.skip(f"real AV2 sample absent: {AV2_ROOT}")
+    require_shared("av2", "sensor", "val", what="the real Argoverse 2 sample")
     from icpflow.datasets.av2 import AV2Dataset
 
-    return AV2Dataset(AV2_ROOT, split="val", ground_threshold=0.4).pair(0)  # map ground: within 0.4 m
+    return AV2Dataset(shared("av2"), split="val", ground_threshold=0.4).pair(0)  # map ground: within 0.4 m
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,10 @@ from scipy.spatial import cKDTree
 from benchmarks.teacher_real_pairs import PAIRS, read_pair
 from icpflow.geometry import transform_points
 
+from helpers.data import needs_shared
+
 FILES = sorted(PAIRS.glob("*.npz"))
-pytestmark = pytest.mark.skipif(not FILES, reason=f"the KITTI 00 pairs are absent: {PAIRS}")
+pytestmark = needs_shared("kitti_seq00_pairs", what="the real KITTI sequence 00 pairs", glob="*.npz")
 
 
 def test_a_pair_is_read_into_the_height_frame_with_its_exact_ego_motion():

@@ -20,7 +20,7 @@ from fastflow3d.artifact.safe_loading import check_pt2
 from fastflow3d.inference.predictor import Predictor
 from icpflow.datasets.synthetic import SyntheticDataset
 
-from students import place_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
+from helpers.students import place_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
 
 
 class Payload:

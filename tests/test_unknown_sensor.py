@@ -7,8 +7,6 @@ static points is the ego flow of the exact poses. Figures: BENCHMARKS.md, issue 
 ``git show 28fd404:benchmarks/unknown_sensor.py``).
 """
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
@@ -22,25 +20,22 @@ from icpflow.preprocess import estimate_ground_height, lift_transform
 from icpflow.shards import ShardDataset
 from icpflow.teacher.config import ICPFlowConfig
 
-from students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
+from helpers.data import REPO, needs_shared, require_shared, shared
+from helpers.students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
-SEQ01 = DATA / "kitti_odometry_seq01" / "kitti_odom_seq01_frames000-002_with_gt_poses.npz"
-SCANS = DATA / "kitti_hdl64_scans"
+SEQ01_FRAMES = ("kitti_odometry_seq01", "kitti_odom_seq01_frames000-002_with_gt_poses.npz")
+SCANS = shared("kitti_hdl64_scans")
 GROUND_CLASSES = (9, 10, 11, 12, 17)  # road, parking, sidewalk, other-ground, terrain (SemanticKITTI learning map)
 CAR = 1
-needs_seq01 = pytest.mark.skipif(not SEQ01.is_file(), reason=f"real KITTI sample absent: {SEQ01}")
-needs_scans = pytest.mark.skipif(not SCANS.is_dir(), reason=f"real KITTI scans absent: {SCANS}")
+needs_seq01 = needs_shared(*SEQ01_FRAMES, what="the real KITTI sequence 01 frames", kind="file")
+needs_scans = needs_shared("kitti_hdl64_scans", what="the real KITTI HDL-64 scans")
 #: a small network over +-32 m (1 m pillars), the synthetic world's preprocessing block (ground at z = 0)
 SYNTHETIC = ICPFlowConfig.preset("waymo", ground={"sensor_height": 1.9, "patchwork_z_offset": -1.9})  # synthetic.yaml
 
 
 @pytest.fixture(scope="module")
 def seq01():
-    if not SEQ01.is_file():
-        pytest.skip(f"real KITTI sample absent: {SEQ01}")
-    return np.load(SEQ01)
+    return np.load(require_shared(*SEQ01_FRAMES, what="the real KITTI sequence 01 frames", kind="file"))
 
 
 def truth(seq01, frame: int):

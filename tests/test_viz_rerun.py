@@ -4,7 +4,6 @@ entity and value by value; from eval.py viewer=rerun and fastflow3d-infer --reru
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,10 +16,10 @@ from icpflow.geometry import full_to_residual, transform_points
 from icpflow.viz_rerun import PairRecording, ViewerUnavailable, import_rerun, speed_colours
 
 pytest.importorskip("rerun", reason="rerun-sdk is an optional dependency (pip install 'icpflow[viz]')")
+from helpers.data import REPO, needs_shared, shared  # noqa: E402
 from helpers.rerun import read_recording  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-KITTI = REPO.parent / "shared" / "data" / "kitti_hdl64_scans"
+KITTI = shared("kitti_hdl64_scans")
 READER = {"split": "val", "num_sequences": 1, "frames_per_sequence": 3, "beams": 32, "azimuth_resolution_deg": 1.0}
 
 
@@ -101,7 +100,7 @@ def test_eval_viewer_rerun_records_every_method(pairs, tmp_path, capsys):
     assert "eval: viewer must be one of rerun, null, got 'open3d'" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not (KITTI / "000001.bin").is_file(), reason=f"shipped KITTI scans absent: {KITTI}")
+@needs_shared("kitti_hdl64_scans", "000001.bin", what="the shipped KITTI HDL-64 scans", kind="file")
 def test_infer_rerun_on_kitti_scans(tiny_student, tmp_path):
     from fastflow3d.inference.cli import main as infer_main
 
@@ -118,6 +117,7 @@ def test_infer_rerun_on_kitti_scans(tiny_student, tmp_path):
         np.testing.assert_allclose(entities["masks/in_grid"][0]["positions"], moved[result["in_grid"]], atol=1e-4)
 
 
+@needs_shared("kitti_hdl64_scans", "000001.bin", what="the shipped KITTI HDL-64 scans", kind="file")
 @pytest.mark.parametrize("place", ["full", "read-only"])
 def test_a_recording_on_a_full_or_read_only_place_is_one_line_naming_it(tiny_student, tmp_path, mount_tmpfs, place):
     """Issue 31.5: ``fastflow3d-infer --rerun`` where the file cannot be written: one line naming the file asked for
