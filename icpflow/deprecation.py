@@ -1,5 +1,6 @@
 """The last release's paths that moved, kept importable for one more release with a ``DeprecationWarning`` that names
-today's path (issue 46 put ``fastflow3d`` in rooms and renamed ``icpflow.entry`` and ``icpflow.teacher.tracker``).
+today's path (the modules of ``fastflow3d`` that now live in its rooms, and the renamed ``icpflow.entry`` and
+``icpflow.teacher.tracker``).
 
 An old module path is a tiny module at that path (a *shim*) that re-exports today's objects under their old names and
 calls :func:`warn_moved` once, when it is first imported; an old module that became a package of the same name (its

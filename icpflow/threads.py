@@ -4,8 +4,8 @@
 
 A labelling worker runs the teacher on its share of the cores; a stream that overlaps its network with its own steps
 (``fastflow3d.inference.stream``) runs those steps on one thread, so that their thread pools do not spin on the core
-the network runs on (issue 44, 2 cores: 86-89 -> 74-76 ms per frame of the synthetic stream, 106-120 -> 94-102 ms
-refined).
+the network runs on (on 2 cores that makes a frame quicker, plain and refined: BENCHMARKS.md, "Student latency and the
+stream").
 """
 
 from __future__ import annotations

@@ -76,7 +76,8 @@ from icpflow.frames import FramePair
 from icpflow.geometry import relative_transform
 
 #: a stream's pairs in flight (``FlowStream(overlap=True, depth=...)``): with two, a pair slow on one thread holds the
-#: other up less (BENCHMARKS.md, "Student latency and the stream"); the last ``STREAM_DEPTH`` flows are written after the last scan is read
+#: other up less (BENCHMARKS.md, "Student latency and the stream"); the last ``STREAM_DEPTH`` flows are written after
+#: the last scan is read
 STREAM_DEPTH = 2
 
 
