@@ -132,6 +132,21 @@ def random_flat(n0, n1, seed):
     return flat_batch([torch.rand(n0, 3, generator=gen) * 20 - 10, torch.rand(n1, 3, generator=gen) * 20 - 10])
 
 
+def trains_every_parameter_per_sample(model, seed: int) -> None:
+    """A training step on two random samples reaches every parameter of ``model`` (in train mode), and in evaluation
+    a sample's flow does not depend on the other sample of the batch."""
+    pc0, b0 = random_flat(300, 200, seed)
+    pc1, b1 = random_flat(300, 200, seed + 1)
+    residual, valid = model(pc0, b0, pc1, b1, batch_size=2)
+    flow_loss(residual, torch.randn_like(residual), b0, valid, 2).backward()
+    assert [n for n, p in model.named_parameters() if p.grad is None or not torch.any(p.grad != 0)] == []
+    model.eval()
+    with torch.no_grad():
+        both = model(pc0, b0, pc1, b1, 2)[0]
+        alone = model(pc0[:300], b0[:300], pc1[:300], b1[:300], 1)[0]
+    torch.testing.assert_close(alone, both[:300], atol=1e-5, rtol=0)
+
+
 def test_onnx_dynamo_parity_voxelize_scatter(tmp_path):
     ort = pytest.importorskip("onnxruntime")
     pytest.importorskip("onnxscript")
@@ -426,16 +441,7 @@ def test_correlation_is_an_option_and_off_is_zeroflows_network():
     changed = {name for name, p in model.state_dict().items() if shapes.get(name) != tuple(p.shape)}
     # the cost volume widens only the two levels' skips: the 1x1 convs that read them, and the bottleneck's step
     assert changed and all(name.startswith("unet.decoder.") for name in changed)
-    pc0, b0 = random_flat(300, 200, 21)
-    pc1, b1 = random_flat(300, 200, 22)
-    residual, valid = model(pc0, b0, pc1, b1, batch_size=2)
-    flow_loss(residual, torch.randn_like(residual), b0, valid, 2).backward()
-    assert [n for n, p in model.named_parameters() if p.grad is None or not torch.any(p.grad != 0)] == []
-    model.eval()
-    with torch.no_grad():  # a sample's flow does not depend on the other sample of the batch
-        both = model(pc0, b0, pc1, b1, 2)[0]
-        alone = model(pc0[:300], b0[:300], pc1[:300], b1[:300], 1)[0]
-    torch.testing.assert_close(alone, both[:300], atol=1e-5, rtol=0)
+    trains_every_parameter_per_sample(model, 21)
 
 
 def test_centroid_shift_is_the_clusters_sub_pillar_motion_and_zero_where_a_scan_is_empty():
@@ -480,16 +486,7 @@ def test_motion_windows_are_an_option_widening_only_the_decoders_first_layer():
         shapes = {name: tuple(p.shape) for name, p in base.state_dict().items()}
         changed = {name for name, p in model.state_dict().items() if shapes.get(name) != tuple(p.shape)}
         assert changed == {first} and model.state_dict()[first].shape[1] == shapes[first][1] + 8
-        pc0, b0 = random_flat(300, 200, 31)
-        pc1, b1 = random_flat(300, 200, 32)
-        residual, valid = model(pc0, b0, pc1, b1, batch_size=2)
-        flow_loss(residual, torch.randn_like(residual), b0, valid, 2).backward()
-        assert [n for n, p in model.named_parameters() if p.grad is None or not torch.any(p.grad != 0)] == []
-        model.eval()
-        with torch.no_grad():  # a sample's flow does not depend on the other sample of the batch
-            both = model(pc0, b0, pc1, b1, 2)[0]
-            alone = model(pc0[:300], b0[:300], pc1[:300], b1[:300], 1)[0]
-        torch.testing.assert_close(alone, both[:300], atol=1e-5, rtol=0)
+        trains_every_parameter_per_sample(model, 31)
 
 
 def test_a_training_batch_with_one_point_in_the_grid_trains_on_the_running_statistics():
