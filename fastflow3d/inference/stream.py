@@ -23,24 +23,21 @@ that fits under ``LOST_FITNESS`` too the pair gets no flow (``StreamStep.predict
 Each case is one :class:`StreamWarning`; the other frames keep their flow.
 
 ``overlap=True`` uses the second core: the network of one pair, and its refinement, run in a worker thread while the
-stream prepares the next scan (its ground and odometry step) and writes out the previous step. The refinement ran on the
-stream's own thread before, which then waited for it beside an idle network core (synthetic stream, int8, one network
-thread: 109.2 -> 93.3 ms a refined frame, p90 153.0 -> 120.0, issue 44). The steps are the same, in the same order, one
-push late: :meth:`FlowStream.push` returns the step of the scan pushed before (None for the first) and
-:meth:`FlowStream.flush` the last one. With ``depth=2`` (the CLI's) two pairs are in flight and the steps come two
-pushes late (flush until None): a pair slow on one thread then holds the other up less (AV2 and synthetic streams
-refined, int8: median 93.0 -> 91.5 and 75.3 -> 72.8 ms a frame, p90 alike; issue 44). A caller that reads its scans from
-files (``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps ``overlap=False``.
-The network then runs best on one core fewer than the process has (:func:`overlap_threads`, the CLI's default: the
+stream prepares the next scan (its ground and odometry step) and writes out the previous step, so the stream's own
+thread does not wait beside an idle network core. The steps are the same, in the same order, one push late:
+:meth:`FlowStream.push` returns the step of the scan pushed before (None for the first) and :meth:`FlowStream.flush`
+the last one. With ``depth=2`` (the CLI's) two pairs are in flight and the steps come two pushes late (flush until
+None): a pair slow on one thread then holds the other up less. A caller that reads its scans from files
+(``fastflow3d-infer``) gains the throughput; a live caller that needs each flow at once keeps ``overlap=False``.
+
+Threads: the network runs on one core fewer than the process has (:func:`overlap_threads`, the CLI's default: the
 Predictor's ``threads``; on one thread ONNX Runtime sums the pillars quicker,
 ``fastflow3d.artifact.sequential_scatter``), and the stream's own steps on one thread (numba, torch, BLAS and OpenMP
-limited while they run: their idle threads spun on the network's core; 2 cores, synthetic stream, int8: 86-89 -> 74-76
-ms a frame, 106-120 -> 94-102 ms refined; KISS-ICP's registration, which runs threads of its own, is given one by the
-odometry: ``Odometry(threads=1)``). Every numba kernel of both threads releases the GIL. The worker's refinement
-registers its components on every usable core (:func:`_refinement_threads`): a pair with many moving objects then takes
-the cores the stream's own steps leave idle while they wait for it (refined, int8, 2 cores, in turn with one numba
-thread: KITTI p90 136.2 -> 121.6 ms a frame over 11 runs each, lower in every run, the median alike; AV2 and synthetic
-within their runs' spread, p90 +4 and +3 ms; issue 44).
+limited while they run, else their idle threads spin on the network's core; KISS-ICP's registration, which runs
+threads of its own, is given one by the odometry: ``Odometry(threads=1)``). Every numba kernel of both threads
+releases the GIL. The worker's refinement registers its components on every usable core (:func:`_refinement_threads`):
+a pair with many moving objects then takes the cores the stream's own steps leave idle while they wait for it. The
+figures behind each choice: BENCHMARKS.md, "Student latency and the stream".
 """
 
 from __future__ import annotations
@@ -64,7 +61,7 @@ from icpflow.threads import available_cores, thread_limit
 def overlap_threads() -> int:
     """The network's threads in an overlapped stream: the usable cores but the one that runs the stream's own steps
     (ground, odometry, input and output) beside it. On 2 cores one network thread is quicker per frame than two
-    that contend with those steps (int8 on KITTI: 72.6 against 87.8 ms; BENCHMARKS.md, issue 44)."""
+    that contend with those steps (BENCHMARKS.md, "Student latency and the stream")."""
     return max(1, available_cores() - 1)
 
 

@@ -208,7 +208,7 @@ class PillarEmbedder(nn.Module):
         batch_norm = self.training and isinstance(self.norm, nn.BatchNorm1d)
         inside = int(valid.sum()) if batch_norm else 0  # training only: one host sync per step, as before
         if batch_norm and inside < 2:  # batch statistics need two values: a degenerate batch (one point
-            # in the grid, issue 45) is normalised with the running ones, as in evaluation, instead of failing
+            # in the grid) is normalised with the running ones, as in evaluation, instead of failing
             norm = self.norm
             normed = F.batch_norm(h, norm.running_mean, norm.running_var, norm.weight, norm.bias, False, 0.0, norm.eps)
         elif batch_norm and inside < len(valid):
