@@ -7,7 +7,7 @@ cd "$(dirname "$0")"
 python=${PYTHON:-python3}
 
 # open3d links against the system library libusb-1.0 (missing on minimal Debian/Ubuntu images): as root it is
-# installed here, else the copy that the libusb-package wheel ships (a dependency) serves (icpflow/open3d_loader.py).
+# installed here, else the copy that the libusb-package wheel ships (a dependency) serves (icpflow/core/open3d_loader.py).
 # open3d's offscreen renderer (eval.py render=N) needs Vulkan: the loader and Mesa's drivers (software rendering where
 # there is no GPU).
 has_library() { ldconfig -p | grep -F "$1" >/dev/null; }  # not grep -q: an early exit fails the pipe (pipefail)

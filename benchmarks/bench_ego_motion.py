@@ -1,11 +1,11 @@
-"""Ego motion from the scans alone (``icpflow.odometry``): its error against true poses, pairwise and per drive.
+"""Ego motion from the scans alone (``icpflow.scans.odometry``): its error against true poses, pairwise and per drive.
 
     .venv/bin/python -m benchmarks.bench_ego_motion [--frames 100] [--seeds 0,1,2] [--beams 64,32]
         [--ground estimated|world] [--methods drive,pair]
 
 Sequences: synthetic drives of ``--frames`` frames (the test split; each seed draws the ego's speed, 0-20 m/s, and
 turns) at each beam count, KITTI odometry sequence 01 frames 0-2 (true poses; lifted 1.73 m into the height frame)
-and Argoverse 2's shipped pair (``ego_motion.npz``). Each scan's ground comes from ``icpflow.ground`` with the
+and Argoverse 2's shipped pair (``ego_motion.npz``). Each scan's ground comes from ``icpflow.scans.ground`` with the
 dataset's settings (``--ground estimated``: its surface, ``GroundSegmenter.masks``, what a user gets) or from the
 world's exact masks (``world``,
 synthetic only). Methods: ``drive`` (one ``Odometry`` over the whole sequence, as ``label.py`` and a stream run it)
@@ -24,11 +24,11 @@ import time
 import numpy as np
 
 from benchmarks.common import DATA, SEQ01
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import invert, pose_error
-from icpflow.ground import GroundSegmenter
-from icpflow.odometry import Odometry, estimate_ego_motion
-from icpflow.preprocess import HeightFrame, Preprocessing
+from icpflow.core.geometry import invert, pose_error
+from icpflow.datasets.synthetic.reader import SyntheticDataset
+from icpflow.scans.ground import GroundSegmenter
+from icpflow.scans.odometry import Odometry, estimate_ego_motion
+from icpflow.scans.preprocess import HeightFrame, Preprocessing
 from icpflow.teacher.config import GroundConfig, ICPFlowConfig
 
 

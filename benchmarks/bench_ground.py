@@ -1,4 +1,4 @@
-"""Ground removal (``icpflow.ground``): what each method calls ground, by class, against exact masks and labels.
+"""Ground removal (``icpflow.scans.ground``): what each method calls ground, by class, against exact masks and labels.
 
     .venv/bin/python -m benchmarks.bench_ground [--sequences 8] [--methods local,both,patchwork]
 
@@ -22,10 +22,10 @@ import time
 import numpy as np
 
 from benchmarks.common import DATA, GROUND_CLASSES, SEQ01
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.ground import GroundSegmenter
-from icpflow.preprocess import HeightFrame, Preprocessing, lift_points
-from icpflow.synthetic.scene import CLASSES
+from icpflow.datasets.synthetic.reader import SyntheticDataset
+from icpflow.datasets.synthetic.scene import CLASSES
+from icpflow.scans.ground import GroundSegmenter
+from icpflow.scans.preprocess import HeightFrame, Preprocessing, lift_points
 from icpflow.teacher.config import GroundConfig, ICPFlowConfig
 
 

@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import DATA
+from icpflow.core.open3d_loader import load_open3d
 from icpflow.datasets.kitti import KittiOdometryDataset
 from icpflow.datasets.pairs import NpzPairsDataset
 from icpflow.datasets.pcaccumulation import PCAccumulationDataset
-from icpflow.datasets.sequence import ScanSequenceDataset
+from icpflow.datasets.scan_folder import ScanSequenceDataset
 from icpflow.datasets.zeroflow import ZeroFlowAV2Dataset
-from icpflow.open3d_loader import load_open3d
 
 RNG = np.random.default_rng(0)
 

@@ -32,8 +32,8 @@ accuracy is checked at export, on a trained network and labelled pairs).
 torch.export) and checked against eager by ``fastflow3d.artifact.export``; every backend is then checked again against
 eager on the export's check clouds (``parity``, metres) and on each real scan (``real``). Regimes: ``given`` (ego motion
 and both ground masks passed in, as from a dataset's poses and labels; they are computed once beforehand, outside
-the timing) and ``estimated`` (none passed: the Predictor finds both scans' ground, ``icpflow.ground``, and the ego
-motion, ``icpflow.odometry``). Prints, per scan, regime and backend: median and p90 of ``--runs`` calls after
+the timing) and ``estimated`` (none passed: the Predictor finds both scans' ground, ``icpflow.scans.ground``, and the
+ego motion, ``icpflow.scans.odometry``). Prints, per scan, regime and backend: median and p90 of ``--runs`` calls after
 ``--warmup`` calls (the backends take turns within each run, so that a change of load on a shared machine hits all
 alike), frames per second (1 / median), speed relative to the first backend, and memory: the process's
 resident-set growth when the backend was built and warmed up (MB). ``--breakdown`` adds what one call's time is
@@ -109,12 +109,12 @@ from fastflow3d.inference.stream import FlowStream
 from fastflow3d.inference.stream_folder import MANIFEST
 from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import compensate
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import residual_to_full
-from icpflow.preprocess import Preprocessing, lift_points, lift_transform
+from icpflow.core.geometry import residual_to_full
+from icpflow.core.threads import available_cores
+from icpflow.datasets.synthetic.reader import SyntheticDataset
+from icpflow.scans.preprocess import Preprocessing, lift_points, lift_transform
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.config import ICPFlowConfig
-from icpflow.threads import available_cores
 
 BACKENDS = ("eager", "eager-bf16", "compile", "pt2", "onnx", "onnx-tuned", "onnx-int8", "openvino", "openvino-bf16")
 #: teacher settings of each scan's dataset (ground segmentation and ego motion in the ``estimated`` regime)

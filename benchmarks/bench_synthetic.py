@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 
-from icpflow.synthetic import Lidar, build_scene, sequence
+from icpflow.datasets.synthetic import Lidar, build_scene, sequence
 
 
 def one_pair(seed: int, lidar: Lidar):

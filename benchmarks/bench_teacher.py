@@ -29,7 +29,7 @@ import numba
 import numpy as np
 
 from benchmarks.common import DATA, literal_overrides
-from icpflow.geometry import make_transform, transform_points
+from icpflow.core.geometry import make_transform, transform_points
 from icpflow.teacher.checks import passes
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.histogram import initial_translations

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.hardware import host_line
-from icpflow.threads import cpu_fields
+from icpflow.core.hardware import host_line
+from icpflow.core.threads import cpu_fields
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -34,10 +34,12 @@ def compose(config: str, overrides: list[str]):
     from hydra import initialize_config_dir
 
     if config in ("train", "export"):
-        from fastflow3d.training import options
+        from fastflow3d.training.options import register
+    elif config == "label":
+        from icpflow.labelling.options import register
     else:
-        from icpflow import options
-    options.register()
+        from icpflow.evaluation.options import register
+    register()
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         return hydra_compose(config, list(overrides))
 
@@ -96,8 +98,8 @@ def rss_mb() -> float:
 def cpu_name(cpuinfo: str | None = None) -> str:
     """The CPU as a benchmark's table names it: its model name, and on Linux its family, model, widest vector
     instructions, the instruction sets reduced precisions need and the switches in effect that hold engines below them
-    (``icpflow.hardware.host_line``; ``cpuinfo``: the text of ``/proc/cpuinfo``, read when None). VMs here report "AMD
-    EPYC" on hosts two times apart in speed (the int8 network alone on a KITTI pair: 57.9 ms in issue 44's eleventh
+    (``icpflow.core.hardware.host_line``; ``cpuinfo``: the text of ``/proc/cpuinfo``, read when None). VMs here report
+    "AMD EPYC" on hosts two times apart in speed (the int8 network alone on a KITTI pair: 57.9 ms in issue 44's eleventh
     session, 30.7 ms on a family 26 host in its twelfth), so a figure is compared with another only on the same family
     and model."""
     fields = cpu_fields(cpuinfo)

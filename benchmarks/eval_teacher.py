@@ -4,8 +4,8 @@
         [--synthetic N [--split val|test]] [--variants "teacher,own ground,nothing given,kiss-icp ego,zero flow"]
         [--set FIELD=VALUE ...]
 
-Scores come from ``icpflow.metrics`` (the same code as eval.py): the paper's split into dynamic foreground, static
-foreground and static background, point-weighted, ground excluded, in the dataset's crop (AV2 51.2 m, synthetic
+Scores come from ``icpflow.evaluation.metrics`` (the same code as eval.py): the paper's split into dynamic foreground,
+static foreground and static background, point-weighted, ground excluded, in the dataset's crop (AV2 51.2 m, synthetic
 32 m). Variants: the teacher (the dataset's preset), centroid initialisation, Hungarian association, KISS-ICP ego
 motion (the given poses ignored: the pair's own odometry), the teacher's own ground (the dataset's masks withheld;
 also with the ground method of older releases), nothing given (own ground and ego motion, pairwise; ``eval.py
@@ -23,8 +23,8 @@ import time
 import numpy as np
 
 from benchmarks.common import DATA, SEQ01, compose, literal_overrides
-from icpflow import metrics
-from icpflow.geometry import ego_flow, pose_error, relative_transform
+from icpflow.core.geometry import ego_flow, pose_error, relative_transform
+from icpflow.evaluation import metrics
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.config import teacher_config
 
@@ -35,7 +35,7 @@ VARIANTS = {
     "centroid init": {"histogram.init": "centroid"},
     "hungarian": {"association.method": "hungarian"},
     "kiss-icp ego": {"ego_motion": {"method": "kiss_icp"}},
-    # the dataset's ground masks withheld: the teacher's own ground (icpflow.ground), with the given ego motion or
+    # the dataset's ground masks withheld: the teacher's own ground (icpflow.scans.ground), with the given ego motion or
     # with its own (the pair's odometry) too; "older ground": the same with the ground of every release before
     "own ground": {OWN_GROUND: True},
     "own ground (older method)": {OWN_GROUND: True, "ground.method": "both"},
@@ -50,7 +50,8 @@ def dataset_teacher(name: str, fields: dict) -> ICPFlowConfig:
 
 
 def run_variant(overrides, pairs, dataset: str, crop: float, use_ground: bool, use_times: bool, base: dict):
-    """(point-weighted table of ``icpflow.metrics``, median s/pair, mean EPE over each pair's ``dynamic`` points)."""
+    """(point-weighted table of ``icpflow.evaluation.metrics``, median s/pair, mean EPE over each pair's ``dynamic``
+    points)."""
     overrides = None if overrides is None else dict(overrides)
     withheld = (overrides or {}).pop(OWN_GROUND, False)  # popped whatever use_ground says: not a teacher field
     use_ground = use_ground and not withheld
@@ -123,7 +124,7 @@ def eval_kitti(base: dict) -> None:
 
 
 def eval_synthetic(variants, count: int, base: dict, split: str = "val") -> None:
-    from icpflow.datasets.synthetic import SyntheticDataset
+    from icpflow.datasets.synthetic.reader import SyntheticDataset
 
     dataset = SyntheticDataset(split=split, num_sequences=max(1, -(-count // 4)))
     pairs = [dataset.pair(i) for i in range(min(count, len(dataset)))]

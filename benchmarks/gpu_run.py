@@ -64,7 +64,7 @@ import sys
 import time
 from pathlib import Path
 
-from icpflow.atomic import write_text_atomic
+from icpflow.core.atomic import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the tiny network of --smoke, the tests' (conf/model/fastflow3d_tiny.yaml): as bench_student_latency's --model

@@ -26,7 +26,7 @@ from pathlib import Path
 from benchmarks.common import DATA, ROOT, cpu_name
 from fastflow3d.artifact.file_format import METADATA_NAME
 from fastflow3d.artifact.shipped import CARD_NAME, SHIPPED_NAME
-from icpflow.atomic import write_text_atomic
+from icpflow.core.atomic import write_text_atomic
 from icpflow.evaluation import is_complete, method_summary, read_metrics
 
 TARGET = ROOT / "fastflow3d" / "artifact" / "models" / SHIPPED_NAME

@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import open_split
-from icpflow.geometry import ego_flow, kabsch, rigid_flow
-from icpflow.metrics import PairTruth
+from icpflow.core.geometry import ego_flow, kabsch, rigid_flow
+from icpflow.evaluation.metrics import PairTruth
 
 SPEED_BINS = (0.5, 3.0, 8.0, 15.0, 40.0)  # m/s
 EXTENT_BINS = (0.0, 2.0, 5.0, 8.0, 20.0)  # m
@@ -49,7 +49,7 @@ MIN_OBJECT_POINTS = 5
 
 def teacher_flows(dataset, cfg, cache: Path | None) -> dict[str, np.ndarray]:
     """sample id -> the teacher's FULL flow (N0, 3) of each pair, from ``cache`` where it holds the id."""
-    from icpflow.atomic import atomic_path
+    from icpflow.core.atomic import atomic_path
     from icpflow.evaluation.methods import TeacherMethod
     from icpflow.teacher import ICPFlow
     from icpflow.teacher.config import teacher_config

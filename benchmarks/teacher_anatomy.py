@@ -56,8 +56,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from benchmarks.common import literal_overrides, open_split
-from icpflow.geometry import ego_flow, euler_angles, kabsch, transform_points
-from icpflow.metrics import PairTruth
+from icpflow.core.geometry import ego_flow, euler_angles, kabsch, transform_points
+from icpflow.evaluation.metrics import PairTruth
 from icpflow.teacher.histogram import main_axis
 
 EXTENT_BINS = (0.0, 2.0, 5.0, 8.0, 20.0)  # m

@@ -180,7 +180,7 @@ class BackendRun:
 
 def dynamic_fg_epe(pairs, flows) -> tuple[float, int]:
     """Point-weighted EPE (m) over every pair's dynamic foreground (eval.py's split) and the points scored."""
-    from icpflow.metrics import PairTruth
+    from icpflow.evaluation.metrics import PairTruth
 
     total, count = 0.0, 0
     for pair, flow in zip(pairs, flows):
@@ -264,7 +264,7 @@ def main(argv=None) -> int:
     if "icp.backend" in overrides or "icp_backend" in overrides:
         parser.error("--teacher: the backend is what this benchmark varies")
 
-    from icpflow.datasets.synthetic import SyntheticDataset
+    from icpflow.datasets.synthetic.reader import SyntheticDataset
     from icpflow.teacher.warmup import ensure_compiled
 
     tic = time.perf_counter()

@@ -28,8 +28,8 @@ import numpy as np
 
 from benchmarks.common import DATA, SEQ01, cpu_name, literal_overrides
 from benchmarks.eval_teacher import dataset_teacher
-from icpflow.geometry import ego_flow, invert, pose_error, relative_transform, transform_points
-from icpflow.preprocess import lift_points, lift_transform
+from icpflow.core.geometry import ego_flow, invert, pose_error, relative_transform, transform_points
+from icpflow.scans.preprocess import lift_points, lift_transform
 from icpflow.teacher import ICPFlow
 
 PAIRS = DATA / "kitti_seq00_pairs"
@@ -126,7 +126,7 @@ def plane_fit(pair: dict, ego: np.ndarray) -> float:
     whatever the dataset's poses say."""
     from scipy.spatial import cKDTree
 
-    from icpflow.teacher.icp import normals
+    from icpflow.teacher.registration.icp import normals
 
     target = pair["pc1"].astype(np.float64)
     moved = transform_points(ego, pair["pc0"][~pair["moving0"]].astype(np.float64))

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from benchmarks.common import ROOT
-from icpflow.atomic import atomic_path, write_text_atomic
+from icpflow.core.atomic import atomic_path, write_text_atomic
 from icpflow.evaluation import is_complete, method_summary, read_metrics
 
 CATEGORIES = ("dynamic_fg", "static_fg", "static_bg")

@@ -8,7 +8,8 @@ LightningModule, data, loss, schedules, callbacks, trainer, run folder, options)
 
 The stable API: ``from fastflow3d import Predictor, FlowStream, Prediction``. The modules beside the rooms
 (``fastflow3d/predictor.py``, ``stream.py``, ``infer.py``, ...) are the last release's paths, kept until 0.3: each
-re-exports today's objects with a DeprecationWarning naming their room (``icpflow.deprecation``); nothing imports them.
+re-exports today's objects with a DeprecationWarning naming their room (``icpflow.core.deprecation``); nothing imports
+them.
 """
 
 __all__ = ["FlowStream", "Prediction", "Predictor"]
@@ -17,7 +18,7 @@ __all__ = ["FlowStream", "Prediction", "Predictor"]
 def __getattr__(name: str):
     """Lazy exports: ``from fastflow3d import Predictor, FlowStream, Prediction`` without importing torch and the
     engines on ``import fastflow3d`` (the old module paths, ``fastflow3d.predictor`` ..., import the same objects
-    with a DeprecationWarning until 0.3: ``icpflow.deprecation``)."""
+    with a DeprecationWarning until 0.3: ``icpflow.core.deprecation``)."""
     if name == "Predictor":
         from fastflow3d.inference.predictor import Predictor
 

@@ -1,7 +1,7 @@
 """Deprecated, removed in 0.3: the last release's ``fastflow3d.augment``, today ``fastflow3d.training.augment``."""
 
 from fastflow3d.training.augment import FLOW_KEYS, PER_POINT, POINT_KEYS, Augmentation, subsample, transform_sample
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = ["FLOW_KEYS", "PER_POINT", "POINT_KEYS", "Augmentation", "subsample", "transform_sample"]
 

@@ -13,7 +13,7 @@ from fastflow3d.training.callbacks import (
     progress_bar,
     set_best_checkpoints,
 )
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = [
     "BEST_STATE_KEYS",

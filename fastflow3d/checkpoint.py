@@ -2,7 +2,7 @@
 ``fastflow3d.artifact.checkpoint``."""
 
 from fastflow3d.artifact.checkpoint import MODEL_TARGET, CheckpointError, build_student, load_student, read_checkpoint
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = ["MODEL_TARGET", "CheckpointError", "build_student", "load_student", "read_checkpoint"]
 

@@ -1,7 +1,7 @@
 """Deprecated, removed in 0.3: the last release's ``fastflow3d.contract``, today ``fastflow3d.network.contract``."""
 
 from fastflow3d.network.contract import VERSION, ContractError, InputContract, PreparedPair, read_grid, upgrade
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = ["VERSION", "ContractError", "InputContract", "PreparedPair", "read_grid", "upgrade"]
 

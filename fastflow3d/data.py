@@ -15,7 +15,7 @@ from fastflow3d.training.data import (
     labeller_contract,
     split_samples,
 )
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = [
     "GT_KEYS",

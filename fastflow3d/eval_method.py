@@ -9,7 +9,7 @@ from fastflow3d.inference.eval_methods import (
     streamed_student_method,
     student_method,
 )
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = [
     "StreamedStudentMethod",

@@ -15,7 +15,7 @@ from fastflow3d.artifact.export import (
     quiet_exporters,
     run_export,
 )
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = [
     "CHECK_SIZES",

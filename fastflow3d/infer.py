@@ -15,7 +15,7 @@ from fastflow3d.inference.cli import (
 )
 from fastflow3d.inference.scan_files import NPZ_KEYS, read_raw_scan, read_transforms, refuse_input_as_output, write_flow
 from fastflow3d.inference.stream_folder import claim_output_folder, read_manifest, stream_files, stream_manifest
-from icpflow.deprecation import moved_message, warn_moved
+from icpflow.core.deprecation import moved_message, warn_moved
 
 __all__ = [
     "NPZ_KEYS",

@@ -8,7 +8,7 @@ from fastflow3d.training.loss import (
     speed_buckets,
     speed_weight,
 )
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = ["WEIGHTINGS", "flow_loss", "grouped_mean_sum", "object_loss", "speed_buckets", "speed_weight"]
 

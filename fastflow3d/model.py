@@ -19,7 +19,7 @@ from fastflow3d.network.model import (
     norm_layer,
     split_linear,
 )
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = [
     "DECODERS",

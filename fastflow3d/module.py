@@ -2,7 +2,7 @@
 Old checkpoints name its class: ``fastflow3d.artifact.checkpoint.read_checkpoint`` reads it as today's path."""
 
 from fastflow3d.training.student_module import LOSSES, NonFiniteLoss, StudentModule, log
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = ["LOSSES", "NonFiniteLoss", "StudentModule", "log"]
 

@@ -11,7 +11,7 @@ from fastflow3d.training.options import (
     TrainOptions,
     register,
 )
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = [
     "AugmentOptions",

@@ -4,7 +4,7 @@
 from fastflow3d.inference.model_loading import checkpoint_contract, given_contract
 from fastflow3d.inference.prediction import Prediction, PredictorError, PredictorWarning, as_points
 from fastflow3d.inference.predictor import Predictor
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = [
     "Prediction",

@@ -1,5 +1,6 @@
 """Deprecated, removed in 0.3: the last release's ``fastflow3d.runtime``, today ``fastflow3d.artifact.engines``
-(``default_threads``: ``icpflow.threads.available_cores``; ``runtime_network``: gone, ``engines.load_network`` opens
+(``default_threads``: ``icpflow.core.threads.available_cores``; ``runtime_network``: gone, ``engines.load_network``
+opens
 every model file)."""
 
 from fastflow3d.artifact.engines import (
@@ -10,8 +11,8 @@ from fastflow3d.artifact.engines import (
     cpu_only,
     ort_session_options,
 )
-from icpflow.deprecation import warn_moved
-from icpflow.threads import available_cores as default_threads
+from icpflow.core.deprecation import warn_moved
+from icpflow.core.threads import available_cores as default_threads
 
 __all__ = [
     "BF16_TOLERANCE",

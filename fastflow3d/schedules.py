@@ -2,7 +2,7 @@
 Old checkpoints name its functions: ``fastflow3d.artifact.checkpoint.read_checkpoint`` reads them as today's paths."""
 
 from fastflow3d.training.schedules import warmup_cosine, warmup_multistep
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 
 __all__ = ["warmup_cosine", "warmup_multistep"]
 

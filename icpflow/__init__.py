@@ -1,6 +1,6 @@
 """icpflow: the ICP-Flow teacher, dataset readers, pseudo-label shards and scene-flow metrics."""
 
-from icpflow.frames import FramePair, FramePairError, FrameSequence
+from icpflow.core.frame_pair import FramePair, FramePairError, FrameSequence
 
 __version__ = "0.2.0"
 

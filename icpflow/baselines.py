@@ -1,13 +1,14 @@
-"""Trivial scene-flow baselines returning (N0, 3) float32 FULL flow for a FramePair."""
+"""Deprecated, removed in 0.3: the last release's ``icpflow.baselines``, today ``icpflow.evaluation.baselines``."""
 
-import numpy as np
+from icpflow.core.deprecation import warn_moved
+from icpflow.evaluation.baselines import (
+    ego_only_flow,
+    zero_flow,
+)
 
+__all__ = [
+    "ego_only_flow",
+    "zero_flow",
+]
 
-def zero_flow(pair) -> np.ndarray:
-    """Full flow 0: every point assumed fixed in the sensor frame."""
-    return np.zeros((len(pair.pc0), 3), np.float32)
-
-
-def ego_only_flow(pair) -> np.ndarray:
-    """Full flow = ego flow: every point assumed static in the world (needs pair.ego1_from_ego0)."""
-    return pair.ego_flow().astype(np.float32)
+warn_moved("icpflow.baselines", "icpflow.evaluation.baselines")

@@ -1,7 +1,7 @@
-"""Deprecated, removed in 0.3: the last release's ``icpflow.entry``, today ``icpflow.errors_and_signals``."""
+"""Deprecated, removed in 0.3: the last release's ``icpflow.entry``, today ``icpflow.core.errors_and_signals``."""
 
-from icpflow.deprecation import warn_moved
-from icpflow.errors_and_signals import (
+from icpflow.core.deprecation import warn_moved
+from icpflow.core.errors_and_signals import (
     FIXES,
     FULL_ERROR,
     MARKER,
@@ -43,4 +43,4 @@ __all__ = [
     "stop_signum",
 ]
 
-warn_moved("icpflow.entry", "icpflow.errors_and_signals")
+warn_moved("icpflow.entry", "icpflow.core.errors_and_signals")

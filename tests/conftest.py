@@ -15,10 +15,12 @@ import pytest  # noqa: E402
 import torch  # noqa: E402
 
 import fastflow3d.training.options  # noqa: E402
-import icpflow.options  # noqa: E402
+import icpflow.evaluation.options  # noqa: E402
+import icpflow.labelling.options  # noqa: E402
 
 # the structured configs conf/*.yaml extend, as the entry points store them before Hydra composes
-icpflow.options.register()
+icpflow.labelling.options.register()
+icpflow.evaluation.options.register()
 fastflow3d.training.options.register()
 
 
@@ -92,7 +94,7 @@ def tiny_student(tmp_path_factory):
     """The tiny student (helpers.training.TINY_MODEL) trained once per session, 5 Adam steps towards the true flow of
     a small synthetic pair (32 beams; every point): ``<session folder>/run/checkpoints/tiny.ckpt``, its stored run
     folders that folder's. Tests copy it (helpers.students.place_checkpoint) rather than change it."""
-    from icpflow.datasets.synthetic import SyntheticDataset
+    from icpflow.datasets.synthetic.reader import SyntheticDataset
 
     from helpers.students import tiny_checkpoint
 

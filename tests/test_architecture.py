@@ -1,9 +1,10 @@
 """The import graph of the two packages (read from the code with ``ast``, imports inside functions included): no
-circle anywhere, no arrow from the teacher wing (``icpflow``) to the student wing (``fastflow3d``), and the student
-wing's rooms importing one way (``ROOMS``; one place opens a model file, ``fastflow3d.artifact.engines``). One way to
-stop (issue 32): signal handlers installed by ``icpflow.errors_and_signals`` only, every entry point stopping and
-reporting through it, messages folded by ``icpflow.errors_and_signals.one_line`` only, and
-``icpflow.errors_and_signals`` cheap to import."""
+circle anywhere, no arrow from the shared core and teacher (``icpflow``) to the student wing (``fastflow3d``), each
+package's rooms importing one way (``ROOMS``, ``ICPFLOW_ROOMS``; one place opens a model file,
+``fastflow3d.artifact.engines``), and the student reaching the teacher through its public modules only. One way to
+stop (issue 32): signal handlers installed by ``icpflow.core.errors_and_signals`` only, every entry point stopping and
+reporting through it, messages folded by ``icpflow.core.errors_and_signals.one_line`` only, and
+``icpflow.core.errors_and_signals`` cheap to import."""
 
 import ast
 import functools
@@ -11,6 +12,8 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("icpflow", "fastflow3d")
@@ -82,7 +85,7 @@ def test_the_graph_is_read_from_the_code():
         in graph["fastflow3d.artifact.export"] & graph["fastflow3d.inference.model_loading"]
     )
     assert "icpflow.teacher.config" in graph["icpflow.evaluation.cli"]  # a lazy import inside a function counts
-    assert "icpflow.frames" in graph["icpflow"]  # the package's __init__
+    assert "icpflow.core.frame_pair" in graph["icpflow"]  # the package's __init__
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
@@ -114,26 +117,53 @@ ROOMS = {
 }
 
 
+#: each room of ``icpflow`` and the rooms it may import: core <- scans <- datasets <- teacher; shards <- core; the
+#: labelling and the evaluation on top (the evaluation reads the labelling's ``dataset`` schema); pictures on core
+ICPFLOW_ROOMS = {
+    "core": set(),
+    "scans": {"core"},
+    "datasets": {"core", "scans"},
+    "teacher": {"core", "scans", "datasets"},
+    "shards": {"core"},
+    "labelling": {"core", "scans", "datasets", "teacher", "shards"},
+    "evaluation": {"core", "scans", "datasets", "teacher", "shards", "labelling", "viz"},
+    "viz": {"core"},
+}
+
+#: the teacher's modules the student wing may import: the pipeline's config, the registration's API, the checks the
+#: refinement applies, a sample's teacher flow (agreement labels) and the kernels' warm-up
+TEACHER_API = {
+    "icpflow.teacher",
+    "icpflow.teacher.checks",
+    "icpflow.teacher.config",
+    "icpflow.teacher.long_horizon",
+    "icpflow.teacher.registration",
+    "icpflow.teacher.warmup",
+}
+
+
 def room_of(module: str) -> str | None:
-    """The room of a ``fastflow3d`` module (``fastflow3d.<room>.<module>``), None for the package itself."""
+    """The room of a module (``<package>.<room>.<module>``), None for a package itself."""
     parts = module.split(".")
-    return parts[1] if parts[0] == "fastflow3d" and len(parts) > 1 else None
+    return parts[1] if parts[0] in PACKAGES and len(parts) > 1 else None
 
 
 def room_arrows(graph: dict[str, set[str]]) -> list[tuple[str, str]]:
-    """The imports between two rooms of ``fastflow3d`` that ``ROOMS`` does not allow."""
+    """The imports between two rooms of one package that its rooms' table does not allow."""
+    doors = {"fastflow3d": ROOMS, "icpflow": ICPFLOW_ROOMS}
     return sorted(
         (source, target)
         for source, targets in graph.items()
         for target in targets
+        if source.split(".")[0] == target.split(".")[0]
         if room_of(source) and room_of(target) and room_of(source) != room_of(target)
-        if room_of(target) not in ROOMS.get(room_of(source), set())
+        if room_of(target) not in doors[source.split(".")[0]].get(room_of(source), set())
     )
 
 
 @functools.cache
 def shims() -> frozenset[str]:
-    """The last release's module paths kept until 0.3 (``icpflow.deprecation``; ``tests/test_public_api.py`` checks
+    """The last release's module paths kept until 0.3 (``icpflow.core.deprecation``; ``tests/test_public_api.py`` checks
     each): modules that call ``warn_moved`` in their body and define no function or class, only re-export. They lie
     outside the rooms (a tiny file at the old path) and may import any room; nothing imports them."""
     found = set()
@@ -146,10 +176,23 @@ def shims() -> frozenset[str]:
     return frozenset(found)
 
 
-def test_every_student_module_lives_in_a_room():
-    modules = [name for name in import_graph() if name.startswith("fastflow3d") and name not in shims()]
-    assert {room_of(name) for name in modules} - {None} == set(ROOMS)
-    assert [name for name in modules if room_of(name) is None] == ["fastflow3d"]  # the package's docstring only
+@pytest.mark.parametrize("package, rooms", [("fastflow3d", ROOMS), ("icpflow", ICPFLOW_ROOMS)])
+def test_every_module_lives_in_a_room(package, rooms):
+    modules = [name for name in import_graph() if name.split(".")[0] == package and name not in shims()]
+    assert {room_of(name) for name in modules} - {None} == set(rooms)
+    assert [name for name in modules if room_of(name) is None] == [package]  # the package's face only
+
+
+def test_the_student_reaches_the_teacher_through_its_public_modules():
+    graph = import_graph()
+    reached = {
+        target
+        for source, targets in graph.items()
+        if source.startswith("fastflow3d") and source not in shims()
+        for target in targets
+        if target.startswith("icpflow.teacher")
+    }
+    assert reached <= TEACHER_API and "icpflow.teacher.registration" in reached  # the refinement's registration
 
 
 def test_the_rooms_import_one_way():
@@ -158,6 +201,10 @@ def test_the_rooms_import_one_way():
     assert room_arrows({"fastflow3d.inference.a": {"fastflow3d.training.b"}, "fastflow3d.network.c": set()}) == [
         ("fastflow3d.inference.a", "fastflow3d.training.b")
     ]
+    assert room_arrows({"icpflow.scans.a": {"icpflow.teacher.b", "icpflow.core.c"}}) == [
+        ("icpflow.scans.a", "icpflow.teacher.b")
+    ]
+    assert "icpflow.scans.odometry" in graph["icpflow.teacher.pipeline"]  # icpflow's arrows are read too
     # the arrows between rooms are read: the trainer exports, a checkpoint builds the network
     assert "fastflow3d.artifact.export" in graph["fastflow3d.training.trainer"]
     assert "fastflow3d.network.model" in graph["fastflow3d.artifact.checkpoint"]
@@ -169,7 +216,16 @@ def test_nothing_imports_a_shim():
     graph, old = import_graph(), shims()
     assert {"fastflow3d.predictor", "fastflow3d.infer", "icpflow.entry"} <= old  # the check reads the shims
     assert sorted((source, target) for source, targets in graph.items() for target in targets & old) == []
-    assert not {room_of(name) for name in old} & set(ROOMS)
+    assert {name for name in old if room_of(name) in set(ROOMS) | set(ICPFLOW_ROOMS)} <= {
+        # old modules inside a room whose new home is the same room
+        "icpflow.datasets.io",
+        "icpflow.datasets.sequence",
+        "icpflow.teacher.icp",
+        "icpflow.teacher.neighbours",
+        "icpflow.teacher.registration_cpu",
+        "icpflow.teacher.registration_torch",
+        "icpflow.teacher.tracker",
+    }
 
 
 #: the calls that open a model file in an engine (ONNX Runtime, OpenVINO, torch.export, TorchScript)
@@ -202,18 +258,19 @@ def sources() -> dict[str, str]:
 
 
 def entry_names(text: str) -> set[str]:
-    """The names a module imports from icpflow.errors_and_signals."""
+    """The names a module imports from icpflow.core.errors_and_signals."""
     return {
         alias.name
         for node in ast.walk(ast.parse(text))
-        if isinstance(node, ast.ImportFrom) and node.module == "icpflow.errors_and_signals"
+        if isinstance(node, ast.ImportFrom) and node.module == "icpflow.core.errors_and_signals"
         for alias in node.names
     }
 
 
 def test_signal_handlers_are_installed_by_errors_and_signals_only():
     """Every entry point and the training callback install their SIGINT/SIGTERM handlers through
-    ``icpflow.errors_and_signals.on_signals`` (``stop_on_signals``); the one other call: a labelling worker ignoring
+    ``icpflow.core.errors_and_signals.on_signals`` (``stop_on_signals``); the one other call: a labelling worker
+    ignoring
     Ctrl-C."""
     calls = []
     for name, text in sources().items():
@@ -222,18 +279,18 @@ def test_signal_handlers_are_installed_by_errors_and_signals_only():
                 calls += [(name, f"from signal import {alias.name}") for alias in node.names]
             elif isinstance(node, ast.Call) and ast.unparse(node.func) == "signal.signal":
                 calls.append((name, ast.unparse(node)))
-    outside = [call for call in calls if call[0] != "icpflow/errors_and_signals.py"]
+    outside = [call for call in calls if call[0] != "icpflow/core/errors_and_signals.py"]
     assert outside == [("icpflow/labelling/executors.py", "signal.signal(signal.SIGINT, signal.SIG_IGN)")]
-    assert any(name == "icpflow/errors_and_signals.py" for name, _ in calls)  # the check reads the calls
+    assert any(name == "icpflow/core/errors_and_signals.py" for name, _ in calls)  # the check reads the calls
 
 
 def test_every_entry_point_stops_and_reports_through_errors_and_signals():
     texts = sources()
-    # the scripts call the console scripts' mains: Hydra inside errors_and_signals.run (icpflow.entry_points), each
+    # the scripts call the console scripts' mains: Hydra inside errors_and_signals.run (icpflow.core.entry_points), each
     # task's body inside errors_and_signals.reported
     for script in SCRIPTS:
         assert re.search(r"^from (icpflow|fastflow3d)\.[\w.]+ import \w*main$", texts[script], re.M), script
-    assert "run" in entry_names(texts["icpflow/entry_points.py"])
+    assert "run" in entry_names(texts["icpflow/core/entry_points.py"])
     for module in ("icpflow/labelling/cli.py", "icpflow/evaluation/cli.py", "fastflow3d/training/cli.py"):
         assert "reported" in entry_names(texts[module]) and "hydra_entry(" in texts[module], module
     assert {"exit_status", "stop_on_signals"} <= entry_names(texts["fastflow3d/inference/cli.py"])
@@ -246,16 +303,19 @@ def test_every_entry_point_stops_and_reports_through_errors_and_signals():
 def test_messages_are_folded_onto_one_line_by_errors_and_signals_only():
     folded = re.compile(r"""(['"]) \1\.join\(str\(""")
     found = [name for name, text in sources().items() if folded.search(text)]
-    assert found == ["icpflow/errors_and_signals.py"]  # one_line itself
+    assert found == ["icpflow/core/errors_and_signals.py"]  # one_line itself
 
 
 def test_importing_errors_and_signals_stays_cheap():
-    """Every module may import icpflow.errors_and_signals (it imports nothing of the packages but icpflow.settings,
+    """Every module may import icpflow.core.errors_and_signals (it imports nothing of the packages but
+    icpflow.core.settings,
     which imports none): no heavy library comes with it."""
-    code = "import sys, icpflow.errors_and_signals; print(' '.join(sorted(m for m in sys.modules if '.' not in m)))"
+    code = (
+        "import sys, icpflow.core.errors_and_signals; print(' '.join(sorted(m for m in sys.modules if '.' not in m)))"
+    )
     loaded = set(subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True).stdout.split())
     assert "icpflow" in loaded and not loaded & {"torch", "lightning", "hydra", "omegaconf", "numba", "scipy"}
-    assert "icpflow.errors_and_signals" in import_graph() and import_graph()["icpflow.errors_and_signals"] <= {
-        "icpflow.settings"
-    }
-    assert not import_graph()["icpflow.settings"]
+    assert "icpflow.core.errors_and_signals" in import_graph() and import_graph()[
+        "icpflow.core.errors_and_signals"
+    ] <= {"icpflow.core.settings"}
+    assert not import_graph()["icpflow.core.settings"]

@@ -5,7 +5,7 @@ import os
 
 import pytest
 
-from icpflow.atomic import WriteError, atomic_path, write_text_atomic
+from icpflow.core.atomic import WriteError, atomic_path, write_text_atomic
 
 
 def test_a_finished_write_replaces_the_target_and_leaves_no_temporary(tmp_path):

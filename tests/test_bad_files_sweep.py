@@ -25,7 +25,7 @@ from fastflow3d.inference.cli import main as infer_main
 from fastflow3d.inference.predictor import Predictor
 from fastflow3d.training.run_folder import TrainError
 from fastflow3d.training.trainer import fit
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.labelling.cli import label
 
 from helpers.labelling import REPO, read_samples
@@ -434,7 +434,7 @@ EVAL_SMALL = ["dataset.reader.num_sequences=1", "dataset.reader.frames_per_seque
 def _eval(out: Path, capfd, *overrides) -> tuple[int, str]:
     """eval.py's body (``run_eval`` inside ``reported``, as eval.py runs it) on a small synthetic split."""
     from fastflow3d.inference.eval_methods import student_method
-    from icpflow.errors_and_signals import reported
+    from icpflow.core.errors_and_signals import reported
     from icpflow.evaluation import run_eval
 
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
@@ -517,7 +517,8 @@ def test_a_broken_checkpoint_to_resume_from_loses_nothing(labels, tmp_path, form
 
 
 def _bomb(folder: Path, suffix: str) -> Path:
-    """A small scan file that claims 6e6 points (over icpflow.frames.MAX_POINTS): a zip of zeros, a bare header, a
+    """A small scan file that claims 6e6 points (over icpflow.core.frame_pair.MAX_POINTS): a zip of zeros, a bare
+    header, a
     PLY whose vertices hold a list (sizes vary: it could claim anything), a PCD header."""
     import zipfile
 
@@ -553,8 +554,8 @@ def test_a_scan_that_claims_more_than_it_holds_is_refused_before_allocating(expo
     folder's reader (label.py dataset=sequence), the process's peak memory grown by less than 200 MB."""
     import resource
 
-    from icpflow.datasets.sequence import ScanSequenceDataset
-    from icpflow.frames import FramePairError
+    from icpflow.core.frame_pair import FramePairError
+    from icpflow.datasets.scan_folder import ScanSequenceDataset
 
     bomb = _bomb(tmp_path, suffix)
     good = _scan_file(tmp_path, ".npy", pair.pc1)
@@ -585,7 +586,10 @@ def test_the_cap_is_the_environments_where_it_says_one(tmp_path):
     import sys
 
     bomb = _bomb(tmp_path, ".npy")
-    code = "import sys; from icpflow.datasets.io import load_npy; load_npy(__import__('pathlib').Path(sys.argv[1]))"
+    code = (
+        "import sys; from icpflow.datasets.file_formats import load_npy; "
+        "load_npy(__import__('pathlib').Path(sys.argv[1]))"
+    )
     for cap, words in (("7000000", "more than the file's"), ("1000", "over the cap of 1000")):
         result = subprocess.run(
             [sys.executable, "-c", code, str(bomb)],

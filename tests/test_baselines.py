@@ -1,9 +1,9 @@
 import numpy as np
 
-from icpflow.baselines import ego_only_flow, zero_flow
-from icpflow.frames import FramePair
-from icpflow.geometry import ego_flow, make_transform
-from icpflow.metrics import pair_stats
+from icpflow.core.frame_pair import FramePair
+from icpflow.core.geometry import ego_flow, make_transform
+from icpflow.evaluation.baselines import ego_only_flow, zero_flow
+from icpflow.evaluation.metrics import pair_stats
 
 
 def _pair():

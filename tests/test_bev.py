@@ -1,10 +1,10 @@
-"""icpflow.bev: the bird's-eye-view cells of a cloud, against the numpy expressions they replace (the same cells,
+"""icpflow.scans.bev: the bird's-eye-view cells of a cloud, against the numpy expressions they replace (the same cells,
 bit for bit, also for points on a cell's edge)."""
 
 import numpy as np
 import pytest
 
-from icpflow.bev import in_box_cells, occupied_cells
+from icpflow.scans.bev import in_box_cells, occupied_cells
 
 
 def edge_points(rng, count, dtype):

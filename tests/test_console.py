@@ -1,4 +1,4 @@
-"""A quiet console (icpflow.console): a tiny label.py and train.py run as a user runs them print a progress bar,
+"""A quiet console (icpflow.core.console): a tiny label.py and train.py run as a user runs them print a progress bar,
 what long steps do and a summary, none of the library noise of issue 21; the pieces one by one."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from tqdm import tqdm
 
-from icpflow.console import ConsoleFormatter, NoiseFilter, Progress, WorkerHandler
-from icpflow.viz import _renderer_output
+from icpflow.core.console import ConsoleFormatter, NoiseFilter, Progress, WorkerHandler
+from icpflow.viz.pictures import _renderer_output
 
 from helpers.training import tiny_model_overrides
 
@@ -117,7 +117,7 @@ def test_worker_warnings_take_a_line_of_their_own():
     handler = WorkerHandler()
     for stream, start in ((Terminal(), "\r\x1b[2K"), (io.StringIO(), "")):
         handler.setStream(stream)
-        record = logging.LogRecord("icpflow.frames", logging.WARNING, __file__, 1, "x has float16", None, None)
+        record = logging.LogRecord("icpflow.core.frames", logging.WARNING, __file__, 1, "x has float16", None, None)
         handler.handle(record)
         assert stream.getvalue() == f"{start}frames: warning: x has float16\n"
 
@@ -127,7 +127,7 @@ def test_native_output_redirections_from_two_threads_keep_stdout(capfd):
     must not leave it pointing at a temporary file (one redirection at a time)."""
     import threading
 
-    from icpflow.console import captured_output
+    from icpflow.core.console import captured_output
 
     caught = []
 
@@ -151,8 +151,8 @@ def test_native_output_redirections_from_two_threads_keep_stdout(capfd):
 NUMBA_AFTER_OPEN3D = """
 import numpy as np
 {quiet}
-from icpflow.open3d_loader import load_open3d
-from icpflow.teacher.neighbours import MAX_KNN_SHELL, build_grid, k_nearest
+from icpflow.core.open3d_loader import load_open3d
+from icpflow.scans.neighbours import MAX_KNN_SHELL, build_grid, k_nearest
 load_open3d()  # open3d loads its own TBB, older than numba's TBB layer wants
 points = np.random.default_rng(0).uniform(-1, 1, (200, 3))
 k_nearest(points, points, build_grid(points, 0.5), 0.5, 3, np.inf, MAX_KNN_SHELL, True)  # numba's first parallel kernel
@@ -167,7 +167,10 @@ def test_numbas_threading_layer_warning_is_noise():
     alone = subprocess.run([*run, NUMBA_AFTER_OPEN3D.format(quiet="")], capture_output=True, text=True, timeout=300)
     if "TBB threading layer" not in alone.stderr:
         pytest.skip("numba takes its TBB layer here, or open3d brings none: no warning to drop")
-    for guard in ("from icpflow.console import quiet; quiet()", "from icpflow.console import recorded_warnings"):
+    for guard in (
+        "from icpflow.core.console import quiet; quiet()",
+        "from icpflow.core.console import recorded_warnings",
+    ):
         code = NUMBA_AFTER_OPEN3D.format(quiet=guard)
         if "recorded" in guard:
             code = code.replace("k_nearest(points", "with recorded_warnings() as caught:\n    k_nearest(points")
@@ -180,7 +183,7 @@ def test_numbas_threading_layer_warning_is_noise():
 def test_recorded_warnings_keep_every_other_warning_each_time():
     import warnings
 
-    from icpflow.console import recorded_warnings
+    from icpflow.core.console import recorded_warnings
 
     with recorded_warnings() as caught:
         for _ in range(2):

@@ -10,8 +10,8 @@ import torch
 from fastflow3d.network.contract import VERSION, ContractError, InputContract, upgrade
 from fastflow3d.network.model import compensate
 from fastflow3d.network.voxelize import Grid
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.preprocess import HeightFrame, Preprocessing
+from icpflow.datasets.synthetic.reader import SyntheticDataset
+from icpflow.scans.preprocess import HeightFrame, Preprocessing
 from icpflow.teacher.config import ICPFlowConfig
 
 GRID = Grid((-8.0, 8.0), (-8.0, 8.0), (-1.0, 3.0), 0.5)
@@ -61,7 +61,7 @@ def test_a_lift_raises_both_scans_and_keeps_every_row(pair):
     """Scans 1.9 m below the model's frame (a sensor frame) lifted back: the same rows and compensated points."""
     contract = InputContract(remove_ground=True, grid=GRID)
     down = np.float32([0, 0, 1.9])
-    from icpflow.preprocess import lift_transform
+    from icpflow.scans.preprocess import lift_transform
 
     ego = lift_transform(pair.ego1_from_ego0, -1.9)
     lifted = contract.prepare(pair.pc0 - down, pair.pc1 - down, ego, pair.ground0, pair.ground1, lift=1.9)

@@ -7,8 +7,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from icpflow.frames import FramePairError
-from icpflow.geometry import ego_flow
+from icpflow.core.frame_pair import FramePairError
+from icpflow.core.geometry import ego_flow
 
 from helpers.data import needs_shared, shared
 
@@ -232,7 +232,7 @@ def test_a_sweep_that_claims_more_rows_than_the_cap_is_refused_before_it_is_deco
     import pyarrow as pa
     import pyarrow.feather as feather
 
-    from icpflow.datasets.io import read_feather
+    from icpflow.datasets.file_formats import read_feather
 
     zeros = np.zeros(6_000_000, np.float16)
     path = tmp_path / "bomb.feather"

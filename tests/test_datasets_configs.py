@@ -10,7 +10,7 @@ from hydra.utils import get_class, instantiate
 from omegaconf import OmegaConf
 
 from icpflow.datasets.base import PairDataset
-from icpflow.preprocess import Preprocessing
+from icpflow.scans.preprocess import Preprocessing
 from icpflow.teacher import ICPFlowConfig
 from icpflow.teacher.config import teacher_config
 
@@ -126,3 +126,22 @@ def test_av2_config_instantiates_on_the_real_sample():
 def test_scan_folder_configs_instantiate_on_real_scans(name):
     dataset = instantiate(load(name, shared("kitti_hdl64_scans")).dataset.reader)
     assert len(dataset) == 5
+
+
+def test_a_config_naming_a_moved_reader_opens_it_by_todays_path(tmp_path):
+    """A dataset config of the last release (``icpflow.datasets.sequence.ScanSequenceDataset``) opens the reader by
+    today's path, without the old path's DeprecationWarning; the run's config names today's path afterwards."""
+    import warnings
+
+    from icpflow.datasets.from_config import open_dataset
+
+    rng = np.random.default_rng(0)
+    for index in range(3):
+        rng.normal(size=(50, 4)).astype(np.float32).tofile(tmp_path / f"{index:06d}.bin")
+    cfg = load("sequence", tmp_path)
+    cfg.dataset.reader._target_ = "icpflow.datasets.sequence.ScanSequenceDataset"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        dataset = open_dataset(cfg)
+    assert type(dataset).__module__ == "icpflow.datasets.scan_folder" and len(dataset) == 2
+    assert cfg.dataset.reader._target_ == "icpflow.datasets.scan_folder.ScanSequenceDataset"

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from icpflow.core.frame_pair import FramePairError
+from icpflow.core.geometry import make_transform, relative_transform, transform_points
 from icpflow.datasets.kitti import SENSOR_HEIGHT, KittiOdometryDataset, read_calib_tr
-from icpflow.frames import FramePairError
-from icpflow.geometry import make_transform, relative_transform, transform_points
-from icpflow.preprocess import estimate_ground_height, lift_pose, lift_transform
+from icpflow.scans.preprocess import estimate_ground_height, lift_pose, lift_transform
 
 from helpers.data import needs_shared, shared
 

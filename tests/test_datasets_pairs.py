@@ -5,9 +5,9 @@ import pickle
 import numpy as np
 import pytest
 
+from icpflow.core.frame_pair import FramePairError
+from icpflow.core.geometry import ego_flow, make_transform
 from icpflow.datasets.pairs import NpzPairsDataset
-from icpflow.frames import FramePairError
-from icpflow.geometry import ego_flow, make_transform
 
 RNG = np.random.default_rng(11)
 PC0 = RNG.uniform(-20, 20, (120, 3))
@@ -151,8 +151,8 @@ def test_float_labels_are_refused(tmp_path):
 def test_ground_truth_without_the_ego_motion_is_refused_by_the_metrics_in_one_line(tmp_path):
     """Issue 45.6: the ego motion is optional for labelling (the teacher estimates it) but the metrics split points
     by their motion beyond the ego's: a pair with ground truth and no ego motion was an IndexError in eval.py."""
-    from icpflow.datasets.synthetic import SyntheticDataset
-    from icpflow.metrics import PairTruth
+    from icpflow.datasets.synthetic.reader import SyntheticDataset
+    from icpflow.evaluation.metrics import PairTruth
 
     pair = SyntheticDataset(split="test", num_sequences=1, frames_per_sequence=2, beams=32)[0]
     (tmp_path / "pairs").mkdir()

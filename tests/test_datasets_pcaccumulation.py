@@ -11,8 +11,8 @@ import pickle
 import numpy as np
 import pytest
 
+from icpflow.core.frame_pair import FramePairError
 from icpflow.datasets.pcaccumulation import PCAccumulationDataset
-from icpflow.frames import FramePairError
 
 from helpers.pcaccumulation import FORMATS, WAYMO_CLASSES, reader, sample_arrays, world, write_dataset
 

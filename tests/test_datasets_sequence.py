@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from icpflow.datasets.sequence import ScanSequenceDataset
-from icpflow.frames import FramePairError
-from icpflow.geometry import invert, make_transform, transform_points
-from icpflow.open3d_loader import load_open3d
+from icpflow.core.frame_pair import FramePairError
+from icpflow.core.geometry import invert, make_transform, transform_points
+from icpflow.core.open3d_loader import load_open3d
+from icpflow.datasets.scan_folder import ScanSequenceDataset
 
 from helpers.data import needs_shared, shared
 

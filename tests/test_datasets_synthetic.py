@@ -7,7 +7,7 @@ import pytest
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset" / "synthetic.yaml"
 SMALL = {"num_sequences": 2, "frames_per_sequence": 4, "beams": 16, "azimuth_resolution_deg": 2.0}

@@ -5,8 +5,8 @@ import pickle
 import numpy as np
 import pytest
 
+from icpflow.core.frame_pair import FramePairError
 from icpflow.datasets.zeroflow import ZeroFlowAV2Dataset
-from icpflow.frames import FramePairError
 
 from helpers.zeroflow import LOG, dump_arrays, write_dump
 

@@ -29,7 +29,7 @@ import torch
 from fastflow3d.training.augment import Augmentation
 from fastflow3d.training.data import Draw, EpochOrder, ShardDataModule, StudentDataset
 from fastflow3d.training.trainer import fit
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 from helpers.labelling import TESTS_ENV
 from helpers.shards import write_pseudo_labels
@@ -360,7 +360,7 @@ def test_a_two_node_launch_is_read_from_the_launchers_variables(launcher, monkey
     from lightning.fabric.plugins.environments import SLURMEnvironment, TorchElasticEnvironment
 
     from fastflow3d.training.trainer import build_trainer, settle_batch
-    from icpflow.errors_and_signals import launching_process
+    from icpflow.core.errors_and_signals import launching_process
 
     from helpers.training import compose_train
 

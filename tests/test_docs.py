@@ -1,16 +1,16 @@
 """The docs against the code: what README.md, ARCHITECTURE.md and docs/*.md name exists.
 
 - **Module paths**: every backticked dotted path starting with ``icpflow.`` or ``fastflow3d.``
-  (``fastflow3d.inference.refine``, ``icpflow.teacher.config.ICPFlowConfig``, ``icpflow.options.register()``), and
-  every name a fenced example imports from them (``from fastflow3d.inference.predictor import Predictor``),
+  (``fastflow3d.inference.refine``, ``icpflow.teacher.config.ICPFlowConfig``, ``icpflow.labelling.options.register()``),
+  and every name a fenced example imports from them (``from fastflow3d.inference.predictor import Predictor``),
   resolves: its longest module prefix is found (a file of the repository, else ``importlib.util.find_spec``) and the
   rest are attributes, read from the module's source with ``ast`` where they are defined there (no heavy imports),
   else from the imported module. ``icpflow.<block>.<field>`` and the teacher's older flat names
   (``icpflow.min_cluster_size``) are Hydra keys of the ``icpflow`` group: they resolve against its schema
   (``icpflow.teacher.config.schema``). A name ending in a file suffix (``fastflow3d.onnx``) is a file name. An old
-  path kept importable for a release (a shim calling ``icpflow.deprecation.warn_moved``, or a name a package answers
-  with ``moved_attribute``) fails too, naming today's: the docs name today's paths (a page that means the old one,
-  e.g. a list of what moved, says so in ``ALLOWED``).
+  path kept importable for a release (a shim calling ``icpflow.core.deprecation.warn_moved``, or a name a package
+  answers with ``moved_attribute``) fails too, naming today's: the docs name today's paths (a page that means the old
+  one, e.g. a list of what moved, says so in ``ALLOWED``).
 - **File paths**: every backticked path of the repository's own tree (its first folder one of ``ROOTS``:
   ``fastflow3d/network/cells.py``, ``conf/experiment/synthetic_cpu.yaml``, ``benchmarks/as_avx2.py``) exists;
   ``{a,b}`` is expanded, ``*`` and ``<placeholder>`` match anything (at least one file must match).
@@ -261,7 +261,7 @@ def shim_of(module: str) -> str | None:
     return None
 
 
-MOVED = " is deprecated and will be removed in "  # icpflow.deprecation's words
+MOVED = " is deprecated and will be removed in "  # icpflow.core.deprecation's words
 
 
 def resolve(dotted: str) -> str | None:

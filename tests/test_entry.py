@@ -1,4 +1,4 @@
-"""icpflow.errors_and_signals, the one way every entry point stops and reports (issue 32): a signal routed by
+"""icpflow.core.errors_and_signals, the one way every entry point stops and reports (issue 32): a signal routed by
 ``on_signals`` (a forked child ignores it; an inherited ignored SIGINT stays ignored; the previous handlers come back),
 ``Stop``'s line and exit status, ``exit_status`` (the report of ``reported`` as a return value), ``one_line``,
 fastflow3d-infer stopped; and a ``Stop`` raised inside label.py's and eval.py's bodies: 143 / 130 with their own lines,
@@ -13,9 +13,7 @@ import time
 import pytest
 from hydra import compose, initialize_config_dir
 
-from icpflow.baselines import ego_only_flow
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.errors_and_signals import (
+from icpflow.core.errors_and_signals import (
     STOP_SIGNALS,
     Stop,
     exit_status,
@@ -25,7 +23,9 @@ from icpflow.errors_and_signals import (
     stop_on_signals,
     stop_signum,
 )
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.evaluation import run_eval
+from icpflow.evaluation.baselines import ego_only_flow
 from icpflow.labelling.sample import interrupt_behind
 
 from helpers.labelling import REPO, label_cfg

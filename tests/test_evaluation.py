@@ -15,11 +15,10 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from fastflow3d.inference.eval_methods import student_method
-from icpflow import metrics
-from icpflow.baselines import ego_only_flow, zero_flow
 from icpflow.datasets.from_config import raise_max_horizon
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.evaluation import MetricOptions, PairScorer, evaluate, method_summary, read_metrics, run_eval
+from icpflow.datasets.synthetic.reader import SyntheticDataset
+from icpflow.evaluation import MetricOptions, PairScorer, evaluate, method_summary, metrics, read_metrics, run_eval
+from icpflow.evaluation.baselines import ego_only_flow, zero_flow
 from icpflow.shards.writer import write_index, write_shard
 
 STUDENT = {"student": student_method}  # what eval.py adds to the teacher package's methods
@@ -84,7 +83,7 @@ def test_eval_reproduces_the_metrics_module(tmp_path, dataset, capsys):
     pairs = [dataset[i] for i in range(len(dataset))]
     for name, predict in (("zero", zero_flow), ("ego", ego_only_flow)):
         assert_same_numbers(document["methods"][name]["1"], expected_summary(dataset, [(p, predict(p)) for p in pairs]))
-        # Threeway EPE as published (Chodosh et al. 2023), not through icpflow.metrics: over all pairs, the
+        # Threeway EPE as published (Chodosh et al. 2023), not through icpflow.evaluation.metrics: over all pairs, the
         # point-weighted EPE of the valid non-ground points with max(|x|, |y|) < 35 m in three groups, foreground
         # (any object class: the synthetic world's classes > 0) moving at >= 0.5 m/s beyond the ego motion,
         # foreground slower, background slower; their mean
@@ -408,7 +407,7 @@ def test_student_row_reproduces_the_metrics_module(tiny_student, tmp_path, datas
 
 
 def test_render_writes_one_picture_per_method(tmp_path, dataset):
-    from icpflow.viz import offscreen_problem
+    from icpflow.viz.pictures import offscreen_problem
 
     problem = offscreen_problem()
     if problem:

@@ -24,12 +24,12 @@ from fastflow3d.network.contract import ContractError, upgrade
 from fastflow3d.network.model import compensate
 from fastflow3d.network.voxelize import Grid
 from icpflow import __version__
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import ego_flow, residual_to_full
-from icpflow.ground import GroundSegmenter
-from icpflow.odometry import estimate_ego_motion
-from icpflow.open3d_loader import load_open3d
-from icpflow.preprocess import Preprocessing, lift_points, lift_transform
+from icpflow.core.geometry import ego_flow, residual_to_full
+from icpflow.core.open3d_loader import load_open3d
+from icpflow.datasets.synthetic.reader import SyntheticDataset
+from icpflow.scans.ground import GroundSegmenter
+from icpflow.scans.odometry import estimate_ego_motion
+from icpflow.scans.preprocess import Preprocessing, lift_points, lift_transform
 from icpflow.teacher.config import ICPFlowConfig
 
 from helpers.students import tiny_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
@@ -799,7 +799,7 @@ def test_int8_asked_for_on_a_cpu_without_dot_products_says_its_cost(int8_export,
     assert [line for line in err if "dot products" in line] == [
         "infer: warning: " + model_loading.precision_cost("int8")
     ]
-    monkeypatch.setattr("icpflow.hardware.native_bf16", lambda: (False, "this CPU has no bf16 instructions"))
+    monkeypatch.setattr("icpflow.core.hardware.native_bf16", lambda: (False, "this CPU has no bf16 instructions"))
     assert model_loading.precision_cost("bf16").startswith("precision bf16: this CPU has no bf16 instructions")
     monkeypatch.setattr(model_loading, "int8_dot_products", lambda: True)
     assert model_loading.precision_cost("int8") is None and model_loading.precision_cost("f32") is None

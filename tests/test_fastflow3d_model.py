@@ -12,7 +12,7 @@ from fastflow3d.network.model import FastFlow3D, centroid_shift, compensate, loc
 from fastflow3d.network.scatter import scatter_mean, scatter_sum
 from fastflow3d.network.voxelize import Grid, voxelize
 from fastflow3d.training.loss import flow_loss, object_loss, speed_weight
-from icpflow.geometry import make_transform, residual_to_full, transform_points
+from icpflow.core.geometry import make_transform, residual_to_full, transform_points
 
 #: FastFlow3D's arguments as conf/model/fastflow3d.yaml (the one place of the model's settings) gives them
 PAPER = {

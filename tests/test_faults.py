@@ -20,10 +20,10 @@ from fastflow3d.inference.predictor import Predictor
 from fastflow3d.inference.scan_files import read_raw_scan
 from fastflow3d.training.run_folder import TrainError
 from fastflow3d.training.trainer import fit
-from icpflow.datasets.io import load_npz
-from icpflow.datasets.sequence import ScanSequenceDataset
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.frames import FramePairError
+from icpflow.core.frame_pair import FramePairError
+from icpflow.datasets.file_formats import load_npz
+from icpflow.datasets.scan_folder import ScanSequenceDataset
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.labelling.cli import label
 from icpflow.shards import ShardDataset, verify_shard
 from icpflow.teacher import ICPFlow
@@ -142,7 +142,7 @@ class FixedLaterSynthetic(SyntheticDataset):
 
     def pair(self, index, horizon=1):
         if index == 1 and self.broken.exists():
-            from icpflow.datasets.io import fail
+            from icpflow.datasets.file_formats import fail
 
             raise fail(self.broken, "truncated")
         return super().pair(index, horizon)
@@ -288,7 +288,7 @@ def test_the_same_rule_in_the_readers_the_predictor_and_the_teacher(scan, tiny_s
 def test_integer_coordinates_are_read_with_a_warning(scan, tmp_path, caplog):
     path = tmp_path / "ints.npy"
     np.save(path, np.round(scan).astype(np.int32))
-    with caplog.at_level(logging.WARNING, logger="icpflow.frames"):
+    with caplog.at_level(logging.WARNING, logger="icpflow.core.frame_pair"):
         points = read_raw_scan(path)
     assert points.dtype == np.float32 and np.array_equal(points, np.round(scan))
     assert [r.getMessage() for r in caplog.records] == [
@@ -361,7 +361,7 @@ class UnreadableSynthetic(SyntheticDataset):
     """Every sample's file is damaged (the reader fails before the teacher runs)."""
 
     def pair(self, index, horizon=1):
-        from icpflow.datasets.io import fail
+        from icpflow.datasets.file_formats import fail
 
         raise fail(f"/data/{index:06d}.bin", "truncated")
 

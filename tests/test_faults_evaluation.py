@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
-from icpflow.baselines import ego_only_flow
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.evaluation import method_summary, read_metrics, run_eval
+from icpflow.evaluation.baselines import ego_only_flow
 
 from helpers.disk import fail_fsync_after
 from helpers.labelling import default_sigint, running_in_group
@@ -231,7 +231,7 @@ def test_a_disk_filling_up_during_the_run_is_one_line_and_the_scores_are_saved_e
 
 
 def test_a_picture_that_cannot_be_written_is_one_line_and_the_scoring_goes_on(capsys):
-    from icpflow.atomic import WriteError
+    from icpflow.core.atomic import WriteError
     from icpflow.evaluation import MetricOptions, evaluate
 
     dataset = SyntheticDataset(

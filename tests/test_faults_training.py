@@ -22,8 +22,8 @@ from fastflow3d.artifact.file_format import FILE_NAMES, METADATA_NAME, sha256_fi
 from fastflow3d.inference.cli import main as infer_main
 from fastflow3d.training.run_folder import TrainError
 from fastflow3d.training.trainer import fit
-from icpflow.atomic import WriteError
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.core.atomic import WriteError
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 from helpers.disk import fail_fsync_after
 from helpers.labelling import TESTS_ENV, default_sigint, none_left_within

@@ -24,7 +24,12 @@ AV2_LOG = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
 def test_every_kernel_is_cached_on_disk():
     kernels = warmup.kernels()
     # the teacher's kernels: nearest neighbours, ICP, histogram vote, batch registration
-    expected = {"neighbours.nearest", "icp.icp_point_to_plane", "histogram._scores", "registration_cpu._register_batch"}
+    expected = {
+        "scans.neighbours.nearest",
+        "teacher.registration.icp.icp_point_to_plane",
+        "teacher.histogram._scores",
+        "teacher.registration.cpu._register_batch",
+    }
     assert expected <= set(kernels)
     not_cached = [name for name, kernel in kernels.items() if not kernel._cache.__class__.__name__ == "FunctionCache"]
     assert not not_cached, f"kernels without cache=True compile in every process: {not_cached}"
@@ -36,7 +41,11 @@ def test_every_kernel_releases_the_gil():
     import numba
 
     kernels = warmup.kernels()
-    assert {"ground._ground_height", "neighbours.k_nearest", "registration_cpu._register_stages_batch"} <= set(kernels)
+    assert {
+        "scans.ground._ground_height",
+        "scans.neighbours.k_nearest",
+        "teacher.registration.cpu._register_stages_batch",
+    } <= set(kernels)
     holding = [name for name, kernel in kernels.items() if not kernel.targetoptions.get("nogil")]
     assert not holding and all(isinstance(kernel, numba.core.registry.CPUDispatcher) for kernel in kernels.values())
 
@@ -57,10 +66,10 @@ def test_the_warmup_reaches_the_refinements_kernels():
     it compiled the kernels again (a first label test of a fresh clone caught it). In a fresh process, so that no
     other test has called them."""
     refinements = (
-        "registration_cpu._register_stages_batch",
-        "neighbours.nearest_distances",
-        "bev.occupied_cells",
-        "bev.in_box_cells",
+        "teacher.registration.cpu._register_stages_batch",
+        "scans.neighbours.nearest_distances",
+        "scans.bev.occupied_cells",
+        "scans.bev.in_box_cells",
     )
     code = (
         "from icpflow.teacher import warmup; warmup.compile_kernels(); kernels = warmup.kernels(); "
@@ -73,7 +82,11 @@ def test_the_warmup_reaches_the_refinements_kernels():
 def test_ensure_compiled_says_what_it_does(monkeypatch, capsys):
     calls = []
     monkeypatch.setattr(warmup, "compile_kernels", lambda: calls.append(1))
-    monkeypatch.setattr(warmup, "cold_kernels", lambda stale=None: ["icp.icp_point_to_point", "histogram._scores"])
+    monkeypatch.setattr(
+        warmup,
+        "cold_kernels",
+        lambda stale=None: ["teacher.registration.icp.icp_point_to_point", "teacher.histogram._scores"],
+    )
     monkeypatch.setattr(warmup, "stale_cache", lambda: False)  # nothing of the real cache is emptied or stamped
     assert warmup.ensure_compiled("label") is True and calls == [1]
     lines = capsys.readouterr().err.splitlines()
@@ -108,7 +121,7 @@ def test_a_lazy_check_empties_a_stale_cache_and_compiles_nothing(monkeypatch, ca
     calls, restarted = [], []
     monkeypatch.setattr(warmup, "compile_kernels", lambda: calls.append(1))
     monkeypatch.setattr(warmup, "_restart_cache", lambda: restarted.append(1))
-    monkeypatch.setattr(warmup, "cold_kernels", lambda stale=None: ["icp.icp_point_to_point"])
+    monkeypatch.setattr(warmup, "cold_kernels", lambda stale=None: ["teacher.registration.icp.icp_point_to_point"])
     monkeypatch.setattr(warmup, "stale_cache", lambda: True)
     assert warmup.ensure_compiled("fastflow3d", eager=False) is True and restarted == [1] and calls == []
     assert capsys.readouterr().err.startswith("fastflow3d: the numba kernels it calls compile on their first call")

@@ -1,10 +1,10 @@
-"""Schema validation of FramePair / FrameSequence and the flow conventions of icpflow.geometry."""
+"""Schema validation of FramePair / FrameSequence and the flow conventions of icpflow.core.geometry."""
 
 import numpy as np
 import pytest
 
-from icpflow.frames import FramePair, FramePairError, FrameSequence
-from icpflow.geometry import (
+from icpflow.core.frame_pair import FramePair, FramePairError, FrameSequence
+from icpflow.core.geometry import (
     ego_flow,
     euler_angles,
     full_to_residual,
@@ -214,7 +214,7 @@ def test_orthonormalized_is_the_nearest_rigid_transform():
 def test_lengths_are_numpys_norms_bit_for_bit():
     # the refinement's speeds: np.linalg.norm(axis=1)'s squares summed in its order, so the same floats (summing y + z
     # first differs on about a tenth of random rows: the test can tell)
-    from icpflow.geometry import lengths
+    from icpflow.core.geometry import lengths
 
     rng = np.random.default_rng(0)
     for dtype in (np.float32, np.float64):

@@ -10,8 +10,8 @@ import torch
 from fastflow3d.artifact.export import export_model
 from fastflow3d.inference.prediction import PredictorWarning
 from fastflow3d.inference.predictor import Predictor
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import invert
+from icpflow.core.geometry import invert
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 from helpers.students import tiny_network  # tests/ is on sys.path (pytest prepend import mode)
 from helpers.training import TINY_MODEL

@@ -1,4 +1,4 @@
-"""Ground removal (icpflow.ground): the local ground height and the object columns keep moving objects whole, on
+"""Ground removal (icpflow.scans.ground): the local ground height and the object columns keep moving objects whole, on
 the synthetic world's exact masks (by class) and on SemanticKITTI's labels of real KITTI scans; older stored models
 keep the ground of their time (tests/test_preprocess.py, tests/test_release_fixtures.py)."""
 
@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.ground import GroundSegmenter, below_any_road, ground_height, object_columns
-from icpflow.preprocess import HeightFrame, Preprocessing, lift_points
-from icpflow.synthetic.scene import CAR, PEDESTRIAN
+from icpflow.datasets.synthetic.reader import SyntheticDataset
+from icpflow.datasets.synthetic.scene import CAR, PEDESTRIAN
+from icpflow.scans.ground import GroundSegmenter, below_any_road, ground_height, object_columns
+from icpflow.scans.preprocess import HeightFrame, Preprocessing, lift_points
 from icpflow.teacher.config import GroundConfig
 
 from helpers.data import needs_shared, shared

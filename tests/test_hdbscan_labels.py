@@ -10,8 +10,8 @@ import warnings
 import numpy as np
 import pytest
 
-from icpflow.datasets.io import read_feather
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.datasets.file_formats import read_feather
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.teacher.clustering import voxel_downsample
 from icpflow.teacher.hdbscan_labels import hdbscan_labels, labels_from_spanning_tree, single_linkage
 

@@ -19,8 +19,9 @@ import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.frames import FramePairError
+from icpflow.core.frame_pair import FramePairError
+from icpflow.core.threads import available_cores, thread_limit
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.labelling.cli import label
 from icpflow.labelling.job import LabelJob
 from icpflow.labelling.records import DIED, write_shard_and_record
@@ -29,7 +30,6 @@ from icpflow.shards import ShardDataset
 from icpflow.teacher import ICPFlow
 from icpflow.teacher.config import teacher_config
 from icpflow.teacher.long_horizon import long_horizon_flow
-from icpflow.threads import available_cores, thread_limit
 
 from helpers.labelling import (
     READER,
@@ -116,7 +116,7 @@ def test_a_worker_runs_hdbscan_on_its_share_of_threads_without_changing_the_hash
 @pytest.mark.slow
 def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
     """A real SIGINT to label.py workers=1 (labelling in its main process, the teacher's threaded calls included: a
-    stop inside scipy's threads once crashed it: icpflow.errors_and_signals.signals_held): exit 130, one line, the
+    stop inside scipy's threads once crashed it: icpflow.core.errors_and_signals.signals_held): exit 130, one line, the
     complete shards only, an index that says the run is not complete."""
     process = subprocess.Popen(
         label_script(tmp_path, "workers=1"),

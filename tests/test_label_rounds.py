@@ -7,7 +7,7 @@ import numpy as np
 import yaml
 
 from fastflow3d.inference.predictor import Predictor
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.labelling.cli import label
 from icpflow.labelling.labeller import files_hash
 

@@ -1,9 +1,10 @@
 import numpy as np
 import pytest
 
-from icpflow.frames import FramePair
-from icpflow.geometry import ego_flow, make_transform
-from icpflow.metrics import (
+from icpflow.core.frame_pair import FramePair
+from icpflow.core.geometry import ego_flow, make_transform
+from icpflow.core.open3d_loader import provide_libusb
+from icpflow.evaluation.metrics import (
     AV2_META,
     META_CLASSES,
     THREEWAY_EDGES,
@@ -16,7 +17,6 @@ from icpflow.metrics import (
     pair_stats,
     threeway_epe,
 )
-from icpflow.open3d_loader import provide_libusb
 
 from helpers.data import needs_shared, shared
 

@@ -15,7 +15,7 @@ from fastflow3d.inference.prediction import PredictorError
 from fastflow3d.inference.predictor import Predictor
 from fastflow3d.training.run_folder import TrainError
 from fastflow3d.training.trainer import fit
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.labelling import sample as labelling_sample
 from icpflow.teacher.config import ICPFlowConfig
 from icpflow.teacher.long_horizon import SampleFlow

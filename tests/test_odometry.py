@@ -1,4 +1,4 @@
-"""The one odometry (icpflow.odometry): a sequence of scans in, one ego motion per step out; a pair is a two-scan
+"""The one odometry (icpflow.scans.odometry): a sequence of scans in, one ego motion per step out; a pair is a two-scan
 sequence. Exact on the synthetic world (per drive and pairwise, the robust first step included); one normal estimate;
 a lost track is a restart or no estimate, never a silent wrong pose; label.py estimates a drive without poses once,
 in order, and resumes it."""
@@ -6,10 +6,10 @@ in order, and resumes it."""
 import numpy as np
 import pytest
 
-from icpflow.geometry import invert, pose_error
-from icpflow.normals import plane_normals, smallest_axes
-from icpflow.odometry import NORMAL_NEIGHBOURS, Odometry, TargetPlanes, estimate_ego_motion, voxel_cloud
-from icpflow.open3d_loader import load_open3d
+from icpflow.core.geometry import invert, pose_error
+from icpflow.core.open3d_loader import load_open3d
+from icpflow.scans.normals import plane_normals, smallest_axes
+from icpflow.scans.odometry import NORMAL_NEIGHBOURS, Odometry, TargetPlanes, estimate_ego_motion, voxel_cloud
 from icpflow.teacher.config import ICPFlowConfig
 
 from helpers.drives import corridor, synthetic_drive
@@ -90,7 +90,7 @@ def test_sparse_far_queries_get_their_exact_neighbours_from_the_coarse_grid():
     and without a reach; the dense queries never build it."""
     from scipy.spatial import cKDTree
 
-    from icpflow.odometry import FINE_SHELLS, GRID_CELL
+    from icpflow.scans.odometry import FINE_SHELLS, GRID_CELL
 
     rng = np.random.default_rng(7)
     ground = np.column_stack([rng.uniform(-20, 20, (20000, 2)), rng.normal(0.0, 0.02, 20000)])
@@ -113,7 +113,7 @@ def test_sparse_far_queries_get_their_exact_neighbours_from_the_coarse_grid():
 
 
 def test_the_normals_in_closed_form_are_numpys_eigenvectors():
-    """``smallest_axes`` and ``plane_normals`` (icpflow.normals): the eigenvector of the smallest eigenvalue, as
+    """``smallest_axes`` and ``plane_normals`` (icpflow.scans.normals): the eigenvector of the smallest eigenvalue, as
     numpy.linalg.eigh gives it (up to sign), on planes, lines and blobs of 10 points anywhere; (0, 0, 1) where no
     axis is defined."""
     rng = np.random.default_rng(0)
@@ -195,8 +195,8 @@ def test_label_estimates_a_drive_once_in_order_and_resumes(tmp_path, moving, cap
     written beside the shards and handed to the reader. A jump to another place and an unreadable scan are each one
     warning and a restart; the pairs across them fail with that reason (never a wrong pose). A stopped run goes on
     from its last saved step; a rerun of the same scans and settings reuses the file; other settings redo it."""
-    from icpflow.datasets.sequence import ScanSequenceDataset
-    from icpflow.frames import FramePairError
+    from icpflow.core.frame_pair import FramePairError
+    from icpflow.datasets.scan_folder import ScanSequenceDataset
     from icpflow.labelling.job import LabelJob
     from icpflow.labelling.trajectory import NAME, drive_trajectory, read_trajectory, write_trajectory
 
@@ -256,8 +256,8 @@ def test_kiss_icp_takes_the_callers_thread_limit(moving, monkeypatch):
     holds it too; ``threads`` given wins (the stream's 1; 0: every core). The estimate is the same."""
     import numba
 
-    from icpflow import odometry as odometry_module
-    from icpflow.threads import thread_limit
+    from icpflow.core.threads import thread_limit
+    from icpflow.scans import odometry as odometry_module
 
     made = []
     kiss_odometry = odometry_module.kiss_odometry
@@ -291,7 +291,7 @@ def test_a_drive_says_which_steps_its_surfaces_leave_unfixed_and_a_tiny_scan_is_
     """Each step of a drive measures its normal spread: ``label.py``'s trajectory of a drive down a corridor logs one
     line per such step naming its scans; a lone pair with a scan too small to register says the identity is
     assumed."""
-    from icpflow.datasets.sequence import ScanSequenceDataset
+    from icpflow.datasets.scan_folder import ScanSequenceDataset
     from icpflow.labelling.job import LabelJob
     from icpflow.labelling.trajectory import drive_trajectory
 

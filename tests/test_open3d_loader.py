@@ -1,4 +1,4 @@
-"""icpflow.open3d_loader: open3d is imported through it only, and loads on a machine without the system library
+"""icpflow.core.open3d_loader: open3d is imported through it only, and loads on a machine without the system library
 libusb-1.0 (a minimal Debian/Ubuntu image, a plain ``pip install`` without root) from the ``libusb-package`` wheel.
 
 The machine without the library is this one with it hidden: a child process in its own mount namespace (``unshare``,
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from icpflow.open3d_loader import LIBUSB, LIBUSB_FIX, OPEN3D_FIX
+from icpflow.core.open3d_loader import LIBUSB, LIBUSB_FIX, OPEN3D_FIX
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -33,7 +33,7 @@ def test_open3d_is_imported_by_the_loader_only():
             names += [node.module or ""] if isinstance(node, ast.ImportFrom) else []
             if any(name == "open3d" or name.startswith("open3d.") for name in names):
                 importers.add(str(path.relative_to(REPO)))
-    assert importers == {"icpflow/open3d_loader.py"}
+    assert importers == {"icpflow/core/open3d_loader.py"}
 
 
 def system_libusb_paths() -> list[str]:
@@ -77,8 +77,8 @@ PLAIN = "import open3d"
 #: what a plain install does first with open3d: the ego motion's point-to-plane refinement on a voxel cloud
 THROUGH_THE_LOADER = """
 import numpy as np
-from icpflow.odometry import voxel_cloud
-from icpflow.open3d_loader import load_open3d, provide_libusb
+from icpflow.scans.odometry import voxel_cloud
+from icpflow.core.open3d_loader import load_open3d, provide_libusb
 
 o3d = load_open3d()
 points = np.random.default_rng(0).uniform(-5, 5, (2000, 3))
@@ -95,7 +95,8 @@ print(abs(result.transformation[0, 3]) < 1e-3)
 
 #: neither library: no system one (hidden), and libusb-package made unimportable
 NEITHER = (
-    "import sys; sys.modules['libusb_package'] = None\nfrom icpflow.open3d_loader import load_open3d\nload_open3d()"
+    "import sys; sys.modules['libusb_package'] = None\n"
+    "from icpflow.core.open3d_loader import load_open3d\nload_open3d()"
 )
 
 
@@ -118,7 +119,7 @@ def test_an_install_without_open3d_says_in_one_line_how_to_get_it():
     # a child process: this one has open3d loaded already
     code = (
         "import sys; sys.modules['open3d'] = None\n"
-        "from icpflow.open3d_loader import load_open3d\n"
+        "from icpflow.core.open3d_loader import load_open3d\n"
         "try:\n    load_open3d()\nexcept ImportError as error:\n    print(error)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout

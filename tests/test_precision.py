@@ -1,4 +1,4 @@
-"""Precision chosen per host: what the CPU computes natively (``icpflow.hardware``, as oneDNN sees it, its
+"""Precision chosen per host: what the CPU computes natively (``icpflow.core.hardware``, as oneDNN sees it, its
 ``ONEDNN_MAX_CPU_ISA`` switch honoured) and ``trainer.precision: auto`` (``fastflow3d.training.precision``): bf16
 autocast only where it is native, float32 elsewhere, a precision asked for by name that this host emulates said in one
 line with its cost; every recipe says ``auto``."""
@@ -13,8 +13,8 @@ import torch
 
 from fastflow3d.training.precision import choose_precision
 from fastflow3d.training.trainer import fit
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.hardware import host_line, native_bf16, onednn_cap
+from icpflow.core.hardware import host_line, native_bf16, onednn_cap
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 from helpers.shards import write_pseudo_labels
 from helpers.training import CONF
@@ -81,7 +81,7 @@ def test_torchs_onednn_honours_the_avx2_switch_on_any_host():
     """On a host held to AVX2, oneDNN itself says it runs no bf16, and ``native_bf16`` agrees, whatever the CPU: the
     switch is read when torch is imported, so in a fresh process."""
     code = (
-        "import json, torch; from icpflow.hardware import native_bf16; "
+        "import json, torch; from icpflow.core.hardware import native_bf16; "
         "print(json.dumps([bool(torch.ops.mkldnn._is_mkldnn_bf16_supported()), native_bf16()[0]]))"
     )
     env = {"ONEDNN_MAX_CPU_ISA": "AVX2", "PATH": "/usr/bin:/bin"}

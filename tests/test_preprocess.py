@@ -1,4 +1,5 @@
-"""The typed preprocessing block (``icpflow.preprocess``): its frames, its stored form and the older forms it reads,
+"""The typed preprocessing block (``icpflow.scans.preprocess``): its frames, its stored form and the older forms it
+reads,
 and the height-frame transforms."""
 
 import json
@@ -9,10 +10,10 @@ import pytest
 import yaml
 from hydra import compose, initialize_config_dir
 
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import make_transform, transform_points
-from icpflow.ground import GroundSegmenter
-from icpflow.preprocess import (
+from icpflow.core.geometry import make_transform, transform_points
+from icpflow.datasets.synthetic.reader import SyntheticDataset
+from icpflow.scans.ground import GroundSegmenter
+from icpflow.scans.preprocess import (
     Preprocessing,
     PreprocessingError,
     estimate_ground_height,

@@ -102,7 +102,7 @@ MOVED_MODULES = {
                 "cpu_only",
                 "ort_session_options",
             ),
-            "default_threads": "icpflow.threads.available_cores",
+            "default_threads": "icpflow.core.threads.available_cores",
         },
     ),
     "fastflow3d.checkpoint": (
@@ -255,9 +255,9 @@ MOVED_MODULES = {
         _names(f"{TRAINING}.student_module", "LOSSES", "NonFiniteLoss", "StudentModule", "log"),
     ),
     "icpflow.entry": (
-        "icpflow.errors_and_signals",
+        "icpflow.core.errors_and_signals",
         _names(
-            "icpflow.errors_and_signals",
+            "icpflow.core.errors_and_signals",
             "FIXES",
             "FULL_ERROR",
             "MARKER",
@@ -290,6 +290,153 @@ MOVED_MODULES = {
         ),
     ),
 }
+
+#: icpflow's modules before its rooms (release 0.2) -> (today's module, its names there); the options' names live in
+#: two modules today
+ICPFLOW_MOVED = {
+    "icpflow.geometry": (
+        "icpflow.core.geometry",
+        (
+            "ROTATION_ATOL ego_flow euler_angles full_to_residual invert is_rigid kabsch lengths "
+            "make_transform orthonormalized pose_error relative_transform residual_to_full rigid_flow "
+            "rigid_problem transform_points"
+        ),
+    ),
+    "icpflow.frames": (
+        "icpflow.core.frame_pair",
+        "FramePair FramePairError FrameSequence MAX_ARRAY_VALUES MAX_POINTS MAX_POINT_COLUMNS check_points log",
+    ),
+    "icpflow.errors_and_signals": (
+        "icpflow.core.errors_and_signals",
+        (
+            "FIXES FULL_ERROR MARKER STOP_SIGNALS Stop error_line exit_status launching_process "
+            "on_signals one_line os_error_line raise_stop reported run signal_words signals_held "
+            "stop_on_signals stop_signum"
+        ),
+    ),
+    "icpflow.settings": (
+        "icpflow.core.settings",
+        (
+            "HYDRA_KEYS OptionError RULES accepts broken_rule check_config check_target_arguments "
+            "expand_home setting signature_schema store type_error_line type_words unknown_words"
+        ),
+    ),
+    "icpflow.console": (
+        "icpflow.core.console",
+        (
+            "ConsoleFormatter LIGHTNING_LOGGERS NOISE NOISE_WARNINGS NoiseFilter Progress "
+            "ProgressSafeHandler WorkerHandler captured_output quiet recorded_warnings worker_logging"
+        ),
+    ),
+    "icpflow.atomic": (
+        "icpflow.core.atomic",
+        "FolderInUse WriteError atomic_directory atomic_path folder_lock fsync_path temporary_name write_text_atomic",
+    ),
+    "icpflow.threads": ("icpflow.core.threads", "available_cores cpu_fields thread_limit"),
+    "icpflow.hardware": (
+        "icpflow.core.hardware",
+        "BF16_FLAGS ISA_SWITCHES ONEDNN_ISAS cpu_flags host_line native_bf16 onednn_cap torch_bf16_flags",
+    ),
+    "icpflow.open3d_loader": ("icpflow.core.open3d_loader", "LIBUSB LIBUSB_FIX OPEN3D_FIX load_open3d provide_libusb"),
+    "icpflow.deprecation": ("icpflow.core.deprecation", "REMOVAL moved_attribute moved_message warn_moved"),
+    "icpflow.entry_points": (
+        "icpflow.core.entry_points",
+        "CHECKOUT_CONF CONFIG_PACKAGE config_path hydra_entry version_line",
+    ),
+    "icpflow.preprocess": (
+        "icpflow.scans.preprocess",
+        (
+            "HeightFrame Preprocessing PreprocessingError estimate_ground_height implausible lift_points "
+            "lift_pose lift_transform"
+        ),
+    ),
+    "icpflow.ground": (
+        "icpflow.scans.ground",
+        "DROP_GRADE DROP_M FAR_SLACK FILL_REACH GroundSegmenter below_any_road ground_height object_columns",
+    ),
+    "icpflow.odometry": (
+        "icpflow.scans.odometry",
+        (
+            "MIN_EGO_POINTS MIN_SPREAD Odometry OdometryStep TargetPlanes ego_settings "
+            "estimate_ego_motion kiss_odometry normal_spread voxel_cloud"
+        ),
+    ),
+    "icpflow.normals": ("icpflow.scans.normals", "plane_normals smallest_axes"),
+    "icpflow.bev": ("icpflow.scans.bev", "in_box_cells occupied_cells"),
+    "icpflow.teacher.neighbours": (
+        "icpflow.scans.neighbours",
+        "GAVE_UP MAX_KNN_SHELL build_grid k_nearest nearest nearest_distances nn_stats transform_cloud",
+    ),
+    "icpflow.metrics": (
+        "icpflow.evaluation.metrics",
+        (
+            "AV2_CATEGORIES AV2_META BUCKET_EDGES Buckets CATEGORIES COLUMNS META_CLASSES "
+            "MetricAccumulator PairTruth PaperSplits RELATIVE_EPS THREEWAY_EDGES THREEWAY_META "
+            "av2_bucket_stats bucketed_epe format_table frame_pair_stats pair_stats threeway_epe"
+        ),
+    ),
+    "icpflow.baselines": ("icpflow.evaluation.baselines", "ego_only_flow zero_flow"),
+    "icpflow.viz_rerun": (
+        "icpflow.viz.recording",
+        "PairRecording SPEED_COLOURMAP VIEWERS ViewerUnavailable check_viewer import_rerun record_pair speed_colours",
+    ),
+    "icpflow.datasets.io": (
+        "icpflow.datasets.file_formats",
+        (
+            "BIN_COLUMNS BIN_MAX_RANGE BIN_PLAUSIBLE_MEDIAN PLY_SIZES SCAN_SUFFIXES check_claim "
+            "check_pcd_complete check_ply_complete fail list_scans load_npy load_npz natural_key read_bin "
+            "read_feather read_pose_lines read_poses read_scan"
+        ),
+    ),
+    "icpflow.datasets.sequence": ("icpflow.datasets.scan_folder", "ScanSequenceDataset"),
+    "icpflow.synthetic.lidar": (
+        "icpflow.datasets.synthetic.lidar",
+        "ELEVATIONS EPS Lidar SENSOR_HEIGHT Scan cast intersect surface_distance",
+    ),
+    "icpflow.synthetic.scene": (
+        "icpflow.datasets.synthetic.scene",
+        (
+            "AV2_META_CLASSES CLASSES CROSS_HALF Ground LANES PARKING RANGE_EDGE ROAD_HALF SIDEWALK Scene "
+            "agent_shapes build_scene unicycle"
+        ),
+    ),
+    "icpflow.synthetic.sequence": ("icpflow.datasets.synthetic.drive", "scan sequence"),
+    "icpflow.teacher.registration_cpu": (
+        "icpflow.teacher.registration.cpu",
+        "grid_cell register_batch_cpu register_stages_cpu",
+    ),
+    "icpflow.teacher.registration_torch": ("icpflow.teacher.registration.torch_batch", "register_batch_torch"),
+    "icpflow.teacher.icp": (
+        "icpflow.teacher.registration.icp",
+        "PLANE_MAX_ITER PLANE_NEIGHBOURS icp_point_to_plane icp_point_to_point normals",
+    ),
+}
+#: the old package icpflow.synthetic's names (its modules': ICPFLOW_MOVED)
+SYNTHETIC_NAMES = (
+    "AV2_META_CLASSES",
+    "CLASSES",
+    "ELEVATIONS",
+    "Lidar",
+    "Scan",
+    "Scene",
+    "build_scene",
+    "cast",
+    "scan",
+    "sequence",
+)
+MOVED_MODULES |= {old: (new, _names(new, *names.split())) for old, (new, names) in ICPFLOW_MOVED.items()}
+MOVED_MODULES["icpflow.synthetic"] = (
+    "icpflow.datasets.synthetic",
+    _names("icpflow.datasets.synthetic", *SYNTHETIC_NAMES),
+)
+MOVED_MODULES["icpflow.options"] = (
+    "icpflow.labelling.options",
+    {
+        **_names("icpflow.labelling.options", "DatasetOptions", "LabelOptions", "LabellerOptions", "RayOptions"),
+        **_names("icpflow.labelling.options", "TeacherOverrides", "register"),
+        **_names("icpflow.evaluation.options", "EvalOptions"),
+    },
+)
 
 #: old modules that are packages today -> {old name: its module today}. Left out: fastflow3d.training.run_folder (the
 #: old function; the name is today's module, whose function is fastflow3d.training.run_folder.run_folder).
@@ -355,10 +502,13 @@ MOVED_NAMES = {
         **dict.fromkeys(("OnnxRuntimeNetwork", "TorchNetwork", "choose_format", "load_network"), f"{ARTIFACT}.engines"),
         **dict.fromkeys(("TORCHSCRIPT_WARNING", "check_pt2"), f"{ARTIFACT}.safe_loading"),
     },
+    "icpflow.viz": dict.fromkeys(
+        ("RENDERER_BANNER", "flow_colours", "offscreen_problem", "plot_bev", "render_pair"), "icpflow.viz.pictures"
+    ),
 }
 
 
-#: the message of an old path's warning (``icpflow.deprecation.moved_message``)
+#: the message of an old path's warning (``icpflow.core.deprecation.moved_message``)
 OURS = re.compile(r" is deprecated and will be removed in 0\.3; use ")
 
 
@@ -437,7 +587,11 @@ def test_an_old_module_that_is_a_package_today_answers_its_old_names(package):
         assert f"use {home}.{name}" in str(caught[0].message) and caught[0].filename == __file__
     with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
         module.no_such_name  # noqa: B018
-    documented = {"fastflow3d.training": "build_trainer", "fastflow3d.artifact": "check_pt2"}[package]
+    documented = {
+        "fastflow3d.training": "build_trainer",
+        "fastflow3d.artifact": "check_pt2",
+        "icpflow.viz": "plot_bev",
+    }[package]
     namespace = {}
     with pytest.warns(DeprecationWarning, match=re.escape(f"{package}.{documented} is deprecated")):
         exec(f"from {package} import {documented}", namespace)

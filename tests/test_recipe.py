@@ -6,8 +6,8 @@ import torch
 
 from fastflow3d.training.augment import Augmentation, subsample, transform_sample
 from fastflow3d.training.schedules import warmup_cosine, warmup_multistep
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import full_to_residual, transform_points
+from icpflow.core.geometry import full_to_residual, transform_points
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 from helpers.shards import write_labels
 from helpers.students import tiny_network

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from fastflow3d.inference.refine import RefineConfig, components, median_at_least, refine_residual
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import ego_flow, transform_points
+from icpflow.core.geometry import ego_flow, transform_points
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 
 @pytest.fixture(scope="module")
@@ -187,9 +187,9 @@ def test_ground_surface_left_in_the_scans_joins_no_objects_and_stays_out_of_icp(
 
 
 def test_the_targets_are_searched_among_the_points_of_the_cells_the_boxes_touch():
-    """icpflow.bev.in_box_cells (the refinement's targets): every point inside a candidate's box is kept (so its
+    """icpflow.scans.bev.in_box_cells (the refinement's targets): every point inside a candidate's box is kept (so its
     targets, and their order along x, are those of the whole scan), and a point far from every box is not."""
-    from icpflow.bev import in_box_cells
+    from icpflow.scans.bev import in_box_cells
 
     rng = np.random.default_rng(4)
     points = rng.uniform(-40, 40, (20000, 3)).astype(np.float32)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from fastflow3d.inference.predictor import Predictor
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "release_0_1"
 

@@ -12,9 +12,9 @@ from hydra.errors import ConfigCompositionException
 
 from fastflow3d.training.run_folder import TrainError
 from fastflow3d.training.trainer import fit
-from icpflow.atomic import FolderInUse, folder_lock
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.errors_and_signals import error_line
+from icpflow.core.atomic import FolderInUse, folder_lock
+from icpflow.core.errors_and_signals import error_line
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 from helpers.shards import write_pseudo_labels
 from helpers.training import train_cfg

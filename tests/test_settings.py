@@ -1,4 +1,4 @@
-"""One way to check a config (icpflow.settings): every entry point's config is a structured config whose types and
+"""One way to check a config (icpflow.core.settings): every entry point's config is a structured config whose types and
 keys Hydra checks while composing, and whose rules check_config checks before any work."""
 
 import copy
@@ -14,9 +14,10 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 from fastflow3d.training.options import ExportOptions, TrainerOptions, TrainOptions
-from icpflow.errors_and_signals import error_line
-from icpflow.options import DatasetOptions, EvalOptions, LabelOptions
-from icpflow.settings import RULES, OptionError, accepts, check_config, signature_schema
+from icpflow.core.errors_and_signals import error_line
+from icpflow.core.settings import RULES, OptionError, accepts, check_config, signature_schema
+from icpflow.evaluation.options import EvalOptions
+from icpflow.labelling.options import DatasetOptions, LabelOptions
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 SCHEMAS = {"label": LabelOptions, "eval": EvalOptions, "train": TrainOptions, "export": ExportOptions}

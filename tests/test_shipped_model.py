@@ -12,8 +12,8 @@ from fastflow3d.artifact.file_format import METADATA_NAME, listed_file
 from fastflow3d.artifact.shipped import CARD_NAME, SHIPPED_NAME, shipped_label, shipped_model
 from fastflow3d.inference.cli import main as infer_main
 from fastflow3d.inference.cli import split_paths
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.metrics import frame_pair_stats
+from icpflow.datasets.synthetic.reader import SyntheticDataset
+from icpflow.evaluation.metrics import frame_pair_stats
 
 SHIPPED = shipped_model()
 METADATA = json.loads((SHIPPED / METADATA_NAME).read_text())

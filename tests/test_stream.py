@@ -1,4 +1,4 @@
-"""The streaming Predictor (fastflow3d.inference.stream.FlowStream; its odometry, icpflow.odometry, is
+"""The streaming Predictor (fastflow3d.inference.stream.FlowStream; its odometry, icpflow.scans.odometry, is
 tests/test_odometry.py): the flow of a stream is the Predictor's with the stream's ego motion and masks; the ego motion
 is exact on the synthetic world; every bad stream (a gap, a skipped scan, time going backwards, too few points, a lost
 track, another frame) is one warning and never a silent wrong flow, and the other frames keep theirs."""
@@ -17,9 +17,9 @@ from omegaconf import OmegaConf
 
 from fastflow3d.inference.predictor import Predictor
 from fastflow3d.inference.stream import FlowStream, StreamWarning, overlap_threads
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import invert
-from icpflow.threads import available_cores
+from icpflow.core.geometry import invert
+from icpflow.core.threads import available_cores
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 from helpers.disk import fail_fsync_after
 from helpers.drives import corridor, synthetic_drive

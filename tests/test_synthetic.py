@@ -8,10 +8,10 @@ import pytest
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import invert, transform_points
-from icpflow.synthetic import AV2_META_CLASSES, CLASSES, Lidar, build_scene, scan, sequence
-from icpflow.synthetic.lidar import _ground, cast, intersect, surface_distance
+from icpflow.core.geometry import invert, transform_points
+from icpflow.datasets.synthetic import AV2_META_CLASSES, CLASSES, Lidar, build_scene, scan, sequence
+from icpflow.datasets.synthetic.lidar import _ground, cast, intersect, surface_distance
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 SMALL = Lidar(beams=16, azimuth_resolution_deg=1.0)  # fast; same world, fewer rays
 EXACT = Lidar(beams=16, azimuth_resolution_deg=1.0, range_noise=0.0, dropout=0.0)

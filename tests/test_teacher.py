@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from icpflow.geometry import ego_flow, make_transform
-from icpflow.ground import GroundSegmenter
+from icpflow.core.geometry import ego_flow, make_transform
+from icpflow.scans.ground import GroundSegmenter
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.clustering import cluster_points, relabel_by_size, voxel_downsample
 from icpflow.teacher.config import from_hydra

@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
-from icpflow.errors_and_signals import error_line
+from icpflow.core.errors_and_signals import error_line
 from icpflow.teacher.config import (
     BLOCKS,
     ChecksConfig,
@@ -415,7 +415,7 @@ def test_an_older_shards_labeller_config_still_loads(tmp_path):
 
     from fastflow3d.network.voxelize import Grid
     from fastflow3d.training.data import labeller_contract
-    from icpflow.preprocess import Preprocessing
+    from icpflow.scans.preprocess import Preprocessing
     from icpflow.shards.schema import shard_name
     from icpflow.shards.writer import write_index, write_shard
 
@@ -458,7 +458,7 @@ def test_older_checkpoints_and_exports_still_load():
     flat ground and ego-motion fields: both read silently as the same input contract
     (``fastflow3d.network.contract``)."""
     from fastflow3d.network.contract import upgrade
-    from icpflow.preprocess import Preprocessing
+    from icpflow.scans.preprocess import Preprocessing
 
     old = {key: {**OLD_DEFAULTS, **OLD_PRESETS["av2"]}[key] for key in PREPROCESSING}
     expected = Preprocessing.from_teacher(ICPFlowConfig.from_dict(old, warn=False))

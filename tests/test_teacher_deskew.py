@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from icpflow.geometry import make_transform, transform_points
+from icpflow.core.geometry import make_transform, transform_points
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.config import ICPConfig
-from icpflow.teacher.icp import normals
 from icpflow.teacher.registration import register_plane
+from icpflow.teacher.registration.icp import normals
 
 from helpers.teacher_scenes import box_surface  # tests/ is on sys.path (pytest prepend import mode)
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from icpflow.geometry import euler_angles, invert, make_transform, transform_points
+from icpflow.core.geometry import euler_angles, invert, make_transform, transform_points
 from icpflow.teacher.association import associate
 from icpflow.teacher.checks import passes
 from icpflow.teacher.config import ChecksConfig, HistogramConfig, ICPConfig, ICPFlowConfig
@@ -125,8 +125,8 @@ def test_icp_does_not_depend_on_the_grid_cell(yaw_only):
     # The correspondence search is exact whatever the cell size of the fixed cloud's grid, so the registration
     # shares the quality grid (0.3 m cells) with no change to any transform: 0.1 m (the truncation), 0.3 m and
     # 2 m cells give the same iterations and bit-identical transforms, point-to-point and point-to-plane.
-    from icpflow.teacher.icp import icp_point_to_plane, icp_point_to_point, normals
-    from icpflow.teacher.neighbours import build_grid
+    from icpflow.scans.neighbours import build_grid
+    from icpflow.teacher.registration.icp import icp_point_to_plane, icp_point_to_point, normals
 
     src = _box_surface(1500, seed=11).astype(np.float64)
     truth = make_transform(yaw=0.08, translation=(0.9, 0.3, 0.05))
@@ -356,7 +356,7 @@ def test_coarse_to_fine_in_one_call_equals_the_stages_run_one_by_one():
     # last stage's quality, the identity's and that of a per-point flow must be those of register_batch_cpu called
     # stage by stage (each from the last one's transforms), bit for bit, on pairs where the coarse stages matter
     # (starts 1-2 m short), where ICP makes things worse (the start is kept) and on empty clouds.
-    from icpflow.teacher.registration_cpu import register_batch_cpu, register_stages_cpu
+    from icpflow.teacher.registration.cpu import register_batch_cpu, register_stages_cpu
 
     rng = np.random.default_rng(21)
     movings, fixeds, givens, starts = [], [], [], []
@@ -403,7 +403,7 @@ def test_coarse_to_fine_in_one_call_equals_the_stages_run_one_by_one():
 def test_nearest_distances_are_exact():
     from scipy.spatial import cKDTree
 
-    from icpflow.teacher.neighbours import build_grid, nearest_distances
+    from icpflow.scans.neighbours import build_grid, nearest_distances
 
     rng = np.random.default_rng(3)
     points = rng.uniform(-4, 4, (700, 3))
@@ -423,7 +423,7 @@ def test_nearest_distances_are_exact():
 def test_the_grid_sorts_points_by_column_then_height_cell_stably():
     """``build_grid``'s counting sorts give the order of a stable sort by (xy column, z cell): within a cell, the
     points in their input order (repeated points included)."""
-    from icpflow.teacher.neighbours import build_grid
+    from icpflow.scans.neighbours import build_grid
 
     rng = np.random.default_rng(4)
     cloud = rng.uniform(-6, 6, (3000, 3))
@@ -443,7 +443,7 @@ def test_k_nearest_neighbours_are_exact():
     (the rest -1) and within a reach (none there: -1)."""
     from scipy.spatial import cKDTree
 
-    from icpflow.teacher.neighbours import MAX_KNN_SHELL, build_grid, k_nearest
+    from icpflow.scans.neighbours import MAX_KNN_SHELL, build_grid, k_nearest
 
     rng = np.random.default_rng(5)
     ground = np.column_stack([rng.uniform(-30, 30, (6000, 2)), rng.normal(0.0, 0.02, 6000)])

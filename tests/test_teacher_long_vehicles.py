@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from icpflow.geometry import make_transform, transform_points
+from icpflow.core.geometry import make_transform, transform_points
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 from icpflow.teacher.config import HistogramConfig, MergingConfig
 from icpflow.teacher.histogram import main_axis
@@ -161,7 +161,7 @@ def test_two_objects_moving_differently_stay_apart():
 
 @pytest.fixture(scope="module")
 def synthetic_test():
-    from icpflow.datasets.synthetic import SyntheticDataset
+    from icpflow.datasets.synthetic.reader import SyntheticDataset
 
     return SyntheticDataset(split="test", num_sequences=8)
 

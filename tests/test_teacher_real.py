@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from icpflow.geometry import ego_flow, pose_error, relative_transform
+from icpflow.core.geometry import ego_flow, pose_error, relative_transform
 from icpflow.teacher import ICPFlow, ICPFlowConfig
 
 from helpers.data import require_shared, shared

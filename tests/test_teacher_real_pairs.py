@@ -6,7 +6,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from benchmarks.teacher_real_pairs import PAIRS, read_pair
-from icpflow.geometry import transform_points
+from icpflow.core.geometry import transform_points
 
 from helpers.data import needs_shared
 

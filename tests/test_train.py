@@ -24,9 +24,9 @@ from fastflow3d.network.voxelize import Grid
 from fastflow3d.training.data import DataError, StudentDataset, collate
 from fastflow3d.training.run_folder import TrainError
 from fastflow3d.training.trainer import accumulation, build_trainer, fit, settle_batch
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import ego_flow, transform_points
-from icpflow.preprocess import Preprocessing
+from icpflow.core.geometry import ego_flow, transform_points
+from icpflow.datasets.synthetic.reader import SyntheticDataset
+from icpflow.scans.preprocess import Preprocessing
 from icpflow.shards.writer import write_index
 
 from helpers.shards import TEACHER, write_pseudo_labels

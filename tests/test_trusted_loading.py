@@ -18,7 +18,7 @@ from fastflow3d.artifact.export import export_checkpoint
 from fastflow3d.artifact.file_format import METADATA_NAME, ArtifactError, sha256_file
 from fastflow3d.artifact.safe_loading import check_pt2
 from fastflow3d.inference.predictor import Predictor
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 from helpers.students import place_checkpoint  # tests/ is on sys.path (pytest prepend import mode)
 

@@ -13,10 +13,10 @@ from hydra import compose, initialize_config_dir
 
 from fastflow3d.inference.prediction import PredictorWarning
 from fastflow3d.inference.predictor import Predictor
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.geometry import ego_flow, invert, relative_transform
+from icpflow.core.geometry import ego_flow, invert, relative_transform
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.labelling.cli import label
-from icpflow.preprocess import estimate_ground_height, lift_transform
+from icpflow.scans.preprocess import estimate_ground_height, lift_transform
 from icpflow.shards import ShardDataset
 from icpflow.teacher.config import ICPFlowConfig
 

@@ -1,4 +1,4 @@
-"""icpflow.viz: the BEV picture and the open3d render show the points where they are, in their colours.
+"""icpflow.viz.pictures: the BEV picture and the open3d render show the points where they are, in their colours.
 
 One hand-made pair: a dense 1 m cube of points at (10, 10) m moves 5 m along x in the world while the ego drives
 2 m forward, so in the ego frame of t + dt pc0 (ego-compensated) sits at x = 8, pc1 at x = 13, and the full
@@ -9,9 +9,17 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from icpflow.frames import FramePair
-from icpflow.geometry import make_transform
-from icpflow.viz import MOVED_COLOUR, PC0_COLOUR, PC1_COLOUR, flow_colours, offscreen_problem, plot_bev, render_pair
+from icpflow.core.frame_pair import FramePair
+from icpflow.core.geometry import make_transform
+from icpflow.viz.pictures import (
+    MOVED_COLOUR,
+    PC0_COLOUR,
+    PC1_COLOUR,
+    flow_colours,
+    offscreen_problem,
+    plot_bev,
+    render_pair,
+)
 
 EXTENT = 20.0
 

@@ -1,4 +1,4 @@
-"""The 3D viewer (icpflow.viz_rerun): recordings written, then read back through rerun's own reader, entity by
+"""The 3D viewer (icpflow.viz.recording): recordings written, then read back through rerun's own reader, entity by
 entity and value by value; from eval.py viewer=rerun and fastflow3d-infer --rerun (on the shipped KITTI scans)."""
 
 from __future__ import annotations
@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from icpflow.baselines import ego_only_flow, zero_flow
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.core.geometry import full_to_residual, transform_points
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.evaluation import run_eval
-from icpflow.geometry import full_to_residual, transform_points
-from icpflow.viz_rerun import PairRecording, ViewerUnavailable, import_rerun, speed_colours
+from icpflow.evaluation.baselines import ego_only_flow, zero_flow
+from icpflow.viz.recording import PairRecording, ViewerUnavailable, import_rerun, speed_colours
 
 pytest.importorskip("rerun", reason="rerun-sdk is an optional dependency (pip install 'icpflow[viz]')")
 from helpers.data import REPO, needs_shared, shared  # noqa: E402

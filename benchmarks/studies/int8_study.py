@@ -29,8 +29,8 @@ from benchmarks.common import ROOT, read_scan_pair
 from benchmarks.training_runs import run_python, scores
 from fastflow3d.artifact.file_format import sha256_file
 from fastflow3d.network.model import compensate
-from icpflow.atomic import write_text_atomic
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.core.atomic import write_text_atomic
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 
 def calibration_feeds(pairs: int) -> list[dict]:

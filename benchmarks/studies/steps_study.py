@@ -21,7 +21,7 @@ from pathlib import Path
 
 from benchmarks.common import ROOT
 from benchmarks.training_runs import run_python, save_line_plot, scores, trained_and_scored
-from icpflow.atomic import write_text_atomic
+from icpflow.core.atomic import write_text_atomic
 from icpflow.evaluation import is_complete
 
 

@@ -3,10 +3,10 @@
 the one opener of a model file (``engines.load_network``), and the export with its parity check (``export``).
 Imports ``fastflow3d.network`` only."""
 
-from icpflow.deprecation import moved_attribute
+from icpflow.core.deprecation import moved_attribute
 
 #: the names of the last release's module ``fastflow3d.artifact`` (this package since issue 46) -> their module today;
-#: answered with a DeprecationWarning until 0.3 (``icpflow.deprecation``)
+#: answered with a DeprecationWarning until 0.3 (``icpflow.core.deprecation``)
 MOVED = {
     **dict.fromkeys(
         (

@@ -14,6 +14,8 @@ from pathlib import Path
 import torch
 
 from fastflow3d.network.model import FastFlow3D
+from icpflow.core.deprecation import MOVED_TARGETS as ICPFLOW_TARGETS
+from icpflow.core.deprecation import current_target
 
 MODEL_TARGET = "fastflow3d.network.model.FastFlow3D"
 
@@ -27,6 +29,7 @@ MOVED_TARGETS = {
     "fastflow3d.module": "fastflow3d.training.student_module",
     "fastflow3d.schedules": "fastflow3d.training.schedules",
     "fastflow3d.callbacks": "fastflow3d.training.callbacks",
+    **ICPFLOW_TARGETS,
 }
 
 
@@ -66,8 +69,7 @@ def current_targets(node):
 
 
 def _current_target(target):
-    module, _, name = target.rpartition(".") if isinstance(target, str) else ("", "", "")
-    return f"{MOVED_TARGETS[module]}.{name}" if module in MOVED_TARGETS else target
+    return current_target(target, MOVED_TARGETS)
 
 
 def read_checkpoint(path, map_location="cpu") -> dict:

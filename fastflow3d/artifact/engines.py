@@ -34,8 +34,8 @@ from torch.export.passes import move_to_device_pass
 from fastflow3d.artifact.checkpoint import load_student
 from fastflow3d.artifact.file_format import INPUT_NAMES, LEGACY_FORMATS, OUTPUT_NAMES, ArtifactError, SingleSampleNet
 from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING, check_pt2
-from icpflow.errors_and_signals import one_line
-from icpflow.threads import available_cores, cpu_fields
+from icpflow.core.errors_and_signals import one_line
+from icpflow.core.threads import available_cores, cpu_fields
 
 RUNTIMES = ("onnxruntime", "openvino")
 PRECISIONS = ("f32", "bf16", "int8")

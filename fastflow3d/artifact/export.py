@@ -41,8 +41,8 @@ from fastflow3d.artifact.quantize import INT8_TOLERANCE, calibration_pairs, int8
 from fastflow3d.artifact.writers import WRITERS, onnx_opset
 from fastflow3d.network.contract import ContractError, InputContract, upgrade
 from fastflow3d.network.model import FastFlow3D
-from icpflow.atomic import atomic_directory
-from icpflow.errors_and_signals import Stop, exit_status, one_line, os_error_line, signal_words, stop_on_signals
+from icpflow.core.atomic import atomic_directory
+from icpflow.core.errors_and_signals import Stop, exit_status, one_line, os_error_line, signal_words, stop_on_signals
 
 PARITY_TOLERANCE = 1e-4  # metres, max abs difference between an export and eager
 
@@ -129,7 +129,7 @@ def export_model(
 ) -> dict:
     """Export ``model`` (eval mode is set) in ``formats`` to ``out_dir``; returns the metadata written.
 
-    The files are built in a temporary folder next to ``out_dir`` and swapped in whole (``icpflow.atomic``):
+    The files are built in a temporary folder next to ``out_dir`` and swapped in whole (``icpflow.core.atomic``):
     ``out_dir`` holds the previous export or the new one, never a part (a full disk, a signal, a failed check leave
     it as it was). Each export is loaded back and compared with eager on random clouds of several sizes; an export
     off by more than ``tolerance`` metres raises :class:`ExportError` and is not kept.
@@ -279,14 +279,14 @@ def parse_formats(value: str) -> tuple[str, ...]:
     return FORMATS if names == ["all"] else tuple(names)
 
 
-#: errors whose message is the line ``export.py`` prints (``icpflow.errors_and_signals.reported``)
+#: errors whose message is the line ``export.py`` prints (``icpflow.core.errors_and_signals.reported``)
 EXPECTED = (ValueError, RuntimeError)
 
 
 def run_export(cfg) -> int:
     """``export.py``: export ``cfg.checkpoint`` in ``cfg.format`` to ``cfg.out_dir``; print what was written.
 
-    Returns the exit status (``icpflow.errors_and_signals.exit_status``, the report every entry point makes): 0
+    Returns the exit status (``icpflow.core.errors_and_signals.exit_status``, the report every entry point makes): 0
     exported, 2 could not export (one line on stderr: the file, the cause, the fix), 143 / 130 on SIGTERM / SIGINT (the
     line says that the existing export is unchanged).
     """

@@ -38,8 +38,8 @@ from torch import nn
 import icpflow
 from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import FastFlow3D
-from icpflow.atomic import write_text_atomic
-from icpflow.errors_and_signals import one_line
+from icpflow.core.atomic import write_text_atomic
+from icpflow.core.errors_and_signals import one_line
 
 FORMATS = ("onnx", "pt2")  # what an export writes
 LEGACY_FORMATS = ("torchscript",)  # read only: exports of older versions
@@ -55,7 +55,7 @@ METADATA_VERSION = (
 INPUT_NOTE = (
     "inputs are in the height frame (ground near frame.ground_z; a scan in another frame is lifted first); with "
     "remove_ground, the network gets the non-ground points of each scan (ground masks by "
-    "icpflow.ground.GroundSegmenter with these settings, or given) inside the grid; ground pc0 points get "
+    "icpflow.scans.ground.GroundSegmenter with these settings, or given) inside the grid; ground pc0 points get "
     "the ego flow (fastflow3d.network.contract)"
 )
 INPUT_NAMES = ("pc0_compensated", "pc1")

@@ -25,8 +25,8 @@ import numpy as np
 
 from fastflow3d.artifact.file_format import INPUT_NAMES, ArtifactError
 from fastflow3d.network.contract import InputContract
-from icpflow.atomic import atomic_path
-from icpflow.errors_and_signals import one_line
+from icpflow.core.atomic import atomic_path
+from icpflow.core.errors_and_signals import one_line
 from icpflow.shards.reader import ShardDataset
 
 #: labelled pairs the activation ranges are measured on, and at most as many others the int8 network is checked on

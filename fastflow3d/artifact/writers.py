@@ -1,5 +1,5 @@
 """The writers of the exported formats (``fastflow3d.artifact.file_format``): the network (:class:`SingleSampleNet`)
-traced on an example pair with dynamic point counts, written atomically (``icpflow.atomic``)."""
+traced on an example pair with dynamic point counts, written atomically (``icpflow.core.atomic``)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from fastflow3d.artifact.file_format import INPUT_NAMES, OUTPUT_NAMES, SingleSampleNet
-from icpflow.atomic import atomic_path
+from icpflow.core.atomic import atomic_path
 
 
 def _dynamic_shapes() -> dict:

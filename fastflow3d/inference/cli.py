@@ -11,9 +11,9 @@ first line says so. A first path is MODEL when three paths are given, or when it
 ``.pt``, ``.ckpt``) or a folder holding an export's files.
 
 Stream mode (one scan argument: a folder of scans or a quoted glob, in natural name order, ``2.bin`` before
-``10.bin``: ``icpflow.datasets.io.list_scans``, as ``dataset=sequence`` reads them; two scans of one name stem are
-refused): the scans are one stream (``fastflow3d.inference.stream.FlowStream``: nothing given, the ego motion and ground
-kept across frames), and each consecutive pair's flow is written to ``OUT_DIR/<first scan's stem>.npz`` (default
+``10.bin``: ``icpflow.datasets.file_formats.list_scans``, as ``dataset=sequence`` reads them; two scans of one name stem
+are refused): the scans are one stream (``fastflow3d.inference.stream.FlowStream``: nothing given, the ego motion and
+ground kept across frames), and each consecutive pair's flow is written to ``OUT_DIR/<first scan's stem>.npz`` (default
 ``outputs/infer/<folder>``), holding what a pair's ``.npz`` holds; a progress bar shows frames per second. An
 unreadable scan is skipped with a warning naming it (the pair across it is estimated from its two scans); a pair
 the stream cannot estimate (a lost track) gets no file and a warning; a stream that gives no flow at all is an error.
@@ -25,7 +25,7 @@ stream (points coloured by speed, flow arrows, the estimated trajectory) on one 
 MODEL: an export directory, ``.onnx``, ``.pt2``, ``.pt`` or ``.ckpt`` (``fastflow3d.inference.predictor``). Scans:
 ``.npz`` (array ``points`` or ``pc``), ``.npy`` (N, >= 3), ``.bin`` (float32 rows: x, y, z, reflectance as KITTI, or
 ``--bin-columns N`` values, x, y, z first), ``.ply`` or ``.pcd``; the first three columns are x, y, z in metres
-in the sensor's own frame (``icpflow.frames.check_points``: a transposed (3, N) array is an error). Ego motion:
+in the sensor's own frame (``icpflow.core.frame_pair.check_points``: a transposed (3, N) array is an error). Ego motion:
 ``--poses`` (two world_from_ego poses, scan0's then scan1's: a text file of 12 or 16 values a line, or a
 (2, 4, 4) ``.npy``), ``--ego`` (one (4, 4) ``ego1_from_ego0``: 12 or 16 values, or a ``.npy``), or neither
 (estimated by KISS-ICP).
@@ -40,9 +40,9 @@ Output (default ``outputs/infer/<scan0>_flow.npz``): ``flow`` (N0, 3) float32 FU
 frame), ``residual`` (ego-compensated), ``in_grid`` (the network predicted the point), ``ground0`` (left out as
 ground), ``ego1_from_ego0``, ``ego_estimated``; a ``.npy`` output holds the flow alone; an output (or picture, or
 recording) that is one of the input files is refused. Errors are one line on stderr, exit status 2 (130 / 143 when
-Ctrl-C / SIGTERM stops it: ``icpflow.errors_and_signals``); a scan none of whose points the network sees (outside its
-grid), a frame converted without being told, or an implausible preprocessing (over 85 % ground, under 20 % of scan0 in
-the grid) gets a one-line warning.
+Ctrl-C / SIGTERM stops it: ``icpflow.core.errors_and_signals``); a scan none of whose points the network sees (outside
+its grid), a frame converted without being told, or an implausible preprocessing (over 85 % ground, under 20 % of scan0
+in the grid) gets a one-line warning.
 """
 
 from __future__ import annotations
@@ -69,11 +69,11 @@ from fastflow3d.artifact.file_format import (
 from fastflow3d.inference.model_loading import AUTO, PRECISION_CHOICES
 from fastflow3d.inference.scan_files import read_raw_scan, read_transforms, refuse_input_as_output, write_flow
 from fastflow3d.inference.stream_folder import MANIFEST, claim_output_folder, stream_files, stream_manifest
-from icpflow.atomic import write_text_atomic
-from icpflow.console import quiet, recorded_warnings
-from icpflow.errors_and_signals import exit_status, one_line, stop_on_signals
-from icpflow.frames import FramePair
-from icpflow.geometry import relative_transform
+from icpflow.core.atomic import write_text_atomic
+from icpflow.core.console import quiet, recorded_warnings
+from icpflow.core.errors_and_signals import exit_status, one_line, stop_on_signals
+from icpflow.core.frame_pair import FramePair
+from icpflow.core.geometry import relative_transform
 
 #: a stream's pairs in flight (``FlowStream(overlap=True, depth=...)``): with two, a pair slow on one thread holds the
 #: other up less (BENCHMARKS.md, "Student latency and the stream"); the last ``STREAM_DEPTH`` flows are written after
@@ -185,7 +185,7 @@ def sensor_height(text: str):
 
 def given_preprocessing(args):
     """What ``--metadata`` / ``--remove-ground`` say about a bare exported file (None: nothing)."""
-    from icpflow.preprocess import Preprocessing
+    from icpflow.scans.preprocess import Preprocessing
 
     if args.metadata is not None:
         return args.metadata
@@ -235,7 +235,7 @@ def say_warnings(caught, keep=lambda message: True) -> None:
 def infer(args) -> tuple[Path, Path | None, str]:
     """Read, predict, write; returns the flow path, the picture path (or None) and the network's precision."""
     from fastflow3d.inference.prediction import PredictorWarning
-    from icpflow.viz import plot_bev
+    from icpflow.viz.pictures import plot_bev
 
     out = args.out or Path("outputs/infer") / f"{args.scan0.stem}_flow.npz"
     if out.suffix not in (".npz", ".npy"):
@@ -265,7 +265,7 @@ def infer(args) -> tuple[Path, Path | None, str]:
         )
     write_flow(out, prediction)
     if args.rerun is not None:  # the 3D viewer: pc0, pc1, the flow, ground and in-grid masks
-        from icpflow.viz_rerun import record_pair
+        from icpflow.viz.recording import record_pair
 
         ground0 = prediction.ground0 if predictor.remove_ground else None
         scans = FramePair(pc0=pc0, pc1=pc1, ego1_from_ego0=prediction.ego1_from_ego0, ground0=ground0)
@@ -363,7 +363,7 @@ def infer_stream(args) -> tuple[Path, int, int, str]:
     """Stream mode (module docstring): returns the output folder, the flows written, the scans read and the network's
     precision."""
     from fastflow3d.inference.stream import FlowStream, overlap_threads
-    from icpflow.console import Progress
+    from icpflow.core.console import Progress
 
     if args.poses is not None or args.ego is not None:
         raise ValueError("--poses / --ego give a pair's ego motion; a stream estimates its own (leave them out)")
@@ -380,7 +380,7 @@ def infer_stream(args) -> tuple[Path, int, int, str]:
     stream = FlowStream(predictor, overlap=True, depth=STREAM_DEPTH)  # each pair's network beside the next scans' steps
     recording = None
     if args.rerun is not None:
-        from icpflow.viz_rerun import PairRecording
+        from icpflow.viz.recording import PairRecording
 
         recording = PairRecording(args.rerun, application="fastflow3d-infer")
     with (
@@ -414,7 +414,7 @@ def infer_stream(args) -> tuple[Path, int, int, str]:
 
 def main(argv=None) -> int:
     """Command-line entry; returns the exit status (0 written; 2 an error, one line on stderr; 130 / 143 stopped by
-    Ctrl-C / SIGTERM) as ``icpflow.errors_and_signals`` reports it for every entry point. A bad option exits
+    Ctrl-C / SIGTERM) as ``icpflow.core.errors_and_signals`` reports it for every entry point. A bad option exits
     (argparse)."""
     quiet()
     args = parse_args(argv)

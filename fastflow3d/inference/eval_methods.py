@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from fastflow3d.inference.predictor import Predictor
+from icpflow.core.frame_pair import FramePair
 from icpflow.evaluation import EvaluationError
-from icpflow.frames import FramePair
 
 
 class StudentMethod:

@@ -32,7 +32,7 @@ from fastflow3d.artifact.file_format import (
 from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING
 from fastflow3d.inference.prediction import PredictorError
 from fastflow3d.network.contract import ContractError, InputContract, read_grid, upgrade
-from icpflow.errors_and_signals import one_line
+from icpflow.core.errors_and_signals import one_line
 
 #: the precision the CLI, ``eval.py`` and ``Predictor.load`` run a student in unless told: :func:`auto_precision`
 AUTO = "auto"
@@ -71,8 +71,8 @@ def auto_precision(path: Path, backend: str | None, runtime: str | None) -> str:
 def precision_cost(precision: str) -> str | None:
     """One line on what a reduced ``precision`` asked for by name costs on this CPU, where it is not native (None
     where it is, and for f32): int8 without int8 dot products (``engines.int8_dot_products``), bf16 without native
-    bf16 (``icpflow.hardware.native_bf16``)."""
-    from icpflow.hardware import native_bf16
+    bf16 (``icpflow.core.hardware.native_bf16``)."""
+    from icpflow.core.hardware import native_bf16
 
     if precision == "int8" and not int8_dot_products():
         return (

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fastflow3d.artifact.file_format import ArtifactError
-from icpflow.frames import FramePairError, check_points
+from icpflow.core.frame_pair import FramePairError, check_points
 
 
 class PredictorError(ArtifactError):
@@ -44,7 +44,8 @@ class Prediction:
 
 
 def as_points(name: str, values) -> np.ndarray:
-    """(N, 3) float32 C-contiguous and writeable (torch.from_numpy wants that) by ``icpflow.frames.check_points``;
+    """(N, 3) float32 C-contiguous and writeable (torch.from_numpy wants that) by
+    ``icpflow.core.frame_pair.check_points``;
     its one-line error as a PredictorError."""
     try:
         return check_points(values, "Predictor", name)

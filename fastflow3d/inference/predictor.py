@@ -7,21 +7,21 @@ moves pc0 into the ego frame of t + dt with ``ego1_from_ego0``, runs the network
 (ego-compensated) flow, and adds the ego flow back, so the result is FULL flow in the project convention
 (``pc0 + flow`` is the position at t + dt in the ego frame of t + dt). Points outside the network's grid get the ego
 flow only. Without ``ego1_from_ego0`` the ego motion is estimated from the two scans' non-ground points
-(``icpflow.odometry``, the teacher's step 1).
+(``icpflow.scans.odometry``, the teacher's step 1).
 
-What runs before the network is the model's preprocessing block (``icpflow.preprocess.Preprocessing``, saved in
+What runs before the network is the model's preprocessing block (``icpflow.scans.preprocess.Preprocessing``, saved in
 its metadata or checkpoint): the height frame, the ground and the ego-motion settings.
 
 * Height frame: the network saw points with the ground near ``frame.ground_z`` (0: ego origin on the ground).
   ``sensor_height`` says where the scans' origin is: a number h (the origin is h m above the ground, e.g. 1.73 for
   KITTI's velodyne frame: both scans are lifted by ``ground_z + h``), ``"auto"`` (lifted so that the ground that
-  ``icpflow.preprocess.estimate_ground_height`` finds below the sensor of pc0 sits at ``ground_z``), or None (the
+  ``icpflow.scans.preprocess.estimate_ground_height`` finds below the sensor of pc0 sits at ``ground_z``), or None (the
   default: the scans should be in the model's frame; when the ground of pc0 lies more than 0.5 m from
   ``ground_z`` they are lifted as with ``"auto"`` and a :class:`PredictorWarning` says so). A common lift changes
   no flow vector; the ego motion given or returned is in the scans' own frame.
 * Ground: a model trained with ground removal (``preprocessing.remove_ground``) sees only the non-ground points of
   each scan: the masks passed in (``ground0``, ``ground1``) or, without them, those of
-  ``icpflow.ground.GroundSegmenter`` with the saved settings on the lifted scans; ground pc0 points get the
+  ``icpflow.scans.ground.GroundSegmenter`` with the saved settings on the lifted scans; ground pc0 points get the
   ego flow.
 * Refinement (opt-in, ``refine=True`` or a ``fastflow3d.inference.refine.RefineConfig``): the teacher's ICP started from
   the network's flow per bird's-eye-view component of pc0, kept where its checks accept it
@@ -52,10 +52,10 @@ from fastflow3d.inference.prediction import Prediction, PredictorError, Predicto
 from fastflow3d.inference.refine import RefineConfig, refine_residual
 from fastflow3d.inference.scan_steps import ScanSteps, check_sensor_height
 from fastflow3d.network.contract import InputContract, PreparedPair
-from icpflow.errors_and_signals import one_line
-from icpflow.geometry import residual_to_full, rigid_problem
-from icpflow.odometry import MIN_EGO_POINTS
-from icpflow.preprocess import implausible, lift_transform
+from icpflow.core.errors_and_signals import one_line
+from icpflow.core.geometry import residual_to_full, rigid_problem
+from icpflow.scans.odometry import MIN_EGO_POINTS
+from icpflow.scans.preprocess import implausible, lift_transform
 from icpflow.teacher.warmup import prepare_kernels
 
 log = logging.getLogger(__package__)

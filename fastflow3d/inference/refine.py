@@ -7,16 +7,16 @@ The student's flow is right in direction and often short in length (a bus moves 
    network's pc0 points (ego-compensated, non-ground, inside the grid). Components with fewer than ``min_points``
    points or longer than ``max_extent`` (walls, kerbs, hedges) are left as they are. Where the scans' ground
    surfaces are known (an estimated ground leaves the ring the sensor draws around each object's foot:
-   ``icpflow.ground.GroundSegmenter.masks``), only the points above them occupy cells; a surface point joins the
+   ``icpflow.scans.ground.GroundSegmenter.masks``), only the points above them occupy cells; a surface point joins the
    object in its cell (its feet) or none, and stays out of the ICP and its checks (steps 3, 4) on both scans: the
    ring would join moving objects to parked ones.
 2. Candidates: components whose median predicted residual is at least ``min_motion`` metres per pair (the moving
    ones; the rest keep the student's flow).
 3. Registration: the component's points are moved onto the pc1 points near them by point-to-point ICP (the
-   teacher's kernel, ``icpflow.teacher.icp``; yaw and 3D translation, ``yaw_only``) from the translation of the
-   component's mean predicted residual, with correspondences truncated at each distance of ``max_corr`` in turn
+   teacher's kernel, ``icpflow.teacher.registration.icp``; yaw and 3D translation, ``yaw_only``) from the translation of
+   the component's mean predicted residual, with correspondences truncated at each distance of ``max_corr`` in turn
    (coarse to fine: the student's start may be a metre short). The registration is the teacher's kernel run
-   coarse to fine in one compiled call (``icpflow.teacher.registration_cpu.register_stages_cpu``, numba, parallel
+   coarse to fine in one compiled call (``icpflow.teacher.registration.cpu.register_stages_cpu``, numba, parallel
    over the components), which also measures the match of no motion and of the student's own flow, on at most
    ``max_points`` points of each component.
 4. Checks: the ICP motion replaces the student's flow of the component only when it passes the teacher's checks
@@ -28,7 +28,7 @@ The student's flow is right in direction and often short in length (a bus moves 
    car a little is pulled back to zero, while a fast bus side (which slides along itself, so that no motion fits it
    nearly as well too) keeps its motion.
 5. Points: an accepted motion replaces the student's flow only at the component's points it fits: a point whose
-   nearest pc1 point (within the component's targets; exact, ``icpflow.teacher.neighbours``) is farther after the
+   nearest pc1 point (within the component's targets; exact, ``icpflow.scans.neighbours``) is farther after the
    ICP motion than after the student's own flow by more than ``point_slack`` keeps the student's flow. A parked
    car or a wall that the occupancy grid joins to a passing bus is not carried along with it, so the refinement
    leaves the static foreground no worse than the network alone.
@@ -43,7 +43,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from icpflow.geometry import lengths, rigid_flow
+from icpflow.core.geometry import lengths, rigid_flow
 
 
 @dataclass(frozen=True)
@@ -134,7 +134,7 @@ def components(points: np.ndarray, cell: float, occupying: np.ndarray | None = N
     occupies is in no component (-1)."""
     from scipy import ndimage
 
-    from icpflow.bev import occupied_cells
+    from icpflow.scans.bev import occupied_cells
 
     if not len(points):
         return np.zeros(0, np.int64), 0
@@ -201,7 +201,7 @@ def refine_residual(
     """((N0, 3) float32 refined residual flow, (N0,) bool: the points whose flow ICP replaced) of pc0 (N0, 3)
     (ego-compensated) with the student's residual (N0, 3) towards pc1 (N1, 3), all in the ego frame of t + dt.
     ``surface0`` (N0,) / ``surface1`` (N1,) bool: points of the ground's surface left in the scans (objects' feet,
-    the ring the sensor draws around them: ``icpflow.ground.GroundSegmenter.masks``); they belong to components
+    the ring the sensor draws around them: ``icpflow.scans.ground.GroundSegmenter.masks``); they belong to components
     and get an accepted motion where it fits them, but stay out of the ICP and its checks, whose matches they pull
     towards no motion. The stages are the module docstring's steps."""
     out, refined = np.array(residual, np.float32, copy=True), np.zeros(len(pc0), bool)
@@ -249,7 +249,7 @@ def _components(pc0, residual, cfg: RefineConfig, above0):
 def _candidates(parts: _Components, chosen, pc1, cfg: RefineConfig, surface1) -> _Candidates | None:
     """Step 3's input: each chosen component's points and its pc1 targets, the points of pc1 in its box moved by
     its mean residual and widened by ``margin``; None where no component has ``min_points`` of both."""
-    from icpflow.bev import in_box_cells
+    from icpflow.scans.bev import in_box_cells
 
     lows, highs, means, bounds = parts.lows, parts.highs, parts.means, parts.bounds
     # pc1 sorted along x (each candidate's targets from one slice), of the points in the cells the candidates' boxes
@@ -288,7 +288,7 @@ def _register(candidates: _Candidates, cfg: RefineConfig) -> tuple[np.ndarray, n
     """Steps 3 and 4: each candidate's ICP motion (K, 4, 4) from its start and whether it is accepted (K,) bool."""
     from icpflow.teacher.checks import passes
     from icpflow.teacher.config import ChecksConfig, ICPConfig
-    from icpflow.teacher.registration_cpu import register_stages_cpu
+    from icpflow.teacher.registration import register_stages_cpu
 
     starts, movings = candidates.starts, candidates.movings
     transforms = np.tile(np.eye(4), (len(movings), 1, 1))
@@ -321,8 +321,8 @@ def _register(candidates: _Candidates, cfg: RefineConfig) -> tuple[np.ndarray, n
 
 def _apply(pc0, residual, candidates: _Candidates, transforms, accepted, cfg: RefineConfig, out, refined) -> None:
     """Step 5: each accepted motion written into ``out`` (and ``refined``) at the component's points it fits."""
-    from icpflow.teacher.neighbours import build_grid, nearest_distances
-    from icpflow.teacher.registration_cpu import grid_cell
+    from icpflow.scans.neighbours import build_grid, nearest_distances
+    from icpflow.teacher.registration import grid_cell
 
     cell = grid_cell(cfg.max_corr[-1])
     for k in np.flatnonzero(accepted):

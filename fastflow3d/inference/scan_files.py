@@ -7,16 +7,16 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.atomic import atomic_path
-from icpflow.datasets.io import SCAN_SUFFIXES, fail, load_npz, read_poses, read_scan
-from icpflow.frames import check_points
+from icpflow.core.atomic import atomic_path
+from icpflow.core.frame_pair import check_points
+from icpflow.datasets.file_formats import SCAN_SUFFIXES, fail, load_npz, read_poses, read_scan
 
 NPZ_KEYS = ("points", "pc")
 
 
 def read_raw_scan(path: Path, bin_columns: int | None = None) -> np.ndarray:
     """(N, 3) float32 points of one scan file (``fastflow3d.inference.cli``'s module docstring lists the formats;
-    ``bin_columns``: float32 values per row of a ``.bin``, see ``icpflow.datasets.io.read_bin``)."""
+    ``bin_columns``: float32 values per row of a ``.bin``, see ``icpflow.datasets.file_formats.read_bin``)."""
     suffix = path.suffix.lower()
     if suffix != ".npz":
         if suffix not in SCAN_SUFFIXES:

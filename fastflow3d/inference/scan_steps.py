@@ -1,6 +1,6 @@
 """The Predictor's steps on raw scans before its network, in the model's saved settings
-(``icpflow.preprocess.Preprocessing``, ``fastflow3d.inference.predictor``'s module docstring): the height frame the
-scans are lifted into (:meth:`ScanSteps.frame_lift`), the ground masks the network and the odometry leave out
+(``icpflow.scans.preprocess.Preprocessing``, ``fastflow3d.inference.predictor``'s module docstring): the height frame
+the scans are lifted into (:meth:`ScanSteps.frame_lift`), the ground masks the network and the odometry leave out
 (:meth:`ScanSteps.scan_masks`), the ego motion (:meth:`ScanSteps.estimate_ego_motion`) and the check of a given one
 (:meth:`ScanSteps.check_given_ego`); each kind of :class:`~fastflow3d.inference.prediction.PredictorWarning` said
 once. A stream (``fastflow3d.inference.stream``) runs them one scan at a time."""
@@ -13,10 +13,10 @@ import numpy as np
 
 from fastflow3d.inference.prediction import PredictorError, PredictorWarning
 from fastflow3d.network.contract import InputContract
-from icpflow.errors_and_signals import one_line
-from icpflow.geometry import transform_points
-from icpflow.odometry import MIN_EGO_POINTS
-from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height
+from icpflow.core.errors_and_signals import one_line
+from icpflow.core.geometry import transform_points
+from icpflow.scans.odometry import MIN_EGO_POINTS
+from icpflow.scans.preprocess import FRAME_TOLERANCE, estimate_ground_height
 
 
 class ScanSteps:
@@ -77,7 +77,7 @@ class ScanSteps:
     def scan_masks(self, name: str, points: np.ndarray, given) -> tuple[np.ndarray, np.ndarray]:
         """The (N,) bool masks of the (N, 3) scan in the model's height frame that the network and the odometry leave
         out: the ``given`` ground mask for both, or the segmentation's with the saved settings
-        (``icpflow.ground.GroundSegmenter.masks``: the ground, objects kept whole, and the ground's surface). The
+        (``icpflow.scans.ground.GroundSegmenter.masks``: the ground, objects kept whole, and the ground's surface). The
         network's is empty for a model that sees ground."""
         if given is not None:
             mask = np.asarray(given)
@@ -89,9 +89,9 @@ class ScanSteps:
         return (mask if self.remove_ground else np.zeros(len(points), bool)), surface
 
     def segmenter(self):
-        """The ground segmentation of the model's saved settings (``icpflow.ground.GroundSegmenter``)."""
+        """The ground segmentation of the model's saved settings (``icpflow.scans.ground.GroundSegmenter``)."""
         if self._segmenter is None:
-            from icpflow.ground import GroundSegmenter
+            from icpflow.scans.ground import GroundSegmenter
 
             self._segmenter = GroundSegmenter(self.preprocessing)
         return self._segmenter
@@ -124,8 +124,8 @@ class ScanSteps:
 
     def estimate_ego_motion(self, pc0: np.ndarray, pc1: np.ndarray, ground0=None, ground1=None) -> np.ndarray:
         """(4, 4) float64 ``ego1_from_ego0`` from the two scans in the height frame, their (N,) bool ground masks
-        left out (``icpflow.odometry``: the teacher's step 1). Raises PredictorError when no estimate fits."""
-        from icpflow.odometry import estimate_ego_motion
+        left out (``icpflow.scans.odometry``: the teacher's step 1). Raises PredictorError when no estimate fits."""
+        from icpflow.scans.odometry import estimate_ego_motion
 
         try:
             ego = estimate_ego_motion(pc0, pc1, self.ego_config, ground0, ground1)

@@ -9,16 +9,17 @@ frame). What the pairwise call recomputes for every pair, the stream keeps:
 * the height frame: found on the first scan (``Predictor.frame_lift``) and checked every ``check_every`` scans
   (the ground below the sensor); a scan whose ground moved by more than ``FRAME_TOLERANCE`` (another sensor or
   frame) is warned about, lifted by its own ground, and the odometry restarts;
-* the odometry (``icpflow.odometry.Odometry``: one KISS-ICP across frames, each step refined against the previous
+* the odometry (``icpflow.scans.odometry.Odometry``: one KISS-ICP across frames, each step refined against the previous
   scan's non-ground points from the last step's motion, KISS-ICP registering where that start fails), every scan
   down-sampled once;
-* each scan's ground mask (``icpflow.ground``, the model's settings): computed once, as pc1 of its pair, and reused
+* each scan's ground mask (``icpflow.scans.ground``, the model's settings): computed once, as pc1 of its pair, and
+  reused
   as pc0 of the next (and left out of the odometry, also for a model that sees ground).
 
 Bad streams never give a silent wrong flow: a missing or unreadable scan (:meth:`FlowStream.skip`), a time gap longer
 than ``max_gap_s`` or a timestamp that does not increase restart the odometry with a warning (the pair across the gap
 is estimated from its two scans alone); a scan with too few points keeps the motion model's prediction and gets the
-ego flow only; a step whose fitness is under ``min_fitness`` is estimated afresh (``icpflow.odometry``), and where
+ego flow only; a step whose fitness is under ``min_fitness`` is estimated afresh (``icpflow.scans.odometry``), and where
 that fits under ``LOST_FITNESS`` too the pair gets no flow (``StreamStep.prediction`` None) and a new track starts.
 Each case is one :class:`StreamWarning`; the other frames keep their flow.
 
@@ -52,10 +53,10 @@ import numpy as np
 from fastflow3d.inference.prediction import Prediction, PredictorWarning, as_points
 from fastflow3d.inference.predictor import PairResidual, Predictor, scans_frame_ego
 from fastflow3d.network.contract import PreparedPair
-from icpflow.deprecation import moved_message
-from icpflow.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
-from icpflow.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
-from icpflow.threads import available_cores, thread_limit
+from icpflow.core.deprecation import moved_message
+from icpflow.core.threads import available_cores, thread_limit
+from icpflow.scans.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
+from icpflow.scans.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
 
 
 def overlap_threads() -> int:
@@ -126,7 +127,7 @@ class _Staged:
 class FlowStream:
     """See the module docstring. ``max_gap_s``: a larger time between two scans restarts the odometry (default
     0.25 s: 2.5 frames at 10 Hz); ``min_fitness``: below it a step is estimated afresh from its two scans (under
-    ``icpflow.odometry.LOST_FITNESS`` after that, the track is lost); ``check_every``: scans between
+    ``icpflow.scans.odometry.LOST_FITNESS`` after that, the track is lost); ``check_every``: scans between
     checks of the height frame; ``refine_odometry``: refine each odometry step (off: KISS-ICP alone; not the
     flow's refinement, which is the Predictor's ``refine``); ``overlap``: run each pair's network beside the next
     scan's steps, the steps one push late (module docstring); ``depth``: with ``overlap``, the pairs in flight, the
@@ -171,7 +172,7 @@ class FlowStream:
             if self.overlap
             else None
         )
-        self._pools = None  # overlap: the libraries' thread pools, found once (icpflow.threads.thread_limit)
+        self._pools = None  # overlap: the libraries' thread pools, found once (icpflow.core.threads.thread_limit)
 
     def reset(self) -> None:
         """Start again: the next scan begins a new stream (height frame, odometry, trajectory). With ``overlap``, a
@@ -219,7 +220,7 @@ class FlowStream:
     def _own_steps(self):
         """With ``overlap``: the context of the stream's own steps (ground, odometry, input, output) on
         this thread: one thread each for numba, torch, BLAS and OpenMP, whose idle pool threads would otherwise spin on
-        the core the network runs on (``icpflow.threads``; the network's engine keeps its own threads)."""
+        the core the network runs on (``icpflow.core.threads``; the network's engine keeps its own threads)."""
         from threadpoolctl import ThreadpoolController
 
         if self._pools is None:

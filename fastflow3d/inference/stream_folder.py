@@ -8,15 +8,16 @@ import json
 import sys
 from pathlib import Path
 
-from icpflow.atomic import write_text_atomic
-from icpflow.datasets.io import SCAN_SUFFIXES, list_scans
+from icpflow.core.atomic import write_text_atomic
+from icpflow.datasets.file_formats import SCAN_SUFFIXES, list_scans
 
 #: a stream's manifest in its output folder (``MANIFEST_VERSION``: its layout)
 MANIFEST, MANIFEST_VERSION = "stream.json", 1
 
 
 def stream_files(where: Path) -> list[Path]:
-    """The scans of a stream (``icpflow.datasets.io.list_scans``: a folder or a glob, natural order, one scan per
+    """The scans of a stream (``icpflow.datasets.file_formats.list_scans``: a folder or a glob, natural order, one scan
+    per
     name stem)."""
     suffixes = (".npz", *SCAN_SUFFIXES)
     if not where.is_dir() and not any(char in str(where) for char in "*?["):

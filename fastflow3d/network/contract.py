@@ -4,7 +4,7 @@
 model's height frame, with pc0 moved by the ego motion into the ego frame of t + dt" is written here once, as
 :class:`InputContract`:
 
-- ``preprocessing`` (``icpflow.preprocess.Preprocessing``): the height frame (``frame.ground_z``: where the ground
+- ``preprocessing`` (``icpflow.scans.preprocess.Preprocessing``): the height frame (``frame.ground_z``: where the ground
   sits in the frame the network saw), the teacher's ground settings (Patchwork++'s z offset follows from the frame
   and the sensor height, never stored) and its ego-motion settings;
 - ``remove_ground``: the network sees only the non-ground points of each scan (ZeroFlow's input);
@@ -35,9 +35,9 @@ import torch
 
 from fastflow3d.network.model import compensate
 from fastflow3d.network.voxelize import Grid, in_grid
-from icpflow.errors_and_signals import one_line
-from icpflow.preprocess import VERSION as PREPROCESSING_VERSION
-from icpflow.preprocess import Preprocessing, PreprocessingError, lift_points, lift_transform
+from icpflow.core.errors_and_signals import one_line
+from icpflow.scans.preprocess import VERSION as PREPROCESSING_VERSION
+from icpflow.scans.preprocess import Preprocessing, PreprocessingError, lift_points, lift_transform
 
 #: version of the stored form; 1 was the export metadata's ``preprocessing`` entry (``Preprocessing.to_dict()`` plus
 #: ``remove_ground``) and a checkpoint's ``data.preprocessing`` beside ``data.remove_ground``; before it, flat

@@ -5,7 +5,7 @@ Linear-GELU-Linear head (``decoder="linear"``) or a DeFlow-style GRU refinement 
 Input convention: ``pc0`` is the scan at t already moved into the ego frame of t + dt (``ego1_from_ego0``
 applied, see ``compensate``) and ``pc1`` is the scan at t + dt as is. The network predicts the ego-compensated
 (residual) flow of every pc0 point inside the grid (0 outside, with a validity mask); the full flow in the
-project convention is ``residual + ego_flow(pc0, ego1_from_ego0)`` (``icpflow.geometry.residual_to_full``).
+project convention is ``residual + ego_flow(pc0, ego1_from_ego0)`` (``icpflow.core.geometry.residual_to_full``).
 Batches are flat point lists with a sample index per point (see ``fastflow3d.network.voxelize``).
 
 Speed (the numbers are those of the plain formulation up to float rounding): pseudo-images are channels_last views
@@ -23,7 +23,7 @@ from torch.nn import functional as F
 from fastflow3d.network.cells import CellSets, conv3x3_at, image_rows, rows_at, with_zero_row
 from fastflow3d.network.scatter import scatter_mean, scatter_sum, to_pseudo_image
 from fastflow3d.network.voxelize import Grid, voxelize
-from icpflow.geometry import transform_points
+from icpflow.core.geometry import transform_points
 
 
 def compensate(pc0: np.ndarray, ego1_from_ego0: np.ndarray) -> np.ndarray:

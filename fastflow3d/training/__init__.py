@@ -4,10 +4,11 @@
 (``options``) and their entry points (``cli``: ``fastflow3d-train``, ``fastflow3d-export``). Imports
 ``fastflow3d.network`` and ``fastflow3d.artifact``, never ``fastflow3d.inference``."""
 
-from icpflow.deprecation import moved_attribute
+from icpflow.core.deprecation import moved_attribute
 
 #: the names of the last release's module ``fastflow3d.training`` (this package since issue 46) -> their module today;
-#: answered with a DeprecationWarning until 0.3 (``icpflow.deprecation``). Not its function ``run_folder``: that name
+#: answered with a DeprecationWarning until 0.3 (``icpflow.core.deprecation``). Not its function ``run_folder``: that
+#: name
 #: is today's module ``fastflow3d.training.run_folder`` (the function: ``fastflow3d.training.run_folder.run_folder``)
 MOVED = {
     **dict.fromkeys(

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from icpflow.geometry import invert, make_transform, transform_points
+from icpflow.core.geometry import invert, make_transform, transform_points
 from icpflow.shards.schema import CLOUD, OPTIONAL, REQUIRED
 
 #: the shard schema's per-point arrays, by the cloud whose rows they follow

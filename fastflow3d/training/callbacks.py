@@ -1,5 +1,5 @@
 """Lightning callbacks and checkpoint writing of the training stage: ``last.ckpt`` kept current (and a clean stop on
-SIGTERM/SIGINT, through ``icpflow.errors_and_signals.on_signals``), one best checkpoint after a resume (through
+SIGTERM/SIGINT, through ``icpflow.core.errors_and_signals.on_signals``), one best checkpoint after a resume (through
 ModelCheckpoint's public ``state_dict`` / ``load_state_dict``), atomic checkpoint files, and a final validation."""
 
 from __future__ import annotations
@@ -14,17 +14,17 @@ import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import Checkpoint, ModelCheckpoint
 
-from icpflow.atomic import atomic_path
-from icpflow.errors_and_signals import Stop, on_signals, signal_words
+from icpflow.core.atomic import atomic_path
+from icpflow.core.errors_and_signals import Stop, on_signals, signal_words
 
 log = logging.getLogger(__name__)
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):
-    """Lightning's checkpoint writer through ``icpflow.atomic``: the checkpoint is serialised in memory, then written
-    under a temporary name in its own folder and renamed, so a full disk or a kill never leaves a half-written
+    """Lightning's checkpoint writer through ``icpflow.core.atomic``: the checkpoint is serialised in memory, then
+    written under a temporary name in its own folder and renamed, so a full disk or a kill never leaves a half-written
     ``.ckpt`` (Lightning's own writer moves a file from the system's temporary folder), and a write error is one
-    ``icpflow.atomic.WriteError`` naming the checkpoint."""
+    ``icpflow.core.atomic.WriteError`` naming the checkpoint."""
 
     def save_checkpoint(self, checkpoint: dict, path, storage_options=None) -> None:
         buffer = io.BytesIO()
@@ -53,17 +53,17 @@ class LastCheckpoint(Checkpoint):
     Signals: from the start of the training loop to its end, a SIGTERM (a scheduler's pre-emption, ``scancel``) or
     a SIGINT (Ctrl-C) lets the current step (or validation) finish; then ``last.ckpt`` is saved at that step and
     :class:`TrainingStopped` is raised (every rank stops at the same step). A second signal stops at once
-    (``icpflow.errors_and_signals.Stop``). The handlers are installed by ``icpflow.errors_and_signals.on_signals``, as
-    every entry point's. On a resume (``ckpt_path``), best checkpoints in the folder that the restored state does not
-    know (written by a run killed between the two saves, or by older versions) are weighed by the score they hold: the
-    best ``save_top_k`` are kept, the others removed.
+    (``icpflow.core.errors_and_signals.Stop``). The handlers are installed by
+    ``icpflow.core.errors_and_signals.on_signals``, as every entry point's. On a resume (``ckpt_path``), best
+    checkpoints in the folder that the restored state does not know (written by a run killed between the two saves, or
+    by older versions) are weighed by the score they hold: the best ``save_top_k`` are kept, the others removed.
     """
 
     def __init__(self, dirpath):
         self.path = Path(dirpath) / "last.ckpt"
         self.saved_step = -1
         self.signum: int | None = None
-        # puts back the handlers on_train_start replaced (icpflow.errors_and_signals.on_signals)
+        # puts back the handlers on_train_start replaced (icpflow.core.errors_and_signals.on_signals)
         self._restore = _nothing
 
     # -------------------------------------------------------------------------------------------- last.ckpt

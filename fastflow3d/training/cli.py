@@ -12,9 +12,9 @@ from fastflow3d.artifact.export import run_export
 from fastflow3d.training.options import register
 from fastflow3d.training.run_folder import TrainError
 from fastflow3d.training.trainer import fit
-from icpflow.console import quiet
-from icpflow.entry_points import hydra_entry
-from icpflow.errors_and_signals import reported
+from icpflow.core.console import quiet
+from icpflow.core.entry_points import hydra_entry
+from icpflow.core.errors_and_signals import reported
 
 
 def training_task(cfg: DictConfig) -> None:

@@ -47,8 +47,8 @@ from fastflow3d.network.contract import ContractError, InputContract, upgrade
 from fastflow3d.network.model import compensate
 from fastflow3d.network.voxelize import Grid
 from fastflow3d.training.augment import Augmentation
-from icpflow.errors_and_signals import one_line
-from icpflow.geometry import full_to_residual
+from icpflow.core.errors_and_signals import one_line
+from icpflow.core.geometry import full_to_residual
 from icpflow.shards.access import open_shard
 from icpflow.shards.reader import ShardDataset
 

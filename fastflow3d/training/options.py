@@ -1,7 +1,7 @@
 """The structured configs of ``train.py`` and ``export.py`` (``conf/train.yaml`` and ``conf/export.yaml`` extend
-them): every option typed, with its rule (``icpflow.settings``), checked as ``label.py``'s and ``eval.py``'s are.
+them): every option typed, with its rule (``icpflow.core.settings``), checked as ``label.py``'s and ``eval.py``'s are.
 
-``trainer`` is typed from ``lightning.Trainer``'s own signature (:func:`icpflow.settings.signature_schema`), so a
+``trainer`` is typed from ``lightning.Trainer``'s own signature (:func:`icpflow.core.settings.signature_schema`), so a
 misspelt Trainer argument or a value of the wrong type is refused while Hydra composes, like ours. ``model``,
 ``optim``, ``scheduler``, ``logger``, ``callbacks`` and ``module`` are ``_target_`` nodes whose group option chooses
 the class: their arguments are checked by that class when it is built (before any training step).
@@ -17,7 +17,7 @@ from omegaconf import MISSING
 
 from fastflow3d.training.loss import WEIGHTINGS
 from fastflow3d.training.student_module import LOSSES
-from icpflow.settings import setting, signature_schema, store
+from icpflow.core.settings import setting, signature_schema, store
 
 #: ``lightning.Trainer``'s keyword arguments, less those ``fastflow3d.training.trainer.build_trainer`` passes itself
 TrainerOptions = signature_schema(

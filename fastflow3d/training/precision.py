@@ -2,13 +2,13 @@
 this host would emulate said in one line with its cost.
 
 ``auto`` is bf16 autocast (``bf16-mixed``: float32 weights, bf16 convolutions) on a GPU that has bf16 and on a CPU
-that computes it natively (``icpflow.hardware.native_bf16``: AVX512_BF16, AMX, Arm's bf16, as oneDNN runs it), float32
-(``32-true``) everywhere else: on an AVX2 CPU one bf16 convolution is 50-170x slower than in float32.
+that computes it natively (``icpflow.core.hardware.native_bf16``: AVX512_BF16, AMX, Arm's bf16, as oneDNN runs it),
+float32 (``32-true``) everywhere else: on an AVX2 CPU one bf16 convolution is 50-170x slower than in float32.
 """
 
 from __future__ import annotations
 
-from icpflow.hardware import native_bf16
+from icpflow.core.hardware import native_bf16
 
 #: Lightning's names of bf16 and float16 training precisions (its ``precision`` argument)
 BF16 = ("bf16-mixed", "bf16-true", "bf16", "bf16-mixed-true")

@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING
 from omegaconf import DictConfig, OmegaConf
 
 from fastflow3d.artifact.checkpoint import CheckpointError, read_checkpoint
-from icpflow.atomic import FolderInUse, folder_lock
-from icpflow.errors_and_signals import launching_process, os_error_line
+from icpflow.core.atomic import FolderInUse, folder_lock
+from icpflow.core.errors_and_signals import launching_process, os_error_line
 
 if TYPE_CHECKING:
     from fastflow3d.training.student_module import StudentModule
@@ -84,7 +84,7 @@ def kept_checkpoint(cfg: DictConfig) -> str:
 
 @contextlib.contextmanager
 def run_folder(cfg: DictConfig):
-    """One run per ``out_dir``: its lock (``icpflow.atomic.folder_lock``) for the whole run, taken by the launching
+    """One run per ``out_dir``: its lock (``icpflow.core.atomic.folder_lock``) for the whole run, taken by the launching
     process only; a second run into the folder is refused in one line naming the holder's pid."""
     with contextlib.ExitStack() as stack:
         if launching_process():

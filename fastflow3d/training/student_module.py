@@ -12,9 +12,9 @@ of pc0 and pc1 (the shards' ``ground0`` / ``ground1``) inside the grid; other pc
 ego flow) and are left out of the loss.
 
 Validation scores the full flow of every pc0 point (network residual + ego flow; pc0 points outside the grid or, with
-ground removal, on the ground get the ego flow) with ``icpflow.metrics.frame_pair_stats`` (ground excluded there):
-against the shards' ground truth when they carry it, else against the pseudo-labels with "foreground" = points the
-teacher clustered (``val/against_gt`` is 1 or 0, and the TensorBoard text ``val/against`` says ``gt`` or
+ground removal, on the ground get the ego flow) with ``icpflow.evaluation.metrics.frame_pair_stats`` (ground excluded
+there): against the shards' ground truth when they carry it, else against the pseudo-labels with "foreground" = points
+the teacher clustered (``val/against_gt`` is 1 or 0, and the TensorBoard text ``val/against`` says ``gt`` or
 ``pseudo``). Logged: ``train/loss``, ``val/loss``, ``val/<category>/<column>``
 (point-weighted, categories dynamic_fg, static_fg, static_bg, overall; columns EPE, AccS, AccR, Outliers) and a BEV
 image every ``bev_every`` validations (also written to ``<out_dir>/bev/``).
@@ -35,9 +35,9 @@ from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import FastFlow3D
 from fastflow3d.training.data import split_samples
 from fastflow3d.training.loss import flow_loss, object_loss
-from icpflow import metrics as metrics_module
-from icpflow.frames import FramePair
-from icpflow.geometry import residual_to_full
+from icpflow.core.frame_pair import FramePair
+from icpflow.core.geometry import residual_to_full
+from icpflow.evaluation import metrics as metrics_module
 
 LOSSES = ("distillation", "supervised")
 
@@ -199,7 +199,7 @@ class StudentModule(L.LightningModule):
 
     def _draw(self, pair: FramePair, predicted: np.ndarray) -> None:
         """BEV image of the first validation sample: PNG under out_dir/bev and, with TensorBoard, an image."""
-        from icpflow.viz import plot_bev
+        from icpflow.viz.pictures import plot_bev
 
         path = self.out_dir / "bev" / f"val_step{self.global_step:07d}.png"
         plot_bev(pair, path, predicted, title=f"student at step {self.global_step} vs {self.against}")

@@ -37,8 +37,8 @@ from fastflow3d.training.run_folder import (
     run_folder,
 )
 from fastflow3d.training.student_module import NonFiniteLoss, StudentModule
-from icpflow.errors_and_signals import Stop, one_line, os_error_line, signal_words, stop_on_signals
-from icpflow.settings import check_config
+from icpflow.core.errors_and_signals import Stop, one_line, os_error_line, signal_words, stop_on_signals
+from icpflow.core.settings import check_config
 from icpflow.shards.verify import ShardError
 
 log = logging.getLogger(__package__)  # the training room's logger: its console lines read "training: ..."
@@ -176,7 +176,7 @@ def build_trainer(cfg: DictConfig) -> L.Trainer:
     for name, ours in (("enable_progress_bar", True), ("enable_model_summary", False)):
         if trainer_kwargs.get(name) is None:  # Lightning's default (None): ours
             trainer_kwargs[name] = ours
-    if trainer_kwargs["enable_progress_bar"]:  # the console: icpflow.console, fastflow3d.training.callbacks
+    if trainer_kwargs["enable_progress_bar"]:  # the console: icpflow.core.console, fastflow3d.training.callbacks
         callbacks.append(progress_bar())
     if not trainer_kwargs["enable_model_summary"]:
         callbacks.append(ModelSize())
@@ -277,7 +277,7 @@ def fit(cfg: DictConfig) -> L.Trainer:
     """Train the student as ``cfg`` says, then export its best checkpoint; returns the Trainer after ``fit``.
 
     Raises TrainError (one line) if it cannot start, if a file cannot be written (a full or read-only disk: the
-    checkpoints already written are kept) or if the export fails; ``icpflow.errors_and_signals.Stop`` on SIGTERM or
+    checkpoints already written are kept) or if the export fails; ``icpflow.core.errors_and_signals.Stop`` on SIGTERM or
     SIGINT: in the training loop after saving ``last.ckpt`` at the current step
     (``fastflow3d.training.callbacks.LastCheckpoint``), elsewhere at once; its message says what was kept and how to
     resume.

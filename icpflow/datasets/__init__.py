@@ -1,4 +1,4 @@
-"""Dataset readers. Each converts its format into :class:`icpflow.frames.FramePair` at the boundary."""
+"""Dataset readers. Each converts its format into :class:`icpflow.core.frame_pair.FramePair` at the boundary."""
 
 from icpflow.datasets.base import PairDataset
 

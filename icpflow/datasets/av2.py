@@ -4,7 +4,7 @@ Layout: ``<root>/sensor/<split>/<log_id>/`` with ``sensors/lidar/<timestamp_ns>.
 ego frame, ...), ``city_SE3_egovehicle.feather`` (poses), ``annotations.feather`` (cuboids with track ids; absent
 in the test split) and ``map/`` (``*_ground_height_surface____*.npy`` with ``*___img_Sim2_city.json``).
 
-What a pair holds (project conventions, ``icpflow.frames``):
+What a pair holds (project conventions, ``icpflow.core.frame_pair``):
 
 * ``pc0``, ``pc1`` (N, 3) float32, each sweep in its own ego frame; ``pose0``/``pose1`` world_from_ego (the city
   frame) float64, so ``ego1_from_ego0 = inv(pose1) @ pose0`` (composed in float64; av2 composes in float32,
@@ -34,11 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow.core.classes import AV2_META
+from icpflow.core.frame_pair import FramePair, check_points
+from icpflow.core.geometry import ego_flow, invert, transform_points
 from icpflow.datasets.base import IndexedDataset, too_short
-from icpflow.datasets.io import fail, read_feather
-from icpflow.frames import FramePair, check_points
-from icpflow.geometry import ego_flow, invert, transform_points
-from icpflow.metrics import AV2_META
+from icpflow.datasets.file_formats import fail, read_feather
 
 POSE_COLUMNS = ("timestamp_ns", "qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
 CUBOID_COLUMNS = (

@@ -1,7 +1,7 @@
 """The one plug-in interface every dataset reader implements.
 
 A reader is cheap to construct (it lists files, it does not load them) and picklable, so worker processes can
-each open their own copy. ``pair(index, horizon=k)`` returns the :class:`~icpflow.frames.FramePair` from scan t
+each open their own copy. ``pair(index, horizon=k)`` returns the :class:`~icpflow.core.frame_pair.FramePair` from scan t
 to scan t + k of the index-th sample, converted into the project's conventions at this boundary.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from pathlib import Path
 
-from icpflow.frames import FramePair
+from icpflow.core.frame_pair import FramePair
 
 
 class PairDataset(ABC):
@@ -20,7 +20,8 @@ class PairDataset(ABC):
     name: str = "dataset"
     #: largest frame gap ``k`` that ``pair(index, horizon=k)`` supports
     max_horizon: int = 1
-    #: the readers' ``classes`` -> AV2 bucketed-metric meta-class (``icpflow.metrics.META_CLASSES``); None: unknown
+    #: the readers' ``classes`` -> AV2 bucketed-metric meta-class (``icpflow.evaluation.metrics.META_CLASSES``); None:
+    #: unknown
     class_to_meta: dict[int, str] | None = None
 
     @abstractmethod

@@ -14,6 +14,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from icpflow.core.deprecation import MOVED_TARGETS, current_target
+
 
 class DatasetError(ValueError):
     """The configured dataset cannot be opened. The message is one line."""
@@ -35,7 +37,7 @@ def raise_max_horizon(cfg: DictConfig, horizon: int) -> bool:
 
     reader = cfg.dataset.reader
     try:
-        takes = "max_horizon" in inspect.signature(get_class(reader._target_)).parameters
+        takes = "max_horizon" in inspect.signature(get_class(reader_config(reader)._target_)).parameters
     except Exception:  # an unimportable reader: opening it reports why
         return False
     if not takes or int(reader.get("max_horizon") or 1) >= horizon:
@@ -43,6 +45,16 @@ def raise_max_horizon(cfg: DictConfig, horizon: int) -> bool:
     with open_dict(reader):
         reader.max_horizon = horizon
     return True
+
+
+def reader_config(reader: DictConfig) -> DictConfig:
+    """``dataset.reader`` with its ``_target_`` named by today's path where the reader's module moved (a config of
+    the last release: ``icpflow.core.deprecation.MOVED_TARGETS``), so that it opens without the old path's warning."""
+    target = current_target(reader.get("_target_"), MOVED_TARGETS)
+    if target != reader.get("_target_"):
+        with open_dict(reader):
+            reader._target_ = target  # in place: the run's config names today's path from here on
+    return reader
 
 
 def open_dataset(cfg: DictConfig, horizon: int = 1):
@@ -59,7 +71,7 @@ def open_dataset(cfg: DictConfig, horizon: int = 1):
             raise DatasetError(f"dataset {name}: root {path} is empty")
     raised = raise_max_horizon(cfg, horizon)
     try:
-        dataset = instantiate(cfg.dataset.reader)
+        dataset = instantiate(reader_config(cfg.dataset.reader))
     except Exception as error:  # hydra wraps the reader's own one-line error
         cause = error.__cause__ or error
         text = str(cause).splitlines()[0] if str(cause) else type(cause).__name__

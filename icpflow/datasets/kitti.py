@@ -6,7 +6,7 @@ reflectance), ``<root>/sequences/<seq>/calib.txt`` (its ``Tr:`` line: velodyne -
 left camera's pose in the first camera frame; sequences 00-10 only). ``root`` may also be a bare folder of
 ``.bin`` scans: one sequence named after the folder, without poses.
 
-What a pair holds: ``pc0``/``pc1`` (N, 3) float32 in the project's height frame (``icpflow.preprocess``): each
+What a pair holds: ``pc0``/``pc1`` (N, 3) float32 in the project's height frame (``icpflow.scans.preprocess``): each
 velodyne frame lifted by ``sensor_height`` (1.73 m, the HDL-64E above the road; 0 keeps the raw velodyne frame), so
 the origin is on the ground below the sensor and the ground lies near z = 0, as in the synthetic world; where poses
 exist, ``pose0``/``pose1`` = ``inv(Tr) @ T_cam @ Tr`` (world_from_velodyne, world = the first camera frame) lowered
@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow.core.frame_pair import FramePair
+from icpflow.core.geometry import invert
 from icpflow.datasets.base import IndexedDataset, too_short
-from icpflow.datasets.io import BIN_COLUMNS, fail, natural_key, read_bin, read_pose_lines
-from icpflow.frames import FramePair
-from icpflow.geometry import invert
-from icpflow.preprocess import lift_points, lift_pose
+from icpflow.datasets.file_formats import BIN_COLUMNS, fail, natural_key, read_bin, read_pose_lines
+from icpflow.scans.preprocess import lift_points, lift_pose
 
 SPLITS = {
     "train": ["00", "01", "02", "03", "04", "05", "06", "07", "09", "10"],

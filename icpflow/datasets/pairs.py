@@ -3,7 +3,7 @@
 Files: ``<root>/<split>/*.npz`` if that folder exists, else ``<root>/*.npz`` (sorted by name). Keys:
 
 * required ``pc0`` (N0, 3), ``pc1`` (N1, 3): metres, each scan in its own ego frame (more columns are allowed: the
-  first three are x, y, z; see ``icpflow.frames.check_points``);
+  first three are x, y, z; see ``icpflow.core.frame_pair.check_points``);
 * optional ``ego1_from_ego0`` (4, 4), or ``pose0`` and ``pose1`` (4, 4, world_from_ego) -- without either the
   teacher estimates ego motion; ``eval.py`` needs it to score ground truth (the splits are by motion beyond the
   ego's), and says so for each such pair;
@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow.core.frame_pair import FramePair, check_points
 from icpflow.datasets.base import IndexedDataset
-from icpflow.datasets.io import fail, load_npz
-from icpflow.frames import FramePair, check_points
+from icpflow.datasets.file_formats import fail, load_npz
 
 TRANSFORMS = ("ego1_from_ego0", "pose0", "pose1")
 MASKS = ("ground0", "ground1", "flow_valid", "dynamic")

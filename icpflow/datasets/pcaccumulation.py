@@ -21,7 +21,7 @@ Samples are listed by a split file ``<root>/<split>_info.txt`` (one path per lin
 reference's ``assets/configs/datasets/<name>/<split>_info.txt``), or else found as ``<root>/<split>/**/*.npz``.
 
 ``pair(index, horizon=k)`` is frame c = k (pc0, its own sensor frame) -> the anchor (pc1, its sensor frame),
-built by :class:`icpflow.frames.FrameSequence` with the anchor frame as world: ``pose0 = ego_motion_gt[k]``,
+built by :class:`icpflow.core.frame_pair.FrameSequence` with the anchor frame as world: ``pose0 = ego_motion_gt[k]``,
 ``pose1 = identity``, object poses ``inv(bbox_tsfm[inst, c])`` per frame, which gives exactly the FULL flow above
 minus p. Labels of pc0, in the project's rule (0 = background):
 
@@ -41,10 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow.core.frame_pair import FramePair, FrameSequence, check_points
+from icpflow.core.geometry import invert, rigid_problem
 from icpflow.datasets.base import PairDataset
-from icpflow.datasets.io import fail, load_npz
-from icpflow.frames import FramePair, FrameSequence, check_points
-from icpflow.geometry import invert, rigid_problem
+from icpflow.datasets.file_formats import fail, load_npz
 
 KEYS = (
     "raw_points", "time_indice", "sd_labels", "fb_labels", "inst_labels", "sem_labels", "ego_motion_gt", "bbox_tsfm",

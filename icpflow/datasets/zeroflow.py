@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow.core.classes import AV2_META
+from icpflow.core.frame_pair import FramePair, check_points
 from icpflow.datasets.base import IndexedDataset
-from icpflow.datasets.io import fail, load_npz
-from icpflow.frames import FramePair, check_points
-from icpflow.metrics import AV2_META
+from icpflow.datasets.file_formats import fail, load_npz
 
 KEYS = ("pc1", "pc2", "gt_flow_0_1", "pc1_flows_valid_idx", "pc2_flows_valid_idx", "pc1_classes")
 #: the AV2 dynamic rule, as the AV2 reader: at least 0.05 m between sweeps 0.1 s apart

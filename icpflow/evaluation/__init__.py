@@ -3,6 +3,9 @@
 
 - ``methods``: the methods by name (``zero``, ``ego``, ``icpflow``, ``shards``; others passed in as factories) and
   the frame gaps (``horizon=``);
+- ``metrics``: the scores themselves (the ICP-Flow paper's splits, Argoverse 2's Threeway and bucketed EPE), and
+  ``baselines``: the trivial methods;
+- ``options``: ``eval.py``'s structured config;
 - ``scoring``: each pair's point selection made once, every method's statistics on it, running sums per method;
 - ``run``: the loop over samples, every gap on the same start scans, failures skipped for every method, per-pair
   hooks (pictures, a viewer), a partial result when stopped;
@@ -12,30 +15,24 @@
   the pairs scored).
 """
 
-from icpflow.evaluation.cli import run_eval
-from icpflow.evaluation.methods import METHODS, EvaluationError, Method, MethodFactory, build_methods, parse_horizons
-from icpflow.evaluation.report import is_complete, method_summary, read_metrics, write_results
-from icpflow.evaluation.run import Evaluation, EvaluationResult, PairHook, PairPredictions, evaluate
-from icpflow.evaluation.scoring import MethodScores, MetricOptions, PairScorer
+#: the package's names -> the module that defines them, imported on first use: ``icpflow.evaluation.metrics`` (which
+#: the training's validation and the benchmarks import) comes without the command line's Hydra
+EXPORTS = {
+    "run_eval": "cli",
+    **dict.fromkeys(
+        ("METHODS", "EvaluationError", "Method", "MethodFactory", "build_methods", "parse_horizons"), "methods"
+    ),
+    **dict.fromkeys(("is_complete", "method_summary", "read_metrics", "write_results"), "report"),
+    **dict.fromkeys(("Evaluation", "EvaluationResult", "PairHook", "PairPredictions", "evaluate"), "run"),
+    **dict.fromkeys(("MethodScores", "MetricOptions", "PairScorer"), "scoring"),
+}
 
-__all__ = [
-    "METHODS",
-    "Evaluation",
-    "EvaluationError",
-    "EvaluationResult",
-    "Method",
-    "MethodFactory",
-    "MethodScores",
-    "MetricOptions",
-    "PairHook",
-    "PairPredictions",
-    "PairScorer",
-    "build_methods",
-    "evaluate",
-    "is_complete",
-    "method_summary",
-    "parse_horizons",
-    "read_metrics",
-    "run_eval",
-    "write_results",
-]
+__all__ = sorted(EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in EXPORTS:
+        raise AttributeError(f"module 'icpflow.evaluation' has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(f"icpflow.evaluation.{EXPORTS[name]}"), name)

@@ -22,16 +22,16 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from icpflow.atomic import WriteError, write_text_atomic
-from icpflow.console import quiet
-from icpflow.entry_points import hydra_entry
-from icpflow.errors_and_signals import Stop, one_line, reported, stop_on_signals, stop_signum
+from icpflow.core.atomic import WriteError, write_text_atomic
+from icpflow.core.console import quiet
+from icpflow.core.entry_points import hydra_entry
+from icpflow.core.errors_and_signals import Stop, one_line, reported, stop_on_signals, stop_signum
+from icpflow.core.settings import check_config
 from icpflow.evaluation.methods import EvaluationError, MethodFactory, build_methods, parse_horizons
+from icpflow.evaluation.options import register
 from icpflow.evaluation.report import check_writable, format_table, metrics_json, table_rows, write_results
 from icpflow.evaluation.run import Evaluation, PairHook, PairPredictions, signals_held
 from icpflow.evaluation.scoring import MetricOptions
-from icpflow.options import register
-from icpflow.settings import check_config
 from icpflow.teacher.config import teacher_config
 
 #: skipped samples listed at the end of a run (the rest: metrics.json)
@@ -41,7 +41,7 @@ SHOWN_FAILURES = 10
 def end_child_processes() -> None:
     """End the helper processes a library started for this run (a multiprocessing or joblib pool), which would
     otherwise outlive it with their resource trackers: SIGTERM, then SIGKILL for one still there after 5 s (a
-    process forked from this one ignores SIGTERM, ``icpflow.errors_and_signals.on_signals``)."""
+    process forked from this one ignores SIGTERM, ``icpflow.core.errors_and_signals.on_signals``)."""
     for child in multiprocessing.active_children():
         child.terminate()
     for child in multiprocessing.active_children():
@@ -55,7 +55,7 @@ def picture_hooks(cfg, out_dir: Path, horizons: list[int]) -> list[PairHook]:
     """The per-pair hooks of ``cfg``: ``bev=N`` matplotlib BEV pictures and ``render=N`` open3d renders of the first
     N pairs, ``<pair>_<method>.png`` under ``bev/`` and ``render/`` (under ``k<gap>/`` when several gaps are
     scored). Other per-pair consumers (a viewer) are added to this list."""
-    from icpflow.viz import plot_bev, render_pair
+    from icpflow.viz.pictures import plot_bev, render_pair
 
     def pictures(kind: str, count: int, draw) -> PairHook:
         """``draw(pair, path, flow)`` of every method's flow for the first ``count`` pairs, into ``kind/``."""
@@ -83,7 +83,7 @@ def picture_hooks(cfg, out_dir: Path, horizons: list[int]) -> list[PairHook]:
 
 def recording_hook(recording, count: int, per_gap: bool) -> PairHook:
     """A per-pair hook logging the first ``count`` pairs (every method) into the rerun ``recording``
-    (``icpflow.viz_rerun.PairRecording``), under ``k<gap>/`` when several gaps are scored."""
+    (``icpflow.viz.recording.PairRecording``), under ``k<gap>/`` when several gaps are scored."""
 
     def hook(predictions: PairPredictions) -> None:
         if predictions.position < count:
@@ -107,7 +107,7 @@ def run_eval(
     ``extra_methods``: methods of other packages by name, each ``factory(cfg) -> method`` (``eval.py`` gives
     ``student``); ``hooks``: more per-pair hooks. Returns the exit status (see the module docstring).
     """
-    with stop_on_signals():  # SIGTERM and Ctrl-C raise icpflow.errors_and_signals.Stop
+    with stop_on_signals():  # SIGTERM and Ctrl-C raise icpflow.core.errors_and_signals.Stop
         try:
             return _run_eval(cfg, progress, extra_methods, hooks)
         except (Stop, KeyboardInterrupt) as stop:  # before the scoring began: nothing to keep
@@ -127,14 +127,14 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
     from omegaconf import OmegaConf
 
     from icpflow.datasets.from_config import open_dataset
-    from icpflow.viz import offscreen_problem
-    from icpflow.viz_rerun import PairRecording, check_viewer
+    from icpflow.viz.pictures import offscreen_problem
+    from icpflow.viz.recording import PairRecording, check_viewer
 
     names = list(cfg.method) if OmegaConf.is_list(cfg.method) else [cfg.method]
     trackers = list(cfg.tracker) if OmegaConf.is_list(cfg.tracker) else [cfg.tracker]
     out_dir = Path(cfg.out_dir)
     try:
-        check_config(cfg)  # the schema's rules (icpflow.options.EvalOptions)
+        check_config(cfg)  # the schema's rules (icpflow.evaluation.options.EvalOptions)
         horizons = parse_horizons(cfg.horizon)
         dataset = open_dataset(cfg, horizons[-1])
         # the eval's teacher settings for either teacher row (icpflow-raw alone had run the defaults)
@@ -144,7 +144,7 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
                 f"icpflow: horizon={horizons[-1]} exceeds the teacher's max_frame_gap "
                 f"{teacher.pairing.max_frame_gap} (icpflow.pairing.max_frame_gap=...)"
             )
-        viewer = check_viewer(cfg.get("viewer"))  # the 3D recording (icpflow.viz_rerun)
+        viewer = check_viewer(cfg.get("viewer"))  # the 3D recording (icpflow.viz.recording)
         problem = offscreen_problem() if cfg.render > 0 else None
         if problem:
             raise EvaluationError(f"render={cfg.render}: {problem}")

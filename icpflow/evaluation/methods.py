@@ -7,8 +7,9 @@ of t -> positions in the ego frame of t + dt). This package's own methods:
 - ``icpflow``: the teacher (``conf/icpflow``) through :func:`icpflow.teacher.long_horizon.teacher_on_sample` (the call
   labelling makes); ``tracker=true`` chains it through the intermediate frames (``tracker=[false,true]``: one row
   each, ``icpflow`` and ``icpflow+tracker``);
-- ``icpflow-raw``: the teacher on the raw scans, nothing taken from the dataset: its own ground (``icpflow.ground``)
-  and the drive's odometry (``icpflow.odometry``, carried across the consecutive pairs of a log), as ``label.py``
+- ``icpflow-raw``: the teacher on the raw scans, nothing taken from the dataset: its own ground
+  (``icpflow.scans.ground``)
+  and the drive's odometry (``icpflow.scans.odometry``, carried across the consecutive pairs of a log), as ``label.py``
   labels a drive without poses; beside ``icpflow`` (the dataset's ego motion and ground masks) it says what a user's
   own scans cost;
 - ``shards``: the pseudo-labels a ``label.py`` run wrote (``shards=<out_dir>``), matched by sample id.
@@ -25,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from icpflow.baselines import ego_only_flow, zero_flow
-from icpflow.frames import FramePair
+from icpflow.core.frame_pair import FramePair
+from icpflow.evaluation.baselines import ego_only_flow, zero_flow
 
 METHODS = ("zero", "ego", "icpflow", "icpflow-raw", "shards")
 Method = Callable[[FramePair, int], np.ndarray]
@@ -53,12 +54,12 @@ class TeacherMethod:
 
 class RawTeacherMethod:
     """The teacher (an ``ICPFlow``) on pairs (t, t + horizon) with nothing given: each scan's ground from the
-    teacher's own segmentation, the ego motion from one ``icpflow.odometry.Odometry`` across the consecutive pairs of
-    a log (a pair whose pc0 is the previous pair's pc1); any other pair starts a new track. A pair the odometry gives
+    teacher's own segmentation, the ego motion from one ``icpflow.scans.odometry.Odometry`` across the consecutive pairs
+    of a log (a pair whose pc0 is the previous pair's pc1); any other pair starts a new track. A pair the odometry gives
     no estimate (a lost track) fails, with the reason (the evaluation skips it for every method)."""
 
     def __init__(self, teacher, horizon: int = 1):
-        from icpflow.odometry import Odometry
+        from icpflow.scans.odometry import Odometry
 
         self.teacher, self.horizon = teacher, horizon
         self.odometry = Odometry(teacher.cfg)

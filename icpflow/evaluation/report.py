@@ -28,8 +28,8 @@ import os
 import tempfile
 from pathlib import Path
 
-from icpflow import metrics
-from icpflow.atomic import WriteError, write_text_atomic
+from icpflow.core.atomic import WriteError, write_text_atomic
+from icpflow.evaluation import metrics
 from icpflow.evaluation.run import EvaluationResult
 
 SCHEMA_VERSION = 2

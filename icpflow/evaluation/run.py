@@ -9,9 +9,9 @@ Per-pair hooks (BEV pictures, renders, a viewer) get every method's prediction o
 :class:`PairPredictions`; a hook that cannot write its file (disk full, no permission) is reported in one line and
 dropped, the scoring goes on.
 
-The loop can be stopped at any point (SIGTERM or Ctrl-C, turned into ``icpflow.errors_and_signals.Stop`` by ``eval.py``,
-or a bare ``KeyboardInterrupt``): the pairs scored so far stay consistent (a pair is added to every method and gap at
-once, with the signals held), and :meth:`Evaluation.result` gives a partial result that says why it stopped.
+The loop can be stopped at any point (SIGTERM or Ctrl-C, turned into ``icpflow.core.errors_and_signals.Stop`` by
+``eval.py``, or a bare ``KeyboardInterrupt``): the pairs scored so far stay consistent (a pair is added to every method
+and gap at once, with the signals held), and :meth:`Evaluation.result` gives a partial result that says why it stopped.
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from icpflow.atomic import WriteError
+from icpflow.core.atomic import WriteError
+from icpflow.core.frame_pair import FramePair
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.evaluation.methods import Method
 from icpflow.evaluation.scoring import MethodScores, MetricOptions, PairScorer, PairScores
-from icpflow.frames import FramePair
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,7 @@ class Evaluation:
         hooks = list(hooks)
         iterator = indices
         if progress:
-            from icpflow.console import Progress
+            from icpflow.core.console import Progress
 
             iterator = Progress(indices, desc="eval", unit="sample")
         for index in iterator:

@@ -1,8 +1,8 @@
 """Scoring: one pair's point selection made once (:class:`PairScorer`), every method's statistics on it, and the
 running sums of each method (:class:`MethodScores`).
 
-Statistics are those of ``icpflow.metrics``: the ICP-Flow paper's splits (point-weighted and per pair), the AV2
-Threeway EPE, the bucketed normalised EPE (when the dataset maps its classes to AV2 meta-classes), seconds per pair
+Statistics are those of ``icpflow.evaluation.metrics``: the ICP-Flow paper's splits (point-weighted and per pair), the
+AV2 Threeway EPE, the bucketed normalised EPE (when the dataset maps its classes to AV2 meta-classes), seconds per pair
 and the real dt of the pairs. The ground-truth side of a pair (residual flow, kept points, splits, buckets) is
 computed once per pair and shared by every method; each method's prediction costs one EPE and three sums.
 """
@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from icpflow import metrics
-from icpflow.frames import FramePair
+from icpflow.core.frame_pair import FramePair
+from icpflow.evaluation import metrics
 
 
 @dataclass
@@ -43,7 +43,7 @@ class MetricOptions:
 @dataclass(frozen=True)
 class PairScores:
     """One method on one pair: ``paper`` {category: (5,) sums}, ``threeway`` (2, 2, 3) and ``buckets`` (metas,
-    buckets, 3) or None (``icpflow.metrics`` sums), ``seconds`` the method took, ``dt`` (s) of the pair."""
+    buckets, 3) or None (``icpflow.evaluation.metrics`` sums), ``seconds`` the method took, ``dt`` (s) of the pair."""
 
     paper: dict[str, np.ndarray]
     threeway: np.ndarray

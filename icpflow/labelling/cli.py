@@ -13,21 +13,21 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from icpflow.atomic import WriteError
-from icpflow.console import quiet
+from icpflow.core.atomic import WriteError
+from icpflow.core.console import quiet
+from icpflow.core.entry_points import hydra_entry
+from icpflow.core.errors_and_signals import Stop, one_line, reported, stop_on_signals, stop_signum
+from icpflow.core.settings import check_config
+from icpflow.core.threads import available_cores
 from icpflow.datasets.from_config import dataset_root, open_dataset
-from icpflow.entry_points import hydra_entry
-from icpflow.errors_and_signals import Stop, one_line, reported, stop_on_signals, stop_signum
 from icpflow.labelling.job import LabelError, LabelJob
 from icpflow.labelling.labeller import identity
+from icpflow.labelling.options import register
 from icpflow.labelling.plan import plan_shards
 from icpflow.labelling.run import run_labelling
-from icpflow.options import register
-from icpflow.preprocess import Preprocessing
-from icpflow.settings import check_config
+from icpflow.scans.preprocess import Preprocessing
 from icpflow.teacher.config import teacher_config
 from icpflow.teacher.warmup import ensure_compiled
-from icpflow.threads import available_cores
 
 #: failed samples listed at the end of a run (the rest: failures.jsonl)
 SHOWN_FAILURES = 10
@@ -44,7 +44,9 @@ def labeller_yaml(cfg: DictConfig, teacher, labeller: dict | None = None) -> str
         "dataset": {"name": cfg.dataset.name, "root": dataset_root(cfg), "reader": reader},
         "split": cfg.split,
         "teacher": dataclasses.asdict(teacher),
-        "preprocessing": Preprocessing.from_teacher(teacher).to_dict(),  # what a student needs (icpflow.preprocess)
+        "preprocessing": Preprocessing.from_teacher(
+            teacher
+        ).to_dict(),  # what a student needs (icpflow.scans.preprocess)
         "horizon": int(cfg.horizon),
         "tracker": bool(cfg.tracker),
         "shard_size": int(cfg.shard_size),
@@ -55,7 +57,8 @@ def labeller_yaml(cfg: DictConfig, teacher, labeller: dict | None = None) -> str
 
 
 def check_options(cfg: DictConfig) -> str | None:
-    """Check ``cfg`` against its schema's rules (``icpflow.options.LabelOptions``) and what they cannot say (the ray
+    """Check ``cfg`` against its schema's rules (``icpflow.labelling.options.LabelOptions``) and what they cannot say
+    (the ray
     package for ``runner=ray``); returns the compression filter (None: uncompressed)."""
     check_config(cfg)
     if cfg.runner == "ray" and importlib.util.find_spec("ray") is None:

@@ -62,7 +62,7 @@ def _start_worker() -> None:
     main process, and ends its libraries' helper processes when it exits."""
     from multiprocessing.util import Finalize
 
-    from icpflow.console import worker_logging
+    from icpflow.core.console import worker_logging
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     worker_logging()  # warnings on a line of their own, not inside the main process's progress bar

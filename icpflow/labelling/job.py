@@ -1,5 +1,5 @@
 """What a labelling run is given (:class:`LabelJob`) and how it fails (:class:`LabelError`); how it stops on a signal
-is ``icpflow.errors_and_signals.Stop`` (``icpflow.labelling.cli``)."""
+is ``icpflow.core.errors_and_signals.Stop`` (``icpflow.labelling.cli``)."""
 
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import yaml
 
-from icpflow.atomic import write_text_atomic
+from icpflow.core.atomic import write_text_atomic
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.labelling.job import LabelError, LabelJob, config_hash
 from icpflow.shards.schema import shard_name

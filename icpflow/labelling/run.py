@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+from icpflow.core.threads import available_cores
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.labelling.executors import in_process, local_pool, ray_tasks
 from icpflow.labelling.job import LabelJob
@@ -15,7 +16,6 @@ from icpflow.labelling.records import died, finished, prepare, retried, write_ma
 from icpflow.labelling.trajectory import drive_trajectory
 from icpflow.shards.reader import read_shard_samples
 from icpflow.shards.schema import shard_name
-from icpflow.threads import available_cores
 
 
 @dataclass
@@ -73,7 +73,7 @@ def run_labelling(
     shards then on disk, with its completeness (``planned``: the samples of the whole labelling, every job of an
     array included; default: this plan's).
     """
-    from icpflow.console import Progress
+    from icpflow.core.console import Progress
 
     start = time.perf_counter()
     prepare(job, plan, overwrite)

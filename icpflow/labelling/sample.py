@@ -7,12 +7,12 @@ import time
 
 import numpy as np
 
+from icpflow.core.errors_and_signals import Stop
+from icpflow.core.frame_pair import FramePairError
+from icpflow.core.threads import thread_limit
 from icpflow.datasets.base import sample_id_or_index
-from icpflow.errors_and_signals import Stop
-from icpflow.frames import FramePairError
 from icpflow.labelling.labeller import build_labeller
 from icpflow.teacher.long_horizon import SampleFlow, teacher_on_sample
-from icpflow.threads import thread_limit
 
 
 def build_teacher(cfg, threads: int):
@@ -106,8 +106,9 @@ def label_sample(job, index: int, threads: int) -> dict:
 
 
 def interrupt_behind(error: BaseException) -> BaseException | None:
-    """The stop (``icpflow.errors_and_signals.Stop`` on SIGTERM or Ctrl-C, or a bare KeyboardInterrupt) that ``error``
-    was raised over, if any: a signal that arrives while a numba kernel runs surfaces as ``SystemError(... returned a
+    """The stop (``icpflow.core.errors_and_signals.Stop`` on SIGTERM or Ctrl-C, or a bare KeyboardInterrupt) that
+    ``error`` was raised over, if any: a signal that arrives while a numba kernel runs surfaces as ``SystemError(...
+    returned a
     result with an exception set)`` whose cause is the stop; it must stop the run, not fail the sample."""
     seen = set()
     while error is not None and id(error) not in seen:

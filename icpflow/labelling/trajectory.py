@@ -1,7 +1,7 @@
 """A drive without poses (``dataset=sequence`` with no poses file): its ego motion, estimated once before the
-samples are labelled, in order, by one :class:`icpflow.odometry.Odometry` over every scan (each with its ground,
-``icpflow.ground``), and handed to the reader, so that each pair is labelled with the drive's ego motion rather than
-its own two scans' (a pairwise estimate has no local map and no motion model).
+samples are labelled, in order, by one :class:`icpflow.scans.odometry.Odometry` over every scan (each with its ground,
+``icpflow.scans.ground``), and handed to the reader, so that each pair is labelled with the drive's ego motion rather
+than its own two scans' (a pairwise estimate has no local map and no motion model).
 
 The steps are written beside the shards (``trajectory.npz``: ``ego1_from_ego0`` (T - 1, 4, 4) float64 per
 consecutive scans, NaN where there is none; ``poses`` (done + 1, 4, 4) one pose per scan, ``track_from_scan``, and
@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from icpflow.atomic import atomic_path
-from icpflow.datasets.io import load_npz
-from icpflow.frames import FramePairError
+from icpflow.core.atomic import atomic_path
+from icpflow.core.frame_pair import FramePairError
+from icpflow.datasets.file_formats import load_npz
 
 NAME = "trajectory.npz"
 #: steps between two saves of the trajectory
@@ -70,10 +70,10 @@ def drive_trajectory(job, progress: bool = True) -> dict | None:
     """Estimate (or reuse) the ego motion of ``job``'s drive when its reader has no poses (the reader's
     ``drive_without_poses``), hand it to the reader (``use_ego_motions``) and return ``{"steps", "reused", "lost"}``;
     None when the reader needs none."""
-    from icpflow.console import Progress
-    from icpflow.ground import GroundSegmenter
-    from icpflow.odometry import Odometry
-    from icpflow.preprocess import Preprocessing
+    from icpflow.core.console import Progress
+    from icpflow.scans.ground import GroundSegmenter
+    from icpflow.scans.odometry import Odometry
+    from icpflow.scans.preprocess import Preprocessing
 
     drive = job.dataset.drive_without_poses()
     if drive is None:

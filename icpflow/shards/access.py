@@ -4,8 +4,8 @@ student's contract): a shard holds its own data, and what it claims is bounded b
 Refused, each in one line naming the file and the array (:class:`ShardError`): a shard that is a symbolic link or
 not a regular file (a FIFO, a device: a read would hang or leave the label folder); a group or array that is an
 HDF5 external or soft link, an array stored outside the file (HDF5 external storage, e.g. ``/etc/passwd`` read as
-numbers) or a virtual dataset over other files; an array of more values than ``icpflow.frames.MAX_POINTS`` points
-of 3 values (a 14 MB file of zeros can claim 3e8 points) or, uncompressed, more bytes than the file holds.
+numbers) or a virtual dataset over other files; an array of more values than ``icpflow.core.frame_pair.MAX_POINTS``
+points of 3 values (a 14 MB file of zeros can claim 3e8 points) or, uncompressed, more bytes than the file holds.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import h5py
 
-from icpflow.frames import MAX_POINTS
+from icpflow.core.frame_pair import MAX_POINTS
 from icpflow.shards.schema import SCHEMA_VERSION
 
 

@@ -10,16 +10,16 @@ import h5py
 import numpy as np
 
 import icpflow
-from icpflow.atomic import atomic_path, write_text_atomic
+from icpflow.core.atomic import atomic_path, write_text_atomic
 from icpflow.shards.schema import COMPRESSIONS, SCHEMA_VERSION, group_name
 
 
 def write_shard(path: Path, samples: list[dict], config_yaml: str, config_hash: str, compression: str | None = None):
     """Write ``samples`` (dicts of arrays plus an ``attrs`` dict, see ``schema``) to ``path`` atomically.
 
-    The HDF5 file is built in memory, then written through ``icpflow.atomic``, so a full disk or another write
-    error is one :class:`~icpflow.atomic.WriteError` (HDF5 never meets it half-way through a file). Every array carries
-    Fletcher-32 checksums; ``compression`` is an HDF5 filter (``gzip``, ``lzf``), ``none`` or None.
+    The HDF5 file is built in memory, then written through ``icpflow.core.atomic``, so a full disk or another write
+    error is one :class:`~icpflow.core.atomic.WriteError` (HDF5 never meets it half-way through a file). Every array
+    carries Fletcher-32 checksums; ``compression`` is an HDF5 filter (``gzip``, ``lzf``), ``none`` or None.
     """
     if compression is not None and compression not in COMPRESSIONS:
         raise ValueError(f"write_shard: compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")

@@ -1,8 +1,19 @@
-"""The embedded synthetic LiDAR world: a seeded street scene, a spinning ray-caster and exact ground truth."""
+"""Deprecated, removed in 0.3: the last release's ``icpflow.synthetic``, today ``icpflow.datasets.synthetic``; its
+modules (``icpflow.synthetic.lidar``, ...) are shims of their own."""
 
-from icpflow.synthetic.lidar import ELEVATIONS, Lidar, Scan, cast
-from icpflow.synthetic.scene import AV2_META_CLASSES, CLASSES, Scene, build_scene
-from icpflow.synthetic.sequence import scan, sequence
+from icpflow.core.deprecation import warn_moved
+from icpflow.datasets.synthetic import (
+    AV2_META_CLASSES,
+    CLASSES,
+    ELEVATIONS,
+    Lidar,
+    Scan,
+    Scene,
+    build_scene,
+    cast,
+    scan,
+    sequence,
+)
 
 __all__ = [
     "AV2_META_CLASSES",
@@ -16,3 +27,5 @@ __all__ = [
     "scan",
     "sequence",
 ]
+
+warn_moved("icpflow.synthetic", "icpflow.datasets.synthetic")

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from icpflow.geometry import euler_angles
+from icpflow.core.geometry import euler_angles
 from icpflow.teacher.config import ChecksConfig
 
 

@@ -7,8 +7,8 @@ Units: metres, seconds, degrees where the name says ``deg``. ``pairing.speed`` i
 Blocks (each step module takes its own): ``ego_motion`` (step 1), ``ground`` (2), ``clustering`` (3), ``pairing``
 (4), ``histogram`` (5), ``icp`` (6: registration, its backend and the static preference), ``deskew`` (6b),
 ``checks`` (7), ``association`` (8), ``flow`` (9, 10); ``crop_xy`` and ``seed`` (the seed of every subsample) are
-flat. ``ego_motion`` and ``ground`` are also the preprocessing a student needs (``icpflow.preprocess.Preprocessing``
-holds these same dataclasses).
+flat. ``ego_motion`` and ``ground`` are also the preprocessing a student needs
+(``icpflow.scans.preprocess.Preprocessing`` holds these same dataclasses).
 
 Constraints live on the fields (:func:`setting`'s ``rule``/``choices``, checked in ``__post_init__``), and so does
 each field's name before the blocks (``old``): those flat names (``min_cluster_size``, ``hist_max_points``, ...)
@@ -29,57 +29,12 @@ import typing
 import warnings
 from dataclasses import dataclass, field, fields
 
-from icpflow.settings import broken_rule, setting
-
-
-class _Checked:
-    """``__post_init__`` checks every field against its ``setting`` rule or choices (ValueError, one line)."""
-
-    def __post_init__(self):
-        for f in fields(self):
-            problem = broken_rule(f, getattr(self, f.name))
-            if problem:
-                raise ValueError(f"{type(self).__name__}: {f.name} {problem}")
+from icpflow.core.settings import Checked, setting
+from icpflow.scans.config import EgoMotionConfig, GroundConfig
 
 
 @dataclass(frozen=True)
-class EgoMotionConfig(_Checked):
-    """Step 1 (``ego_motion``): ``ego1_from_ego0`` by KISS-ICP, then point-to-plane refinement
-    (``teacher.ego_motion``)."""
-
-    # "given": use the ego1_from_ego0 passed in, KISS-ICP when none is; "kiss_icp": always estimate it (the
-    # ablation: a transform passed in is ignored)
-    method: str = setting("given", choices=("given", "kiss_icp"), old="ego_motion")
-    kiss_voxel_size: float = setting(1.0, "positive")  # KISS-ICP voxel size (m)
-    kiss_max_range: float = setting(100.0, "positive")  # KISS-ICP max range (m)
-    refine_voxel: float = setting(0.2, "non_negative", old="ego_refine_voxel")  # refinement voxel (m); 0 = off
-
-
-@dataclass(frozen=True)
-class GroundConfig(_Checked):
-    """Step 2 (``ground``): ground removal per scan (``icpflow.ground``). ``local``: a local ground height from
-    Patchwork++'s ground, objects kept whole; ``both`` (the reference, and every model stored before ``local``): a
-    point is non-ground only if Patchwork++ and the z threshold both say so."""
-
-    method: str = setting("local", choices=("local", "both", "patchwork", "zthreshold", "none"), old="ground")
-    sensor_height: float = setting(1.723, "non_negative")  # Patchwork++ sensor height above the ground (m)
-    patchwork_max_range: float = setting(64.0, "positive")  # Patchwork++ max_range (m); also the local map's reach
-    patchwork_z_offset: float = setting(0.0, "number")  # added to z before Patchwork++ (ground near -sensor_height)
-    range_z: float = setting(0.04, "number")  # z threshold: ground if z <= range_z + slack
-    slack: float = setting(0.3, "non_negative", old="ground_slack")
-    # local: ground if at most margin above the local ground height (m), a map of cell m cells whose lower
-    # envelope rises at most slope (m per m); a ground point within column_radius (m, horizontally) of a non-ground
-    # point at most column_gap above the ground (m) belongs to that object (BENCHMARKS.md, "Ground that keeps
-    # moving objects")
-    margin: float = setting(0.15, "non_negative")
-    cell: float = setting(0.5, "positive")
-    slope: float = setting(0.3, "non_negative")
-    column_radius: float = setting(0.15, "non_negative")
-    column_gap: float = setting(0.6, "non_negative")
-
-
-@dataclass(frozen=True)
-class ClusteringConfig(_Checked):
+class ClusteringConfig(Checked):
     """Step 3 (``clustering``): one HDBSCAN over the fused non-ground points of both scans."""
 
     min_cluster_size: int = setting(30, "count")  # also the pairing's smallest cluster (points)
@@ -93,7 +48,7 @@ class ClusteringConfig(_Checked):
 
 
 @dataclass(frozen=True)
-class PairingConfig(_Checked):
+class PairingConfig(Checked):
     """Step 4 (``pairing``): candidate cluster pairs within the search window."""
 
     speed: float = setting(1.67, "positive")  # max object speed, m per 0.1 s
@@ -106,7 +61,7 @@ class PairingConfig(_Checked):
 
 
 @dataclass(frozen=True)
-class HistogramConfig(_Checked):
+class HistogramConfig(Checked):
     """Step 5 (``histogram``): the initial translation of a cluster pair, by the translation histogram's vote or
     (``init="centroid"``, an ablation) the centroid difference."""
 
@@ -131,7 +86,7 @@ class HistogramConfig(_Checked):
 
 
 @dataclass(frozen=True)
-class ICPConfig(_Checked):
+class ICPConfig(Checked):
     """Step 6 (``icp``): point-to-point ICP of each candidate pair (``teacher.registration``)."""
 
     max_points: int = setting(10000, "count")  # points per cluster entering ICP
@@ -154,7 +109,7 @@ class ICPConfig(_Checked):
 
 
 @dataclass(frozen=True)
-class DeskewConfig(_Checked):
+class DeskewConfig(Checked):
     """Step 6b extension (``teacher.deskew``): with per-point capture times, undo the rolling-shutter smear of
     moving matches (v * time) and re-register; off in the reference and without times."""
 
@@ -164,7 +119,7 @@ class DeskewConfig(_Checked):
 
 
 @dataclass(frozen=True)
-class ChecksConfig(_Checked):
+class ChecksConfig(Checked):
     """Step 7 (``checks``): registrations that fail any threshold are rejected."""
 
     min_iou: float = setting(0.2, "fraction")
@@ -177,14 +132,14 @@ class ChecksConfig(_Checked):
 
 
 @dataclass(frozen=True)
-class AssociationConfig(_Checked):
+class AssociationConfig(Checked):
     """Step 8 (``association``): which passing candidate pairs become matches."""
 
     method: str = setting("argmin", choices=("argmin", "hungarian"), old="association")
 
 
 @dataclass(frozen=True)
-class FlowConfig(_Checked):
+class FlowConfig(Checked):
     """Steps 9 and 10 (``flow``): per-point flow and confidence
     ``clip(1 - error / checks.max_error, 0, 1) * clip(iou / conf_iou_full, 0, 1)``."""
 
@@ -194,7 +149,7 @@ class FlowConfig(_Checked):
 
 
 @dataclass(frozen=True)
-class MergingConfig(_Checked):
+class MergingConfig(Checked):
     """Step 8b extension (``teacher.merging``): clusters of one rigid object that the fused clustering split are
     registered as one and merged where that fits better than the parts. Off in the reference."""
 
@@ -231,7 +186,7 @@ def _block(kind):
 
 
 @dataclass(frozen=True)
-class ICPFlowConfig(_Checked):
+class ICPFlowConfig(Checked):
     """All settings of the teacher; defaults are the reference's Waymo-like settings (see ``preset``)."""
 
     ego_motion: EgoMotionConfig = _block(EgoMotionConfig)
@@ -427,7 +382,7 @@ def _optional(kind, name: str):
 
 def _unset(f: dataclasses.Field):
     """A schema field for ``f``: None by default (the preset's value), with ``f``'s rule and choices
-    (``icpflow.settings.check_config`` checks them on the composed config)."""
+    (``icpflow.core.settings.check_config`` checks them on the composed config)."""
     return field(default=None, metadata=f.metadata)
 
 

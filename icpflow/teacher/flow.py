@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from icpflow.geometry import ego_flow, transform_points
+from icpflow.core.geometry import ego_flow, transform_points
 from icpflow.teacher.config import FlowConfig
 
 

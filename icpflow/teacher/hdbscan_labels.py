@@ -23,7 +23,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from icpflow.errors_and_signals import signals_held
+from icpflow.core.errors_and_signals import signals_held
 
 
 class _CoreDistanceTree:

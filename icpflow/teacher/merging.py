@@ -31,7 +31,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from icpflow.geometry import transform_points
+from icpflow.core.geometry import transform_points
 from icpflow.teacher import registration
 from icpflow.teacher.config import ICPConfig, MergingConfig
 from icpflow.teacher.histogram import main_axis

@@ -1,7 +1,7 @@
 """The ICP-Flow teacher: ``ICPFlow(cfg)(pc0, pc1, ego1_from_ego0=None, ground0=None, ground1=None)``.
 
-Steps (one module each): ground removal and crop (``icpflow.ground``), ego motion on the non-ground points
-(``icpflow.odometry``, when none is given), one clustering of the
+Steps (one module each): ground removal and crop (``icpflow.scans.ground``), ego motion on the non-ground points
+(``icpflow.scans.odometry``, when none is given), one clustering of the
 fused non-ground points (``clustering``), candidate pairs in two stages (``pairing``), histogram or centroid
 initialisation (``histogram``), ICP (``registration``), checks (``checks``), association (``association``),
 optional recombination of split clusters (``merging``, with ``cfg.merging.distance`` > 0), optional rolling-shutter
@@ -12,7 +12,7 @@ t + dt; clustering and registration happen in pc1's frame after ego compensation
 Bad input: rows of pc0/pc1 with NaN or Inf are dropped before processing and counted (``dropped0``/``dropped1``);
 their flow is reported as 0 with confidence 0 and ``valid0`` False. A non-rigid ``ego1_from_ego0``, wrong shapes
 or wrong mask lengths raise ``ValueError`` with a one-line message; points are checked by
-``icpflow.frames.check_points`` ((N, >= 3), the first three columns used; a transposed array is an error).
+``icpflow.core.frame_pair.check_points`` ((N, >= 3), the first three columns used; a transposed array is an error).
 """
 
 from __future__ import annotations
@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from icpflow.frames import check_points
-from icpflow.geometry import rigid_problem, transform_points
-from icpflow.ground import GroundSegmenter
-from icpflow.odometry import estimate_ego_motion
+from icpflow.core.frame_pair import check_points
+from icpflow.core.geometry import rigid_problem, transform_points
+from icpflow.scans.ground import GroundSegmenter
+from icpflow.scans.odometry import estimate_ego_motion
 from icpflow.teacher import association, checks, deskew, histogram, merging, registration
 from icpflow.teacher.clustering import cluster_points
 from icpflow.teacher.config import ICPConfig, ICPFlowConfig

@@ -1,7 +1,7 @@
 """Deprecated, removed in 0.3: the last release's ``icpflow.teacher.tracker``, today
 ``icpflow.teacher.long_horizon``."""
 
-from icpflow.deprecation import warn_moved
+from icpflow.core.deprecation import warn_moved
 from icpflow.teacher.long_horizon import (
     HorizonResult,
     SampleFlow,

@@ -27,26 +27,27 @@ import sys
 import time
 from pathlib import Path
 
-from icpflow.atomic import write_text_atomic
+from icpflow.core.atomic import write_text_atomic
 
 #: the modules whose numba kernels the teacher calls on the CPU (the ground's also the Predictor and the stream; the
 #: bird's-eye-view cells only the student's refinement; the plane normals also the odometry)
 KERNEL_MODULES = (
-    "icpflow.teacher.neighbours",
-    "icpflow.teacher.icp",
+    "icpflow.scans.neighbours",
+    "icpflow.teacher.registration.icp",
     "icpflow.teacher.histogram",
-    "icpflow.teacher.registration_cpu",
+    "icpflow.teacher.registration.cpu",
     "icpflow.teacher.hdbscan_labels",
-    "icpflow.ground",
-    "icpflow.bev",
-    "icpflow.normals",
+    "icpflow.scans.ground",
+    "icpflow.scans.bev",
+    "icpflow.scans.normals",
 )
 #: the file, beside the cached machine code, that holds :func:`sources_fingerprint` of the sources it was compiled from
 SOURCES_STAMP = "kernel-sources.sha256"
 
 
 def kernels() -> dict:
-    """``{"module.function": numba dispatcher}`` of every jitted function in ``KERNEL_MODULES``."""
+    """``{"module.function": numba dispatcher}`` of every jitted function in ``KERNEL_MODULES`` (the module's path
+    below ``icpflow``: ``scans.neighbours.nearest``)."""
     from numba.core.dispatcher import Dispatcher
 
     found = {}
@@ -54,7 +55,7 @@ def kernels() -> dict:
         module = importlib.import_module(name)
         for attribute, value in vars(module).items():
             if isinstance(value, Dispatcher) and value.__module__ == name:
-                found[f"{name.rsplit('.', 1)[-1]}.{attribute}"] = value
+                found[f"{name.removeprefix('icpflow.')}.{attribute}"] = value
     return found
 
 
@@ -120,16 +121,16 @@ def compile_kernels() -> None:
     modules that only the student's refinement calls (``fastflow3d.inference.refine``: the coarse-to-fine batch ICP,
     the exact nearest distances and the bird's-eye-view cells), with its types, on small clouds (else they stay
     cold, and every run after set-up would say so and compile again); and the odometry's k nearest neighbours and
-    plane normals (``icpflow.odometry``: the teacher runs it only without a given ego motion)."""
+    plane normals (``icpflow.scans.odometry``: the teacher runs it only without a given ego motion)."""
     import numpy as np
 
-    from icpflow.bev import in_box_cells, occupied_cells
-    from icpflow.datasets.synthetic import SyntheticDataset
-    from icpflow.normals import plane_normals, smallest_axes
-    from icpflow.odometry import TargetPlanes
+    from icpflow.datasets.synthetic.reader import SyntheticDataset
+    from icpflow.scans.bev import in_box_cells, occupied_cells
+    from icpflow.scans.neighbours import build_grid, nearest_distances
+    from icpflow.scans.normals import plane_normals, smallest_axes
+    from icpflow.scans.odometry import TargetPlanes
     from icpflow.teacher import ICPFlow, ICPFlowConfig
-    from icpflow.teacher.neighbours import build_grid, nearest_distances
-    from icpflow.teacher.registration_cpu import grid_cell, register_stages_cpu
+    from icpflow.teacher.registration.cpu import grid_cell, register_stages_cpu
 
     pair = SyntheticDataset(
         split="train", num_sequences=1, frames_per_sequence=2, beams=32, azimuth_resolution_deg=0.5
@@ -146,7 +147,7 @@ def compile_kernels() -> None:
     TargetPlanes(cloud).nearest(cloud, 2)  # the odometry's neighbour queries (a pair's ego motion, a stream)
     plane_normals(cloud, np.zeros((len(cloud), 10), np.int64))  # its targets' normals (and a point-to-plane ICP's)
     smallest_axes(np.zeros((1, 3, 3)))
-    # the refinement's objects and targets (icpflow.bev), with its types: float32 points
+    # the refinement's objects and targets (icpflow.scans.bev), with its types: float32 points
     points = cloud.astype(np.float32)
     occupied_cells(points, np.float32(0.5), np.ones(len(points), bool))
     in_box_cells(points, cloud[:2], cloud[:2] + 1.0, 0.5)

@@ -1,5 +1,5 @@
 """A full (or read-only) disk, injected: every ``os.fsync`` after the first few fails with an OSError
-(``icpflow.atomic`` fsyncs each file it writes and its folder)."""
+(``icpflow.core.atomic`` fsyncs each file it writes and its folder)."""
 
 import errno
 import os

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.frames import FramePair
+from icpflow.core.frame_pair import FramePair
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 
 def synthetic_drive(seed: int, frames: int, beams: int = 32) -> tuple[list[FramePair], list[np.ndarray]]:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from hydra import compose, initialize_config_dir
 
-from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.shards import ShardDataset, verify_shard
 
 REPO = Path(__file__).resolve().parents[2]

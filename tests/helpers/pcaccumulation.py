@@ -10,10 +10,10 @@ from functools import lru_cache
 
 import numpy as np
 
+from icpflow.core.frame_pair import FrameSequence
+from icpflow.core.geometry import invert
 from icpflow.datasets.pcaccumulation import PCAccumulationDataset
-from icpflow.datasets.synthetic import SyntheticDataset
-from icpflow.frames import FrameSequence
-from icpflow.geometry import invert
+from icpflow.datasets.synthetic.reader import SyntheticDataset
 
 #: frames per sample and their rate, per dataset
 FORMATS = {"waymo": (5, 10.0), "nuscenes": (11, 20.0)}

@@ -1,4 +1,4 @@
-"""Reading a rerun recording back (the tests of icpflow.viz_rerun and of the streaming CLI)."""
+"""Reading a rerun recording back (the tests of icpflow.viz.recording and of the streaming CLI)."""
 
 from collections import defaultdict
 

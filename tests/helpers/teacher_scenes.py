@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from icpflow.geometry import invert, make_transform, transform_points
+from icpflow.core.geometry import invert, make_transform, transform_points
 
 
 def box_surface(size, rng, spacing: float = 0.08) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from icpflow.geometry import make_transform, transform_points
+from icpflow.core.geometry import make_transform, transform_points
 
 LOG = "0b86f508-5df9-4a46-bc59-5b9536dbde9f"
 RNG = np.random.default_rng(3)

@@ -2,12 +2,12 @@
 
 Nothing is read from disk. Sequence i of a split is the world of seed ``seed + SPLIT_OFFSETS[split] * SPLIT_STRIDE
 + i`` (splits are disjoint for fewer than ``SPLIT_STRIDE`` sequences), ``frames_per_sequence`` scans at
-``frequency_hz`` (see :mod:`icpflow.synthetic`). As the other readers, samples are the scans t for which
+``frequency_hz`` (see :mod:`icpflow.datasets.synthetic`). As the other readers, samples are the scans t for which
 t + ``max_horizon`` exists: sample ``index`` is scan ``t = index % (frames - max_horizon)`` of sequence
 ``index // (frames - max_horizon)``, and ``pair(index, horizon=k)`` is (t, t + k) for every k <= ``max_horizon``
 (all starting at the same scan, as tracker mode needs). The LiDAR's beams spread evenly over ``elevation_deg``
-(low, high) degrees (None: the beam count's default, see ``icpflow.synthetic.lidar.ELEVATIONS``). Ground truth:
-full flow, classes (``icpflow.synthetic.CLASSES``, mapped onto the AV2 meta-classes by ``AV2_META_CLASSES``),
+(low, high) degrees (None: the beam count's default, see ``icpflow.datasets.synthetic.lidar.ELEVATIONS``). Ground truth:
+full flow, classes (``icpflow.datasets.synthetic.CLASSES``, mapped onto the AV2 meta-classes by ``AV2_META_CLASSES``),
 instance ids (0 = background; parked vehicles have their own), dynamic (world speed > 0.5 m/s), ground masks, poses
 and timestamps. Sequences are generated on demand; the last one is kept, so iterating in order costs one
 generation per sequence.
@@ -17,10 +17,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from icpflow.core.frame_pair import FramePair, FrameSequence
 from icpflow.datasets.base import PairDataset
-from icpflow.frames import FramePair, FrameSequence
-from icpflow.synthetic import AV2_META_CLASSES, Lidar, build_scene, sequence
-from icpflow.synthetic.lidar import SENSOR_HEIGHT
+from icpflow.datasets.synthetic.drive import sequence
+from icpflow.datasets.synthetic.lidar import SENSOR_HEIGHT, Lidar
+from icpflow.datasets.synthetic.scene import AV2_META_CLASSES, build_scene
 
 SPLIT_OFFSETS = {"train": 0, "val": 1, "test": 2}
 SPLIT_STRIDE = 1_000_000

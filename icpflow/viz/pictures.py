@@ -23,10 +23,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import hsv_to_rgb, to_rgb, to_rgba_array  # noqa: E402
 
-from icpflow.atomic import atomic_path  # noqa: E402
-from icpflow.console import captured_output  # noqa: E402
-from icpflow.frames import FramePair  # noqa: E402
-from icpflow.geometry import full_to_residual, transform_points  # noqa: E402
+from icpflow.core.atomic import atomic_path  # noqa: E402
+from icpflow.core.console import captured_output  # noqa: E402
+from icpflow.core.frame_pair import FramePair  # noqa: E402
+from icpflow.core.geometry import full_to_residual, transform_points  # noqa: E402
 
 PC0_COLOUR, PC1_COLOUR, MOVED_COLOUR = to_rgb("tab:blue"), to_rgb("tab:red"), to_rgb("tab:green")
 
@@ -129,7 +129,7 @@ def _renderer_output():
 
 
 _PROBE = (
-    "from icpflow.open3d_loader import load_open3d; "
+    "from icpflow.core.open3d_loader import load_open3d; "
     "load_open3d().visualization.rendering.OffscreenRenderer(16, 16).render_to_image()"
 )
 
@@ -166,7 +166,7 @@ def render_pair(
     y, seen from behind and above the ego vehicle. Unlit, no post-processing: the points have exactly these
     colours on white. Call :func:`offscreen_problem` first (without Vulkan open3d aborts the process).
     """
-    from icpflow.open3d_loader import load_open3d
+    from icpflow.core.open3d_loader import load_open3d
 
     o3d = load_open3d()
     rendering = o3d.visualization.rendering

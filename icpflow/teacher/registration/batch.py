@@ -2,10 +2,10 @@
 
 For each pair (src, dst) and an initial src -> dst transform, the SMALLER cluster is registered to the larger one
 and the result is inverted when the roles were swapped (as the reference does), by point-to-point ICP
-(``icpflow.teacher.icp``), keeping the initial transform when ICP did not lower the mean nearest-neighbour
+(``icpflow.teacher.registration.icp``), keeping the initial transform when ICP did not lower the mean nearest-neighbour
 distance of the moving cluster.
 
-Quality of the final transform (nearest neighbours are exact, not truncated; ``icpflow.teacher.neighbours``):
+Quality of the final transform (nearest neighbours are exact, not truncated; ``icpflow.scans.neighbours``):
 
 * ``mean_error``: mean nearest-neighbour distance, computed src -> dst and dst -> src, the smaller of the two (the
   reference's ``min`` over both directions);
@@ -34,13 +34,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from icpflow.geometry import invert, transform_points
-from icpflow.normals import plane_normals
+from icpflow.core.geometry import invert, transform_points
+from icpflow.scans.normals import plane_normals
 from icpflow.teacher.config import ICPConfig
 from icpflow.teacher.histogram import subsample
-from icpflow.teacher.icp import PLANE_NEIGHBOURS, normals
-from icpflow.teacher.registration_cpu import register_batch_cpu
-from icpflow.teacher.registration_torch import register_batch_torch
+from icpflow.teacher.registration.cpu import register_batch_cpu
+from icpflow.teacher.registration.icp import PLANE_NEIGHBOURS, normals
+from icpflow.teacher.registration.torch_batch import register_batch_torch
 
 
 @dataclass
