@@ -10,9 +10,9 @@ static foreground and static background, point-weighted, ground excluded, in the
 motion (the given poses ignored: the pair's own odometry), the teacher's own ground (the dataset's masks withheld;
 also with the ground method of older releases), nothing given (own ground and ego motion, pairwise; ``eval.py
 method=icpflow-raw`` carries the odometry along a drive), and the zero (ego-compensated) flow. For AV2 it also
-prints the protocol of ``tests/test_teacher_real.py``: mean EPE over every point the official labels call dynamic
-(ground included, no crop). ``--no-times`` withholds the sweeps' per-point capture times, so the de-skew step does
-not run.
+prints the protocol of ``tests/icpflow/teacher/test_teacher_real.py``: mean EPE over every point the official labels
+call dynamic (ground included, no crop). ``--no-times`` withholds the sweeps' per-point capture times, so the de-skew
+step does not run.
 """
 
 from __future__ import annotations

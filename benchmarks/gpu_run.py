@@ -3,7 +3,7 @@ and ego-only, and time the network and the teacher's ICP on the GPU (issue 34.4)
 
     python3 -m benchmarks.gpu_run [--out outputs/gpu_run] [--minutes 3] [--workers 16] [--train-sequences 256]
         [--test-pairs 64] [--data ../shared/data]
-    python3 -m benchmarks.gpu_run --smoke --out <dir>    # tiny sizes on the CPU (tests/test_gpu_run.py)
+    python3 -m benchmarks.gpu_run --smoke --out <dir>    # tiny sizes on the CPU (tests/project/test_gpu_run.py)
 
 Run from the checkout's root: ``-m`` puts it first on Python's path, so neither the project nor ``benchmarks`` need
 be installed (the device machine's run: ``run(command="python3 -m benchmarks.gpu_run ...", carry=[".wheels"])``).

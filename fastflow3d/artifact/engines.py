@@ -16,8 +16,8 @@ Every engine gives a network with the artifact's calling convention (``fastflow3
 
 ``precision`` is ``f32``, ``bf16`` (OpenVINO only) or ``int8`` (ONNX Runtime, on the export's ``fastflow3d.int8.onnx``,
 ``fastflow3d.artifact.quantize``, which ``fastflow3d.inference.model_loading`` picks). Every float runtime is checked
-against eager PyTorch by ``fastflow3d.artifact.export.measure_parity`` in ``tests/test_export.py`` and in
-``benchmarks/bench_student_latency.py``: float32 within the export's ``PARITY_TOLERANCE`` (1e-4 m), bf16 within
+against eager PyTorch by ``fastflow3d.artifact.export.measure_parity`` in ``tests/fastflow3d/artifact/test_export.py``
+and in ``benchmarks/bench_student_latency.py``: float32 within the export's ``PARITY_TOLERANCE`` (1e-4 m), bf16 within
 :data:`BF16_TOLERANCE`; the int8 network against the float32 one, at export, on labelled pairs (``INT8_TOLERANCE``
 on average). The Predictor, the export's parity check and the latency benchmark open their files here.
 """

@@ -6,8 +6,8 @@ The final convolution is needed at those cells (``targets``), the one before it 
 before that at the 5 x 5 one: :class:`CellSets` holds these nested dilations, and :func:`conv3x3_at` computes a 3 x 3
 convolution at one set from its input rows at the next, as a gather of each cell's nine neighbours and one matrix
 product (exported as Gather / MatMul). The result is the dense network's at those cells, up to float rounding
-(``tests/test_fastflow3d_model.py``): every neighbour that a set's cell reads lies in the next set, and a neighbour
-outside the grid reads a zero row, as the dense convolution's zero padding.
+(``tests/fastflow3d/network/test_model.py``): every neighbour that a set's cell reads lies in the next set, and a
+neighbour outside the grid reads a zero row, as the dense convolution's zero padding.
 
 Float32 training and eager inference run this (``FastFlow3D.forward``). Under autocast (bf16) the dense layers run:
 each tap's product is rounded to bf16 before the taps are summed, where the dense convolution rounds once, the seeds

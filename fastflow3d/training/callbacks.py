@@ -177,7 +177,8 @@ def set_best_checkpoints(callback: ModelCheckpoint, kept: list[tuple[str, float]
     """Make ``callback`` know exactly the best checkpoints ``kept`` (``(path, score)``, best first), through its
     public ``state_dict()`` / ``load_state_dict()`` (the state Lightning saves in and restores from a checkpoint):
     the keys :data:`BEST_STATE_KEYS`. Lightning keeps these keys for old checkpoints to load;
-    ``tests/test_faults_training.py`` fails if a Lightning version stops restoring them. With nothing kept, only
+    ``tests/fastflow3d/training/test_faults_training.py`` fails if a Lightning version stops restoring them. With
+    nothing kept, only
     ``best_k_models`` changes (the best path and score stay as restored)."""
     state = {**callback.state_dict(), "best_k_models": {path: torch.tensor(score) for path, score in kept}}
     if kept:

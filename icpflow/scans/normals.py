@@ -3,9 +3,10 @@
 The odometry's target normals (``icpflow.scans.odometry.TargetPlanes``) and the teacher's point-to-plane ICP
 (``icpflow.teacher.registration.icp.normals``) take them. numba, one pass per neighbourhood, in closed form: the
 smallest eigenvalue by the trigonometric solution of the characteristic cubic, the eigenvector as the longest cross
-product of two rows of ``C - l I``. The same vectors as ``numpy.linalg.eigh`` to 1e-9 (tests/test_odometry.py); on an
-AV2 sweep's 2,500 target neighbourhoods of 10 points 0.34 ms, against 2.0 ms for the same closed form in numpy.
-Where no axis is defined (all eigenvalues equal, no spread) the normal is (0, 0, 1).
+product of two rows of ``C - l I``. The same vectors as ``numpy.linalg.eigh`` to 1e-9
+(tests/icpflow/scans/test_odometry.py); on an AV2 sweep's 2,500 target neighbourhoods of 10 points 0.34 ms, against 2.0
+ms for the same closed form in numpy. Where no axis is defined (all eigenvalues equal, no spread) the normal is (0, 0,
+1).
 """
 
 from __future__ import annotations

@@ -9,8 +9,8 @@ tree, stabilities, excess of mass, labels: loops over Python objects) 0.115 s. H
 scipy's ``cKDTree`` (threads, no pool), the spanning tree from the package's own Boruvka, and the extraction from
 numba kernels over arrays, with only the cluster-level selection (a few hundred clusters) in Python, written to
 make the package's choices: the same merge order, the same float32 sum of child stabilities, the same order of
-the epsilon search. ``tests/test_hdbscan_labels.py`` compares the extraction with the package's on its own spanning
-trees, and the labels on real and synthetic point sets.
+the epsilon search. ``tests/icpflow/teacher/test_hdbscan_labels.py`` compares the extraction with the package's on its
+own spanning trees, and the labels on real and synthetic point sets.
 
 Terms: a spanning tree is ``(N - 1, 3)`` float64 rows ``(a, b, mutual reachability distance)``; the hierarchy is
 scipy's linkage format ``(N - 1, 4)`` (``left, right, distance, size``; node ids >= N are merges); the condensed

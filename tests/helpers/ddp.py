@@ -1,4 +1,5 @@
-"""A callback for tests of data-parallel training (``tests/test_ddp.py``), added to a train.py run with
+"""A callback for tests of data-parallel training (``tests/fastflow3d/training/test_ddp.py``), added to a train.py run
+with
 ``+callbacks.record._target_=helpers.ddp.RecordSamples +callbacks.record.folder=<dir>``."""
 
 import json
