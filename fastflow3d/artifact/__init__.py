@@ -5,7 +5,7 @@ Imports ``fastflow3d.network`` only."""
 
 from icpflow.core.deprecation import moved_attribute
 
-#: the names of the last release's module ``fastflow3d.artifact`` (this package since issue 46) -> their module today;
+#: the names of the last release's module ``fastflow3d.artifact`` (this package since 0.2) -> their module today;
 #: answered with a DeprecationWarning until 0.3 (``icpflow.core.deprecation``)
 MOVED = {
     **dict.fromkeys(

@@ -20,10 +20,11 @@ from icpflow.core.deprecation import current_target
 MODEL_TARGET = "fastflow3d.network.model.FastFlow3D"
 
 #: The modules whose objects a stored training config names as ``_target_`` (``model``, ``module``, ``scheduler``,
-#: ``callbacks``) and that have moved since a release wrote it: old module -> module today (issue 46, the package in
-#: rooms). A checkpoint keeps the paths of the code that wrote it; :func:`read_checkpoint` is the one place a stored
-#: config is read, and reads them as today's (``tests/fixtures/release_0_1``). Export metadata names no module that
-#: is instantiated (its ``model`` entry is a copy of the checkpoint's, for the reader).
+#: ``callbacks``) and that have moved since a release wrote it: old module -> module today (since the packages were
+#: split into rooms, ``fastflow3d`` in 0.2; ``icpflow``'s from ``icpflow.core.deprecation``). A checkpoint keeps the
+#: paths of the code that wrote it; :func:`read_checkpoint` is the one place a stored config is read, and reads them
+#: as today's (``tests/fixtures/release_0_1``). Export metadata names no module that is instantiated (its ``model``
+#: entry is a copy of the checkpoint's, for the reader).
 MOVED_TARGETS = {
     "fastflow3d.model": "fastflow3d.network.model",
     "fastflow3d.module": "fastflow3d.training.student_module",

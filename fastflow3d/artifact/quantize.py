@@ -4,8 +4,9 @@ calibrated on the network's own inputs from labelled shards.
 Only the convolutions are quantised (QDQ: int8 weights per output channel, uint8 activations with min-max ranges);
 the pillar encoder's scatters, the cost volume, the decoder and the heads stay float32. On a CPU with VNNI
 (AVX512-VNNI, AVX-VNNI) ONNX Runtime runs these convolutions in int8, about half the network's time
-(BENCHMARKS.md, issue 44). Min-max ranges, not percentiles: clipping the activations' largest values clipped the
-largest flows (dynamic-foreground EPE +30 % on the 64 test pairs, issue 44's probe).
+(BENCHMARKS.md, "Student latency and the stream" and "Every CPU"). Min-max ranges, not percentiles: clipping the
+activations' largest values clips the largest flows (dynamic-foreground EPE +30 % on the 64 test pairs;
+docs/history.md, "Int8 convolutions (point 3)").
 
 The calibration pairs are what the network sees in use (``fastflow3d.network.contract.InputContract.prepare``: pc0
 compensated, the ground dropped where the contract removes it, cropped to the grid) from the shards' scans, ego motion

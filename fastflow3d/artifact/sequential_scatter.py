@@ -4,8 +4,8 @@ The export writes each pillar sum (``fastflow3d.network.scatter.scatter_sum``) a
 axis=1)`` on the transposed rows: correct on any number of threads, but ONNX Runtime adds its elements one by one
 (2.2-5.6 ms per 60k points x 33 channels). ``ScatterND(reduction="add")`` adds whole rows, 12x quicker, but ONNX Runtime
 splits its updates over its intra-op threads without atomics, so two threads adding into one pillar race (sums off by
-up to 1.0 with 2 threads: onnxruntime issue 18048). On one thread it adds in the same order as ScatterElements: the
-same sums bit for bit.
+up to 1.0 with 2 threads: onnxruntime's GitHub issue 18048). On one thread it adds in the same order as
+ScatterElements: the same sums bit for bit.
 
 :func:`sequential_scatter_sums` rewrites an exported graph for a session of ONE intra-op thread (what
 ``fastflow3d.artifact.engines`` opens for ``threads=1``, the network of an overlapped stream on 2 cores,
@@ -14,9 +14,9 @@ same sums bit for bit.
     Transpose(ScatterND(Transpose(data), Unsqueeze(ids, 1), rows, reduction="add"))
 
 where ``rows`` (P, C) is what the export transposed into the updates, then drops the nodes whose outputs nothing reads
-any more (ONNX Runtime still ran the unused index Expand and row Transpose, 5 ms a KITTI pair) and the constants only
-they read. The int8 network on one thread, 12 calls of each graph in turn: 84.8 -> 60.8 ms on a pair of the synthetic
-stream, 102.9 -> 70.6 ms on a KITTI pair (BENCHMARKS.md, issue 44). Only the export's own pattern is rewritten: ``ids``
+any more (ONNX Runtime would still run the unused index Expand and row Transpose, 5 ms a KITTI pair) and the constants
+only they read. On one thread the int8 network then takes about 0.7x the exported graph's time on a synthetic or a
+KITTI pair (BENCHMARKS.md, "Student latency and the stream"). Only the export's own pattern is rewritten: ``ids``
 a 1-D tensor unsqueezed on axis 0 and expanded over the channels (or not expanded, for constant data of one row: the
 counts, as ONNX Runtime's optimiser leaves them); anything else is left as it is.
 """

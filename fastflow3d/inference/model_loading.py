@@ -52,8 +52,9 @@ def auto_precision(path: Path, backend: str | None, runtime: str | None) -> str:
     export ships its int8 network (checked against the float32 one when it was written:
     ``fastflow3d.artifact.quantize``), ONNX Runtime runs it on the CPU and the CPU has int8 dot products
     (``fastflow3d.artifact.engines.int8_dot_products``: there its convolutions take half the float32 ones' time, and
-    the stream's frame 0.7x: issue 44); a bare int8 ``.onnx`` of an export, int8 (it runs no other way); else
-    ``f32``: a checkpoint, another format or runtime, ONNX Runtime with its CUDA provider, a CPU without them."""
+    the stream's frame 0.7x: BENCHMARKS.md, "Student latency and the stream"); a bare int8 ``.onnx`` of an export,
+    int8 (it runs no other way); else ``f32``: a checkpoint, another format or runtime, ONNX Runtime with its CUDA
+    provider, a CPU without them."""
     if backend not in (None, "onnx") or runtime not in (None, "onnxruntime"):
         return "f32"
     if path.suffix.lower() == ".onnx" and path.is_file():

@@ -13,11 +13,13 @@ def scatter_sum(values: torch.Tensor, ids: torch.Tensor, num_slots: int) -> torc
     """Row sums: (num_slots, C) with ``out[k] = sum of values[p] over p with ids[p] == k``; values (P, C).
 
     Exported (ONNX, torch.export) as a scatter along the last axis of the transposed rows: ONNX Runtime's
-    ScatterElements runs it 2.2x quicker (8.4 -> 3.8 ms for 50k points x 33 channels, 2 threads), while PyTorch's
-    eager training step is 10 % slower that way (BENCHMARKS.md, issue 33); the sums are the same. Not ``ScatterND``
-    with ``reduction="add"`` (an accumulating ``index_put``), though 12x quicker (10.3 -> 0.8 ms for 60k points x 33
-    channels, 1 thread): ONNX Runtime splits its updates over its threads without atomics, so duplicate ids race
-    (sums off by up to 1.0 with 2 threads; onnxruntime issue 18048; issue 44)."""
+    ScatterElements runs it 2.2x quicker than along the first (50k points x 33 channels, 2 threads), while PyTorch's
+    eager training step is 10 % slower that way, so eager code keeps the first axis (docs/history.md, "ONNX Runtime's
+    pillar scatters, a quicker voxel grid"); the sums are the same. Not ``ScatterND`` with ``reduction="add"`` (an
+    accumulating ``index_put``), though 12x quicker (60k points x 33 channels, 1 thread): ONNX Runtime splits its
+    updates over its threads without atomics, so duplicate ids race (sums off by up to 1.0 with 2 threads;
+    onnxruntime's GitHub issue 18048; docs/history.md, "ScatterND: tried, not kept"). A session of one thread cannot
+    race, and gets ScatterND at load: ``fastflow3d.artifact.sequential_scatter``."""
     if torch.compiler.is_exporting():
         out = values.new_zeros((values.shape[1], num_slots))
         index = ids[None, :].expand(values.shape[1], -1)
@@ -31,7 +33,8 @@ def scatter_mean(values: torch.Tensor, ids: torch.Tensor, num_slots: int) -> tor
     """Row means (num_slots, C) of values (P, C) grouped by ``ids``; rows without any point are 0.
 
     Exported as two sums, of the values and of ones (the same sums): the (P, C + 1) concatenation of the eager
-    step cost 3 of the int8 network's 60 ms on a pair of 60k-point scans in ONNX Runtime (issue 44)."""
+    step costs ONNX Runtime about 3 of the int8 network's 60 ms on a pair of 60k-point scans (docs/history.md, "The
+    network: the pillar sums on one thread (point 3)")."""
     ones = values.new_ones((values.shape[0], 1))
     if torch.compiler.is_exporting():
         return scatter_sum(values, ids, num_slots) / scatter_sum(ones, ids, num_slots).clamp(min=1.0)

@@ -6,10 +6,10 @@
 
 from icpflow.core.deprecation import moved_attribute
 
-#: the names of the last release's module ``fastflow3d.training`` (this package since issue 46) -> their module today;
+#: the names of the last release's module ``fastflow3d.training`` (this package since 0.2) -> their module today;
 #: answered with a DeprecationWarning until 0.3 (``icpflow.core.deprecation``). Not its function ``run_folder``: that
-#: name
-#: is today's module ``fastflow3d.training.run_folder`` (the function: ``fastflow3d.training.run_folder.run_folder``)
+#: name is today's module ``fastflow3d.training.run_folder`` (the function:
+#: ``fastflow3d.training.run_folder.run_folder``)
 MOVED = {
     **dict.fromkeys(
         (

@@ -17,7 +17,8 @@ _MAX_SHELL = 3
 # Squared distances at or above this are "nothing found yet" (no z-range pruning).
 _FAR = 1e30
 # Shells a k-nearest query visits before it scans every point (the 10th neighbour of an odometry target's point lies
-# within 3.5 m for 99 % of them, 7 shells of 0.5 m cells; BENCHMARKS.md, issue 44).
+# within 3.5 m for 99 % of them, 7 shells of 0.5 m cells; docs/history.md, "The odometry's normals: far queries on a
+# coarse grid (point 3)").
 MAX_KNN_SHELL = 8
 #: the indices of a k-nearest query that gave up (``k_nearest`` without ``scan_all``)
 GAVE_UP = -2
@@ -303,7 +304,7 @@ def nn_stats(query, points, grid, cell, inlier_d2):
 def nearest_distances(query, points, grid, cell, reach):
     """(M,) exact distances from each query point (M, 3) to its nearest of points (N, 3) with their ``build_grid``,
     where it lies nearer than ``reach`` (M,) m (inf: any distance), inf elsewhere: a bounded query stops at its reach
-    (the refinement asks whether a point lies nearer than a known distance, issue 44)."""
+    (the refinement asks whether a point lies nearer than a known distance)."""
     out = np.empty(query.shape[0])
     for i in range(query.shape[0]):
         found, d2 = nearest(query[i], points, grid, cell, reach[i] * reach[i])

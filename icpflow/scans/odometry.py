@@ -10,8 +10,8 @@ height frame (``icpflow.scans.preprocess``) with its (N,) bool ground mask (the 
 Each step: KISS-ICP (``kiss-icp`` 1.x, one instance across the track: its local map and constant-velocity model) on the
 non-ground points gives a start (on every point, the ground's rings, drawn by the sensor, hold KISS-ICP near the
 identity; it takes them down-sampled to one per ``VOXEL``, the cloud the refinement uses too: its own voxel grids, 0.5
-and 1.5 m, keep one point per voxel anyway, and an AV2 sweep's registration took 15.6 instead of 18.4-19.4 ms, with the
-same errors in ``benchmarks/bench_ego_motion.py``; issue 44); it is refined point-to-plane (open3d ``registration_icp``)
+and 1.5 m, keep one point per voxel anyway, so the smaller cloud registers quicker at the same or smaller errors:
+BENCHMARKS.md, "Ego motion"); it is refined point-to-plane (open3d ``registration_icp``)
 on ``VOXEL`` m clouds of the two whole scans (the ground's planes fix roll, pitch and height) with a robust (Tukey)
 kernel that leaves moving objects out; the target's normals come from one estimate (:class:`TargetPlanes`:
 ``icpflow.scans.normals.plane_normals`` of a target point's ``NORMAL_NEIGHBOURS`` nearest). The first step of a track (a
@@ -19,9 +19,9 @@ pair: no motion model, a one-scan map) is refined coarse to fine and, when it fi
 (:meth:`Odometry._first_step`). A later step starts from the last step's motion instead (constant velocity,
 :meth:`Odometry._velocity_step`), and KISS-ICP registers the scan only where that start, or the step from it, fits
 clearly worse than the last step (a turn-around, a dropped scan); its map and motion model take the refined poses
-either way. The step converges from starts up to 20 cm off, which a car at 10 Hz does not leave: on the synthetic drives
-the errors stayed the same (64 beams 0.18 / 0.58 / 0.88 -> 0.18 / 0.57 / 0.76 cm median / p95 / max) and a step took
-19 instead of 26 ms (issue 44).
+either way. The step converges from starts up to 20 cm off, which a car at 10 Hz does not leave, and a step from the
+last one's motion costs about three quarters of one that KISS-ICP registers, at about the same errors on the synthetic
+drives and smaller ones on KITTI (BENCHMARKS.md, "Ego motion").
 
 Whether the track holds: the step's fitness (the share of the previous scan's non-ground points with a point of
 this scan within twice the voxel). Under ``min_fitness`` the step is estimated afresh from its two scans (a new
@@ -32,7 +32,7 @@ Whether the scans fix the step: its normal spread (:func:`normal_spread`, ``Odom
 :data:`MIN_SPREAD` the step is ``unfixed`` and its callers say so in one line.
 
 Settings: the ``ego_motion`` block (``icpflow.teacher.config.EgoMotionConfig``: KISS-ICP's voxel and range), or a
-``Preprocessing`` or teacher config holding it (:func:`ego_settings`). Measured: BENCHMARKS.md, "One odometry"
+``Preprocessing`` or teacher config holding it (:func:`ego_settings`). Measured: BENCHMARKS.md, "Ego motion"
 (``benchmarks/bench_ego_motion.py``).
 """
 
@@ -51,34 +51,37 @@ from icpflow.scans.preprocess import Preprocessing
 #: fewer points than this in either scan: no estimate
 MIN_EGO_POINTS = 100
 #: metres: the cells of a target's nearest-neighbour grid (``TargetPlanes``; its 10th neighbour lies within 0.35 m for
-#: half its points: 0.3 m cells took 1.7x the time of 0.5 m ones, 0.75 and 1 m as long or longer; issue 44)
+#: half its points: 0.5 m cells are the quickest, 0.3 m ones take 1.7x their time, 0.75 and 1 m as long or longer;
+#: docs/history.md, "The odometry's neighbours from a voxel grid (point 3)")
 GRID_CELL = 0.5
 #: a query whose k-th neighbour lies beyond this many shells of ``GRID_CELL`` cells (a sparse, far part of a scan) is
-#: answered on a second grid of ``COARSE_CELL`` m cells, exactly too: on the fine grid it visited hundreds of columns or
-#: scanned the whole cloud (4 % of an AV2 scan's source points took 11 of the 17 ms of its normals' queries; with the
-#: coarse grid 8.4 ms in all, KITTI 8.4 -> 7.3, synthetic 24 -> 7.3; 3-6 shells and 1.5-2 m cells alike, 3 m slower;
-#: issue 44)
+#: answered on a second grid of ``COARSE_CELL`` m cells, exactly too: on the fine grid alone such a query visits
+#: hundreds of columns or scans the whole cloud (4 % of an AV2 scan's source points take 11 of the 17 ms of its
+#: normals' queries; with the coarse grid they take half the time). 3-6 shells and 1.5-2 m cells are alike, 3 m
+#: cells slower (BENCHMARKS.md, "Student latency and the stream"; docs/history.md, "The odometry's normals: far
+#: queries on a coarse grid (point 3)")
 FINE_SHELLS, COARSE_CELL = 3, 2.0
 #: metres: the voxel of the refinement clouds. Finer than KISS-ICP's: a voxel grid fixed in each scan's frame pulls a
-#: slow motion towards the identity (BENCHMARKS.md, issue 33)
+#: slow motion towards the identity (docs/history.md, "the streaming Predictor")
 VOXEL = 0.15
 #: a step that fits under ``Odometry.min_fitness`` is estimated afresh from its two scans; under this after that, the
 #: track is lost (module docstring)
 LOST_FITNESS = 0.3
 #: a step's refinement: at most this many source points (an even subsample of the previous scan's cloud) and
-#: iterations (it starts from KISS-ICP's estimate, centimetres away; BENCHMARKS.md, issue 33)
+#: iterations (it starts from KISS-ICP's estimate, centimetres away; docs/history.md, "the streaming Predictor")
 SOURCE_POINTS, ITERATIONS = 2500, 10
-#: metres: the width of the refinement's robust (Tukey) kernel: the moving traffic of a fast drive pulled the plain
-#: least squares by 2-3 cm (synthetic, 9.6 m/s: 2.20 -> 0.20 cm median, BENCHMARKS.md, issue 33)
+#: metres: the width of the refinement's robust (Tukey) kernel: the moving traffic of a fast drive pulls the plain
+#: least squares by 2-3 cm (synthetic, 9.6 m/s: 2.2 cm median without the kernel, 0.2 cm with it; docs/history.md,
+#: "the streaming Predictor")
 TUKEY = 0.1
-#: the target normals: of the nearest 10 points (6 are cheaper but tilt on a 32-beam scan's sparse rings, 1.5-2 cm
-#: instead of 0.5 cm, BENCHMARKS.md, issue 33)
+#: the target normals: of the nearest 10 points (6 are cheaper but tilt on a 32-beam scan's sparse rings: 1.5-2 cm
+#: errors against 0.5 cm; docs/history.md, "the streaming Predictor")
 NORMAL_NEIGHBOURS = 10
 #: a track's later steps start from the last step's motion (constant velocity) instead of KISS-ICP's registration,
 #: where that start fits at least ``VELOCITY_SHARE`` of the last step's fitness, the step from it moves it by at most
 #: ``VELOCITY_REACH`` m and its share of source points within ``TIGHT`` m of a target is at least ``VELOCITY_SHARE``
-#: of the last step's (else KISS-ICP registers the scan, as before). The step converges from 20 cm off and fails
-#: from 50 cm (synthetic drives; BENCHMARKS.md, issue 44)
+#: of the last step's (else KISS-ICP registers the scan). The step converges from 20 cm off and fails from 50 cm
+#: (synthetic drives; docs/history.md, "Built: a constant-velocity start for the odometry (16d8ffd)")
 VELOCITY_SHARE, VELOCITY_REACH, TIGHT = 0.8, 0.2, 0.1
 #: the first step of a track (a pair): at most this many source points of the whole scan (ground included: its
 #: planes fix roll, pitch and height), and its (reach m, Tukey width m, iterations) stages, a wide one then a fine one
@@ -86,7 +89,7 @@ FIRST_SOURCE_POINTS = 4000
 FIRST_STAGES = ((1.0, 0.3, 15), (0.3, 0.1, 30))
 #: the first step's fit (the mean Tukey weight of its point-to-plane residuals, about the share of the scan that
 #: fits) under which, or a result this far (m) from KISS-ICP's start, it is also refined from the identity and from
-#: KISS-ICP's reverse registration, the best fit winning (BENCHMARKS.md, "One odometry")
+#: KISS-ICP's reverse registration, the best fit winning (docs/history.md, "One odometry")
 RETRY_FIT, RETRY_JUMP = 0.45, 0.5
 #: a pair's normal spread (:func:`normal_spread`) under this: the scans' surfaces leave the motion along one direction
 #: unfixed (a corridor of two parallel walls; real scans lie far above it, BENCHMARKS.md "The teacher on real points")
@@ -135,11 +138,11 @@ def voxel_cloud(points: np.ndarray, voxel: float):
 
 class TargetPlanes:
     """A refinement's target points (M, 3) in a voxel grid (``icpflow.scans.neighbours``: exact nearest neighbours;
-    a scipy k-d tree gave the same neighbours, its build and queries 2x the time, BENCHMARKS.md, issue 44); each
-    point's normal, one estimate: ``plane_normals`` of its ``NORMAL_NEIGHBOURS`` nearest (computed only for the points
-    a source lands near: a step that starts close to the answer keeps its correspondences among these; computing
-    normals for the whole scan was the odometry's costliest step, BENCHMARKS.md, issue 33). The queries run on
-    numba's threads."""
+    a scipy k-d tree gives the same neighbours in twice the time, BENCHMARKS.md, "Student latency and the stream");
+    each point's normal, one estimate: ``plane_normals`` of its ``NORMAL_NEIGHBOURS`` nearest (computed only for the
+    points a source lands near: a step that starts close to the answer keeps its correspondences among these, and the
+    normals of the whole scan would be the odometry's costliest step; docs/history.md, "normals only where the step
+    looks"). The queries run on numba's threads."""
 
     def __init__(self, points: np.ndarray):
         """``points`` (M, 3)."""

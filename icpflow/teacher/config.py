@@ -76,10 +76,10 @@ class HistogramConfig(Checked):
     # 0.059 m on 16 synthetic val pairs (waymo preset), while the vote costs 0.05 / 0.12 / 0.35 / 1.26 s on the
     # AV2 pair: 1000 keeps most of the accuracy at a tenth of the time (the av2 preset keeps 300, see there)
     max_points: int = setting(1000, "count", old="hist_max_points")
-    # extension (issue 30): a source cluster at least this long (m) along its main horizontal axis also gets a
-    # line search of its start along that axis (``histogram._axis_search``): on a long side-on vehicle the vote's
-    # ridge follows the scan pattern, not the object, and its peaks fall short of the true motion. 0 = off (the
-    # reference)
+    # extension for long, fast vehicles (on in every preset): a source cluster at least this long (m) along its main
+    # horizontal axis also gets a line search of its start along that axis (``histogram._axis_search``): on a long
+    # side-on vehicle the vote's ridge follows the scan pattern, not the object, and its peaks fall short of the true
+    # motion. 0 = off (the reference)
     axis_min_extent: float = setting(0.0, "non_negative")
     axis_step: float = setting(0.2, "positive")  # m between the line search's candidates (refined in quarters)
     axis_points: int = setting(300, "count")  # points per cluster scoring the coarse line search
@@ -159,7 +159,7 @@ class MergingConfig(Checked):
     rounds: int = setting(2, "count")  # merge rounds (a cluster cut in three needs two)
     test_points: int = setting(2000, "count")  # points per cluster in the merge test's registration (<= icp's)
     # a match at the identity whose IoU ratio is under this is a candidate too (0: never): the halves of a fast long
-    # vehicle cut at a fixed place slide along themselves at the identity with a poor overlap (issue 42)
+    # vehicle cut at a fixed place slide along themselves at the identity with a poor overlap
     static_iou: float = setting(0.0, "fraction")
 
 
@@ -312,9 +312,10 @@ def _deprecated(message: str) -> None:
 # The reference's main.sh per dataset (waymo, nuscene, argo), in this config's names. HDBSCAN on 0.2 m voxel means
 # (clustering.voxel_size) is 4 to 6 times faster; measured on 12 synthetic pairs it costs dynamic accuracy (EPE
 # 0.347 vs 0.257 without), on the AV2 pair it does not (0.206 vs 0.205): on for AV2 only, for its speed target.
-# Issue 30 (every preset): long, fast vehicles. histogram.axis_min_extent 3.0 (the line search along a long
-# cluster's main axis when the vote says it moves) and merging.distance 0.5 (split clusters registered as one):
-# measured with benchmarks/teacher_anatomy.py and eval_teacher.py, see BENCHMARKS.md "Issue 30".
+# Long, fast vehicles (every preset): histogram.axis_min_extent 3.0 (the line search along a long cluster's main axis
+# when the vote says it moves) and merging.distance 0.5 (split clusters registered as one): measured with
+# benchmarks/teacher_anatomy.py and eval_teacher.py (BENCHMARKS.md, "Teacher: speed and quality"; docs/history.md,
+# "the teacher on long, fast vehicles").
 # icp.plane_gain 1.0 (every preset, pipeline._prefer_static): static structure stays static on real scans
 # (BENCHMARKS.md, "The teacher on real points"), the synthetic and AV2 scores equal to the digit.
 LONG_VEHICLES = {"histogram": dict(axis_min_extent=3.0), "merging": dict(distance=0.5, static_iou=0.8)}
@@ -350,10 +351,9 @@ PRESETS: dict[str, dict] = {
     # 0.066 on eval.py's dynamic foreground); deskew.min_speed 0.5 / 1.0 / 2.0 m/s refine 28 / 11 / 4 matches for
     # 0.107 / 0.107 / 0.107, and 1 / 2 / 3 rounds give 0.124 / 0.107 / 0.108. histogram.max_points 300 rather than
     # the default 1000: 0.107 / 0.192 (with / without times, map ground) against 0.125 / 0.279 with 1000, and
-    # 0.125 / 0.276 against 0.121 / 0.271 with Patchwork++ ground. clustering.voxel_size 0.25 rather than 0.2
-    # (issue 22): HDBSCAN 1.5x faster (29k rather than 38k voxel means), dynamic-foreground EPE unchanged on the
-    # AV2 pair (0.0662 map ground, 0.0945 Patchwork++), dynamic EPE (all) 0.1067 vs 0.1068, static background
-    # 0.0096 vs 0.0120.
+    # 0.125 / 0.276 against 0.121 / 0.271 with Patchwork++ ground. clustering.voxel_size 0.25 rather than 0.2:
+    # HDBSCAN 1.5x faster (29k rather than 38k voxel means), dynamic-foreground EPE unchanged on the AV2 pair (0.0662
+    # map ground, 0.0945 Patchwork++), dynamic EPE (all) 0.1067 vs 0.1068, static background 0.0096 vs 0.0120.
     "av2": dict(
         ground=dict(range_z=-10000.0, slack=0.0, patchwork_z_offset=-1.4),
         crop_xy=51.2,

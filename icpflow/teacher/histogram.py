@@ -14,9 +14,10 @@ peak's translation is its bin CENTRE. The reference implementation returns the b
 CUDA vote also spreads ``2 * window / bin + 1`` bins over ``2 * window``, so its bins are slightly narrower than
 the labels it reads them back with.
 
-Extension (issue 30, ``axis_min_extent`` > 0; off in the reference): a source cluster at least that long along its
-main horizontal axis whose best candidate moves it (by at least ``axis_step``) also gets a line search of its start
-along that axis (:func:`_axis_search`). On a long vehicle seen from the side the vote's ridge runs along the axis
+Extension for long, fast vehicles (``axis_min_extent`` > 0; off in the reference, on in every preset: BENCHMARKS.md,
+"Teacher: speed and quality"): a source cluster at least that long along its main horizontal axis whose best
+candidate moves it (by at least ``axis_step``) also gets a line search of its start along that axis
+(:func:`_axis_search`). On a long vehicle seen from the side the vote's ridge runs along the axis
 and its height follows the scan pattern (which moves with the sensor), not the object, so its peaks can fall metres
 short of the true motion (a 10 m bus at 27 m/s: 1.8 m). Candidates every ``axis_step`` metres across the window are
 scored as above on at most ``axis_points`` points per cluster, the best is refined in quarter steps on every point,

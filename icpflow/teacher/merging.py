@@ -1,9 +1,10 @@
-"""Step 8b (extension, issue 30): recombine the clusters of one rigid object that the fused clustering split.
+"""Step 8b (extension for long, fast vehicles): recombine the clusters of one rigid object the clustering split.
 
 HDBSCAN clusters both scans fused; a long vehicle moving fast overlaps itself and is often cut at a fixed place in
 space, so one label holds the rear of the object in pc0 and its middle in pc1, the other the rest. Neither part
 registers well on its own: one slides onto the other scan's part (a false static match) and the other fails the
-checks, and the whole vehicle gets a wrong flow. The reference has no such step.
+checks, and the whole vehicle gets a wrong flow. The reference has no such step (measured: BENCHMARKS.md, "Teacher:
+speed and quality").
 
 Candidates: two labels are adjacent when their bounding boxes over both scans come within ``merging.distance``
 metres and points of the two (either scan) fall in the same or neighbouring cells of that size; an adjacent pair is

@@ -16,9 +16,9 @@ from icpflow.teacher.histogram import pack
 from icpflow.teacher.registration.icp import PLANE_MAX_ITER, icp_point_to_plane, icp_point_to_point
 
 # Cell size (metres) of the grid answering the exact nearest-neighbour queries. Any size gives the same
-# neighbours; on the AV2 pair's largest cluster 0.3 m answers the ICP's 0.1 m-truncated queries 1.7x faster than
-# 0.1 m cells (BENCHMARKS.md, issue 22, the teacher's fourth session); the quality's untruncated queries used 0.3 m
-# cells before.
+# neighbours; on the AV2 pair's largest cluster 0.3 m cells answer the ICP's 0.1 m-truncated queries 1.7x faster
+# than 0.1 m cells, and one grid then serves the ICP and the quality's untruncated queries (docs/history.md, "real
+# time on a laptop CPU": the teacher's profile of its ICP step).
 _GRID_CELL = 0.3
 
 
@@ -26,10 +26,10 @@ def grid_cell(max_corr: float) -> float:
     """Cells (m) of the neighbour grid for ICP truncated at ``max_corr``: ``_GRID_CELL``, or ``max_corr / 4`` for
     a truncation beyond four times it (the refinement's coarse-to-fine ICP, ``fastflow3d.inference.refine``: 0.5 m
     cells at 2 m). A converging ICP's queries lie near their neighbours, and smaller cells scan fewer points for them;
-    a query with nothing within reach scans the component's points (``neighbours.nearest``). The refinement on each
-    stream's captured pairs, ``max_corr / 2`` before (1 m cells at 2 m), the same outputs: KITTI 171 -> 168 ms (5
-    pairs), AV2 304 -> 296 (11), synthetic 293 -> 267 (11); 0.3 m at every stage 176, 308 and 269 (issue 44). The
-    neighbours are the same at any cell size; the teacher's 0.1 m truncation keeps 0.3 m cells."""
+    a query with nothing within reach scans the component's points (``neighbours.nearest``). On each stream's
+    captured pairs the refinement is quicker with ``max_corr / 4`` than with ``max_corr / 2`` (1 m cells at 2 m) or
+    0.3 m cells at every stage, with the same outputs (BENCHMARKS.md, "Refinement"). The neighbours are the same at
+    any cell size; the teacher's 0.1 m truncation keeps 0.3 m cells."""
     return max(_GRID_CELL, float(max_corr) / 4)
 
 
@@ -204,8 +204,8 @@ def _register_stages_batch(
     errors, IoU ratios, errors at the identity, IoU ratios at the identity, errors of the given clouds, IoU ratios
     of the given clouds), the identity's measured only where ``identities`` (P,) bool (else inf and 0). Worker w
     takes pairs w, w + n_workers, ... (pairs sorted by decreasing size). A transform's
-    forward mean distance is measured once and carried to the next stage and the quality (the student's refinement,
-    issue 44: 8 passes over the moving cloud to 5)."""
+    forward mean distance is measured once and carried to the next stage and the quality: the student's refinement
+    makes 5 passes over the moving cloud rather than 8 (BENCHMARKS.md, "Refinement")."""
     n_pairs = inits.shape[0]
     transforms = np.zeros((n_pairs, 4, 4))
     out = np.full((6, n_pairs), np.inf)
