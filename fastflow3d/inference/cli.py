@@ -17,8 +17,9 @@ ground kept across frames), and each consecutive pair's flow is written to ``OUT
 ``outputs/infer/<folder>``), holding what a pair's ``.npz`` holds; a progress bar shows frames per second. An
 unreadable scan is skipped with a warning naming it (the pair across it is estimated from its two scans); a pair
 the stream cannot estimate (a lost track) gets no file and a warning; a stream that gives no flow at all is an error.
-``OUT_DIR/stream.json`` (the manifest) says which scans, which model and options, and which outputs: a rerun of the
-same stream into OUT_DIR replaces its own outputs; OUT_DIR holding anything else (another run's flows, files
+``OUT_DIR/stream.json`` (the manifest) says which scans, which model and options, and which outputs (also those a
+stopped or failed run kept): a rerun of the same stream into OUT_DIR replaces its own outputs, the names its scans
+give and nothing else; OUT_DIR holding anything else (another run's flows, a file or folder of the user's, files
 without a manifest, or the input scans themselves) is refused before any work. ``--rerun`` records the whole
 stream (points coloured by speed, flow arrows, the estimated trajectory) on one timeline.
 
@@ -48,8 +49,8 @@ in the grid) gets a one-line warning.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
-import json
 import sys
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -68,8 +69,13 @@ from fastflow3d.artifact.file_format import (
 )
 from fastflow3d.inference.model_loading import AUTO, PRECISION_CHOICES
 from fastflow3d.inference.scan_files import read_raw_scan, read_transforms, refuse_input_as_output, write_flow
-from fastflow3d.inference.stream_folder import MANIFEST, claim_output_folder, stream_files, stream_manifest
-from icpflow.core.atomic import write_text_atomic
+from fastflow3d.inference.stream_folder import (
+    claim_output_folder,
+    output_name,
+    stream_files,
+    stream_manifest,
+    write_manifest,
+)
 from icpflow.core.console import quiet, recorded_warnings
 from icpflow.core.errors_and_signals import exit_status, one_line, stop_on_signals
 from icpflow.core.frame_pair import FramePair
@@ -329,7 +335,7 @@ class StreamOutputs:
         """A step of the stream out: its flow file, the recording, the trajectory."""
         prediction = step.prediction
         if prediction is not None:
-            name = f"{Path(step.previous).stem}.npz"
+            name = output_name(step.previous)
             self.close()  # the previous file is written first
             self.writing = self.writer.submit(write_flow, self.out / name, prediction)
             self.outputs.append(name)
@@ -358,6 +364,11 @@ class StreamOutputs:
         if writing is not None:
             writing.result()
 
+    def kept(self) -> list[str]:
+        """The flow files that are in ``out`` (each written whole or not at all): all of ``outputs`` after a run,
+        those finished before a stop."""
+        return [name for name in self.outputs if (self.out / name).is_file()]
+
 
 def infer_stream(args) -> tuple[Path, int, int, str]:
     """Stream mode (module docstring): returns the output folder, the flows written, the scans read and the network's
@@ -383,28 +394,33 @@ def infer_stream(args) -> tuple[Path, int, int, str]:
         from icpflow.viz.recording import PairRecording
 
         recording = PairRecording(args.rerun, application="fastflow3d-infer")
-    with (
-        ThreadPoolExecutor(1, thread_name_prefix="infer-writer") as writer,
-        ThreadPoolExecutor(1, thread_name_prefix="infer-reader") as reader,
-        Progress(total=len(files), unit="frame", desc="infer") as bar,  # its rate: frames per second
-    ):
-        sink = StreamOutputs(out, writer, recording, predictor.remove_ground, stream.depth)
-        flush = itertools.repeat((None, None), stream.depth)  # the steps still in flight after the last scan
-        for path, read in itertools.chain(read_ahead(files, args.bin_columns, reader), flush):
-            with recorded_warnings() as caught:
-                step = sink.push(stream, str(path), read) if path is not None else stream.flush()
-            for warning in caught:
-                bar.write(f"infer: warning: {str(warning.message).split(': ', 1)[-1]}", file=sys.stderr)
-            if step is not None:
-                sink.write(step)
-            if path is not None:
-                bar.update(1)
-        sink.close()
+    sink = None
+    try:
+        with (
+            ThreadPoolExecutor(1, thread_name_prefix="infer-writer") as writer,
+            ThreadPoolExecutor(1, thread_name_prefix="infer-reader") as reader,
+            Progress(total=len(files), unit="frame", desc="infer") as bar,  # its rate: frames per second
+        ):
+            sink = StreamOutputs(out, writer, recording, predictor.remove_ground, stream.depth)
+            flush = itertools.repeat((None, None), stream.depth)  # the steps still in flight after the last scan
+            for path, read in itertools.chain(read_ahead(files, args.bin_columns, reader), flush):
+                with recorded_warnings() as caught:
+                    step = sink.push(stream, str(path), read) if path is not None else stream.flush()
+                for warning in caught:
+                    bar.write(f"infer: warning: {str(warning.message).split(': ', 1)[-1]}", file=sys.stderr)
+                if step is not None:
+                    sink.write(step)
+                if path is not None:
+                    bar.update(1)
+            sink.close()
+    except BaseException:  # stopped or failed: the manifest lists the flows kept (each whole, or not there)
+        with contextlib.suppress(Exception):  # where even it cannot be written (a full disk), the first error is said
+            write_manifest(out, manifest, sink.kept() if sink is not None else [], complete=False)
+        raise
+    write_manifest(out, manifest, sink.outputs, complete=True)
     written = len(sink.outputs)
     if recording is not None:
         recording.close()
-    document = {**manifest, "complete": True, "outputs": sink.outputs}
-    write_text_atomic(out / MANIFEST, json.dumps(document, indent=1))
     if not written:
         raise ValueError(
             f"{args.scan0}: no flow: the stream gave none of its {len(files)} scans a pair (see the warnings)"

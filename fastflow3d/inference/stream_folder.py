@@ -47,8 +47,9 @@ def stream_manifest(args, files: list[Path], precision: str) -> dict:
 
 def claim_output_folder(out: Path, manifest: dict, files: list[Path]) -> None:
     """Make ``out`` this stream's before any work: refused (ValueError, one line) where it holds an input scan, or
-    anything but the outputs of this very stream (the same manifest: a rerun, said on stderr, replaces them); then
-    its manifest, marked incomplete until the run ends."""
+    anything but the outputs of this very stream (the same manifest: a rerun, said on stderr, replaces them; each is
+    one of the names it writes, :func:`stream_outputs`, and a regular file, all checked before any is removed); then
+    its manifest, marked incomplete until the run ends (:func:`write_manifest`)."""
     resolved = out.resolve()
     for path in files:
         if path.resolve().parent == resolved:
@@ -69,10 +70,12 @@ def claim_output_folder(out: Path, manifest: dict, files: list[Path]) -> None:
                 )
                 what = f"this stream's flows made with other options ({changed})"
             raise ValueError(f"{out}: holds {what}; give an empty or new --out (outputs are never mixed)")
-        own = set(earlier.get("outputs", [])) | {MANIFEST}
-        foreign = [path.name for path in present if path.name not in own and not path.name.endswith(".npz")]
-        if foreign:
-            raise ValueError(f"{out}: holds {foreign[0]}, not an output of this stream; give an empty or new --out")
+        own = stream_outputs(manifest) | {MANIFEST}
+        for path in present:  # every entry checked before any is removed
+            if path.name not in own:
+                raise ValueError(f"{out}: holds {path.name}, not an output of this stream; give an empty or new --out")
+            if path.is_symlink() or not path.is_file():
+                raise ValueError(f"{out}: {path.name} is not a regular file; give an empty or new --out")
         print(
             f"infer: {out}: a rerun of the same stream; its {len(present) - 1} earlier output(s) are replaced",
             file=sys.stderr,
@@ -80,9 +83,25 @@ def claim_output_folder(out: Path, manifest: dict, files: list[Path]) -> None:
         for path in present:
             if path.name != MANIFEST:
                 path.unlink()
-    write_text_atomic(
-        out / MANIFEST, json.dumps({**manifest, "complete": False, "outputs": []}, indent=1), make_parents=True
-    )
+    write_manifest(out, manifest, [], complete=False)
+
+
+def write_manifest(out: Path, manifest: dict, outputs: list[str], complete: bool) -> None:
+    """``out``'s manifest: the run's identity, the flow files it holds (``outputs``, in order) and whether the run
+    ended (``complete``); atomically."""
+    document = {**manifest, "complete": complete, "outputs": outputs}
+    write_text_atomic(out / MANIFEST, json.dumps(document, indent=1), make_parents=True)
+
+
+def output_name(scan) -> str:
+    """The flow file of the pair that starts at ``scan``: ``<its stem>.npz``."""
+    return f"{Path(scan).stem}.npz"
+
+
+def stream_outputs(manifest: dict) -> set[str]:
+    """Every file name the stream of ``manifest`` may write into its folder, by name: one flow per scan but the last
+    (``output_name``); a rerun removes these, and only these."""
+    return {output_name(scan) for scan in manifest["scans"][:-1]}
 
 
 def _options(manifest: dict) -> dict:

@@ -46,8 +46,8 @@ class PairDataset(ABC):
         return ""
 
     def drive_without_poses(self):
-        """``(names, read)`` when the reader's samples are the consecutive scans of one drive with no ego motion
-        of its own (a recording without poses): the scans' names in order and ``read(i)``, scan i as (N, 3) float32
+        """``(paths, read)`` when the reader's samples are the consecutive scans of one drive with no ego motion
+        of its own (a recording without poses): the scans' files in order and ``read(i)``, scan i as (N, 3) float32
         in the height frame; ``label.py`` then estimates the drive's trajectory once
         (``icpflow.labelling.trajectory``) and hands it back through :meth:`use_ego_motions`. None (the default):
         the reader gives its ego motion, or its pairs are not one drive."""

@@ -110,7 +110,7 @@ class ScanSequenceDataset(PairDataset):
     def drive_without_poses(self):
         if self.poses() is not None:
             return None
-        return [path.name for path in self.scans], self.scan
+        return list(self.scans), self.scan
 
     def use_ego_motions(self, motions) -> None:
         motions = np.asarray(motions, np.float64)
@@ -127,7 +127,7 @@ class ScanSequenceDataset(PairDataset):
             if not np.isfinite(self._motions[step]).all():
                 raise FramePairError(
                     f"{self.scans[step + 1]}: no ego motion from {self.scans[step].name} (the drive's odometry "
-                    "lost track or a scan was unreadable; see the labelling's warnings)"
+                    "lost track, or a scan was unreadable or too small to register; see the labelling's warnings)"
                 )
             motion = self._motions[step] @ motion
         return motion

@@ -77,7 +77,7 @@ def run_labelling(
 
     start = time.perf_counter()
     prepare(job, plan, overwrite)
-    drive_trajectory(job, progress)  # a drive without poses: its ego motion, once, before its pairs
+    drive_trajectory(job, progress, overwrite)  # a drive without poses: its ego motion, once, before its pairs
     results, open_shards, skipped = {}, [], 0
     for shard, indices in plan:
         record = finished(job, shard, indices, [sample_id_or_index(job.dataset, i) for i in indices])

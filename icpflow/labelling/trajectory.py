@@ -5,11 +5,13 @@ than its own two scans' (a pairwise estimate has no local map and no motion mode
 
 The steps are written beside the shards (``trajectory.npz``: ``ego1_from_ego0`` (T - 1, 4, 4) float64 per
 consecutive scans, NaN where there is none; ``poses`` (done + 1, 4, 4) one pose per scan, ``track_from_scan``, and
-``track`` its track; ``done``, the steps estimated; ``identity``, the scans and settings they belong to) every
-``SAVE_EVERY`` steps and at the end, atomically: a rerun with the same scans and settings reuses them, a stopped run
-goes on from the last saved step (whose track then starts again from that scan). A lost track or an unreadable scan
-is one warning and a restart; the pairs across it get no ego motion and fail with that reason (``failures.jsonl``),
-never a silent wrong pose.
+``track`` its track; ``done``, the steps estimated; ``identity``, the scans and settings they belong to: each scan's
+absolute path, size and modification time, and the preprocessing) every ``SAVE_EVERY`` steps and at the end,
+atomically: a rerun with the same scans and settings reuses them, a stopped run goes on from the last saved step
+(whose track then starts again from that scan); another drive, a scan replaced or touched, other settings or
+``overwrite=true`` estimate it afresh. A lost track, an unreadable scan or one too small to register
+(``MIN_EGO_POINTS``) is one warning and a restart; the pairs across it get no ego motion and fail with that reason
+(``failures.jsonl``), never a silent wrong pose.
 """
 
 from __future__ import annotations
@@ -66,10 +68,41 @@ def write_trajectory(path, identity: str, motions: np.ndarray, done: int) -> Non
         )
 
 
-def drive_trajectory(job, progress: bool = True) -> dict | None:
+def scan_identity(paths) -> list:
+    """What identifies each scan file of a drive: ``[absolute path, size, modification time (ns)]`` (None for a file
+    that cannot be read: it is skipped with a warning anyway)."""
+    identity = []
+    for path in map(Path, paths):
+        try:
+            stat = path.stat()
+            identity.append([str(path.resolve()), stat.st_size, stat.st_mtime_ns])
+        except OSError:
+            identity.append([str(path.absolute()), None, None])
+    return identity
+
+
+def registrable(read, scan: int, name: str) -> np.ndarray | None:
+    """Scan ``scan`` (``read(scan)``) to register, or None, with one warning, where it cannot be read or holds fewer
+    than ``MIN_EGO_POINTS`` points (a step registered on a handful of points is noise that the rest of the drive would
+    chain on)."""
+    from icpflow.scans.odometry import MIN_EGO_POINTS
+
+    try:
+        points = read(scan)
+    except (FramePairError, OSError, ValueError) as error:
+        log.warning(f"{name}: skipped ({error}); the pairs across it get no ego motion")
+        return None
+    if len(points) < MIN_EGO_POINTS:
+        log.warning(f"{name}: {len(points)} points, too few to register (at least {MIN_EGO_POINTS}); the pairs across "
+                    "it get no ego motion")  # fmt: skip
+        return None
+    return points
+
+
+def drive_trajectory(job, progress: bool = True, overwrite: bool = False) -> dict | None:
     """Estimate (or reuse) the ego motion of ``job``'s drive when its reader has no poses (the reader's
     ``drive_without_poses``), hand it to the reader (``use_ego_motions``) and return ``{"steps", "reused", "lost"}``;
-    None when the reader needs none."""
+    None when the reader needs none. ``overwrite``: a stored trajectory is never reused."""
     from icpflow.core.console import Progress
     from icpflow.scans.ground import GroundSegmenter
     from icpflow.scans.odometry import Odometry
@@ -78,12 +111,13 @@ def drive_trajectory(job, progress: bool = True) -> dict | None:
     drive = job.dataset.drive_without_poses()
     if drive is None:
         return None
-    names, read = drive
+    paths, read = drive
+    names = [Path(path).name for path in paths]
     path = job.out_dir / NAME
     settings = Preprocessing.from_teacher(job.teacher_cfg).to_dict()
-    identity = json.dumps({"scans": list(names), "preprocessing": settings}, sort_keys=True)
+    identity = json.dumps({"scans": scan_identity(paths), "preprocessing": settings}, sort_keys=True)
     motions, done = np.full((len(names) - 1, 4, 4), np.nan), 0
-    stored = read_trajectory(path, identity)
+    stored = None if overwrite else read_trajectory(path, identity)
     if stored is not None and stored[0].shape == motions.shape:
         motions, done = stored
     reused = done
@@ -92,10 +126,8 @@ def drive_trajectory(job, progress: bool = True) -> dict | None:
         bar = Progress(total=len(motions), initial=done, unit=" scans", disable=not progress, desc="trajectory")
         try:  # scan ``done`` is read again: the first scan of this run's track
             for scan in range(done, len(names)):
-                try:
-                    points = read(scan)
-                except (FramePairError, OSError, ValueError) as error:
-                    log.warning(f"{names[scan]}: skipped ({error}); the pairs across it get no ego motion")
+                points = registrable(read, scan, names[scan])
+                if points is None:
                     odometry.reset()
                 else:
                     step = odometry.step(points, segmenter.masks(points)[1])  # the ground's surface left out

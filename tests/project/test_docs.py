@@ -570,3 +570,19 @@ def test_history_headings_give_their_final_state():
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(__import__("pytest").main([__file__, "-q"]))
+
+
+def test_the_packages_cite_no_issue_numbers_of_ours():
+    """Comments say why in the present: the history of a choice (which issue, which session, before -> after) lives
+    in BENCHMARKS.md and docs/history.md. Another project's tracker (``onnxruntime's GitHub issue 18048``) is a
+    reference, not history."""
+    ours = re.compile(r"(?<!GitHub )\bissues? \d+", re.IGNORECASE)
+    found = [
+        f"{path.relative_to(REPO)}:{number}"
+        for package in ("icpflow", "fastflow3d")
+        for path in sorted((REPO / package).rglob("*.py"))
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if ours.search(line)
+    ]
+    assert found == []
+    assert ours.search("# issue 44: faster") and not ours.search("onnxruntime's GitHub issue 18048")

@@ -259,10 +259,74 @@ def test_a_disk_filling_up_mid_stream_is_one_line_and_keeps_the_flows_written(
     assert sorted(path.name for path in out.iterdir()) == ["000000.npz", "stream.json"]
     with np.load(out / "000000.npz") as first:
         assert first["flow"].shape == scans[0].shape
-    assert not json.loads((out / "stream.json").read_text())["complete"]
+    assert not json.loads((out / "stream.json").read_text())["complete"]  # the disk took no update of it either
     monkeypatch.undo()  # space is freed: the same command replaces its own outputs
     assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 0
     assert json.loads((out / "stream.json").read_text())["outputs"] == [f"{k:06d}.npz" for k in range(4)]
+
+
+def test_a_rerun_removes_only_the_names_its_stream_writes(tiny_student, moving, tmp_path, capsys):
+    """Outputs are claimed by name: a rerun of the same stream replaces the flow files its scans name and nothing
+    else. A file of the user's there (even a ``.npz``), or a folder or link under one of the stream's names, refuses
+    the rerun in one line before anything is removed."""
+    from fastflow3d.inference.cli import main as infer_main
+
+    _, scans = moving
+    folder, out = tmp_path / "scans", tmp_path / "flows"
+    folder.mkdir()
+    for k, scan in enumerate(scans[:3]):
+        np.save(folder / f"{k:06d}.npy", scan)
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 0
+    flows = {name: (out / name).read_bytes() for name in ("000000.npz", "000001.npz")}
+    for name, make in (
+        ("my_results.npz", lambda path: np.savez(path, mine=np.ones(3))),
+        ("notes.txt", lambda path: path.write_text("mine")),
+        ("000002.npz", lambda path: path.write_text("mine")),  # the last scan starts no pair: not a stream's name
+    ):
+        make(out / name)
+        assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 2
+        assert f"{out}: holds {name}, not an output of this stream" in capsys.readouterr().err
+        assert (out / name).exists() and all((out / k).read_bytes() == v for k, v in flows.items())
+        (out / name).unlink()
+    (out / "000001.npz").unlink()
+    (out / "000001.npz").mkdir()  # a folder under a name the stream writes
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 2
+    assert "000001.npz is not a regular file" in capsys.readouterr().err
+    assert (out / "000000.npz").read_bytes() == flows["000000.npz"]  # nothing removed before the refusal
+    (out / "000001.npz").rmdir()
+    (out / "000001.npz").symlink_to(folder / "000000.npy")
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 2
+    assert "000001.npz is not a regular file" in capsys.readouterr().err and (folder / "000000.npy").is_file()
+
+
+def test_a_stopped_stream_lists_the_flows_it_kept(tiny_student, moving, tmp_path, monkeypatch):
+    """Ctrl-C (``Stop``) at the sixth scan of seven: exit 130, the manifest not complete and listing the flows kept
+    (those written before the stop); the same command afterwards replaces them."""
+    from fastflow3d.inference import stream as stream_module
+    from fastflow3d.inference.cli import main as infer_main
+    from icpflow.core.errors_and_signals import Stop
+
+    _, scans = moving
+    folder, out = tmp_path / "scans", tmp_path / "flows"
+    folder.mkdir()
+    for k, scan in enumerate(scans[:7]):
+        np.save(folder / f"{k:06d}.npy", scan)
+    push, pushed = stream_module.FlowStream.push, []
+
+    def stopping(self, points, *args, **kwargs):
+        pushed.append(1)
+        if len(pushed) == 6:  # the stream runs its pairs behind the scans it reads: some are out by then
+            raise Stop(2)
+        return push(self, points, *args, **kwargs)
+
+    monkeypatch.setattr(stream_module.FlowStream, "push", stopping)
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 130
+    manifest = json.loads((out / "stream.json").read_text())
+    kept = sorted(path.name for path in out.glob("*.npz"))
+    assert not manifest["complete"] and manifest["outputs"] == kept and len(kept) >= 1
+    monkeypatch.undo()
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 0
+    assert json.loads((out / "stream.json").read_text())["outputs"] == [f"{k:06d}.npz" for k in range(6)]
 
 
 def test_infer_stream_needs_a_folder_or_glob_of_two_scans(tiny_student, tmp_path, capsys):
