@@ -69,6 +69,7 @@ from fastflow3d.artifact.file_format import (
 )
 from fastflow3d.inference.model_loading import AUTO, PRECISION_CHOICES
 from fastflow3d.inference.scan_files import read_raw_scan, read_transforms, refuse_input_as_output, write_flow
+from fastflow3d.inference.scan_steps import MAX_SENSOR_HEIGHT, check_sensor_height
 from fastflow3d.inference.stream_folder import (
     claim_output_folder,
     output_name,
@@ -177,15 +178,19 @@ def split_paths(paths: list[Path]) -> tuple[Path | None, Path, Path | None]:
 
 
 def sensor_height(text: str):
-    """``--sensor-height``: ``auto`` or metres >= 0."""
+    """``--sensor-height``: ``auto`` or metres, as ``Predictor.load`` takes them (``check_sensor_height``)."""
     if text == "auto":
         return text
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is neither metres nor 'auto'") from None
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: the height above the ground must be >= 0")
+    try:
+        check_sensor_height(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: must be 'auto' or metres above the ground in [0, {MAX_SENSOR_HEIGHT:g}]"
+        ) from None
     return value
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 from fastflow3d.artifact.engines import (
     PRECISION_RUNTIMES,
     PRECISIONS,
+    RUNTIMES,
     choose_format,
     cpu_only,
     int8_dot_products,
@@ -45,6 +46,36 @@ def check_precision(precision) -> None:
     silently before) in one line naming them."""
     if not (isinstance(precision, str) and precision in PRECISION_CHOICES):
         raise PredictorError(f"precision={precision!r}: use one of {', '.join(PRECISION_CHOICES)}")
+
+
+def check_load_options(precision, sensor_height, threads, device, runtime) -> None:
+    """What ``Predictor.load``, ``fastflow3d-infer`` and ``eval.py`` refuse alike, before a model is opened, each in
+    one line (:class:`PredictorError`): a precision not in :data:`PRECISION_CHOICES`, a sensor height that is not
+    None, ``auto`` or metres (``scan_steps.check_sensor_height``), threads that are not a whole number >= 1 (None:
+    the usable cores), a device torch cannot name or does not have, a runtime not in ``engines.RUNTIMES``."""
+    from fastflow3d.inference.scan_steps import check_sensor_height
+
+    check_precision(precision)
+    check_sensor_height(sensor_height)
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise PredictorError(f"threads={threads!r} must be a whole number >= 1 (or None: the usable cores)")
+    if runtime is not None and runtime not in RUNTIMES:
+        raise PredictorError(f"runtime={runtime!r}: use one of {', '.join(RUNTIMES)} (or None: ONNX Runtime)")
+    check_device(device)
+
+
+def check_device(device) -> None:
+    """Refuse a torch device that torch cannot parse (``gpu``) or that this machine does not have (``cuda:9``)."""
+    import torch
+
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError) as error:
+        raise PredictorError(f"device={device!r}: not a torch device ({one_line(error)}); e.g. cpu or cuda:0") from None
+    if parsed.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if (parsed.index or 0) >= count:
+            raise PredictorError(f"device={device!r}: torch sees {count} CUDA device(s) here; use cpu")
 
 
 def auto_precision(path: Path, backend: str | None, runtime: str | None) -> str:

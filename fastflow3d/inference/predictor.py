@@ -47,10 +47,10 @@ import numpy as np
 from fastflow3d.artifact.file_format import LEGACY_FORMATS
 from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING
 from fastflow3d.artifact.shipped import shipped_label, shipped_model
-from fastflow3d.inference.model_loading import AUTO, check_precision, model_contract, open_model, precision_cost
+from fastflow3d.inference.model_loading import AUTO, check_load_options, model_contract, open_model, precision_cost
 from fastflow3d.inference.prediction import Prediction, PredictorError, PredictorWarning, as_points
 from fastflow3d.inference.refine import RefineConfig, refine_residual
-from fastflow3d.inference.scan_steps import ScanSteps, check_sensor_height
+from fastflow3d.inference.scan_steps import ScanSteps
 from fastflow3d.network.contract import InputContract, PreparedPair
 from icpflow.core.errors_and_signals import one_line
 from icpflow.core.geometry import residual_to_full, rigid_problem
@@ -138,10 +138,10 @@ class Predictor(ScanSteps):
         its ``preprocessing`` entry) replaces the saved one; a bare exported file without its metadata needs it.
         ``refine``: the opt-in ICP refinement (see ``__init__``).
         Raises :class:`ArtifactError` (one line) for a path that is not a readable artifact, and its subclass
-        ``PredictorError`` for a ``precision`` or ``sensor_height`` that ``fastflow3d-infer`` would refuse too.
+        ``PredictorError`` for an option that ``fastflow3d-infer`` and ``eval.py`` refuse too (precision, sensor height,
+        threads, device, runtime: ``fastflow3d.inference.model_loading.check_load_options``).
         """
-        check_precision(precision)  # both refused before the model is opened
-        check_sensor_height(sensor_height)
+        check_load_options(precision, sensor_height, threads, device, runtime)  # before the model is opened
         path = shipped_model() if path is None else Path(path)
         asked = precision
         network, kind, metadata, precision = open_model(path, backend, device, runtime, threads, precision)

@@ -136,13 +136,21 @@ class ScanSteps:
         return ego
 
 
+#: metres: the highest sensor a scan is lifted from (a car's roof is 1.5-2 m, a truck's or a mast's a few metres more);
+#: a height beyond it is a typo or a unit mistake (millimetres), and lifts every scan out of the model's grid
+MAX_SENSOR_HEIGHT = 100.0
+
+
 def check_sensor_height(sensor_height) -> None:
-    """Refuse a ``sensor_height`` other than None, ``"auto"`` or finite metres >= 0 (as ``fastflow3d-infer
-    --sensor-height`` does) in one line."""
+    """Refuse a ``sensor_height`` other than None, ``"auto"`` or metres in [0, ``MAX_SENSOR_HEIGHT``] in one line
+    (``Predictor.load``, ``fastflow3d-infer --sensor-height`` and ``eval.py sensor_height=`` alike)."""
     if not (sensor_height is None or sensor_height == "auto" or _is_height(sensor_height)):
-        raise PredictorError(f"sensor_height={sensor_height!r} must be None, 'auto' or metres >= 0 above the ground")
+        raise PredictorError(
+            f"sensor_height={sensor_height!r} must be None, 'auto' or metres above the ground in [0, "
+            f"{MAX_SENSOR_HEIGHT:g}]"
+        )
 
 
 def _is_height(value) -> bool:
-    """A finite number of metres >= 0 (not a bool)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and 0 <= value < float("inf")
+    """A number of metres in [0, ``MAX_SENSOR_HEIGHT``] (not a bool)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and 0 <= value <= MAX_SENSOR_HEIGHT

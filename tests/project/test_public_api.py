@@ -16,6 +16,7 @@ import sys
 import warnings
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from helpers.data import REPO
@@ -674,12 +675,60 @@ def test_predictor_load_refuses_a_precision_the_cli_refuses(precision, tmp_path)
         Predictor.load(tmp_path / "missing", precision=precision)  # before the model is opened
 
 
-@pytest.mark.parametrize("height", [-1, -0.01, float("nan"), float("inf"), True, "high", "1.73"])
+@pytest.mark.parametrize("height", [-1, -0.01, float("nan"), float("inf"), 1e9, 100.5, True, "high", "1.73"])
 def test_predictor_load_refuses_a_sensor_height_the_cli_refuses(height, tmp_path):
     from fastflow3d.inference.predictor import Predictor
 
-    with pytest.raises(ValueError, match=r"^sensor_height=.* must be None, 'auto' or metres >= 0 above the ground$"):
+    with pytest.raises(
+        ValueError, match=r"^sensor_height=.* must be None, 'auto' or metres above the ground in \[0, 100\]$"
+    ):
         Predictor.load(tmp_path / "missing", sensor_height=height)
+
+
+#: options Predictor.load refuses before opening the model, as the CLI and eval.py do (one validation:
+#: fastflow3d.inference.model_loading.check_load_options): option -> (bad values, the line's start)
+BAD_LOAD_OPTIONS = {
+    "threads": ([0, -2, True, 1.5, "2"], "threads="),
+    "device": (["gpu", "cuda:99", "", 3], "device="),
+    "runtime": (["tensorrt", "OpenVINO", 1], "runtime="),
+    "precision": (["INT8", "fp32", None, 8, True], "precision="),
+}
+
+
+@pytest.mark.parametrize("option", sorted(BAD_LOAD_OPTIONS))
+def test_predictor_load_checks_every_engine_option_before_the_model(option, tmp_path):
+    from fastflow3d.inference.prediction import PredictorError
+    from fastflow3d.inference.predictor import Predictor
+
+    values, start = BAD_LOAD_OPTIONS[option]
+    for value in values:
+        with pytest.raises(PredictorError) as raised:
+            Predictor.load(tmp_path / "missing", **{option: value})  # refused before the (missing) model is read
+        assert str(raised.value).startswith(start) and "\n" not in str(raised.value), (option, value)
+    assert Predictor.load(FIXTURE_EXPORT, threads=1, device="cpu", runtime="onnxruntime").precision
+
+
+@pytest.mark.parametrize(
+    "args, said",
+    [
+        (["--threads", "0"], "threads=0 must be a whole number >= 1"),
+        (["--device", "gpu"], "device='gpu': not a torch device"),
+        (["--sensor-height", "1730"], "'1730': must be 'auto' or metres above the ground in [0, 100]"),
+        (["--sensor-height", "-1"], "'-1': must be 'auto' or metres above the ground in [0, 100]"),
+    ],
+)
+def test_the_cli_refuses_the_engine_options_the_api_refuses(args, said, tmp_path, capsys):
+    from fastflow3d.inference.cli import main as infer_main
+
+    scans = []
+    for name in ("a", "b"):
+        np.save(tmp_path / f"{name}.npy", np.zeros((200, 3), np.float32))
+        scans.append(str(tmp_path / f"{name}.npy"))
+    try:
+        status = infer_main([str(FIXTURE_EXPORT), *scans, "--out", str(tmp_path / "f.npz"), *args])
+    except SystemExit as exit:  # argparse's own refusal of a --sensor-height value
+        status = exit.code
+    assert status == 2 and said in capsys.readouterr().err and not (tmp_path / "f.npz").exists()
 
 
 def test_predictor_load_takes_the_heights_the_cli_takes():
