@@ -40,6 +40,7 @@ from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import FastFlow3D
 from icpflow.core.atomic import write_text_atomic
 from icpflow.core.errors_and_signals import one_line
+from icpflow.core.files import read_text
 
 FORMATS = ("onnx", "pt2")  # what an export writes
 LEGACY_FORMATS = ("torchscript",)  # read only: exports of older versions
@@ -156,7 +157,7 @@ def write_metadata(out_dir: Path, metadata: dict) -> Path:
 def read_metadata(path: Path) -> dict:
     """``metadata.json`` of an export directory (one-line error if missing or not an export's)."""
     try:
-        metadata = json.loads(path.read_text())
+        metadata = json.loads(read_text(path))
     except FileNotFoundError:
         raise ArtifactError(f"{path.parent}: no {METADATA_NAME} (not an export directory; see export.py)") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:

@@ -34,6 +34,7 @@ from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING
 from fastflow3d.inference.prediction import PredictorError
 from fastflow3d.network.contract import ContractError, InputContract, read_grid, upgrade
 from icpflow.core.errors_and_signals import one_line
+from icpflow.core.files import read_text
 
 #: the precision the CLI, ``eval.py`` and ``Predictor.load`` run a student in unless told: :func:`auto_precision`
 AUTO = "auto"
@@ -213,7 +214,7 @@ def given_contract(given, grid) -> InputContract:
     model's ``grid`` (a Grid, or None when unknown) where the given form has none."""
     if isinstance(given, (str, os.PathLike)):
         try:
-            given = json.loads(Path(given).read_text())
+            given = json.loads(read_text(given))
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
             raise PredictorError(f"{given}: cannot read preprocessing: {one_line(error)}") from None
     if not isinstance(given, dict):

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from icpflow.core.atomic import write_text_atomic
+from icpflow.core.files import read_text
 from icpflow.datasets.file_formats import SCAN_SUFFIXES, list_scans
 
 #: a stream's manifest in its output folder (``MANIFEST_VERSION``: its layout)
@@ -113,7 +114,7 @@ def _options(manifest: dict) -> dict:
 def read_manifest(path: Path) -> dict | None:
     """A stream's manifest, or None where there is none or it is not one of ours."""
     try:
-        document = json.loads(path.read_text())
+        document = json.loads(read_text(path))
     except (OSError, ValueError):
         return None
     return document if isinstance(document, dict) and document.get("version") == MANIFEST_VERSION else None

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from icpflow.core.errors_and_signals import one_line
+from icpflow.core.files import NotAFile, read_text, regular_file
 from icpflow.core.frame_pair import MAX_ARRAY_VALUES, MAX_POINTS, FramePairError, check_points
 from icpflow.core.geometry import rigid_problem
 
@@ -63,12 +64,24 @@ def fail(path, message: str) -> FramePairError:
     return FramePairError(f"{path}: {one_line(message)}")
 
 
+def check_file(path: Path) -> int:
+    """The size of the regular file ``path``; a one-line :class:`FramePairError` where it is missing or is something
+    else (a FIFO, a device, a folder: ``icpflow.core.files``), before it is opened."""
+    try:
+        return regular_file(path).st_size
+    except FileNotFoundError:
+        raise fail(path, "file not found") from None
+    except NotAFile as error:
+        raise FramePairError(str(error)) from None
+
+
 def load_npz(path: Path, required: tuple[str, ...], optional: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
     """The ``required`` and present ``optional`` arrays of an ``.npz`` (all of them if ``optional`` is None).
 
     Other keys are not read (they may hold pickled objects, which are never loaded). Missing ``required`` keys
     or a damaged file raise.
     """
+    check_file(path)
     try:
         with open(path, "rb") as handle:
             start = handle.read(4)
@@ -129,6 +142,7 @@ def _npz_member_shape(archive: zipfile.ZipFile, key: str) -> tuple[tuple, int]:
 def load_npy(path: Path) -> np.ndarray:
     """The array of a ``.npy`` file; never unpickles (an object array is refused). A missing, foreign (no NumPy
     header), truncated or damaged file raises one line naming it."""
+    check_file(path)
     try:
         with open(path, "rb") as handle:
             start = handle.read(6)
@@ -157,6 +171,7 @@ def read_feather(path: Path, columns: tuple[str, ...], optional: tuple[str, ...]
     every process reading other formats is spared)."""
     import pandas as pd
 
+    check_file(path)
     try:
         rows, names = _feather_rows(path)
         check_claim(path, "its record batches", (rows, max(1, len(columns))))
@@ -227,10 +242,7 @@ def read_bin(path: Path, columns: int | None = None) -> np.ndarray:
     the column count (``bin_columns`` / ``--bin-columns``). Coordinates that are metres a thousand (or a hundred)
     times over (a median range of kilometres) are said to look like millimetres (or centimetres): convert them.
     """
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError:
-        raise fail(path, "file not found") from None
+    size = check_file(path)
     ask = "" if columns else "; if its layout is not x, y, z, r give its column count (bin_columns=N, --bin-columns N)"
     width = columns or BIN_COLUMNS
     if size % (4 * width):
@@ -287,8 +299,7 @@ def _read_scan(path: Path, bin_columns: int | None) -> np.ndarray:
     if suffix == ".npy":
         return check_points(load_npy(path), path, "scan", allow_empty=False)
     if suffix in (".ply", ".pcd"):
-        if not path.is_file():
-            raise fail(path, "file not found")
+        check_file(path)
         declared = (check_ply_complete if suffix == ".ply" else check_pcd_complete)(path)
         from icpflow.core.open3d_loader import load_open3d
 
@@ -384,10 +395,11 @@ def check_pcd_complete(path: Path) -> int | None:
 
 def read_pose_lines(path: Path) -> np.ndarray:
     """Poses from text, one per line: 12 values (a row-major 3 x 4 matrix, KITTI) or 16 (4 x 4) -> (T, 4, 4)."""
+    check_file(path)
     try:
-        lines = [line.split() for line in path.read_text().splitlines() if line.strip()]
-    except FileNotFoundError:
-        raise fail(path, "file not found") from None
+        lines = [line.split() for line in read_text(path).splitlines() if line.strip()]
+    except NotAFile as error:
+        raise FramePairError(str(error)) from None
     poses = np.tile(np.eye(4), (len(lines), 1, 1))
     for number, values in enumerate(lines, start=1):
         if len(values) not in (12, 16):

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow.core.files import read_text
 from icpflow.core.frame_pair import FramePair
 from icpflow.core.geometry import invert
 from icpflow.datasets.base import IndexedDataset, too_short
@@ -42,7 +43,7 @@ SENSOR_HEIGHT = 1.73  # m: the HDL-64E above the road (KITTI's setup)
 def read_calib_tr(path: Path) -> np.ndarray:
     """The (4, 4) float64 velodyne -> camera transform from the ``Tr:`` line of a KITTI ``calib.txt``."""
     try:
-        lines = path.read_text().splitlines()
+        lines = read_text(path).splitlines()
     except FileNotFoundError:
         raise fail(path, "file not found (needed to turn camera poses into velodyne poses)") from None
     for line in lines:

@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow.core.files import read_text
 from icpflow.core.frame_pair import FramePair, FrameSequence, check_points
 from icpflow.core.geometry import invert, rigid_problem
 from icpflow.datasets.base import PairDataset
@@ -79,7 +80,7 @@ class PCAccumulationDataset(PairDataset):
         self.max_horizon = self.frames - 1
         listing = Path(split_file) if split_file is not None else self.root / f"{split}_info.txt"
         if listing.is_file():
-            lines = [line.strip() for line in listing.read_text().splitlines() if line.strip()]
+            lines = [line.strip() for line in read_text(listing).splitlines() if line.strip()]
             self.files = [self.root / line.lstrip("/") for line in lines]
         elif split_file is not None:
             raise fail(listing, "split file not found")

@@ -29,6 +29,7 @@ import tempfile
 from pathlib import Path
 
 from icpflow.core.atomic import WriteError, write_text_atomic
+from icpflow.core.files import read_text
 from icpflow.evaluation import metrics
 from icpflow.evaluation.run import EvaluationResult
 
@@ -175,7 +176,7 @@ def read_metrics(path, partial_ok: bool = False) -> dict:
     for a partial one unless ``partial_ok``."""
     path = Path(path)
     path = path / "metrics.json" if path.is_dir() else path
-    document = json.loads(path.read_text())
+    document = json.loads(read_text(path))
     if document.get("schema_version") != SCHEMA_VERSION:
         raise ValueError(f"{path}: not an eval.py metrics.json of schema {SCHEMA_VERSION}; rerun eval.py")
     if not document["complete"] and not partial_ok:

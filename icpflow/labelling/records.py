@@ -10,6 +10,7 @@ from pathlib import Path
 import yaml
 
 from icpflow.core.atomic import write_text_atomic
+from icpflow.core.files import read_text
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.labelling.job import LabelError, LabelJob, config_hash
 from icpflow.shards.schema import shard_name
@@ -32,7 +33,7 @@ def record_path(out_dir: Path, shard: int) -> Path:
 def read_record(job: LabelJob, shard: int) -> dict | None:
     """The record of ``shard`` written with this job's config, or None."""
     try:
-        record = json.loads(record_path(job.out_dir, shard).read_text())
+        record = json.loads(read_text(record_path(job.out_dir, shard)))
     except (OSError, ValueError):
         return None
     return record if record.get("config_hash") == job.hash else None
@@ -140,15 +141,16 @@ def prepare(job: LabelJob, plan: list[tuple[int, list[int]]], overwrite: bool) -
     """
     job.out_dir.mkdir(parents=True, exist_ok=True)
     marker = job.out_dir / "config.yaml"
-    if marker.is_file() and config_hash(marker.read_text()) != job.hash:
+    stored = read_text(marker) if marker.exists() else None
+    if stored is not None and config_hash(stored) != job.hash:
         if not overwrite:
             raise LabelError(
-                f"{job.out_dir}: labelled with another config (hash {config_hash(marker.read_text())}, "
-                f"now {job.hash}: {config_changes(marker.read_text(), job.config_yaml)}); pass "
+                f"{job.out_dir}: labelled with another config (hash {config_hash(stored)}, "
+                f"now {job.hash}: {config_changes(stored, job.config_yaml)}); pass "
                 f"overwrite=true to relabel, or choose another out_dir"
             )
         for state in job.out_dir.glob("shard_*.h5.json"):
-            if json.loads(state.read_text()).get("config_hash") != job.hash:
+            if json.loads(read_text(state)).get("config_hash") != job.hash:
                 state.unlink()
                 (job.out_dir / state.name[: -len(".json")]).unlink(missing_ok=True)
     for shard, _ in plan:
@@ -169,7 +171,7 @@ def write_manifests(job: LabelJob, planned: int | None = None, stopped: bool = F
     """
     records = []
     for state in sorted(job.out_dir.glob("shard_*.h5.json")):
-        record = json.loads(state.read_text())
+        record = json.loads(read_text(state))
         if record.get("config_hash") == job.hash:
             records.append(record)
     failures = [f for r in records for f in r["failures"]]

@@ -9,6 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from icpflow.core.files import read_text
 from icpflow.shards.access import ShardError, open_shard, shard_array, shard_group
 from icpflow.shards.schema import OPTIONAL, REQUIRED, group_name
 from icpflow.shards.verify import verify_shard
@@ -30,7 +31,7 @@ class ShardDataset:
         if not index_path.is_file():
             raise FileNotFoundError(f"{index_path}: no index (run label.py first)")
         try:
-            index = json.loads(index_path.read_text())
+            index = json.loads(read_text(index_path))
             shards = index["shards"]
             #: (file name, number of samples) of each shard, and the config hash they were labelled with
             self.shard_sizes = [(shard["file"], len(shard["samples"])) for shard in shards]
