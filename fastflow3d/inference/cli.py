@@ -112,17 +112,17 @@ def parse_args(argv):
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("paths", type=Path, nargs="+", metavar="PATH", help="[MODEL] SCAN0 [SCAN1], or a stream")
+    parser.add_argument("paths", type=user_path, nargs="+", metavar="PATH", help="[MODEL] SCAN0 [SCAN1], or a stream")
     parser.add_argument("--version", action="version", version=f"{PROG} {icpflow.__version__}")
     ego = parser.add_mutually_exclusive_group()
-    ego.add_argument("--poses", type=Path, help="two world_from_ego poses (scan0, scan1)")
-    ego.add_argument("--ego", type=Path, help="one ego1_from_ego0 transform")
-    parser.add_argument("--out", type=Path, help="flow .npz/.npy (default outputs/infer/...); a stream: a folder")
+    ego.add_argument("--poses", type=user_path, help="two world_from_ego poses (scan0, scan1)")
+    ego.add_argument("--ego", type=user_path, help="one ego1_from_ego0 transform")
+    parser.add_argument("--out", type=user_path, help="flow .npz/.npy (default outputs/infer/...); a stream: a folder")
     pictures = parser.add_mutually_exclusive_group()
-    pictures.add_argument("--bev", type=Path, help="BEV PNG (default: the output's name with .png)")
+    pictures.add_argument("--bev", type=user_path, help="BEV PNG (default: the output's name with .png)")
     pictures.add_argument("--no-bev", action="store_true", help="write no picture")
     parser.add_argument("--extent", type=float, default=40.0, help="half-width of the picture in metres")
-    parser.add_argument("--rerun", type=Path, metavar="FILE.rrd", help="also a 3D recording")
+    parser.add_argument("--rerun", type=user_path, metavar="FILE.rrd", help="also a 3D recording")
     parser.add_argument(
         "--precision",
         choices=PRECISION_CHOICES,
@@ -145,7 +145,7 @@ def parse_args(argv):
         "--bin-columns", type=int, choices=range(3, 17), metavar="N", help="float32 values per row of a .bin scan"
     )
     bare = engine.add_mutually_exclusive_group()
-    bare.add_argument("--metadata", type=Path, help="metadata.json of a bare .onnx/.pt2 (its preprocessing)")
+    bare.add_argument("--metadata", type=user_path, help="metadata.json of a bare .onnx/.pt2 (its preprocessing)")
     bare.add_argument(
         "--remove-ground", choices=("yes", "no"), help="a bare .onnx/.pt2 without metadata: trained without ground?"
     )
@@ -175,6 +175,12 @@ def split_paths(paths: list[Path]) -> tuple[Path | None, Path, Path | None]:
     if len(paths) == 1 and is_model(paths[0]):
         raise ValueError(f"{paths[0]} is a model: name the scans after it ([MODEL] SCAN0 SCAN1, or a folder of scans)")
     return model, scans[0], scans[1] if len(scans) == 2 else None
+
+
+def user_path(text: str) -> Path:
+    """A path option as a shell would give it: a leading ``~`` is the home folder, also where the shell left it (a
+    quoted ``'~/x'``, a glob), never a folder named ``~``."""
+    return Path(text).expanduser()
 
 
 def sensor_height(text: str):

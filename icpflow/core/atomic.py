@@ -25,10 +25,17 @@ class WriteError(OSError):
     """A file could not be written (disk full, no permission, I/O error). The message is one line naming it."""
 
 
+#: bytes of a file name on the filesystems we write to (ext4, xfs, btrfs, tmpfs, APFS, NTFS in UTF-16 units)
+NAME_MAX = 255
+
+
 def temporary_name(path: Path) -> Path:
     """A fresh temporary name next to ``path``: ``<name>.tmp-<random><suffix>`` (unique across processes and hosts
-    sharing the folder; the suffix is kept for writers that pick the format from it)."""
-    return path.with_name(f"{path.name}.tmp-{uuid.uuid4().hex}{path.suffix}")
+    sharing the folder; the suffix is kept for writers that pick the format from it). A name too long to take the
+    41 or so bytes more is cut first, so that any name that can be written has a temporary one."""
+    tail = f".tmp-{uuid.uuid4().hex}{path.suffix}"
+    name = path.name.encode()[: NAME_MAX - len(tail.encode())].decode(errors="ignore")
+    return path.with_name(f"{name}{tail}")
 
 
 def fsync_path(path: Path) -> None:

@@ -348,8 +348,8 @@ def signature_schema(target, name: str, exclude: tuple[str, ...] = ()) -> type:
 
 def store(name: str, node, group: str | None = None) -> None:
     """Register the dataclass ``node`` in Hydra's ConfigStore as ``name`` (in ``group``), for a config's defaults
-    list to extend, and the ``home`` resolver (``${home:${out_dir}}``: ``~`` expanded, for the folders Hydra makes
-    before any code of ours runs). Idempotent."""
+    list to extend, and the resolvers of the folders Hydra makes before any code of ours runs: ``home``
+    (``${home:${out_dir}}``: ``~`` expanded) and ``run_folder`` (:func:`run_folder`). Idempotent."""
     import os
 
     from hydra.core.config_store import ConfigStore
@@ -358,6 +358,19 @@ def store(name: str, node, group: str | None = None) -> None:
     ConfigStore.instance().store(name=name, node=node, group=group)
     if not OmegaConf.has_resolver("home"):
         OmegaConf.register_new_resolver("home", lambda path: os.path.expanduser(str(path)))
+    if not OmegaConf.has_resolver("run_folder"):
+        OmegaConf.register_new_resolver("run_folder", run_folder)
+
+
+def run_folder(default: str, out_dir=None) -> str:
+    """Hydra's folder for a launch's config and log (``conf/hydra/default.yaml``): ``default`` (relative to the
+    working directory) where that directory is writable, else ``<out_dir>/.hydra``: a run started from a read-only
+    folder (an installed checkout, a shared drive) writes only where its results go."""
+    import os
+
+    if os.access(".", os.W_OK) or not out_dir:
+        return str(default)
+    return os.path.join(os.path.expanduser(str(out_dir)), ".hydra")
 
 
 def expand_home(cfg) -> None:

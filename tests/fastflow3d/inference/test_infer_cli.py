@@ -88,3 +88,19 @@ def test_infer_cli_sensor_height(export_dir, pairs, expected, tmp_path, capsys):
     assert len(lines) == 1 and lines[0].startswith("infer: warning: the ground of pc0 lies at z = -1.")
     with pytest.raises(SystemExit):
         infer_main([*common, "--sensor-height", "tall"])
+
+
+def test_a_tilde_in_any_path_option_is_the_home_folder(export_dir, pairs, tmp_path, monkeypatch):
+    """``--out '~/x'`` (quoted: no shell expands it), the scans and ``--bev`` given with ``~``: the home folder, never
+    a folder named ``~`` in the working directory."""
+    home, work = tmp_path / "home", tmp_path / "work"
+    home.mkdir()
+    work.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(work)
+    write_scan(home / "a.npy", pairs[1].pc0)
+    write_scan(home / "b.npy", pairs[1].pc1)
+    args = [str(export_dir), "~/a.npy", "~/b.npy", "--out", "~/flows/f.npz", "--bev", "~/flows/f.png"]
+    assert infer_main(args) == 0
+    assert (home / "flows" / "f.npz").is_file() and (home / "flows" / "f.png").is_file()
+    assert not (work / "~").exists()

@@ -5,7 +5,7 @@ import os
 
 import pytest
 
-from icpflow.core.atomic import WriteError, atomic_path, write_text_atomic
+from icpflow.core.atomic import WriteError, atomic_path, temporary_name, write_text_atomic
 
 
 def test_a_finished_write_replaces_the_target_and_leaves_no_temporary(tmp_path):
@@ -51,3 +51,14 @@ def test_write_text_makes_the_folder_when_asked(tmp_path):
     target = tmp_path / "a" / "b" / "metrics.csv"
     write_text_atomic(target, "x,y\n1,2\n", make_parents=True)
     assert target.read_text() == "x,y\n1,2\n" and os.listdir(target.parent) == ["metrics.csv"]
+
+
+@pytest.mark.parametrize("name", ["a" * 214 + ".npz", "b" * 251 + ".npz", "é" * 125 + ".json", "c" * 255])
+def test_every_name_that_can_be_written_has_a_temporary_one(tmp_path, name):
+    """A scan named with 210+ characters gives an output name the temporary suffix would push over the 255 bytes a
+    file name may hold: the temporary name is cut, the target keeps its whole name."""
+    target = tmp_path / name
+    write_text_atomic(target, "x")
+    assert target.read_text() == "x" and [path.name for path in tmp_path.iterdir()] == [name]
+    temporary = temporary_name(target)
+    assert len(temporary.name.encode()) <= 255 and (not target.suffix or temporary.suffix == target.suffix)
