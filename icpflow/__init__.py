@@ -1,8 +1,11 @@
 """icpflow: the ICP-Flow teacher, dataset readers, pseudo-label shards and scene-flow metrics."""
 
 from icpflow.core.frame_pair import FramePair, FramePairError, FrameSequence
+from icpflow.core.kernel_cache import choose_kernel_cache
 
 __version__ = "0.2.0"
+
+choose_kernel_cache()  # before any kernel is defined: a read-only install and home still run
 
 __all__ = ["FramePair", "FramePairError", "FrameSequence", "ICPFlow", "ICPFlowConfig", "__version__"]
 
