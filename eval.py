@@ -11,7 +11,7 @@ from fastflow3d.inference.eval_methods. The same as the console script ``fastflo
 Several horizons give the long-horizon table (EPE against the time gap, one row per method and horizon).
 """
 
-from fastflow3d.inference.eval_cli import main
+from fastflow3d.inference.launch import eval_main
 
 if __name__ == "__main__":
-    main()
+    eval_main()

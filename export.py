@@ -6,7 +6,7 @@ metadata.json. The same as the console script ``fastflow3d-export`` (``fastflow3
     python export.py checkpoint=<path.ckpt> [format=onnx|pt2|all] [out_dir=<dir>]
 """
 
-from fastflow3d.training.cli import export_main
+from fastflow3d.training.launch import export_main
 
 if __name__ == "__main__":
     export_main()

@@ -7,7 +7,7 @@ python label.py dataset=<name> [dataset.root=...] [split=train] [icpflow.<field>
 python label.py -m shard_index=0,1,2,3 num_shards=4 ... [hydra/launcher=submitit_slurm]   # one job per part
 """
 
-from icpflow.labelling.cli import main
+from icpflow.labelling.launch import main
 
 if __name__ == "__main__":
     main()

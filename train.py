@@ -7,7 +7,7 @@ python train.py [experiment=synthetic_quick|paper|zeroflow] [data.train=<shard d
     [out_dir=<dir>] [ckpt_path=last]
 """
 
-from fastflow3d.training.cli import train_main
+from fastflow3d.training.launch import train_main
 
 if __name__ == "__main__":
     train_main()

@@ -40,7 +40,7 @@ from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import FastFlow3D
 from icpflow.core.atomic import write_text_atomic
 from icpflow.core.errors_and_signals import one_line
-from icpflow.core.files import read_text
+from icpflow.core.files import NotAFile, read_text
 
 FORMATS = ("onnx", "pt2")  # what an export writes
 LEGACY_FORMATS = ("torchscript",)  # read only: exports of older versions
@@ -160,6 +160,8 @@ def read_metadata(path: Path) -> dict:
         metadata = json.loads(read_text(path))
     except FileNotFoundError:
         raise ArtifactError(f"{path.parent}: no {METADATA_NAME} (not an export directory; see export.py)") from None
+    except NotAFile as error:  # a FIFO, a device, a file too large: its own line
+        raise ArtifactError(str(error)) from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise ArtifactError(f"{path}: cannot read export metadata: {one_line(error)}") from None
     if not isinstance(metadata, dict) or not isinstance(metadata.get("files"), dict):

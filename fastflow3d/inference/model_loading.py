@@ -34,7 +34,7 @@ from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING
 from fastflow3d.inference.prediction import PredictorError
 from fastflow3d.network.contract import ContractError, InputContract, read_grid, upgrade
 from icpflow.core.errors_and_signals import one_line
-from icpflow.core.files import read_text
+from icpflow.core.files import NotAFile, read_text
 
 #: the precision the CLI, ``eval.py`` and ``Predictor.load`` run a student in unless told: :func:`auto_precision`
 AUTO = "auto"
@@ -215,6 +215,8 @@ def given_contract(given, grid) -> InputContract:
     if isinstance(given, (str, os.PathLike)):
         try:
             given = json.loads(read_text(given))
+        except NotAFile as error:  # a FIFO, a device, a file too large: its own line
+            raise PredictorError(str(error)) from None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
             raise PredictorError(f"{given}: cannot read preprocessing: {one_line(error)}") from None
     if not isinstance(given, dict):

@@ -202,6 +202,23 @@ def _full_error_asked() -> bool:
     return os.environ.get(FULL_ERROR, "") not in ("", "0") and MARKER not in os.environ
 
 
+#: what a stop can arrive as: a Stop or KeyboardInterrupt raised by a signal's handler, or, where the handler ran
+#: while a compiled (numba) kernel returned, the SystemError that wraps it ("CPUDispatcher(...) returned a result with
+#: an exception set"); :func:`stopped_by` tells them apart
+STOPS = (Stop, KeyboardInterrupt, SystemError)
+
+
+def stopped_by(error: BaseException) -> BaseException:
+    """The Stop or KeyboardInterrupt that ``error`` is or that a kernel's SystemError wraps (its cause, or its
+    context); ``error`` itself is raised again where it is not a stop."""
+    seen = error
+    while isinstance(seen, SystemError):
+        seen = seen.__cause__ or seen.__context__
+    if isinstance(seen, (Stop, KeyboardInterrupt)):
+        return seen
+    raise error
+
+
 @contextlib.contextmanager
 def reported(prog: str, *expected: type[BaseException]) -> Iterator[None]:
     """An exception that escapes the block becomes one line on stderr, ``<prog>: ...``, and an exit status (module
@@ -210,7 +227,10 @@ def reported(prog: str, *expected: type[BaseException]) -> Iterator[None]:
     by :func:`run`, around it (Hydra's own errors)."""
     full = _full_error_asked()
     try:
-        yield
+        try:
+            yield
+        except SystemError as error:  # a stop that arrived inside a compiled kernel: the stop it wraps
+            raise stopped_by(error) from None
     except Stop as stop:
         if launching_process():  # the ranks a launcher started beside it stop with it, silently
             print(f"{prog}: {one_line(stop)}", file=sys.stderr)

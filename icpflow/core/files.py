@@ -52,9 +52,6 @@ def read_bytes(path: str | os.PathLike, limit: int = MAX_TEXT_BYTES) -> bytes:
 
 
 def read_text(path: str | os.PathLike, limit: int = MAX_TEXT_BYTES) -> str:
-    """The UTF-8 text of the regular file ``path`` (:func:`read_bytes`); a file that is not UTF-8 is a one-line
-    :class:`NotAFile`."""
-    try:
-        return read_bytes(path, limit).decode("utf-8")
-    except UnicodeDecodeError as error:
-        raise NotAFile(f"{path}: not UTF-8 text (byte {error.start})") from None
+    """The UTF-8 text of the regular file ``path`` (:func:`read_bytes`); UnicodeDecodeError where it is not UTF-8
+    (each reader says what it expected instead)."""
+    return read_bytes(path, limit).decode("utf-8")

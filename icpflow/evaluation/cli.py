@@ -25,7 +25,14 @@ from omegaconf import DictConfig
 from icpflow.core.atomic import WriteError, write_text_atomic
 from icpflow.core.console import quiet
 from icpflow.core.entry_points import hydra_entry
-from icpflow.core.errors_and_signals import Stop, one_line, reported, stop_on_signals, stop_signum
+from icpflow.core.errors_and_signals import (
+    STOPS,
+    one_line,
+    reported,
+    stop_on_signals,
+    stop_signum,
+    stopped_by,
+)
 from icpflow.core.settings import check_config
 from icpflow.evaluation.methods import EvaluationError, MethodFactory, build_methods, parse_horizons
 from icpflow.evaluation.options import register
@@ -110,7 +117,8 @@ def run_eval(
     with stop_on_signals():  # SIGTERM and Ctrl-C raise icpflow.core.errors_and_signals.Stop
         try:
             return _run_eval(cfg, progress, extra_methods, hooks)
-        except (Stop, KeyboardInterrupt) as stop:  # before the scoring began: nothing to keep
+        except STOPS as caught:  # before the scoring began: nothing to keep
+            stop = stopped_by(caught)
             end_child_processes()
             what, status = _stopped(stop)
             print(f"eval: {what} before any pair was scored; nothing written", file=sys.stderr)
@@ -175,8 +183,8 @@ def _run_eval(cfg, progress, extra_methods, hooks) -> int:
     with recording or contextlib.nullcontext():
         try:
             evaluation.run(range(limit), all_hooks, progress)
-        except (Stop, KeyboardInterrupt) as stop:  # SIGTERM or Ctrl-C: keep what was scored
-            stopped, status = _stopped(stop)
+        except STOPS as caught:  # SIGTERM or Ctrl-C (also inside a kernel): keep what was scored
+            stopped, status = _stopped(stopped_by(caught))
             end_child_processes()
     if recording is not None:
         print(f"eval: 3D recording of {recording.pairs} pairs -> {recording.path} (open it with: rerun <file>)")

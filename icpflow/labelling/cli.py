@@ -16,7 +16,14 @@ from omegaconf import DictConfig, OmegaConf
 from icpflow.core.atomic import WriteError
 from icpflow.core.console import quiet
 from icpflow.core.entry_points import hydra_entry
-from icpflow.core.errors_and_signals import Stop, one_line, reported, stop_on_signals, stop_signum
+from icpflow.core.errors_and_signals import (
+    STOPS,
+    one_line,
+    reported,
+    stop_on_signals,
+    stop_signum,
+    stopped_by,
+)
 from icpflow.core.settings import check_config
 from icpflow.core.threads import available_cores
 from icpflow.datasets.from_config import dataset_root, open_dataset
@@ -114,8 +121,8 @@ def label(cfg: DictConfig, progress: bool = True) -> int:
         except (LabelError, ValueError, OSError) as error:  # OSError: out_dir not creatable, unreadable input
             print(f"label: {one_line(error)}", file=sys.stderr)
             return 2
-        except (Stop, KeyboardInterrupt) as stop:  # SIGTERM or Ctrl-C
-            signum = stop_signum(stop)
+        except STOPS as caught:  # SIGTERM or Ctrl-C (also inside a kernel)
+            signum = stop_signum(stopped_by(caught))
             what = "terminated (SIGTERM)" if signum == signal.SIGTERM else "interrupted"
             print(
                 f"label: {what}; complete shards are kept in {cfg.out_dir}, rerun the same command to resume",

@@ -1,7 +1,6 @@
 """Real faults, each reproduced on a small synthetic input: the run says what happened in one line naming the file
 or the out_dir, keeps every finished piece of work, leaves no process behind, and a rerun completes the job."""
 
-import errno
 import json
 import logging
 import os
@@ -181,27 +180,10 @@ def test_a_full_disk_is_one_line_and_keeps_the_finished_shards(reference, tmp_pa
     assert_same(reference, out)
 
 
-class DiskFullSynthetic(SyntheticDataset):
-    """The small world in a label.py run whose disk fills up while the workers label: from the moment this reader is
-    built in the main process, which writes the shards, every fsync of shard 0's files fails with ENOSPC (the small
-    index and records still fit)."""
-
-    def __init__(self, **kwargs):
-        super().__init__(**kwargs)
-        real = os.fsync
-
-        def fsync(fd):
-            if os.readlink(f"/proc/self/fd/{fd}").rsplit("/", 1)[-1].startswith("shard_000000.h5"):
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-            real(fd)
-
-        os.fsync = fsync  # in the main process of this label.py run only
-
-
 @pytest.mark.slow
 def test_a_full_disk_while_workers_run_is_one_line_and_leaves_no_process(tmp_path):
     out = tmp_path / "labels"
-    args = ["dataset.reader._target_=test_faults.DiskFullSynthetic", "workers=2", "shard_size=3"]
+    args = ["dataset.reader._target_=helpers.readers.DiskFullSynthetic", "workers=2", "shard_size=3"]
     process = subprocess.Popen(
         label_script(out, *args),
         cwd=tmp_path,

@@ -242,3 +242,56 @@ def test_without_signal_masks_the_block_runs_as_it_is(monkeypatch):
     with signals_held():
         ran.append(True)
     assert ran == [True]
+
+
+def test_a_stop_that_a_kernel_wraps_is_the_stop(capsys):
+    """A signal whose handler runs while a compiled kernel returns surfaces as ``SystemError: CPUDispatcher(...)
+    returned a result with an exception set`` caused by the Stop: it is read as the Stop it wraps (exit 128 + N and
+    its line), any other SystemError stays one."""
+    from icpflow.core.errors_and_signals import exit_status, stopped_by
+
+    def wrapped(stop: BaseException):
+        try:
+            raise stop
+        except BaseException as cause:
+            raise SystemError("CPUDispatcher(<function nearest>) returned a result with an exception set") from cause
+
+    def body():
+        wrapped(Stop(signal.SIGTERM))
+
+    assert exit_status("infer", body) == 143
+    assert capsys.readouterr().err == "infer: terminated (SIGTERM)\n"
+    with pytest.raises(SystemError) as raised:
+        wrapped(KeyboardInterrupt())
+    assert isinstance(stopped_by(raised.value), KeyboardInterrupt)
+    with pytest.raises(SystemError, match="other"):
+        stopped_by(SystemError("other"))
+
+
+#: each entry point as its console script or checkout script starts it (``icpflow.core.launch``)
+STARTS = {
+    "label": [str(REPO / "label.py"), "dataset.reader.num_sequences=1"],
+    "train": [str(REPO / "train.py"), "trainer.max_steps=1"],
+    "infer": ["-c", "import sys; from fastflow3d.inference.launch import infer; sys.exit(infer())", "missing.npy"],
+}
+
+
+@pytest.mark.parametrize("prog", sorted(STARTS))
+def test_ctrl_c_while_an_entry_point_starts_is_one_line_and_130(prog, tmp_path):
+    """A Ctrl-C while the command still imports its libraries (torch, numba, Hydra: seconds) ends as at any other
+    moment: one line naming the program, exit 130, no traceback; sent at several moments of the start."""
+    import subprocess
+    import sys
+
+    for delay in (0.6, 1.0, 1.6):
+        process = subprocess.Popen(
+            [sys.executable, *STARTS[prog]], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        time.sleep(delay)
+        process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=300)
+        if process.returncode == 2 and prog == "infer":  # it had started and refused the missing scan already
+            continue
+        assert process.returncode == 130, (prog, delay, err[-600:])
+        assert "Traceback" not in err, (prog, delay, err[-2000:])
+        assert err.strip().splitlines()[-1].startswith(f"{prog}: interrupted"), (prog, delay, err[-600:])

@@ -5,7 +5,6 @@ where this machine permits mounting one (root), an injected OSError otherwise.""
 
 import errno
 import json
-import multiprocessing
 import os
 import signal
 import subprocess
@@ -37,33 +36,6 @@ TESTS_ENV = {
 }
 
 
-def idle_helper(ready: str) -> None:
-    """A library's worker process: ignores Ctrl-C (its parent handles it), says it is up, waits ten minutes."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    Path(ready).touch()
-    time.sleep(600)
-
-
-class StallAfterFirst(SyntheticDataset):
-    """The small synthetic world whose second sample takes a minute to read; ``marker`` appears when it starts.
-    Before it stalls it starts a helper process that would run for ten minutes, as a library's worker pool does
-    (hdbscan's loky workers did, and once outlived a terminated eval.py)."""
-
-    def __init__(self, marker, **kwargs):
-        super().__init__(**kwargs)
-        self.marker = Path(marker)
-
-    def pair(self, index, horizon=1):
-        if index >= 1:
-            ready = self.marker.with_name("helper-ready")
-            multiprocessing.get_context("spawn").Process(target=idle_helper, args=(str(ready),)).start()
-            while not ready.exists():  # up and ignoring Ctrl-C before the test signals the group
-                time.sleep(0.05)
-            self.marker.touch()
-            time.sleep(60)
-        return super().pair(index, horizon)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_a_stopped_eval_keeps_the_pairs_scored_and_leaves_no_process(tmp_path, sig):
@@ -73,7 +45,7 @@ def test_a_stopped_eval_keeps_the_pairs_scored_and_leaves_no_process(tmp_path, s
             sys.executable,
             str(REPO / "eval.py"),
             *SMALL,
-            "dataset.reader._target_=test_faults_evaluation.StallAfterFirst",
+            "dataset.reader._target_=helpers.readers.StallAfterFirst",
             f"+dataset.reader.marker={marker}",
             "method=[ego,icpflow]",
             "bev=0",

@@ -19,7 +19,6 @@ import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from icpflow.core.frame_pair import FramePairError
 from icpflow.core.threads import available_cores, thread_limit
 from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.labelling.cli import label
@@ -184,21 +183,8 @@ def test_truncated_and_corrupt_shards_are_redone(reference, tmp_path, capsys):
     assert_same(reference, out)
 
 
-class FlakySynthetic(SyntheticDataset):
-    """The small synthetic world where the reader fails on sample 1 and sample 3 reaches the teacher with an empty
-    pc0 but a full ground mask (the teacher rejects it)."""
-
-    def pair(self, index, horizon=1):
-        if index == 1:
-            raise FramePairError("/data/log/000001.bin: pc0 must have shape (N, 3), got (7,)")
-        pair = super().pair(index, horizon)
-        if index == 3:
-            pair.pc0 = pair.pc0[:0]
-        return pair
-
-
 def test_failures_are_recorded_and_the_run_goes_on(tmp_path, capsys):
-    cfg = label_cfg(tmp_path, f"dataset.reader._target_={__name__}.FlakySynthetic")
+    cfg = label_cfg(tmp_path, "dataset.reader._target_=helpers.readers.FlakySynthetic")
     status = label(cfg, progress=False)
     assert status == 1
     n0 = len(SyntheticDataset(**READER).pair(3).pc0)
@@ -376,7 +362,7 @@ def test_horizon_beyond_teacher_or_dataset_is_refused(tmp_path, capsys, horizon,
 
 def test_failure_ids_name_the_pair_of_the_horizon(tmp_path):
     cfg = label_cfg(
-        tmp_path, f"dataset.reader._target_={__name__}.FlakySynthetic", "dataset.reader.max_horizon=2", "horizon=2"
+        tmp_path, "dataset.reader._target_=helpers.readers.FlakySynthetic", "dataset.reader.max_horizon=2", "horizon=2"
     )
     assert label(cfg, progress=False) == 1
     failures = [json.loads(line) for line in (tmp_path / "failures.jsonl").read_text().splitlines()]
@@ -560,7 +546,9 @@ def test_a_worker_that_dies_fails_its_sample_only(reference, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_multirun_jobs_label_the_union(reference, tmp_path):
-    flaky = "dataset.reader._target_=test_label.FlakySynthetic"  # samples 1 and 3 fail: each job ends with status 1
+    flaky = (
+        "dataset.reader._target_=helpers.readers.FlakySynthetic"  # samples 1 and 3 fail: each job ends with status 1
+    )
     command = label_script(tmp_path / "labels", flaky, "workers=1", "shard_index=0,1", "num_shards=2")
     run = subprocess.run(
         [*command[:2], "-m", *command[2:]], cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True
