@@ -135,13 +135,55 @@ def components(points: np.ndarray, cell: float, occupying: np.ndarray | None = N
     from scipy import ndimage
 
     from icpflow.scans.bev import occupied_cells
+    from icpflow.scans.neighbours import GRID_MIN_CELLS
 
     if not len(points):
         return np.zeros(0, np.int64), 0
     occupying = np.ones(len(points), bool) if occupying is None else np.asarray(occupying, bool)
+    cells = np.floor(points[:, :2] / points.dtype.type(cell)).astype(np.int64)
+    if np.prod(cells.max(axis=0) - cells.min(axis=0) + 1, dtype=np.float64) > max(GRID_MIN_CELLS, 4 * len(points)):
+        return sparse_components(cells, occupying)  # stray points far out: the box would not fit in memory
     cells, occupied = occupied_cells(points, points.dtype.type(cell), occupying)
     labels, count = ndimage.label(occupied, structure=np.ones((3, 3), bool))
     return labels[cells[:, 0], cells[:, 1]].astype(np.int64) - 1, int(count)
+
+
+def sparse_components(cells: np.ndarray, occupying: np.ndarray) -> tuple[np.ndarray, int]:
+    """:func:`components` from each point's (N, 2) int64 cell, in memory that follows the points: the occupied
+    cells' 8-neighbour graph (scipy's connected components), numbered as ``ndimage.label`` numbers them (in the order
+    of each component's first cell, x then y)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    occupied = np.unique(cells[occupying], axis=0)  # sorted by x, then y
+    if not len(occupied):
+        return np.full(len(cells), -1, np.int64), 0
+    low = cells.min(axis=0)  # one key per cell of any point: the points' cells never alias an occupied one
+    width = int(cells[:, 1].max() - low[1]) + 3
+
+    def key(rows):
+        return (rows[:, 0] - low[0] + 1) * width + (rows[:, 1] - low[1] + 1)
+
+    keys = key(occupied)
+    sources, targets = [np.arange(len(keys))], [np.arange(len(keys))]
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            if dx or dy:
+                wanted = key(occupied + (dx, dy))
+                at = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
+                hit = keys[at] == wanted
+                sources.append(np.flatnonzero(hit))
+                targets.append(at[hit])
+    rows, columns = np.concatenate(sources), np.concatenate(targets)
+    graph = coo_matrix((np.ones(len(rows), np.int8), (rows, columns)), shape=(len(keys), len(keys)))
+    count, labels = connected_components(graph, directed=False)
+    _, first = np.unique(labels, return_index=True)
+    order = np.empty(count, np.int64)
+    order[np.argsort(first)] = np.arange(count)  # components numbered by their first cell
+    point_keys = key(cells)
+    at = np.minimum(np.searchsorted(keys, point_keys), len(keys) - 1)
+    inside = keys[at] == point_keys
+    return np.where(inside, order[labels[at]], -1).astype(np.int64), int(count)
 
 
 def median_at_least(values: np.ndarray, starts: np.ndarray, sizes: np.ndarray, threshold: float) -> np.ndarray:

@@ -35,6 +35,11 @@ def occupied_cells(points, cell, occupying):
     return cells, occupied
 
 
+#: the most cells the boxes' covering grid spans (a bool each) beyond 4 per point; boxes farther apart are tested one by
+#: one, the same points found
+MAX_COVER_CELLS = 1 << 24
+
+
 @numba.njit(cache=True, nogil=True)
 def in_box_cells(points, lows, highs, cell):
     """Indices (increasing, int64) of the (N, 3) ``points`` in the cells that the (K, 3) boxes ``lows`` .. ``highs``
@@ -52,11 +57,21 @@ def in_box_cells(points, lows, highs, cell):
         last[k, 0] = int(np.floor((highs[k, 0] - origin_x) / cell))
         last[k, 1] = int(np.floor((highs[k, 1] - origin_y) / cell))
         size_x, size_y = max(size_x, last[k, 0] + 1), max(size_y, last[k, 1] + 1)
+    found = np.empty(points.shape[0], np.int64)
+    count = 0
+    if size_x * size_y > max(MAX_COVER_CELLS, 4 * points.shape[0]):  # boxes far apart: each box's cells in turn
+        for i in range(points.shape[0]):
+            cx = np.floor((points[i, 0] - origin_x) / cell)
+            cy = np.floor((points[i, 1] - origin_y) / cell)
+            for k in range(lows.shape[0]):
+                if first[k, 0] <= cx <= last[k, 0] and first[k, 1] <= cy <= last[k, 1]:
+                    found[count] = i
+                    count += 1
+                    break
+        return found[:count]
     covered = np.zeros((size_x, size_y), np.bool_)
     for k in range(lows.shape[0]):
         covered[first[k, 0] : last[k, 0] + 1, first[k, 1] : last[k, 1] + 1] = True
-    found = np.empty(points.shape[0], np.int64)
-    count = 0
     for i in range(points.shape[0]):
         cx = np.floor((points[i, 0] - origin_x) / cell)
         cy = np.floor((points[i, 1] - origin_y) / cell)

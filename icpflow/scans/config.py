@@ -8,6 +8,11 @@ from dataclasses import dataclass
 
 from icpflow.core.settings import Checked, setting
 
+#: the most cells of the ground's height map (``icpflow.scans.ground.ground_height``: (2 * patchwork_max_range /
+#: cell) ** 2 of them, 4 bytes each and a few working arrays): 16.7 M, a 2 km wide map of 0.5 m cells; the defaults
+#: make 65,536
+MAX_HEIGHT_MAP_CELLS = 1 << 24
+
 
 @dataclass(frozen=True)
 class EgoMotionConfig(Checked):
@@ -43,3 +48,13 @@ class GroundConfig(Checked):
     slope: float = setting(0.3, "non_negative")
     column_radius: float = setting(0.15, "non_negative")
     column_gap: float = setting(0.6, "non_negative")
+
+    def __post_init__(self):
+        super().__post_init__()
+        cells = (2.0 * self.patchwork_max_range / self.cell) ** 2
+        if cells > MAX_HEIGHT_MAP_CELLS:
+            raise ValueError(
+                f"GroundConfig: patchwork_max_range {self.patchwork_max_range:g} m in cells of {self.cell:g} m makes "
+                f"a ground-height map of {cells:.3g} cells, over the {MAX_HEIGHT_MAP_CELLS} it may hold: raise "
+                "ground.cell or lower ground.patchwork_max_range"
+            )

@@ -24,23 +24,45 @@ MAX_KNN_SHELL = 8
 GAVE_UP = -2
 
 
+#: the most xy columns (and z cells) a grid of n points spans beyond ``GRID_CELLS_PER_POINT * n``: a cloud whose
+#: bounding box would need more (stray returns kilometres out) gets a box of this size around its median, its
+#: outlying points in the border cells, so that memory follows the number of points, not where they are
+GRID_MIN_CELLS = 1 << 20
+GRID_CELLS_PER_POINT = 4
+
+
 @numba.njit(cache=True, nogil=True)
 def build_grid(points, cell):
-    """Voxel grid of (N, 3) points, sorted by xy column then z cell: (origin (3,), dims (3,), column starts
-    (nx * ny + 1,), z cell of each sorted point (N,), sorted point order (N,))."""
+    """Voxel grid of (N, 3) points, sorted by xy column then z cell: (origin (3,), dims (4,): cells along x, y, z and
+    1 where the box is narrower than the points' (0 else), column starts (nx * ny + 1,), z cell of each sorted point
+    (N,), sorted point order (N,)).
+
+    The box is the points' bounding box, unless its columns or z cells would exceed ``GRID_CELLS_PER_POINT`` per
+    point (at least ``GRID_MIN_CELLS``): then each such axis spans that many cells around the points' median, and a
+    point beyond sits in the border cell. Searches stay exact: such a point is farther than its cell says, which no
+    pruning relies on, and a query outside a narrowed box scans every point (:func:`nearest`)."""
+    n = points.shape[0]
+    most = max(GRID_MIN_CELLS, GRID_CELLS_PER_POINT * n)
+    side = int(np.sqrt(most))
     origin = np.empty(3)
-    dims = np.empty(3, dtype=np.int64)
+    dims = np.zeros(4, dtype=np.int64)
     for a in range(3):
         lo, hi = points[:, a].min(), points[:, a].max()
         origin[a] = lo
         dims[a] = int((hi - lo) / cell) + 1
-    n = points.shape[0]
+    if dims[0] * dims[1] > most or dims[2] > most:
+        dims[3] = 1
+        for a in range(3):
+            bound = side if a < 2 else most
+            if dims[a] > bound:
+                origin[a] = max(points[:, a].min(), np.median(points[:, a]) - 0.5 * bound * cell)
+                dims[a] = bound
     columns = np.empty(n, dtype=np.int64)
     z_cells = np.empty(n, dtype=np.int64)
     for i in range(n):
-        cx = min(int((points[i, 0] - origin[0]) / cell), dims[0] - 1)
-        cy = min(int((points[i, 1] - origin[1]) / cell), dims[1] - 1)
-        z_cells[i] = min(int((points[i, 2] - origin[2]) / cell), dims[2] - 1)
+        cx = min(max(int((points[i, 0] - origin[0]) / cell), 0), dims[0] - 1)
+        cy = min(max(int((points[i, 1] - origin[1]) / cell), 0), dims[1] - 1)
+        z_cells[i] = min(max(int((points[i, 2] - origin[2]) / cell), 0), dims[2] - 1)
         columns[i] = cx * dims[1] + cy
     # a stable sort by (column, z cell): by z cell, then by column, both counting sorts (a stable argsort of the
     # combined key gives the same order, 7x slower on 40k points)
@@ -119,6 +141,8 @@ def nearest(q, points, grid, cell, max_d2):
     c2 = int(np.floor((q[2] - origin[2]) / cell))
     # Chebyshev distance in cells from q's cell to the grid box
     gap = max(0, -c0, c0 - (dims[0] - 1), -c1, c1 - (dims[1] - 1), -c2, c2 - (dims[2] - 1))
+    if dims[3] and gap > 0:
+        return _nearest_brute(q, points, max_d2)  # outside a narrowed box: its border cells hold points beyond it
     if gap > 1 and ((gap - 1) * cell) ** 2 >= max_d2:
         return -1, max_d2  # the whole grid is out of reach
     best_d2, best_j = max_d2, -1
@@ -190,6 +214,18 @@ def _scan_column_k(q, points, starts, z_sorted, order, dims, cx, cy, z0, z1, bes
 
 
 @numba.njit(cache=True, nogil=True)
+def _k_nearest_all(q, points, best_d2, best_j):
+    """The k nearest of every point to q into ``best_d2`` / ``best_j``, started again: below the caller's max_d2 (still
+    the last entry where fewer than k were found; where k were, the k nearest are nearer than it anyway)."""
+    k = best_d2.shape[0]
+    limit = best_d2[k - 1] if best_j[k - 1] < 0 else np.inf
+    best_d2[:] = limit
+    best_j[:] = -1
+    for j in range(points.shape[0]):
+        _keep((points[j, 0] - q[0]) ** 2 + (points[j, 1] - q[1]) ** 2 + (points[j, 2] - q[2]) ** 2, j, best_d2, best_j)
+
+
+@numba.njit(cache=True, nogil=True)
 def _k_nearest_one(q, points, grid, cell, best_d2, best_j, max_shell, scan_all):
     """The k nearest of ``points`` to q into ``best_d2`` / ``best_j`` (k,), which hold (max_d2, -1) on entry: the
     search of :func:`nearest`, pruned by the k-th distance so far; beyond ``max_shell`` shells a full scan
@@ -200,6 +236,9 @@ def _k_nearest_one(q, points, grid, cell, best_d2, best_j, max_shell, scan_all):
     c1 = int(np.floor((q[1] - origin[1]) / cell))
     c2 = int(np.floor((q[2] - origin[2]) / cell))
     gap = max(0, -c0, c0 - (dims[0] - 1), -c1, c1 - (dims[1] - 1), -c2, c2 - (dims[2] - 1))
+    if dims[3] and gap > 0:  # outside a narrowed box: its border cells hold points beyond it
+        _k_nearest_all(q, points, best_d2, best_j)
+        return
     if gap > 1 and ((gap - 1) * cell) ** 2 >= best_d2[k - 1]:
         return
     r = gap
@@ -211,18 +250,7 @@ def _k_nearest_one(q, points, grid, cell, best_d2, best_j, max_shell, scan_all):
             if not scan_all:
                 best_j[:] = GAVE_UP
                 return
-            # start again over every point: below the caller's max_d2 (still the last entry where fewer than k were
-            # found; where k were, the k nearest are nearer than it anyway)
-            limit = best_d2[k - 1] if best_j[k - 1] < 0 else np.inf
-            best_d2[:] = limit
-            best_j[:] = -1
-            for j in range(points.shape[0]):
-                _keep(
-                    (points[j, 0] - q[0]) ** 2 + (points[j, 1] - q[1]) ** 2 + (points[j, 2] - q[2]) ** 2,
-                    j,
-                    best_d2,
-                    best_j,
-                )
+            _k_nearest_all(q, points, best_d2, best_j)
             return
         z_lo, z_hi = max(c2 - r, 0), min(c2 + r, dims[2] - 1)
         for cx in range(max(c0 - r, 0), min(c0 + r, dims[0] - 1) + 1):

@@ -283,7 +283,7 @@ def test_ctrl_c_while_an_entry_point_starts_is_one_line_and_130(prog, tmp_path):
     import subprocess
     import sys
 
-    for delay in (0.6, 1.0, 1.6):
+    for delay in (0.6, 1.6) if prog != "train" else (1.0,):
         process = subprocess.Popen(
             [sys.executable, *STARTS[prog]], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )

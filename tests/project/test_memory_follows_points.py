@@ -1,0 +1,96 @@
+"""Memory follows the number of points, not where they are: a pair with five stray returns 10 km and 30 km out is
+computed by the teacher and by the refining Predictor in about the memory of the same pair without them (the
+neighbour grids, the refinement's components and boxes bounded by the points: ``icpflow.scans.neighbours``,
+``fastflow3d.inference.refine.sparse_components``, ``icpflow.scans.bev``); the structures sized by options refuse a
+size they could not hold, in one line naming the options. Each run is a child process whose peak memory is read."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from icpflow.scans.neighbours import build_grid, k_nearest, nearest
+from icpflow.teacher.config import ICPFlowConfig
+
+from helpers.data import REPO
+
+CHILD = """
+import resource, sys, time
+import numpy as np
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.teacher import ICPFlow, ICPFlowConfig
+from fastflow3d import Predictor
+
+far = float(sys.argv[1])
+pair = SyntheticDataset(split="test", num_sequences=1, frames_per_sequence=2, beams=32, seed=0)[0]
+pc0, pc1 = pair.pc0.copy(), pair.pc1.copy()
+if far:
+    strays = np.array([[far, far, 0.5], [-far, far, 1.0], [far, -far, 2.0], [0.3 * far, far, 0.0], [far, 0.0, 3.0]])
+    pc0 = np.concatenate([pc0, strays.astype(np.float32)])
+    pc1 = np.concatenate([pc1, strays.astype(np.float32)])
+start = time.perf_counter()
+flow = ICPFlow(ICPFlowConfig.preset("waymo"))(pc0, pc1).flow
+predicted = Predictor.load(refine=True).predict(pc0, pc1).flow
+assert flow.shape == pc0.shape and np.isfinite(flow).all() and np.isfinite(predicted).all()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, time.perf_counter() - start)
+"""
+
+
+def peak(far: float) -> tuple[float, float]:
+    done = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(CHILD), str(far)], cwd=REPO, capture_output=True, text=True,
+        timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-1500:]
+    megabytes, seconds = map(float, done.stdout.split())
+    return megabytes, seconds
+
+
+@pytest.mark.slow
+def test_stray_returns_far_out_cost_no_memory():
+    base, took = peak(0.0)  # also compiles what the kernels' cache lacks
+    base, took = peak(0.0)
+    for far in (10_000.0, 30_000.0):
+        used, seconds = peak(far)
+        assert used < base + 300, (far, used, base)  # MB: was 6.8 GB at 10 km, a MemoryError at 30 km
+        assert seconds < 3 * took + 10, (far, seconds, took)  # was 20 s against 6 s
+
+
+def test_a_grid_of_far_flung_points_stays_exact_and_small():
+    """Nearest neighbours on a cloud with strays kilometres out: the grid is bounded (its columns a few per point)
+    and every answer is the brute-force one, for queries inside, at the border and out by the strays."""
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.uniform(-20, 20, (4000, 3)), [[10_000, 10_000, 0], [-30_000, 5, 1], [7, 8, 20_000]]])
+    cell = 0.1
+    grid = build_grid(points, cell)
+    dims, starts = grid[1], grid[2]
+    assert dims[3] == 1 and len(starts) <= max(1 << 20, 4 * len(points)) + 1
+    queries = np.concatenate([rng.uniform(-25, 25, (300, 3)), points[-3:] + 0.05, [[10_001, 9_999, 0.2]]])
+    for q in queries:
+        j, d2 = nearest(q, points, grid, cell, np.inf)
+        truth = ((points - q) ** 2).sum(axis=1)
+        assert d2 == truth.min() and truth[j] == d2
+    best_d2, best_j = k_nearest(queries, points, grid, cell, 5, np.inf, 8, True)
+    for q, d2 in zip(queries, best_d2):
+        np.testing.assert_array_equal(np.sort(((points - q) ** 2).sum(axis=1))[:5], d2)
+    normal = rng.uniform(-20, 20, (4000, 3))  # an ordinary cloud keeps its bounding box: nothing changes
+    assert build_grid(normal, cell)[1][3] == 0
+
+
+@pytest.mark.parametrize(
+    "override, words",
+    [
+        ({"ground.cell": 0.001}, "ground.cell or lower ground.patchwork_max_range"),
+        ({"ground.patchwork_max_range": 100_000.0}, "ground.cell or lower ground.patchwork_max_range"),
+        ({"histogram.bin_size": 0.0001}, "raise histogram.bin_size"),
+        ({"pairing.speed": 5000.0}, "raise histogram.bin_size"),
+    ],
+)
+def test_options_that_size_a_structure_are_bounded(override, words):
+    with pytest.raises(ValueError, match=words) as raised:
+        ICPFlowConfig.preset("av2", **override)
+    assert "\n" not in str(raised.value) and "it may hold" in str(raised.value)
