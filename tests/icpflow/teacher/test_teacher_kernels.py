@@ -430,10 +430,11 @@ def test_the_grid_sorts_points_by_column_then_height_cell_stably():
     for points in (cloud, np.repeat(cloud[:50], 3, axis=0), np.zeros((1, 3)), cloud[:, [0, 0, 2]]):
         for cell in (0.2, 1.0, 20.0):
             origin, dims, starts, z_sorted, order = build_grid(points, cell)
-            cells = np.minimum(((points - origin) / cell).astype(np.int64), dims - 1)
+            cells = np.minimum(((points - origin) / cell).astype(np.int64), dims[:3] - 1)  # dims[3]: narrowed (0 here)
             columns = cells[:, 0] * dims[1] + cells[:, 1]
             expected = np.lexsort((np.arange(len(points)), cells[:, 2], columns))
             assert np.array_equal(order, expected) and np.array_equal(z_sorted, cells[expected, 2])
+            assert dims[3] == 0
             assert np.array_equal(starts, np.searchsorted(columns[expected], np.arange(dims[0] * dims[1] + 1)))
 
 
