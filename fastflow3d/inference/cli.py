@@ -71,6 +71,7 @@ from fastflow3d.inference.model_loading import AUTO, PRECISION_CHOICES
 from fastflow3d.inference.scan_files import read_raw_scan, read_transforms, refuse_input_as_output, write_flow
 from fastflow3d.inference.scan_steps import MAX_SENSOR_HEIGHT, check_sensor_height
 from fastflow3d.inference.stream_folder import (
+    MANIFEST,
     claim_output_folder,
     output_name,
     stream_files,
@@ -322,13 +323,16 @@ def read_ahead(files: list[Path], columns, reader: ThreadPoolExecutor):
 class StreamOutputs:
     """What a stream writes into ``out`` as its steps come out: each pair's flow file (written in ``writer``, one at
     a time beside the next frame; its error, a full disk, raised at the next write or at :meth:`close`), the rerun
-    recording (or None) and the trajectory. ``outputs``: the file names written, in order. It keeps the points of the
-    scans whose step is still to come (a recording draws them), none longer."""
+    recording (or None) and the trajectory. ``outputs``: the file names written, in order; ``failed``: the pairs
+    that could not be computed (``StreamStep.failed``) and the scans that could not be read (scan0 None), each its
+    scans and the reason. It keeps the points of the scans whose step is still to come (a recording draws them), none
+    longer."""
 
     def __init__(self, out: Path, writer: ThreadPoolExecutor, recording, remove_ground: bool, depth: int):
         self.out, self.writer, self.recording = out, writer, recording
         self.remove_ground, self.depth = remove_ground, depth
         self.outputs, self.trajectory, self.scans, self.pushed, self.writing = [], [], {}, [], None
+        self.failed: list[dict] = []
 
     def push(self, stream, source: str, read):
         """The scan of ``read`` (a future of its points) into ``stream``; its step, or None (a scan that cannot be
@@ -337,6 +341,7 @@ class StreamOutputs:
             points = read.result()
         except (ValueError, OSError) as error:
             stream.skip(source, one_line(error))
+            self.failed.append({"scans": [None, source], "reason": one_line(error)})
             return None
         self.scans[source] = points
         self.pushed.append(source)
@@ -345,6 +350,8 @@ class StreamOutputs:
     def write(self, step) -> None:
         """A step of the stream out: its flow file, the recording, the trajectory."""
         prediction = step.prediction
+        if step.failed is not None:
+            self.failed.append({"scans": [step.previous, step.source], "reason": step.failed})
         if prediction is not None:
             name = output_name(step.previous)
             self.close()  # the previous file is written first
@@ -381,9 +388,9 @@ class StreamOutputs:
         return [name for name in self.outputs if (self.out / name).is_file()]
 
 
-def infer_stream(args) -> tuple[Path, int, int, str]:
-    """Stream mode (module docstring): returns the output folder, the flows written, the scans read and the network's
-    precision."""
+def infer_stream(args) -> tuple[Path, int, int, int, str]:
+    """Stream mode (module docstring): returns the output folder, the flows written, the scans read, the pairs and
+    scans that failed (the manifest lists them) and the network's precision."""
     from fastflow3d.inference.stream import FlowStream, overlap_threads
     from icpflow.core.console import Progress
 
@@ -426,9 +433,10 @@ def infer_stream(args) -> tuple[Path, int, int, str]:
             sink.close()
     except BaseException:  # stopped or failed: the manifest lists the flows kept (each whole, or not there)
         with contextlib.suppress(Exception):  # where even it cannot be written (a full disk), the first error is said
-            write_manifest(out, manifest, sink.kept() if sink is not None else [], complete=False)
+            kept, failed = (sink.kept(), sink.failed) if sink is not None else ([], [])
+            write_manifest(out, manifest, kept, complete=False, failed=failed)
         raise
-    write_manifest(out, manifest, sink.outputs, complete=True)
+    write_manifest(out, manifest, sink.outputs, complete=True, failed=sink.failed)
     written = len(sink.outputs)
     if recording is not None:
         recording.close()
@@ -436,7 +444,7 @@ def infer_stream(args) -> tuple[Path, int, int, str]:
         raise ValueError(
             f"{args.scan0}: no flow: the stream gave none of its {len(files)} scans a pair (see the warnings)"
         )
-    return out, written, len(files), predictor.precision
+    return out, written, len(files), len(sink.failed), predictor.precision
 
 
 def main(argv=None) -> int:
@@ -456,9 +464,10 @@ def _main(args) -> None:
         args.shipped = True  # load_predictor names it
     if args.scan1 is None:
         with stop_on_signals():  # each flow file is written atomically: a stop leaves the pairs done, whole
-            out, written, frames, precision = infer_stream(args)
+            out, written, frames, failed, precision = infer_stream(args)
         rerun = f", 3D -> {args.rerun}" if args.rerun else ""
-        print(f"infer: {written} flows of {frames} scans -> {out}" + rerun + f" ({precision} network)")
+        failures = f"; {failed} failed, listed in {out / MANIFEST}" if failed else ""
+        print(f"infer: {written} flows of {frames} scans -> {out}" + rerun + f" ({precision} network{failures})")
         return
     with stop_on_signals():  # the flow file is written atomically: a stop leaves none or the whole file
         out, bev, precision = infer(args)

@@ -17,8 +17,9 @@ def _eval():
 
 
 def infer(argv=None) -> int:
-    """``fastflow3d.inference.cli.main`` (``fastflow3d-infer``); returns its exit status."""
-    return launched("infer", _infer, argv)
+    """``fastflow3d.inference.cli.main`` (``fastflow3d-infer``); returns its exit status. Given ``argv``, it is a call
+    within a program that goes on, whose Ctrl-C is left as it was."""
+    return launched("infer", _infer, argv, exits=argv is None)
 
 
 def eval_main() -> None:

@@ -20,7 +20,9 @@ Bad streams never give a silent wrong flow: a missing or unreadable scan (:meth:
 than ``max_gap_s`` or a timestamp that does not increase restart the odometry with a warning (the pair across the gap
 is estimated from its two scans alone); a scan with too few points keeps the motion model's prediction and gets the
 ego flow only; a step whose fitness is under ``min_fitness`` is estimated afresh (``icpflow.scans.odometry``), and where
-that fits under ``LOST_FITNESS`` too the pair gets no flow (``StreamStep.prediction`` None) and a new track starts.
+that fits under ``LOST_FITNESS`` too the pair gets no flow (``StreamStep.prediction`` None) and a new track starts;
+a pair whose computation fails on its own (:data:`PAIR_FAILURES`: the memory a huge scan needs) gets no flow and
+says why (``StreamStep.failed``).
 Each case is one :class:`StreamWarning`; the other frames keep their flow.
 
 ``overlap=True`` uses the second core: the network of one pair, and its refinement, run in a worker thread while the
@@ -54,6 +56,7 @@ from fastflow3d.inference.prediction import Prediction, PredictorWarning, as_poi
 from fastflow3d.inference.predictor import PairResidual, Predictor, scans_frame_ego
 from fastflow3d.network.contract import PreparedPair
 from icpflow.core.deprecation import moved_message
+from icpflow.core.errors_and_signals import one_line
 from icpflow.core.threads import available_cores, thread_limit
 from icpflow.scans.odometry import LOST_FITNESS, MIN_EGO_POINTS, Odometry
 from icpflow.scans.preprocess import FRAME_TOLERANCE, estimate_ground_height, lift_points
@@ -74,6 +77,11 @@ def _refinement_threads() -> None:
     numba.set_num_threads(min(available_cores(), numba.config.NUMBA_NUM_THREADS))
 
 
+# What a pair's computation may raise that is the pair's alone (a scan too large for the memory left, a singular
+# system): the pair gets no flow with one warning (StreamStep.failed) and the stream goes on with the next.
+PAIR_FAILURES = (MemoryError, np.linalg.LinAlgError)
+
+
 class StreamWarning(PredictorWarning):
     """Something in the stream was wrong (a gap, a lost track, a scan of another frame); one line, naming it."""
 
@@ -84,7 +92,8 @@ class StreamStep:
     the first scan, or a lost track that a fresh estimate could not recover); ``source`` / ``previous``: the names
     of this scan and of the previous one (what the caller passed, e.g. the files); ``pose`` (4, 4) float64: this
     scan's pose in the current track's first frame (the trajectory; None when unknown); ``fitness`` of the ego-motion
-    step (None: no step); ``restarted``: the odometry started again on this pair."""
+    step (None: no step); ``restarted``: the odometry started again on this pair; ``failed``: why the pair could not
+    be computed (:data:`PAIR_FAILURES`: its memory, a numerical failure), None where it was or had no pair."""
 
     prediction: Prediction | None
     source: str | None
@@ -92,6 +101,7 @@ class StreamStep:
     pose: np.ndarray | None
     fitness: float | None
     restarted: bool
+    failed: str | None = None
 
 
 @dataclasses.dataclass
@@ -227,22 +237,48 @@ class FlowStream:
             self._pools = ThreadpoolController()
         return thread_limit(1, controller=self._pools)
 
-    def _residual(self, staged: _Staged) -> PairResidual:
-        """A staged pair's network and refinement (``Predictor.pair_residual``): with ``overlap``, in the worker."""
-        return self.predictor.pair_residual(staged.pair, staged.surfaces, staged.run_network)
+    def _residual(self, staged: _Staged) -> PairResidual | Exception:
+        """A staged pair's network and refinement (``Predictor.pair_residual``): with ``overlap``, in the worker; the
+        error where it fails (:data:`PAIR_FAILURES`)."""
+        try:
+            return self.predictor.pair_residual(staged.pair, staged.surfaces, staged.run_network)
+        except PAIR_FAILURES as error:  # returned, not raised: the pair's step says it (_complete)
+            return error
 
     def _complete(self, staged: _Staged, residual: PairResidual | None) -> StreamStep:
         """The :class:`StreamStep` of a staged scan, from its pair's ``residual`` (:meth:`_residual`)."""
         if staged.step is not None:
             return staged.step
-        prediction = self.predictor.finish(
-            staged.pair, residual, staged.ego_frame, staged.lift, staged.estimated, staged.assumed
-        )
+        try:
+            if isinstance(residual, Exception):
+                raise residual
+            prediction = self.predictor.finish(
+                staged.pair, residual, staged.ego_frame, staged.lift, staged.estimated, staged.assumed
+            )
+        except PAIR_FAILURES as error:  # the odometry's step stands: the pose is kept, the track goes on
+            return self._failed(staged.source, staged.previous, error, staged.pose, staged.fitness, staged.restarted)
         return StreamStep(prediction, staged.source, staged.previous, staged.pose, staged.fitness, staged.restarted)
 
+    def _failed(self, source, previous, error, pose=None, fitness=None, restarted=True) -> StreamStep:
+        """The step of a pair whose computation raised ``error`` (:data:`PAIR_FAILURES`): no flow, one warning."""
+        reason = one_line(error) or type(error).__name__
+        self._warn(f"{source or 'scan'}: no flow for its pair, which could not be computed ({reason})")
+        return StreamStep(None, source, previous, pose, fitness, restarted, failed=reason)
+
     def _stage(self, scan, timestamp: float | None, source: str | None) -> _Staged:
-        """Everything of a pushed scan up to its pair's network (see :class:`_Staged`), in push order."""
+        """Everything of a pushed scan up to its pair's network (see :class:`_Staged`), in push order. Where that
+        fails (:data:`PAIR_FAILURES`) the pair gets no flow and the next pair restarts the odometry from the last
+        scan that was prepared whole."""
         points = as_points(source or "scan", scan)
+        previous = self._previous
+        try:
+            return self._stage_points(points, timestamp, source)
+        except PAIR_FAILURES as error:
+            self._gap = "a pair that could not be computed"
+            return _Staged(self._failed(source, None if previous is None else previous.source, error))
+
+    def _stage_points(self, points: np.ndarray, timestamp: float | None, source: str | None) -> _Staged:
+        """:meth:`_stage` of a scan's checked points."""
         if self.lift is None:
             self.lift = self.predictor.frame_lift(points)
         else:

@@ -87,10 +87,11 @@ def claim_output_folder(out: Path, manifest: dict, files: list[Path]) -> None:
     write_manifest(out, manifest, [], complete=False)
 
 
-def write_manifest(out: Path, manifest: dict, outputs: list[str], complete: bool) -> None:
-    """``out``'s manifest: the run's identity, the flow files it holds (``outputs``, in order) and whether the run
-    ended (``complete``); atomically."""
-    document = {**manifest, "complete": complete, "outputs": outputs}
+def write_manifest(out: Path, manifest: dict, outputs: list[str], complete: bool, failed: list[dict] = ()) -> None:
+    """``out``'s manifest: the run's identity, the flow files it holds (``outputs``, in order), whether the run
+    ended (``complete``) and the pairs that could not be computed (``failed``: each ``{"scans": [scan0, scan1],
+    "reason": ...}``, scan0 None where the scan had no pair); atomically."""
+    document = {**manifest, "complete": complete, "outputs": outputs, "failed": list(failed)}
     write_text_atomic(out / MANIFEST, json.dumps(document, indent=1), make_parents=True)
 
 

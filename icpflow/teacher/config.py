@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import typing
 import warnings
 from dataclasses import dataclass, field, fields
@@ -83,6 +84,12 @@ class HistogramConfig(Checked):
     axis_min_extent: float = setting(0.0, "non_negative")
     axis_step: float = setting(0.2, "positive")  # m between the line search's candidates (refined in quarters)
     axis_points: int = setting(300, "count")  # points per cluster scoring the coarse line search
+
+    def largest_window(self) -> float:
+        """The widest search window (m) whose vote fits ``MAX_VOTE_BINS`` at these bins: a wider one (an ego
+        motion of tens of metres between the scans widens it) is held at this."""
+        half = int((math.sqrt(MAX_VOTE_BINS / self.z_bins) - 1) // 2)
+        return half * self.bin_size
 
 
 @dataclass(frozen=True)
@@ -168,6 +175,9 @@ class MergingConfig(Checked):
 #: arrays each): 4.2 M, 80 MB of working memory; the presets make at most 217,083 (waymo: a 13.4 m window over 4
 #: frames, 0.1 m bins, 3 in z)
 MAX_VOTE_BINS = 1 << 22
+#: the most candidates of a long cluster's line search (``icpflow.teacher.histogram._axis_search``) over the widest
+#: window the vote may hold; the presets make at most 591 (0.2 m steps over 59 m)
+MAX_AXIS_CANDIDATES = 1 << 14
 
 BLOCKS = {
     "ego_motion": EgoMotionConfig,
@@ -220,6 +230,7 @@ class ICPFlowConfig(Checked):
                 raise ValueError(f"ICPFlowConfig: {name} must be a {kind.__name__}, got {type(value).__name__}")
         super().__post_init__()
         self._check_vote_size()
+        self._check_axis_search()
 
     def _check_vote_size(self) -> None:
         """Refuse a histogram the vote could not hold (``MAX_VOTE_BINS``) for the widest window the settings give
@@ -231,6 +242,18 @@ class ICPFlowConfig(Checked):
                 f"ICPFlowConfig: histogram.bin_size {self.histogram.bin_size:g} m over a {window:g} m window "
                 f"(pairing.speed x pairing.max_frame_gap) and histogram.z_bins {self.histogram.z_bins} make a vote of "
                 f"{bins:.3g} bins, over the {MAX_VOTE_BINS} it may hold: raise histogram.bin_size"
+            )
+
+    def _check_axis_search(self) -> None:
+        """Refuse a line search of more candidates than ``MAX_AXIS_CANDIDATES`` over the widest window the vote
+        holds (``HistogramConfig.largest_window``), in one line naming the option."""
+        window = self.histogram.largest_window()
+        candidates = 2 * int(window / self.histogram.axis_step) + 1
+        if self.histogram.axis_min_extent > 0 and candidates > MAX_AXIS_CANDIDATES:
+            raise ValueError(
+                f"ICPFlowConfig: histogram.axis_step {self.histogram.axis_step:g} m over a window of up to "
+                f"{window:g} m makes a line search of {candidates:.3g} candidates, over the {MAX_AXIS_CANDIDATES} it "
+                "may hold: raise histogram.axis_step"
             )
 
     @classmethod

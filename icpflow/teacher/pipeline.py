@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -276,7 +277,7 @@ class ICPFlow:
             src, dst = transform_points(ego, scans.pc0[scans.keep0]), scans.pc1[scans.keep1]
             fused = cluster_points(np.concatenate([src, dst]), self.cfg.clustering)
             src_labels, dst_labels = fused[: len(src)], fused[len(src) :]
-        window = self.cfg.pairing.window(np.linalg.norm(ego[:3, 3]), int(inputs.gap))
+        window = self._window(ego, int(inputs.gap))
         view = ScanView.of(scans.pc1)
         matches, tried, src_stats, dst_stats = self._match(src, dst, src_labels, dst_labels, window, clock, view)
         if self.cfg.merging.distance > 0:
@@ -410,6 +411,23 @@ class ICPFlow:
             "ground0": ground0,
             "ground1": ground1,
         }
+
+    def _window(self, ego: np.ndarray, gap: int) -> float:
+        """The pair's search window (m, ``PairingConfig.window``), held at the widest one the vote holds
+        (``HistogramConfig.largest_window``) with one warning: an ego motion of tens of metres between the scans (a
+        wrong pose, a long gap) would otherwise ask for a vote of gigabytes per cluster pair."""
+        window = self.cfg.pairing.window(float(np.linalg.norm(ego[:3, 3])), gap)
+        largest = self.cfg.histogram.largest_window()
+        if window > largest:
+            warnings.warn(
+                f"ICPFlow: an ego motion of {np.linalg.norm(ego[:3, 3]):.1f} m between the scans widens the search "
+                f"window to {window:.1f} m; held at {largest:.1f} m, the widest the vote holds at histogram.bin_size "
+                f"{self.cfg.histogram.bin_size:g} m",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+            return largest
+        return window
 
     def _match(self, src, dst, src_labels, dst_labels, window, clock: StageClock, view=None) -> tuple:
         """Steps 4 to 8 over both stages: the chosen matches as arrays, every candidate tried (see

@@ -87,9 +87,35 @@ def test_a_grid_of_far_flung_points_stays_exact_and_small():
         ({"ground.patchwork_max_range": 100_000.0}, "ground.cell or lower ground.patchwork_max_range"),
         ({"histogram.bin_size": 0.0001}, "raise histogram.bin_size"),
         ({"pairing.speed": 5000.0}, "raise histogram.bin_size"),
+        ({"histogram.axis_step": 1e-7}, "raise histogram.axis_step"),
     ],
 )
 def test_options_that_size_a_structure_are_bounded(override, words):
     with pytest.raises(ValueError, match=words) as raised:
         ICPFlowConfig.preset("av2", **override)
     assert "\n" not in str(raised.value) and "it may hold" in str(raised.value)
+
+
+EGO_CHILD = """
+import resource, sys
+import numpy as np
+resource.setrlimit(resource.RLIMIT_AS, (4 << 30, 4 << 30))
+from icpflow.datasets.synthetic import SyntheticDataset
+from icpflow.teacher import ICPFlow, ICPFlowConfig
+pair = SyntheticDataset(split="test", num_sequences=1, frames_per_sequence=2, beams=32, seed=0)[0]
+ego = np.eye(4)
+ego[0, 3] = 300.0
+flow = ICPFlow(ICPFlowConfig.preset("waymo"))(pair.pc0, pair.pc1, ego1_from_ego0=ego).flow
+assert flow.shape == pair.pc0.shape and np.isfinite(flow).all()
+"""
+
+
+def test_a_given_ego_motion_far_too_long_holds_the_search_window():
+    """A pose of 300 m between two scans (a wrong poses file) widens the teacher's search window, which sizes every
+    cluster pair's vote: it is held at the widest the vote holds, with one warning, within 4 GB (a MemoryError
+    inside the vote's kernel before)."""
+    done = subprocess.run([sys.executable, "-c", EGO_CHILD], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-1500:]
+    assert "an ego motion of 300.0 m between the scans widens the search window to 600.0 m; held at 59.0 m" in (
+        done.stderr
+    ), done.stderr[-1500:]

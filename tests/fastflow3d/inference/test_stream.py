@@ -225,6 +225,7 @@ def test_infer_streams_a_folder_and_bridges_a_broken_scan(tiny_student, moving, 
     assert sorted(path.name for path in out.iterdir()) == [*outputs, "stream.json"]
     manifest = json.loads((out / "stream.json").read_text())
     assert manifest["complete"] and manifest["outputs"] == outputs and len(manifest["scans"]) == 5
+    assert [entry["scans"] for entry in manifest["failed"]] == [[None, str(folder / "000002.npy")]]
     with np.load(out / "000001.npz") as bridged:  # 000001 -> 000003
         truth = pairs[2].ego1_from_ego0 @ pairs[1].ego1_from_ego0
         assert _errors(truth, bridged["ego1_from_ego0"])[0] < 0.03 and bool(bridged["ego_estimated"])
@@ -297,6 +298,54 @@ def test_a_rerun_removes_only_the_names_its_stream_writes(tiny_student, moving, 
     (out / "000001.npz").symlink_to(folder / "000000.npy")
     assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 2
     assert "000001.npz is not a regular file" in capsys.readouterr().err and (folder / "000000.npy").is_file()
+
+
+def test_a_pair_that_cannot_be_computed_is_skipped_listed_and_the_stream_goes_on(
+    tiny_student, moving, tmp_path, monkeypatch, capsys
+):
+    """Out of memory in one pair's network and in another scan's ground (a scan far too large would do it): each pair
+    gets no flow, one warning naming its scan, and a line in the manifest with the reason; every other pair keeps
+    its flow (the one across the failed scan spans it), exit status 0, and the last line counts the failures."""
+    from fastflow3d.inference.cli import main as infer_main
+    from fastflow3d.inference.predictor import Predictor
+
+    _, scans = moving
+    folder, out = tmp_path / "scans", tmp_path / "flows"
+    folder.mkdir()
+    for k, scan in enumerate(scans[:7]):
+        np.save(folder / f"{k:06d}.npy", scan)
+    residual, masks, calls = Predictor.pair_residual, Predictor.scan_masks, []
+
+    def second_pair_fails(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:  # the pair 000001 -> 000002
+            raise MemoryError("Unable to allocate 9.31 GiB for an array")
+        return residual(self, *args, **kwargs)
+
+    def fifth_scan_fails(self, name, points, given):
+        if len(points) == len(scans[4]) and np.array_equal(points[:, :2], scans[4][:, :2]):
+            raise MemoryError()
+        return masks(self, name, points, given)
+
+    monkeypatch.setattr(Predictor, "pair_residual", second_pair_fails)
+    monkeypatch.setattr(Predictor, "scan_masks", fifth_scan_fails)
+    assert infer_main([str(tiny_student), str(folder), "--out", str(out)]) == 0
+    said = capsys.readouterr()
+    err = said.err.splitlines()
+    warned = sorted(line for line in err if "could not be computed" in line)  # said as each pair comes out
+    assert len(warned) == 2 and "000002.npy" in warned[0] and "Unable to allocate 9.31 GiB" in warned[0], err
+    assert "000004.npy" in warned[1] and "(MemoryError)" in warned[1], err
+    assert not [line for line in err if "Traceback" in line or "unexpected" in line], err
+    outputs = ["000000.npz", "000002.npz", "000003.npz", "000005.npz"]  # 000003 -> 000005 spans the failed scan
+    assert sorted(path.name for path in out.glob("*.npz")) == outputs
+    manifest = json.loads((out / "stream.json").read_text())
+    assert manifest["complete"] and manifest["outputs"] == outputs
+    names = [str(folder / f"{k:06d}.npy") for k in range(7)]
+    assert manifest["failed"] == [
+        {"scans": names[1:3], "reason": "Unable to allocate 9.31 GiB for an array"},
+        {"scans": names[3:5], "reason": "MemoryError"},
+    ]
+    assert said.out.strip().endswith(f"network; 2 failed, listed in {out / 'stream.json'})"), said.out
 
 
 def test_a_stopped_stream_lists_the_flows_it_kept(tiny_student, moving, tmp_path, monkeypatch):
