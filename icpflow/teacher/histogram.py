@@ -286,9 +286,10 @@ def initial_translations(
 
     ``pairs`` holds (src (Ns, 3), dst (Nd, 3)) in one frame, ``windows`` (P,) the x/y search half-width in metres;
     clusters are capped at ``params.max_points`` by a subsample seeded with ``seed``. A pair with an empty cluster
-    gets the zero translation and an infinite score.
+    gets the zero translation and an infinite score. A window wider than the vote holds is held at
+    ``params.largest_window()`` (the teacher's pipeline says so where it widens one).
     """
-    windows = np.asarray(windows, dtype=np.float64).reshape(-1)
+    windows = np.minimum(np.asarray(windows, dtype=np.float64).reshape(-1), params.largest_window())
     if len(windows) != len(pairs):
         raise ValueError(f"initial_translations: {len(pairs)} pairs but {len(windows)} windows")
     if not pairs:

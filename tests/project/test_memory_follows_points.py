@@ -119,3 +119,14 @@ def test_a_given_ego_motion_far_too_long_holds_the_search_window():
     assert "an ego motion of 300.0 m between the scans widens the search window to 600.0 m; held at 59.0 m" in (
         done.stderr
     ), done.stderr[-1500:]
+
+
+def test_the_vote_holds_any_window_it_is_given():
+    """``histogram.initial_translations`` called with a 5 km window (a caller of the registration API) votes within
+    the widest window it holds and finds the translation (zero and an infinite score before: the vote did not fit)."""
+    from icpflow.teacher import histogram
+    from icpflow.teacher.config import HistogramConfig
+
+    src = np.random.default_rng(0).normal(size=(500, 3))
+    translations, scores = histogram.initial_translations([(src, src + [1.0, 0.5, 0.0])], [5000.0], HistogramConfig())
+    assert np.allclose(translations[0], [1.0, 0.5, 0.0], atol=0.06) and scores[0] < 0.05
