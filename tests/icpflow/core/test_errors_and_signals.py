@@ -295,3 +295,19 @@ def test_ctrl_c_while_an_entry_point_starts_is_one_line_and_130(prog, tmp_path):
         assert process.returncode == 130, (prog, delay, err[-600:])
         assert "Traceback" not in err, (prog, delay, err[-2000:])
         assert err.strip().splitlines()[-1].startswith(f"{prog}: interrupted"), (prog, delay, err[-600:])
+
+
+def test_a_ctrl_c_outside_the_commands_own_report_is_its_line_and_130(handlers, capsys):
+    """A Ctrl-C that lands in ``main`` before its report begins (while it parses its options: 1 try in 10 of
+    fastflow3d-infer's start) or after it ended is the line ``<prog>: interrupted (SIGINT)`` and 130, not Python's
+    traceback; a main that returns keeps its status."""
+    from icpflow.core.launch import launched
+
+    def main(*args):
+        raise KeyboardInterrupt
+
+    with pytest.raises(SystemExit) as stopped:
+        launched("infer", lambda: main, ["a.npy"], exits=False)
+    assert stopped.value.code == 130
+    assert capsys.readouterr().err == "infer: interrupted (SIGINT)\n"
+    assert launched("infer", lambda: lambda *args: 2, ["a.npy"], exits=False) == 2
