@@ -43,6 +43,7 @@ from fastflow3d.network.contract import ContractError, InputContract, upgrade
 from fastflow3d.network.model import FastFlow3D
 from icpflow.core.atomic import atomic_directory
 from icpflow.core.errors_and_signals import Stop, exit_status, one_line, os_error_line, signal_words, stop_on_signals
+from icpflow.core.files import not_a_file
 
 PARITY_TOLERANCE = 1e-4  # metres, max abs difference between an export and eager
 
@@ -244,6 +245,8 @@ def export_checkpoint(
     ``True`` those the run trained on (its config's ``data.train``: most runs validate on a few pairs only), or a
     ``label.py`` out_dir. Returns the export directory."""
     checkpoint = Path(checkpoint)
+    if checkpoint.exists() and not checkpoint.is_file():
+        raise ExportError(not_a_file(checkpoint))
     if not checkpoint.is_file():
         raise ExportError(f"{checkpoint}: checkpoint not found")
     model, cfg = load_student(checkpoint, map_location="cpu")

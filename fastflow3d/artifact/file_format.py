@@ -40,7 +40,7 @@ from fastflow3d.network.contract import InputContract
 from fastflow3d.network.model import FastFlow3D
 from icpflow.core.atomic import write_text_atomic
 from icpflow.core.errors_and_signals import one_line
-from icpflow.core.files import NotAFile, read_text
+from icpflow.core.files import NotAFile, not_a_file, read_text
 
 FORMATS = ("onnx", "pt2")  # what an export writes
 LEGACY_FORMATS = ("torchscript",)  # read only: exports of older versions
@@ -207,6 +207,8 @@ def listed_file(export_dir: Path, metadata: dict, kind: str) -> Path:
             f"{meta_path}: files.{kind} path {name!r} leaves the export folder; only a file name is allowed"
         )
     file = export_dir / name
+    if file.exists() and not file.is_file():
+        raise ArtifactError(not_a_file(file))
     if not file.is_file():
         raise ArtifactError(f"{file}: file listed in {METADATA_NAME} is missing")
     if sha256_file(file) != entry.get("sha256"):

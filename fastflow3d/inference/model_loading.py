@@ -34,7 +34,7 @@ from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING
 from fastflow3d.inference.prediction import PredictorError
 from fastflow3d.network.contract import ContractError, InputContract, read_grid, upgrade
 from icpflow.core.errors_and_signals import one_line
-from icpflow.core.files import NotAFile, read_text
+from icpflow.core.files import NotAFile, not_a_file, read_text
 
 #: the precision the CLI, ``eval.py`` and ``Predictor.load`` run a student in unless told: :func:`auto_precision`
 AUTO = "auto"
@@ -156,6 +156,8 @@ def open_model(
         kind = "checkpoint" if path.suffix.lower() == ".ckpt" else SUFFIX_FORMATS.get(path.suffix.lower())
         if kind is None:
             raise PredictorError(f"{path}: expected an export directory, .onnx, .pt2, .pt (TorchScript) or .ckpt")
+        if path.exists() and not path.is_file():
+            raise PredictorError(not_a_file(path))
         if not path.is_file():
             raise PredictorError(f"{path}: file not found")
         if backend is not None and backend != kind:

@@ -15,6 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from fastflow3d.artifact.checkpoint import CheckpointError, read_checkpoint
 from icpflow.core.atomic import FolderInUse, folder_lock
 from icpflow.core.errors_and_signals import launching_process, os_error_line
+from icpflow.core.files import not_a_file
 
 if TYPE_CHECKING:
     from fastflow3d.training.student_module import StudentModule
@@ -41,6 +42,8 @@ def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
     if not value:
         return None
     path = Path(cfg.checkpoint_dir) / "last.ckpt" if value == "last" else Path(value)
+    if path.exists() and not path.is_file():
+        raise TrainError(f"ckpt_path={value}: {not_a_file(path)}")
     if not path.is_file():
         raise TrainError(
             f"ckpt_path={value}: {path} does not exist (nothing to resume; leave ckpt_path unset to start afresh)"

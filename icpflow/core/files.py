@@ -29,6 +29,15 @@ class NotAFile(ValueError):
     """A path that is not a regular file, or a file larger than a reader takes. The message is one line."""
 
 
+def not_a_file(path: str | os.PathLike) -> str:
+    """The one line :func:`regular_file` refuses an existing ``path`` that is not a regular file with."""
+    try:
+        regular_file(path)
+    except NotAFile as error:
+        return str(error)
+    return f"{path}: a regular file"
+
+
 def regular_file(path: str | os.PathLike) -> os.stat_result:
     """The stat of ``path`` (a link followed) where it is a regular file; :class:`NotAFile` where it is something
     else; FileNotFoundError where nothing is there. Nothing is opened."""

@@ -19,6 +19,8 @@ import importlib
 import json
 from pathlib import Path
 
+from icpflow.core.files import regular_file
+
 TEACHER = "teacher"
 #: keys of a spec that say what it is, not how the labeller is built
 SPEC_KEYS = ("name", "_target_")
@@ -33,6 +35,8 @@ def files_hash(path: Path) -> str:
     """sha256 (hex, 16 digits) of a checkpoint file, or of every file of an export folder (names and contents, in
     order)."""
     digest = hashlib.sha256()
+    if not path.is_dir():
+        regular_file(path)  # a FIFO would hang the hash, a device would never end it
     files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
     for file in files:
         digest.update(str(file.relative_to(path) if path.is_dir() else file.name).encode())

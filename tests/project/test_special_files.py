@@ -153,3 +153,40 @@ def test_label_refuses_a_special_config_marker_in_its_out_dir(tmp_path):
         timeout=300,
     )
     assert done.returncode == 2 and f"{out / 'config.yaml'}: a FIFO, not a regular file" in done.stderr, done.stderr
+
+
+@pytest.mark.timeout(300)  # a reader that opened the FIFO would hang here
+@pytest.mark.parametrize("kind", ["fifo", "zero"])
+def test_a_model_file_or_checkpoint_that_is_special_is_refused_by_each_reader(kind, tmp_path, tiny_pt2_export, capsys):
+    """A checkpoint (``Predictor.load``, ``export.py checkpoint=``, ``train.py ckpt_path=``, ``label.py
+    labeller.checkpoint=``: its hash) and an export's network file (``Predictor.load`` of the folder) that are FIFOs
+    or devices: one line naming the file, within the time limit."""
+    from omegaconf import OmegaConf
+
+    from fastflow3d.artifact.export import run_export
+    from fastflow3d.inference.prediction import PredictorError
+    from fastflow3d.inference.predictor import Predictor
+    from fastflow3d.training.run_folder import TrainError, resolve_ckpt_path
+    from icpflow.labelling.labeller import identity
+
+    checkpoint = special(kind, tmp_path / "student.ckpt")
+    words = f"{checkpoint}: {WORDS[kind]}"
+    with pytest.raises(PredictorError, match=f"^{words}"):
+        Predictor.load(checkpoint)
+    with pytest.raises(ValueError, match=f"^{words}"):
+        identity({"name": "student", "_target_": "x.Y", "checkpoint": str(checkpoint)})
+    with pytest.raises(TrainError, match=f"^ckpt_path={checkpoint}: {words}"):
+        resolve_ckpt_path(OmegaConf.create({"ckpt_path": str(checkpoint), "checkpoint_dir": str(tmp_path)}), None)
+    assert (
+        run_export(OmegaConf.create({"checkpoint": str(checkpoint), "out_dir": None, "format": ["pt2"], "int8": False}))
+        == 2
+    )
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"export: {words}")
+    export = tmp_path / "export"
+    export.mkdir()
+    for item in tiny_pt2_export.iterdir():
+        if item.name != "fastflow3d.pt2":
+            (export / item.name).symlink_to(item)
+    network = special(kind, export / "fastflow3d.pt2")
+    with pytest.raises(ValueError, match=f"^{network}: {WORDS[kind]}"):
+        Predictor.load(export)

@@ -276,6 +276,10 @@ STARTS = {
 }
 
 
+def _ctrl_c_at_default():
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("prog", sorted(STARTS))
 def test_ctrl_c_while_an_entry_point_starts_is_one_line_and_130(prog, tmp_path):
     """A Ctrl-C while the command still imports its libraries (torch, numba, Hydra: seconds) ends as at any other
@@ -285,7 +289,12 @@ def test_ctrl_c_while_an_entry_point_starts_is_one_line_and_130(prog, tmp_path):
 
     for delay in (0.6, 1.6) if prog != "train" else (1.0,):
         process = subprocess.Popen(
-            [sys.executable, *STARTS[prog]], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+            [sys.executable, *STARTS[prog]],
+            cwd=tmp_path,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=_ctrl_c_at_default,  # where pytest runs as a background job, its children ignore SIGINT
         )
         time.sleep(delay)
         process.send_signal(signal.SIGINT)
