@@ -102,8 +102,9 @@ def run_folder(cfg: DictConfig):
 
 def check_fresh_start(cfg: DictConfig) -> None:
     """A run without ``ckpt_path`` into a folder that holds ``last.ckpt`` would overwrite another run's checkpoints:
-    refused in one line, unless ``overwrite=true`` (then the folder's checkpoints are removed first, said in the
-    log)."""
+    refused in one line, unless ``overwrite=true``: then the folder's checkpoints are removed first, said in the log,
+    where each has a name the run's callbacks write; another ``.ckpt`` there (a user's) refuses the start before
+    anything is removed."""
     if cfg.get("ckpt_path"):  # auto included: it resumes where last.ckpt exists
         return
     folder = Path(cfg.checkpoint_dir)
@@ -116,9 +117,27 @@ def check_fresh_start(cfg: DictConfig) -> None:
             "with overwrite=true (its checkpoints are removed), or give another out_dir"
         )
     old = sorted(folder.glob("*.ckpt"))
+    prefixes = checkpoint_prefixes(cfg)
+    foreign = [path.name for path in old if path.name != last.name and not path.name.startswith(prefixes)]
+    if foreign:  # claimed by name: a checkpoint the user put there is not the previous run's to remove
+        raise TrainError(
+            f"{folder}: {foreign[0]} is not a checkpoint a run names (last.ckpt, {', '.join(p + '*' for p in prefixes)}"
+            "); nothing was removed: move it, or give another out_dir"
+        )
     for path in old:
         path.unlink()
     log.warning("overwrite=true: removed %d checkpoint(s) of the previous run in %s", len(old), folder)
+
+
+def checkpoint_prefixes(cfg: DictConfig) -> tuple[str, ...]:
+    """The fixed beginnings of the checkpoint names the run's callbacks write (their ``filename`` up to its first
+    field, ``best-step`` by default; Lightning's ``epoch=`` where one names none)."""
+    prefixes = [
+        str(block.get("filename") or "epoch=").split("{")[0]
+        for block in (cfg.get("callbacks") or {}).values()
+        if isinstance(block, DictConfig) and str(block.get("_target_", "")).endswith("ModelCheckpoint")
+    ]
+    return tuple(prefix for prefix in prefixes if prefix) or ("epoch=",)
 
 
 #: data settings that may differ on a resume (where the files are, how they are read)

@@ -1,4 +1,5 @@
-"""One run per folder (issue 31, point 3): ``out_dir``'s lock, no silent overwrite of another run's checkpoints,
+"""One run per folder (issue 31, point 3): ``out_dir``'s lock, no silent overwrite of another run's checkpoints
+(``overwrite=true`` removes the names a run writes, and refuses where a user's checkpoint is there),
 and a resume that names every setting it does not take."""
 
 from __future__ import annotations
@@ -71,9 +72,17 @@ def test_another_runs_checkpoints_are_never_overwritten_silently(shards, tmp_pat
     ):
         fit(_cfg(tmp_path, shards))
     assert {path.name: path.stat().st_mtime_ns for path in checkpoints.glob("*.ckpt")} == before
+    mine = checkpoints / "my_copy.ckpt"  # a user's checkpoint kept there: not the previous run's to remove
+    mine.write_bytes((checkpoints / "last.ckpt").read_bytes())
+    (checkpoints / "notes.txt").write_text("mine")
+    with pytest.raises(TrainError, match=r"my_copy.ckpt is not a checkpoint a run names \(last.ckpt, best-step\*\)"):
+        fit(_cfg(tmp_path, shards, "overwrite=true"))
+    assert {path.name: path.stat().st_mtime_ns for path in checkpoints.glob("*.ckpt") if path != mine} == before
+    mine.unlink()
     with caplog.at_level(logging.WARNING, logger="fastflow3d.training"):
         fit(_cfg(tmp_path, shards, "overwrite=true"))
     assert "overwrite=true: removed" in caplog.text
+    assert (checkpoints / "notes.txt").read_text() == "mine"
     assert (checkpoints / "last.ckpt").stat().st_mtime_ns != before["last.ckpt"]
 
 
