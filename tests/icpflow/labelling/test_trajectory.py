@@ -94,3 +94,19 @@ def test_a_scan_too_small_to_register_is_no_step(tmp_path, drives, caplog):
     for k in (1, 2):  # the pairs across the tiny scan fail, saying why
         with pytest.raises(FramePairError, match="no ego motion from"):
             labelled.dataset.pair(k)
+
+
+def test_a_scan_of_one_point_repeated_is_no_step(tmp_path, drives):
+    """The cousin of a tiny scan: 2,000 returns at one spot (a blocked sensor) have points enough to count but
+    nothing to register; the odometry loses track there instead of chaining a step from them."""
+    (pairs, scans), _ = drives
+    blocked = np.tile(np.array([[5.0, 5.0, 0.5]], np.float32), (2000, 1))
+    folder = write_drive(tmp_path / "scans", [scans[0], scans[1], blocked, scans[3]])
+    labelled = job(folder, tmp_path / "labels")
+    labelled.out_dir.mkdir()
+    summary = drive_trajectory(labelled, progress=False)
+    assert summary["lost"] >= 2
+    assert pose_error(labelled.dataset.pair(0).ego1_from_ego0, pairs[0].ego1_from_ego0)[0] < 0.02
+    for k in (1, 2):
+        with pytest.raises(FramePairError, match="no ego motion from"):
+            labelled.dataset.pair(k)
