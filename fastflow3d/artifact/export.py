@@ -244,7 +244,7 @@ def export_checkpoint(
     :func:`default_export_dir`). ``int8``: also the int8 network (:func:`export_model`), calibrated on labelled shards:
     ``True`` those the run trained on (its config's ``data.train``: most runs validate on a few pairs only), or a
     ``label.py`` out_dir. Returns the export directory."""
-    checkpoint = Path(checkpoint)
+    checkpoint = Path(checkpoint).expanduser()  # ~ as in every path option
     if checkpoint.exists() and not checkpoint.is_file():
         raise ExportError(not_a_file(checkpoint))
     if not checkpoint.is_file():
@@ -254,7 +254,7 @@ def export_checkpoint(
         contract = upgrade(cfg, grid=model.grid)
     except ContractError as error:
         raise ExportError(f"{checkpoint}: {one_line(error)}") from None
-    out_dir = default_export_dir(checkpoint, cfg) if out_dir is None else Path(out_dir)
+    out_dir = default_export_dir(checkpoint, cfg) if out_dir is None else Path(out_dir).expanduser()
     int8_pairs = None
     if int8 is not False and int8 is not None:
         shards = (cfg.get("data") or {}).get("train") if int8 is True else int8

@@ -171,6 +171,16 @@ def os_error_line(error: OSError, fix: str | None = None) -> str:
     return f"{text}; {fix}" if fix else text
 
 
+def tilde_hint(text: str) -> str:
+    """How to write the override with ``~`` that Hydra's grammar refused in ``text`` (``key=~/x ^ ...``): its value
+    in Hydra's quotes, the whole in the shell's."""
+    override = text.split("LexerNoViableAltException: ", 1)[-1].split(" ^", 1)[0].strip()
+    key, _, value = override.partition("=")
+    if not key or not value:
+        return "a path with ~ is quoted for Hydra: \"out_dir='~/x'\""
+    return f"a path with ~ is quoted for Hydra: \"{key}='{value}'\""
+
+
 def error_line(error: BaseException, expected: tuple[type[BaseException], ...] = ()) -> str:
     """One line for an exception that escaped an entry point: the message of an ``expected`` (one-line) error or an
     :class:`OptionError` as it is; an OSError as :func:`os_error_line`; Hydra's and OmegaConf's errors (a bad
@@ -187,6 +197,8 @@ def error_line(error: BaseException, expected: tuple[type[BaseException], ...] =
         if line is not None:
             return f"{line}; see `--help` and `--cfg job` for the options"
         text = one_line(str(error).split("\n    full_key:")[0])
+        if "LexerNoViableAltException" in text and "~" in text:  # Hydra's grammar has no bare ~; a quoted one is a path
+            text = f"{text} ({tilde_hint(text)})"
         cause = error.__cause__
         if isinstance(cause, OmegaConfBaseException):
             text = f"{text} ({one_line(str(cause).split('full_key:')[0])})"

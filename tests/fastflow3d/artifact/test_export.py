@@ -415,3 +415,19 @@ def test_model_options_export_with_parity_and_the_predictor_runs_them(pairs, tmp
     assert infer_main([str(out_dir), str(scan0), str(scan1), "--poses", str(poses), "--out", str(out), "--no-bev"]) == 0
     with np.load(out) as result:
         assert np.abs(result["flow"] - flow).max() <= TOLERANCE
+
+
+def test_a_checkpoint_and_out_dir_with_a_tilde_are_the_home_folders(tmp_path, monkeypatch, tiny_student, capsys):
+    """``export.py checkpoint='~/...' out_dir='~/...'``: ``~`` is the home folder, as in every path option (no
+    literal ``~`` folder)."""
+    from omegaconf import OmegaConf
+
+    from fastflow3d.artifact.export import run_export
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / "student.ckpt").symlink_to(tiny_student)
+    cfg = {"checkpoint": "~/student.ckpt", "out_dir": "~/export", "format": "pt2", "int8": False}
+    assert run_export(OmegaConf.create(cfg)) == 0, capsys.readouterr().err
+    assert (tmp_path / "export" / "fastflow3d.pt2").is_file() and not (tmp_path / "~").exists()
+    assert run_export(OmegaConf.create({**cfg, "checkpoint": "~/none.ckpt"})) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == f"export: {tmp_path / 'none.ckpt'}: checkpoint not found"

@@ -320,3 +320,17 @@ def test_a_ctrl_c_outside_the_commands_own_report_is_its_line_and_130(handlers, 
     assert stopped.value.code == 130
     assert capsys.readouterr().err == "infer: interrupted (SIGINT)\n"
     assert launched("infer", lambda: lambda *args: 2, ["a.npy"], exits=False) == 2
+
+
+def test_a_bare_tilde_in_an_override_says_how_to_quote_it():
+    """Hydra's grammar refuses ``out_dir=~/lab`` (a ``~`` the shell left, or one quoted for the shell only); the line
+    says how to write that override so that Hydra takes it (and the entry points expand it: ``home``)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from icpflow.core.errors_and_signals import error_line
+
+    with pytest.raises(Exception) as raised:
+        OverridesParser.create().parse_overrides(["out_dir=~/lab"])
+    line = error_line(raised.value)
+    assert "\n" not in line and """(a path with ~ is quoted for Hydra: "out_dir='~/lab'")""" in line, line
+    assert OverridesParser.create().parse_overrides(["out_dir='~/lab'"])[0].value() == "~/lab"
