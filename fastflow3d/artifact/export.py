@@ -245,8 +245,8 @@ def export_checkpoint(
     ``True`` those the run trained on (its config's ``data.train``: most runs validate on a few pairs only), or a
     ``label.py`` out_dir. Returns the export directory."""
     checkpoint = Path(checkpoint).expanduser()  # ~ as in every path option
-    if checkpoint.exists() and not checkpoint.is_file():
-        raise ExportError(not_a_file(checkpoint))
+    if (refused := not_a_file(checkpoint)) is not None:
+        raise ExportError(refused)
     if not checkpoint.is_file():
         raise ExportError(f"{checkpoint}: checkpoint not found")
     model, cfg = load_student(checkpoint, map_location="cpu")

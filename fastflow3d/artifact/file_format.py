@@ -207,8 +207,8 @@ def listed_file(export_dir: Path, metadata: dict, kind: str) -> Path:
             f"{meta_path}: files.{kind} path {name!r} leaves the export folder; only a file name is allowed"
         )
     file = export_dir / name
-    if file.exists() and not file.is_file():
-        raise ArtifactError(not_a_file(file))
+    if (refused := not_a_file(file)) is not None:
+        raise ArtifactError(refused)
     if not file.is_file():
         raise ArtifactError(f"{file}: file listed in {METADATA_NAME} is missing")
     if sha256_file(file) != entry.get("sha256"):

@@ -156,8 +156,8 @@ def open_model(
         kind = "checkpoint" if path.suffix.lower() == ".ckpt" else SUFFIX_FORMATS.get(path.suffix.lower())
         if kind is None:
             raise PredictorError(f"{path}: expected an export directory, .onnx, .pt2, .pt (TorchScript) or .ckpt")
-        if path.exists() and not path.is_file():
-            raise PredictorError(not_a_file(path))
+        if (refused := not_a_file(path)) is not None:
+            raise PredictorError(refused)
         if not path.is_file():
             raise PredictorError(f"{path}: file not found")
         if backend is not None and backend != kind:

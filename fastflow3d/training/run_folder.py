@@ -42,8 +42,8 @@ def resolve_ckpt_path(cfg: DictConfig, module: StudentModule) -> str | None:
     if not value:
         return None
     path = Path(cfg.checkpoint_dir) / "last.ckpt" if value == "last" else Path(value)
-    if path.exists() and not path.is_file():
-        raise TrainError(f"ckpt_path={value}: {not_a_file(path)}")
+    if (refused := not_a_file(path)) is not None:
+        raise TrainError(f"ckpt_path={value}: {refused}")
     if not path.is_file():
         raise TrainError(
             f"ckpt_path={value}: {path} does not exist (nothing to resume; leave ckpt_path unset to start afresh)"

@@ -29,13 +29,16 @@ class NotAFile(ValueError):
     """A path that is not a regular file, or a file larger than a reader takes. The message is one line."""
 
 
-def not_a_file(path: str | os.PathLike) -> str:
-    """The one line :func:`regular_file` refuses an existing ``path`` that is not a regular file with."""
+def not_a_file(path: str | os.PathLike) -> str | None:
+    """The line :func:`regular_file` refuses ``path`` with where something other than a regular file is there (a
+    FIFO, a device, a folder); None where it is a regular file or nothing is there (the caller's "not found")."""
     try:
         regular_file(path)
     except NotAFile as error:
         return str(error)
-    return f"{path}: a regular file"
+    except FileNotFoundError:
+        pass
+    return None
 
 
 def regular_file(path: str | os.PathLike) -> os.stat_result:

@@ -130,3 +130,67 @@ def test_the_vote_holds_any_window_it_is_given():
     src = np.random.default_rng(0).normal(size=(500, 3))
     translations, scores = histogram.initial_translations([(src, src + [1.0, 0.5, 0.0])], [5000.0], HistogramConfig())
     assert np.allclose(translations[0], [1.0, 0.5, 0.0], atol=0.06) and scores[0] < 0.05
+
+
+def _drive_with_strays(root, far: float) -> None:
+    """Three scans of a synthetic drive, five static strays ``far`` metres out in each: ``root/seq/00000{0,1,2}.npy``
+    (no poses) and the two pairs as ``root/pairs/*.npz`` with their full ground-truth flow, classes and masks."""
+    from icpflow.datasets.synthetic import SyntheticDataset
+
+    strays = np.array([[far, far, 0.5], [-far, far, 1.0], [far, -far, 2.0], [0.3 * far, far, 0.0], [far, 0.0, 3.0]])
+    drive = SyntheticDataset(split="test", num_sequences=1, frames_per_sequence=3, beams=32, seed=0)
+    (root / "seq").mkdir(parents=True)
+    (root / "pairs").mkdir()
+    for index in range(2):
+        pair = drive[index]
+        moved = strays @ pair.ego1_from_ego0[:3, :3].T + pair.ego1_from_ego0[:3, 3]  # static: the ego motion only
+        pc0 = np.concatenate([pair.pc0, strays]).astype(np.float32)
+        pc1 = np.concatenate([pair.pc1, moved]).astype(np.float32)
+        padded = {
+            name: np.concatenate([getattr(pair, name), np.zeros(len(strays), getattr(pair, name).dtype)])
+            for name in ("ground0", "ground1", "dynamic", "classes", "instance")
+        }
+        flow = np.concatenate([pair.flow, moved - strays]).astype(np.float32)
+        np.savez(root / "pairs" / f"{index:06d}.npz", pc0=pc0, pc1=pc1, flow=flow, ego1_from_ego0=pair.ego1_from_ego0,
+                 **padded)  # fmt: skip
+        np.save(root / "seq" / f"{index:06d}.npy", pc0)
+    np.save(root / "seq" / "000002.npy", pc1)
+
+
+@pytest.mark.slow
+def test_stray_returns_far_out_through_label_py_and_eval_py(tiny_student, tmp_path):
+    """The entry points over the same strays, 30 km out: ``label.py dataset=sequence`` (the drive's own odometry, its
+    ground, the teacher, the shards), ``label.py dataset=pairs`` and ``eval.py`` scoring every point (``crop=null``) of
+    the teacher on raw scans, the refining student and its stream. Each completes with every flow finite, in well
+    under the memory of one extent-sized grid (6.8 GB at 10 km before)."""
+    import json
+    import resource
+
+    from icpflow.shards import ShardDataset
+
+    from helpers.labelling import TESTS_ENV
+
+    _drive_with_strays(tmp_path, 30_000.0)
+    commands = {
+        "sequence": ["label.py", "dataset=sequence", f"dataset.root={tmp_path / 'seq'}", "workers=1"],
+        "pairs": ["label.py", "dataset=pairs", f"dataset.root={tmp_path / 'pairs'}", "split=train", "workers=1"],
+        "eval": ["eval.py", "dataset=pairs", f"dataset.root={tmp_path / 'pairs'}", f"checkpoint={tiny_student}",
+                 "method=[icpflow-raw,student+refine,student-stream+refine]", "crop=null", "limit=1", "bev=1"],
+    }  # fmt: skip
+    for name, command in commands.items():
+        done = subprocess.run(
+            [sys.executable, *command, f"out_dir={tmp_path / name}"], cwd=REPO, env=TESTS_ENV, capture_output=True,
+            text=True, timeout=600,
+        )  # fmt: skip
+        assert done.returncode == 0, (name, done.stderr[-1500:])
+    assert resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 < 2000  # MB, the largest of the three
+    for name in ("sequence", "pairs"):
+        samples = ShardDataset(tmp_path / name)
+        assert len(samples) == 2
+        for index in range(2):
+            sample = samples[index]
+            assert len(sample["pc0"]) == len(sample["flow"]) and np.isfinite(sample["flow"]).all(), name
+        samples.close()
+    rows = json.loads((tmp_path / "eval" / "metrics.json").read_text())["table"]["rows"]
+    scored = {row["method"] for row in rows if np.isfinite(row["EPE_overall"])}
+    assert scored >= {"icpflow-raw", "student+refine", "student-stream+refine"}, rows[:3]

@@ -13,7 +13,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from icpflow.core.files import NotAFile, read_text, regular_file
+from icpflow.core.files import NotAFile, not_a_file, read_text, regular_file
 
 from helpers.data import REPO
 
@@ -53,6 +53,8 @@ def test_the_helper_refuses_what_is_not_a_regular_file(kind, tmp_path):
     (tmp_path / "real").write_text("x")
     os.symlink(tmp_path / "real", tmp_path / "link")
     assert read_text(tmp_path / "link") == "x"  # a link to a regular file is the file
+    assert not_a_file(path).startswith(f"{path}: {WORDS[kind]}") and "\n" not in not_a_file(path)
+    assert not_a_file(tmp_path / "real") is None and not_a_file(tmp_path / "absent") is None  # the caller's cases
 
 
 #: each reader of a file handed by a user: (what, code reading the file at sys.argv[1], a name for it)
