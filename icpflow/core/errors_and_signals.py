@@ -116,6 +116,12 @@ def raise_stop(signum: int) -> None:
     raise Stop(signum)
 
 
+def ignore_stop_signals() -> None:
+    """From now on the stop signals are ignored: for the moments of a process's exit, once its status is known."""
+    for signum in STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
+
+
 @contextlib.contextmanager
 def stop_on_signals(signums=STOP_SIGNALS) -> Iterator[None]:
     """Within the block, the signals raise :class:`Stop` in this process (so ``finally`` blocks, atomic writers and

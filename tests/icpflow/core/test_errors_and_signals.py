@@ -272,22 +272,31 @@ def test_a_stop_that_a_kernel_wraps_is_the_stop(capsys):
 STARTS = {
     "label": [str(REPO / "label.py"), "dataset.reader.num_sequences=1"],
     "train": [str(REPO / "train.py"), "trainer.max_steps=1"],
+    "eval": [str(REPO / "eval.py"), "limit=1"],
+    "export": [str(REPO / "export.py"), "checkpoint=missing.ckpt"],
     "infer": ["-c", "import sys; from fastflow3d.inference.launch import infer; sys.exit(infer())", "missing.npy"],
 }
+#: the moments each start is signalled at (s): train's start is the longest, SIGTERM takes the path SIGINT takes
+DELAYS = {signal.SIGINT: (0.6, 1.6), signal.SIGTERM: (1.0,)}
+#: where the command had started and refused its missing input already, its refusal is its answer
+REFUSES = {"infer", "export"}
 
 
 def _ctrl_c_at_default():
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 @pytest.mark.parametrize("prog", sorted(STARTS))
-def test_ctrl_c_while_an_entry_point_starts_is_one_line_and_130(prog, tmp_path):
-    """A Ctrl-C while the command still imports its libraries (torch, numba, Hydra: seconds) ends as at any other
-    moment: one line naming the program, exit 130, no traceback; sent at several moments of the start."""
+def test_a_signal_while_an_entry_point_starts_is_one_line_and_128_plus_it(prog, signum, tmp_path):
+    """A Ctrl-C or a SIGTERM while the command still imports its libraries (torch, numba, Hydra: seconds) ends as at
+    any other moment: one line naming the program and the signal, exit 128 + the signal, no traceback and no end by
+    the signal itself; sent at several moments of the start."""
     import subprocess
     import sys
 
-    for delay in (0.6, 1.6) if prog != "train" else (1.0,):
+    words = {signal.SIGINT: "interrupted", signal.SIGTERM: "terminated"}[signum]
+    for delay in DELAYS[signum] if prog != "train" else (1.0,):
         process = subprocess.Popen(
             [sys.executable, *STARTS[prog]],
             cwd=tmp_path,
@@ -297,29 +306,47 @@ def test_ctrl_c_while_an_entry_point_starts_is_one_line_and_130(prog, tmp_path):
             preexec_fn=_ctrl_c_at_default,  # where pytest runs as a background job, its children ignore SIGINT
         )
         time.sleep(delay)
-        process.send_signal(signal.SIGINT)
+        process.send_signal(signum)
         _, err = process.communicate(timeout=300)
-        if process.returncode == 2 and prog == "infer":  # it had started and refused the missing scan already
+        if process.returncode == 2 and prog in REFUSES:
             continue
-        assert process.returncode == 130, (prog, delay, err[-600:])
+        assert process.returncode == 128 + signum, (prog, delay, process.returncode, err[-600:])
         assert "Traceback" not in err, (prog, delay, err[-2000:])
-        assert err.strip().splitlines()[-1].startswith(f"{prog}: interrupted"), (prog, delay, err[-600:])
+        assert err.strip().splitlines()[-1].startswith(f"{prog}: {words}"), (prog, delay, err[-600:])
 
 
-def test_a_ctrl_c_outside_the_commands_own_report_is_its_line_and_130(handlers, capsys):
+def test_a_signal_outside_the_commands_own_report_is_its_line_and_128_plus_it(handlers, capsys):
     """A Ctrl-C that lands in ``main`` before its report begins (while it parses its options: 1 try in 10 of
     fastflow3d-infer's start) or after it ended is the line ``<prog>: interrupted (SIGINT)`` and 130, not Python's
-    traceback; a main that returns keeps its status."""
+    traceback; a SIGTERM there is ``terminated (SIGTERM)`` and 143, not an end by the signal; one while the command
+    loads waits for the load and says nothing was done; a main that returns keeps its status, and a signal
+    after it, while the process exits, is ignored."""
     from icpflow.core.launch import launched
 
     def main(*args):
         raise KeyboardInterrupt
 
-    with pytest.raises(SystemExit) as stopped:
-        launched("infer", lambda: main, ["a.npy"], exits=False)
-    assert stopped.value.code == 130
-    assert capsys.readouterr().err == "infer: interrupted (SIGINT)\n"
+    def terminated(*args):
+        _signal_self(signal.SIGTERM)
+        return 0
+
+    def loaded_under_sigterm():
+        _signal_self(signal.SIGTERM)
+        return lambda *args: 0
+
+    for load, status, line in [
+        (lambda: main, 130, "infer: interrupted (SIGINT)"),
+        (lambda: terminated, 143, "infer: terminated (SIGTERM)"),
+        (loaded_under_sigterm, 143, "infer: terminated (SIGTERM) while starting; nothing was done"),
+    ]:
+        with pytest.raises(SystemExit) as stopped:
+            launched("infer", load, ["a.npy"], exits=False)
+        assert stopped.value.code == status
+        assert capsys.readouterr().err == line + "\n"
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handlers are back
     assert launched("infer", lambda: lambda *args: 2, ["a.npy"], exits=False) == 2
+    assert launched("infer", lambda: lambda *args: 2, ["a.npy"]) == 2  # a process that ends now: its status stands
+    assert {signal.getsignal(signum) for signum in STOP_SIGNALS} == {signal.SIG_IGN}
 
 
 def test_a_bare_tilde_in_an_override_says_how_to_quote_it():
