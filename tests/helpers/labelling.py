@@ -105,10 +105,15 @@ def none_left_within(group: int, seconds: float = 10) -> bool:
     return True
 
 
+#: the environment of a rerun after an interrupted :class:`SlowSynthetic` run: the same config, no waiting
+RERUN_ENV = {**TESTS_ENV, "SLOW_SYNTHETIC_SECONDS": "0"}
+
+
 class SlowSynthetic(SyntheticDataset):
-    """The small synthetic world, 2 s per sample from sample 2 on (time to interrupt the run)."""
+    """The small synthetic world, 2 s per sample from sample 2 on (time to interrupt the run); as fast as the world
+    where ``SLOW_SYNTHETIC_SECONDS=0`` (:data:`RERUN_ENV`: a rerun, which has nothing to interrupt)."""
 
     def pair(self, index, horizon=1):
         if index >= 2:
-            time.sleep(2)
+            time.sleep(float(os.environ.get("SLOW_SYNTHETIC_SECONDS", "2")))
         return super().pair(index, horizon)

@@ -29,6 +29,7 @@ from icpflow.teacher import ICPFlow
 
 from helpers.disk import fail_fsync_after
 from helpers.labelling import (
+    RERUN_ENV,
     SUMMARY,
     TESTS_ENV,
     all_valid,
@@ -90,7 +91,7 @@ def test_killing_the_main_process_ends_its_workers(reference, tmp_path, sig):
         assert process.returncode == -signal.SIGKILL
     for shard in out.glob("shard_*.h5"):  # whatever has a final name is complete
         verify_shard(shard)
-    run = subprocess.run(label_script(out, *SLOW), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
+    run = subprocess.run(label_script(out, *SLOW), cwd=tmp_path, env=RERUN_ENV, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     done, skipped = map(int, SUMMARY.search(run.stdout).groups()[:2])
     assert skipped >= 2 and done + skipped == 5

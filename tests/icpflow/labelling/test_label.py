@@ -33,6 +33,7 @@ from icpflow.teacher.long_horizon import long_horizon_flow
 from helpers.labelling import (
     READER,
     REPO,
+    RERUN_ENV,
     SUMMARY,
     TESTS_ENV,
     all_valid,
@@ -493,7 +494,7 @@ def test_ctrl_c_to_the_process_group_with_two_workers(reference, tmp_path):
         "shard_000000.h5",
         "shard_000000.h5.json",
     ]
-    run = subprocess.run(label_script(tmp_path, *args), cwd=tmp_path, env=TESTS_ENV, capture_output=True, text=True)
+    run = subprocess.run(label_script(tmp_path, *args), cwd=tmp_path, env=RERUN_ENV, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert SUMMARY.search(run.stdout).groups()[:3] == ("3", "2", "0")
     assert_same(reference, tmp_path)
