@@ -36,21 +36,26 @@ def pytest_addoption(parser):
 #: instead of one running a long file alone at the end
 LONGEST_FIRST = (
     "test_gpu_run.py",
-    "test_ddp.py",
     "test_faults.py",
-    "test_label.py",
-    "test_export.py",
-    "test_int8.py",
-    "test_predictor.py",
     "test_faults_training.py",
+    "test_label.py",
+    "test_ddp.py",
+    "test_errors_and_signals.py",
+    "test_export.py",
     "test_train.py",
+    "test_memory_follows_points.py",
     "test_bad_files_sweep.py",
-    "test_model.py",
     "test_stream.py",
+    "test_model.py",
+    "test_console_scripts.py",
     "test_evaluation.py",
     "test_run_folder.py",
-    "test_trusted_loading.py",
+    "test_hdbscan_labels.py",
     "test_console.py",
+    "test_viz_rerun.py",
+    "test_settings.py",
+    "test_teacher_long_vehicles.py",
+    "test_int8.py",
 )
 
 

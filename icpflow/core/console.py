@@ -34,6 +34,8 @@ from tqdm import tqdm
 NOISE = (
     r"💡 Tip: For seamless cloud logging",  # Lightning's advertisement for its LitLogger service
     r"(GPU|TPU|HPU) available: False",  # Lightning listing hardware this machine does not have
+    # ONNX Runtime's int8 quantiser telling how it renamed a bias that two folded convolutions share (INFO, root logger)
+    r"Created a copy of bias input ",
 )
 #: warnings ignored: (message regex, category); each is a library talking to its own developers
 NOISE_WARNINGS = (

@@ -44,6 +44,7 @@ def test_every_step_of_the_gpu_run_runs_on_the_cpu(smoke):
     for name in ("paper", "small"):
         assert (out / f"train_{name}" / "export" / "fastflow3d.onnx").is_file()
         assert f"| {name} | 2 |" in report  # the steps each student reached
+    assert "Created a copy of bias input" not in (out / "logs" / "train_small.log").read_text()  # its int8 export
     for method in ("ego", "icpflow", "student (paper)", "student (small)"):
         assert f"| {method} |" in report, method
     for backend in ("eager", "eager-bf16"):  # both models
