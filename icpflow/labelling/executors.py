@@ -99,6 +99,9 @@ def local_pool(job: LabelJob, indices: list[int], workers: int, threads: int) ->
     finally:
         pool.stop()
         pool.join()
+        # a worker the pool was still spawning when it stopped may outlive it and, once this process is gone, fail to
+        # unpickle its channel with a traceback of its own: a SIGTERM before its start is done ends it silently
+        _end_helpers()
 
 
 def ray_tasks(job: LabelJob, indices: list[int], address: str | None, workers: int) -> Iterator[dict]:
