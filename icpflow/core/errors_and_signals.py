@@ -220,21 +220,55 @@ def _full_error_asked() -> bool:
     return os.environ.get(FULL_ERROR, "") not in ("", "0") and MARKER not in os.environ
 
 
-#: what a stop can arrive as: a Stop or KeyboardInterrupt raised by a signal's handler, or, where the handler ran
-#: while a compiled (numba) kernel returned, the SystemError that wraps it ("CPUDispatcher(...) returned a result with
-#: an exception set"); :func:`stopped_by` tells them apart
-STOPS = (Stop, KeyboardInterrupt, SystemError)
+#: what a stop can arrive as: a Stop or KeyboardInterrupt raised by a signal's handler, or another error raised over
+#: it where the handler ran inside compiled code (:func:`stop_behind`); :func:`stopped_by` tells them apart
+STOPS = (Stop, KeyboardInterrupt, SystemError, ImportError)
+
+
+def stop_behind(error: BaseException) -> BaseException | None:
+    """The stop (a :class:`Stop` or ``KeyboardInterrupt``) that ``error`` is or was raised over, or None.
+
+    A signal whose handler runs inside compiled code surfaces as another error: where a numba kernel returns, a
+    ``SystemError(CPUDispatcher(...) returned a result with an exception set)`` caused by the stop; where a compiled
+    module imports a module of its own (numba's first import, numpy's ``import_array``), an ``ImportError``
+    (``numba._devicearray failed to import``) raised after the module printed the stop, which Python keeps as
+    ``sys.last_value``."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, (Stop, KeyboardInterrupt)):
+            return error
+        printed = getattr(sys, "last_value", None)
+        if isinstance(error, ImportError) and isinstance(printed, (Stop, KeyboardInterrupt)):
+            return printed
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return None
 
 
 def stopped_by(error: BaseException) -> BaseException:
-    """The Stop or KeyboardInterrupt that ``error`` is or that a kernel's SystemError wraps (its cause, or its
-    context); ``error`` itself is raised again where it is not a stop."""
-    seen = error
-    while isinstance(seen, SystemError):
-        seen = seen.__cause__ or seen.__context__
-    if isinstance(seen, (Stop, KeyboardInterrupt)):
-        return seen
-    raise error
+    """The stop behind ``error`` (:func:`stop_behind`); ``error`` itself is raised again where it is not a stop."""
+    stop = stop_behind(error)
+    if stop is None:
+        raise error
+    return stop
+
+
+@contextlib.contextmanager
+def _stops_unprinted() -> Iterator[None]:
+    """Within the block, a stop that a compiled module prints (its import calls ``PyErr_Print``, which calls
+    ``sys.excepthook``, then raises an ImportError in the stop's place) prints nothing: the stop becomes the entry
+    point's one line. Every other exception prints as before."""
+    previous = sys.excepthook
+
+    def hook(kind, value, traceback) -> None:
+        if not isinstance(value, (Stop, KeyboardInterrupt)):
+            previous(kind, value, traceback)
+
+    sys.excepthook = hook
+    try:
+        yield
+    finally:
+        sys.excepthook = previous
 
 
 @contextlib.contextmanager
@@ -246,8 +280,9 @@ def reported(prog: str, *expected: type[BaseException]) -> Iterator[None]:
     full = _full_error_asked()
     try:
         try:
-            yield
-        except SystemError as error:  # a stop that arrived inside a compiled kernel: the stop it wraps
+            with _stops_unprinted():
+                yield
+        except (SystemError, ImportError) as error:  # a stop that arrived inside compiled code: the stop behind it
             raise stopped_by(error) from None
     except Stop as stop:
         if launching_process():  # the ranks a launcher started beside it stop with it, silently

@@ -29,6 +29,7 @@ from icpflow.core.errors_and_signals import (
     STOPS,
     one_line,
     reported,
+    signals_held,
     stop_on_signals,
     stop_signum,
     stopped_by,
@@ -37,7 +38,7 @@ from icpflow.core.settings import check_config
 from icpflow.evaluation.methods import EvaluationError, MethodFactory, build_methods, parse_horizons
 from icpflow.evaluation.options import register
 from icpflow.evaluation.report import check_writable, format_table, metrics_json, table_rows, write_results
-from icpflow.evaluation.run import Evaluation, PairHook, PairPredictions, signals_held
+from icpflow.evaluation.run import Evaluation, PairHook, PairPredictions
 from icpflow.evaluation.scoring import MetricOptions
 from icpflow.teacher.config import teacher_config
 

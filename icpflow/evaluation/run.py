@@ -16,16 +16,15 @@ and gap at once, with the signals held), and :meth:`Evaluation.result` gives a p
 
 from __future__ import annotations
 
-import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 
 from icpflow.core.atomic import WriteError
+from icpflow.core.errors_and_signals import signals_held, stop_behind
 from icpflow.core.frame_pair import FramePair
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.evaluation.methods import Method
@@ -114,6 +113,9 @@ class Evaluation:
                 flows, seconds = _predict(pair, index, row)
                 pair_scores = {name: scorer.score(flows[name], seconds[name]) for name in row}
             except Exception as error:  # a bad sample is recorded and skipped for every method and horizon
+                stop = stop_behind(error)
+                if stop is not None:  # Ctrl-C or SIGTERM inside compiled code arrives as another error: it stops
+                    raise stop from None
                 message = str(error).splitlines()[0] if str(error) else ""
                 self.failures.append(
                     {
@@ -168,20 +170,6 @@ def _predict(pair: FramePair, index: int, methods: dict[str, Method]):
                 raise ValueError(f"method {name} returned flow of shape {flow.shape} for pc0 {pair.pc0.shape}")
         flows[name], seconds[name] = by_object[id(method)]
     return flows, seconds
-
-
-@contextmanager
-def signals_held():
-    """Hold SIGINT and SIGTERM for the block (they are delivered after it), so a stop never splits a pair's sums."""
-    if not hasattr(signal, "pthread_sigmask"):  # Windows: no signal masks; a stop there may end a pair half-summed
-        yield
-        return
-    held = {signal.SIGINT, signal.SIGTERM}
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _hook_name(hook) -> str:

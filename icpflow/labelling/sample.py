@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from icpflow.core.errors_and_signals import Stop
+from icpflow.core.errors_and_signals import stop_behind
 from icpflow.core.frame_pair import FramePairError
 from icpflow.core.threads import thread_limit
 from icpflow.datasets.base import sample_id_or_index
@@ -98,22 +98,8 @@ def label_sample(job, index: int, threads: int) -> dict:
         check_finite_labels(labels)
         outcome = {"sample": shard_rows(job.dataset, index, pair, labels)}
     except Exception as error:  # any reader or teacher failure skips this sample only
-        stop = interrupt_behind(error)
-        if stop is not None:  # Ctrl-C or SIGTERM inside a compiled kernel arrives wrapped in a SystemError
+        stop = stop_behind(error)
+        if stop is not None:  # Ctrl-C or SIGTERM inside compiled code arrives as another error
             raise stop from None
         outcome = {"failure": failure_record(job.dataset, index, pair, error)}
     return {"index": index, "seconds": time.perf_counter() - start, **outcome}
-
-
-def interrupt_behind(error: BaseException) -> BaseException | None:
-    """The stop (``icpflow.core.errors_and_signals.Stop`` on SIGTERM or Ctrl-C, or a bare KeyboardInterrupt) that
-    ``error`` was raised over, if any: a signal that arrives while a numba kernel runs surfaces as ``SystemError(...
-    returned a
-    result with an exception set)`` whose cause is the stop; it must stop the run, not fail the sample."""
-    seen = set()
-    while error is not None and id(error) not in seen:
-        if isinstance(error, (Stop, KeyboardInterrupt)):
-            return error
-        seen.add(id(error))
-        error = error.__cause__ or error.__context__
-    return None

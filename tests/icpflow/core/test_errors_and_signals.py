@@ -8,6 +8,7 @@ test_faults_evaluation.py (eval.py, both), test_faults_training.py (train.py, bo
 import errno
 import os
 import signal
+import sys
 import time
 
 import pytest
@@ -20,13 +21,13 @@ from icpflow.core.errors_and_signals import (
     on_signals,
     one_line,
     signals_held,
+    stop_behind,
     stop_on_signals,
     stop_signum,
 )
 from icpflow.datasets.synthetic.reader import SyntheticDataset
 from icpflow.evaluation import run_eval
 from icpflow.evaluation.baselines import ego_only_flow
-from icpflow.labelling.sample import interrupt_behind
 
 from helpers.labelling import REPO, label_cfg
 
@@ -180,7 +181,7 @@ def test_a_signal_during_labelling_keeps_the_shards_and_exits_128_plus_it(
     assert {s: signal.getsignal(s) for s in STOP_SIGNALS} == before  # the handlers came back
     wrapped = SystemError("a numba kernel returned a result with an exception set")
     wrapped.__cause__ = Stop(signum)
-    assert interrupt_behind(wrapped) is wrapped.__cause__  # a stop inside a kernel stops the run
+    assert stop_behind(wrapped) is wrapped.__cause__  # a stop inside a kernel stops the run
 
 
 @pytest.mark.parametrize(
@@ -236,11 +237,15 @@ def test_signals_are_held_around_a_threaded_library_call_and_delivered_after_it(
 
 
 def test_without_signal_masks_the_block_runs_as_it_is(monkeypatch):
-    """Windows has no ``signal.pthread_sigmask``: evaluation's pairs run unheld there rather than fail."""
+    """Windows has no ``signal.pthread_sigmask``: the one way to hold signals (evaluation's sums, scipy's threaded
+    queries) needs none, a signal inside the block still waits for its end."""
     monkeypatch.delattr(signal, "pthread_sigmask")
     ran = []
-    with signals_held():
-        ran.append(True)
+    with pytest.raises(KeyboardInterrupt):
+        with signals_held():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+            ran.append(True)
     assert ran == [True]
 
 
@@ -266,6 +271,79 @@ def test_a_stop_that_a_kernel_wraps_is_the_stop(capsys):
     assert isinstance(stopped_by(raised.value), KeyboardInterrupt)
     with pytest.raises(SystemError, match="other"):
         stopped_by(SystemError("other"))
+
+
+#: a process that starts as an entry point does, through ``launched``, and whose command imports numba for the first
+#: time inside its report; the stop arrives while numba's compiled dispatcher imports its sibling module (Python's
+#: import machinery runs a finder there, as it runs a signal's handler): numba prints it and raises an ImportError
+INTERRUPTED_IMPORT = """
+import signal, sys
+from icpflow.core.errors_and_signals import Stop, reported
+from icpflow.core.launch import launched
+
+class Interrupting:
+    def find_spec(self, name, path=None, target=None):
+        if name == "numba._devicearray":
+            raise KeyboardInterrupt if sys.argv[1] == "SIGINT" else Stop(signal.SIGTERM)
+
+def load():
+    def main():
+        with reported("label"):
+            import numba
+    return main
+
+sys.meta_path.insert(0, Interrupting())
+launched("label", load)
+"""
+
+
+@pytest.mark.parametrize(("name", "status", "words"), [("SIGINT", 130, "interrupted"), ("SIGTERM", 143, "terminated")])
+def test_a_stop_inside_a_compiled_modules_import_is_the_stop(name, status, words):
+    """A Ctrl-C while numba's compiled modules import (the first moment a command needs the teacher, a second into
+    ``label.py``) is printed by numba and replaced by ``ImportError: numba._devicearray failed to import``: it ends
+    as the stop it replaced, one line and 128 + the signal, nothing printed before it."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", INTERRUPTED_IMPORT, name], capture_output=True, text=True, timeout=120)
+    assert (done.returncode, done.stderr) == (status, f"label: {words} ({name})\n")
+
+
+def test_an_import_error_is_a_stop_only_over_a_printed_stop(monkeypatch):
+    """The ImportError that a compiled module raises in place of a stop it printed (``sys.last_value``) is that stop;
+    one over any other printed error, or none, stays an error."""
+    from icpflow.core.errors_and_signals import stopped_by
+
+    error = ImportError("numba._devicearray failed to import")
+    monkeypatch.delattr(sys, "last_value", raising=False)
+    assert stop_behind(error) is None
+    monkeypatch.setattr(sys, "last_value", ValueError("printed"), raising=False)
+    with pytest.raises(ImportError):
+        stopped_by(error)
+    for stop in (KeyboardInterrupt(), Stop(signal.SIGTERM)):
+        monkeypatch.setattr(sys, "last_value", stop, raising=False)
+        assert stopped_by(error) is stop
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_inside_a_compiled_call_stops_the_evaluation(signum):
+    """A stop that a kernel wraps in a SystemError while a method predicts stops ``evaluate`` (the CLI keeps the pairs
+    scored, above); it is not a bad sample recorded and skipped."""
+    from icpflow.evaluation import MetricOptions, evaluate
+
+    dataset = SyntheticDataset(
+        split="val", num_sequences=1, frames_per_sequence=3, beams=32, azimuth_resolution_deg=1.0
+    )
+
+    def kernel(pair, index):
+        try:
+            raise Stop(signum)
+        except Stop as stop:
+            raise SystemError("CPUDispatcher(<function nearest>) returned a result with an exception set") from stop
+
+    with pytest.raises(Stop) as stopped:
+        evaluate(dataset, {1: {"kernel": kernel}}, MetricOptions())
+    assert stopped.value.signum == signum
 
 
 #: each entry point as its console script or checkout script starts it (``icpflow.core.launch``)
