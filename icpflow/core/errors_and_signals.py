@@ -245,6 +245,14 @@ def stop_behind(error: BaseException) -> BaseException | None:
     return None
 
 
+def raise_stop_behind(error: BaseException) -> None:
+    """Raise the stop behind ``error`` (:func:`stop_behind`), if any: where a bad sample is recorded and skipped
+    (``except Exception``), a Ctrl-C or SIGTERM inside compiled code must stop the run instead."""
+    stop = stop_behind(error)
+    if stop is not None:
+        raise stop from None
+
+
 def stopped_by(error: BaseException) -> BaseException:
     """The stop behind ``error`` (:func:`stop_behind`); ``error`` itself is raised again where it is not a stop."""
     stop = stop_behind(error)

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from icpflow.core.atomic import WriteError
-from icpflow.core.errors_and_signals import signals_held, stop_behind
+from icpflow.core.errors_and_signals import raise_stop_behind, signals_held
 from icpflow.core.frame_pair import FramePair
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.evaluation.methods import Method
@@ -113,9 +113,7 @@ class Evaluation:
                 flows, seconds = _predict(pair, index, row)
                 pair_scores = {name: scorer.score(flows[name], seconds[name]) for name in row}
             except Exception as error:  # a bad sample is recorded and skipped for every method and horizon
-                stop = stop_behind(error)
-                if stop is not None:  # Ctrl-C or SIGTERM inside compiled code arrives as another error: it stops
-                    raise stop from None
+                raise_stop_behind(error)
                 message = str(error).splitlines()[0] if str(error) else ""
                 self.failures.append(
                     {

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from icpflow.core.errors_and_signals import stop_behind
+from icpflow.core.errors_and_signals import raise_stop_behind
 from icpflow.core.frame_pair import FramePairError
 from icpflow.core.threads import thread_limit
 from icpflow.datasets.base import sample_id_or_index
@@ -98,8 +98,6 @@ def label_sample(job, index: int, threads: int) -> dict:
         check_finite_labels(labels)
         outcome = {"sample": shard_rows(job.dataset, index, pair, labels)}
     except Exception as error:  # any reader or teacher failure skips this sample only
-        stop = stop_behind(error)
-        if stop is not None:  # Ctrl-C or SIGTERM inside compiled code arrives as another error
-            raise stop from None
+        raise_stop_behind(error)
         outcome = {"failure": failure_record(job.dataset, index, pair, error)}
     return {"index": index, "seconds": time.perf_counter() - start, **outcome}
