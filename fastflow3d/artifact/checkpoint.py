@@ -16,6 +16,7 @@ import torch
 from fastflow3d.network.model import FastFlow3D
 from icpflow.core.deprecation import MOVED_TARGETS as ICPFLOW_TARGETS
 from icpflow.core.deprecation import current_target
+from icpflow.core.stops import raise_stop_behind
 
 MODEL_TARGET = "fastflow3d.network.model.FastFlow3D"
 
@@ -82,6 +83,7 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     try:
         checkpoint = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as error:  # torch raises many types for a file that is not a (safe) checkpoint
+        raise_stop_behind(error)
         raise CheckpointError(
             f"{path}: not a readable torch checkpoint, truncated or damaged? ({_first_line(error)})"
         ) from None

@@ -35,6 +35,7 @@ from fastflow3d.artifact.checkpoint import load_student
 from fastflow3d.artifact.file_format import INPUT_NAMES, LEGACY_FORMATS, OUTPUT_NAMES, ArtifactError, SingleSampleNet
 from fastflow3d.artifact.safe_loading import TORCHSCRIPT_WARNING, check_pt2
 from icpflow.core.errors_and_signals import one_line
+from icpflow.core.stops import raise_stop_behind
 from icpflow.core.threads import available_cores, cpu_fields
 
 RUNTIMES = ("onnxruntime", "openvino")
@@ -93,7 +94,8 @@ class OpenVinoNetwork:
     def __init__(self, path: Path, threads: int, precision: str = "f32"):
         try:
             import openvino
-        except ImportError:
+        except ImportError as error:
+            raise_stop_behind(error)
             raise ArtifactError(
                 f"{path}: the openvino runtime needs openvino (pip install 'icpflow[openvino]')"
             ) from None
@@ -106,6 +108,7 @@ class OpenVinoNetwork:
         try:
             self.compiled = core.compile_model(core.read_model(str(path)), "CPU", config)
         except Exception as error:  # OpenVINO raises its own exception types for damaged or foreign files
+            raise_stop_behind(error)
             raise ArtifactError(f"{path}: OpenVINO cannot compile it: {one_line(error)[:300]}") from None
         names = tuple(port.get_any_name() for port in self.compiled.inputs)
         if names != INPUT_NAMES:
@@ -128,7 +131,8 @@ class OnnxRuntimeNetwork:
         for one thread (``fastflow3d.artifact.sequential_scatter``; where the ``onnx`` package is installed)."""
         try:
             import onnxruntime
-        except ImportError:
+        except ImportError as error:
+            raise_stop_behind(error)
             raise ArtifactError(f"{path}: running .onnx needs onnxruntime (pip install 'icpflow[export]')") from None
         available = onnxruntime.get_available_providers()
         if providers is None:
@@ -145,6 +149,7 @@ class OnnxRuntimeNetwork:
                 model = self._one_thread_graph(path)
             self.session = onnxruntime.InferenceSession(model, options, providers=list(providers))
         except Exception as error:  # onnx and onnxruntime raise their own exception types for damaged or foreign files
+            raise_stop_behind(error)
             raise ArtifactError(f"{path}: cannot load ONNX model: {one_line(error)}") from None
         names = tuple(entry.name for entry in self.session.get_inputs())
         if names != INPUT_NAMES:
@@ -252,5 +257,6 @@ def load_network(
         else:  # legacy TorchScript exports (torch.jit is deprecated; read while older exports are in use)
             module = torch.jit.load(str(path), map_location=device).eval()
     except Exception as error:  # damaged or foreign files raise many types (RuntimeError, zipfile, pickle errors)
+        raise_stop_behind(error)
         raise ArtifactError(f"{path}: cannot load {kind}: {one_line(error)[:300]}") from None
     return TorchNetwork(module, device)

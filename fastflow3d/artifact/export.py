@@ -44,6 +44,7 @@ from fastflow3d.network.model import FastFlow3D
 from icpflow.core.atomic import atomic_directory
 from icpflow.core.errors_and_signals import Stop, exit_status, one_line, os_error_line, signal_words, stop_on_signals
 from icpflow.core.files import not_a_file
+from icpflow.core.stops import raise_stop_behind
 
 PARITY_TOLERANCE = 1e-4  # metres, max abs difference between an export and eager
 
@@ -158,7 +159,8 @@ def export_model(
             with quiet_exporters():
                 try:
                     WRITERS[name](net, path, example)
-                except ImportError:  # the ONNX exporter without onnxscript
+                except ImportError as error:  # the ONNX exporter without onnxscript
+                    raise_stop_behind(error)
                     raise ExportError(
                         "ONNX export needs onnx, onnxscript and onnxruntime: pip install 'icpflow[export]'"
                     ) from None

@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 
 from fastflow3d.artifact.file_format import ArtifactError
+from icpflow.core.stops import raise_stop_behind
 
 TORCHSCRIPT_WARNING = (
     "a TorchScript file runs code when it is loaded: load it only from a source you trust "
@@ -63,5 +64,6 @@ def check_pt2(path: Path) -> None:
             elif "/data/sample_inputs/" in name:
                 try:
                     torch.load(io.BytesIO(archive.read(name)), map_location="cpu", weights_only=True)
-                except Exception:  # torch's own fallback would unpickle it in full
+                except Exception as error:  # torch's own fallback would unpickle it in full
+                    raise_stop_behind(error)
                     raise ArtifactError(f"{path}: refused: {name} is not plain tensors (it could run code)") from None

@@ -16,6 +16,7 @@ from lightning.pytorch.callbacks import Checkpoint, ModelCheckpoint
 
 from icpflow.core.atomic import atomic_path
 from icpflow.core.errors_and_signals import Stop, on_signals, signal_words
+from icpflow.core.stops import raise_stop_behind
 
 log = logging.getLogger(__name__)
 
@@ -130,7 +131,8 @@ def _stored_score(path: Path, state_key: str) -> float | None:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
         score = checkpoint["callbacks"][state_key]["current_score"]
         return float(score)
-    except Exception:  # a damaged or foreign file: left alone
+    except Exception as error:  # a damaged or foreign file: left alone
+        raise_stop_behind(error)
         return None
 
 

@@ -30,6 +30,8 @@ from collections.abc import Iterator
 
 from tqdm import tqdm
 
+from icpflow.core.stops import raise_stop_behind
+
 #: log lines dropped from the console (regular expressions matched at the start of the message)
 NOISE = (
     r"💡 Tip: For seamless cloud logging",  # Lightning's advertisement for its LitLogger service
@@ -74,7 +76,8 @@ class ProgressSafeHandler(logging.Handler):
     def emit(self, record: logging.LogRecord) -> None:
         try:
             tqdm.write(self.format(record), file=self.stream or sys.stderr)
-        except Exception:
+        except Exception as error:
+            raise_stop_behind(error)
             self.handleError(record)
 
 

@@ -32,6 +32,16 @@ import threading
 from collections.abc import Callable, Iterator
 
 from icpflow.core.settings import OptionError, type_error_line
+from icpflow.core.stops import (  # noqa: F401 - the names every entry point used from here
+    STOP_SIGNALS,
+    STOPS,
+    Stop,
+    raise_stop_behind,
+    signal_words,
+    stop_behind,
+    stop_signum,
+    stopped_by,
+)
 
 FULL_ERROR = "HYDRA_FULL_ERROR"  # set (to 1) by the user: tracebacks as Python and Hydra print them
 MARKER = "ICPFLOW_ENTRY"  # set by :func:`run` with HYDRA_FULL_ERROR=1: Hydra raises to us, no traceback was asked
@@ -49,38 +59,6 @@ FIXES = {
 }
 
 
-#: the signals that stop a run: Ctrl-C (SIGINT) and a scheduler's or supervisor's SIGTERM
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-class Stop(BaseException):
-    """A signal asked the run to stop (a BaseException, so that no ``except Exception`` swallows it).
-
-    ``str(stop)`` is the line to print: what happened, what was kept, how to go on; exit status 128 + ``signum``.
-    """
-
-    def __init__(self, signum: int, message: str | None = None):
-        self.signum = int(signum)
-        super().__init__(message or signal_words(signum))
-
-    @property
-    def status(self) -> int:
-        return 128 + self.signum
-
-
-def signal_words(signum: int) -> str:
-    """``interrupted (SIGINT)`` / ``terminated (SIGTERM)`` / ``stopped (SIGHUP)``."""
-    name = signal.Signals(signum).name
-    verb = {"SIGINT": "interrupted", "SIGTERM": "terminated"}.get(name, "stopped")
-    return f"{verb} ({name})"
-
-
-def stop_signum(interrupt: BaseException) -> int:
-    """The signal that stopped a run: a :class:`Stop`'s, SIGINT for a bare ``KeyboardInterrupt`` (Ctrl-C where no
-    handler of :func:`on_signals` was installed: outside the main thread, or before it)."""
-    return interrupt.signum if isinstance(interrupt, Stop) else int(signal.SIGINT)
-
-
 def on_signals(handle: Callable[[int], None], signums=STOP_SIGNALS) -> Callable[[], None]:
     """Route each signal of ``signums`` that reaches this process to ``handle(signum)`` (which raises :class:`Stop`,
     or notes the signal to stop later); returns the function that puts the previous handlers back.
@@ -88,15 +66,22 @@ def on_signals(handle: Callable[[int], None], signums=STOP_SIGNALS) -> Callable[
     The one place where entry points and the training callback install signal handlers. A process forked from this
     one (a DataLoader or a library's worker, which Ctrl-C or a scheduler signals with it) ignores these signals: its
     owner ends it when it stops. A SIGINT ignored when this is called (a background job of a shell script) stays
-    ignored, as Python leaves it. Outside the main thread nothing is installed (signals reach the main thread)."""
+    ignored, as Python leaves it. Outside the main thread nothing is installed (signals reach the main thread). A stop
+    that ``handle`` raises is noted (:func:`stops_raised`)."""
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
     owner = os.getpid()
+    raised = next((stops_raised(h) for h in map(signal.getsignal, signums) if stops_raised(h) is not None), [])
 
     def route(signum, frame) -> None:
         if os.getpid() == owner:
-            handle(signum)
+            try:
+                handle(signum)
+            except BaseException:
+                raised.append(signum)
+                raise
 
+    route.raised = raised
     previous = {}
     for signum in signums:
         if signum == signal.SIGINT and signal.getsignal(signum) is signal.SIG_IGN:
@@ -109,6 +94,25 @@ def on_signals(handle: Callable[[int], None], signums=STOP_SIGNALS) -> Callable[
             signal.signal(signum, signal.SIG_DFL if handler is None else handler)  # None: installed outside Python
 
     return restore
+
+
+def stops_raised(handler) -> list[int] | None:
+    """The signals for which a handler that :func:`on_signals` installed raised a stop (in arrival order), or None for
+    any other handler. Nested :func:`on_signals` note into the outermost one's list, so an entry point
+    (``icpflow.core.launch.launched``) learns of every stop raised in its command, also of one that a library
+    swallowed: Hydra's ``get_mode`` (``except Exception`` over omegaconf's error raised over the stop), a Cython
+    module's import (its ABC registrations ignore every error), :func:`raise_swallowed_stop`."""
+    return getattr(handler, "raised", None)
+
+
+def raise_swallowed_stop() -> None:
+    """Raise again, as a :class:`Stop`, a stop that a handler of :func:`on_signals` raised and that did not end the
+    run (a library swallowed it: :func:`stops_raised`). Called where the run goes on to long work (the start of
+    :func:`stop_on_signals`, after the kernels' first import), never while a stop unwinds."""
+    for signum in STOP_SIGNALS:
+        raised = stops_raised(signal.getsignal(signum))
+        if raised:
+            raise Stop(raised[0])
 
 
 def raise_stop(signum: int) -> None:
@@ -128,6 +132,7 @@ def stop_on_signals(signums=STOP_SIGNALS) -> Iterator[None]:
     worker pools clean up), as :func:`on_signals` routes them; the previous handlers come back after it."""
     restore = on_signals(raise_stop, signums)
     try:
+        raise_swallowed_stop()
         yield
     finally:
         restore()
@@ -220,63 +225,29 @@ def _full_error_asked() -> bool:
     return os.environ.get(FULL_ERROR, "") not in ("", "0") and MARKER not in os.environ
 
 
-#: what a stop can arrive as: a Stop or KeyboardInterrupt raised by a signal's handler, or another error raised over
-#: it where the handler ran inside compiled code (:func:`stop_behind`); :func:`stopped_by` tells them apart
-STOPS = (Stop, KeyboardInterrupt, SystemError, ImportError)
-
-
-def stop_behind(error: BaseException) -> BaseException | None:
-    """The stop (a :class:`Stop` or ``KeyboardInterrupt``) that ``error`` is or was raised over, or None.
-
-    A signal whose handler runs inside compiled code surfaces as another error: where a numba kernel returns, a
-    ``SystemError(CPUDispatcher(...) returned a result with an exception set)`` caused by the stop; where a compiled
-    module imports a module of its own (numba's first import, numpy's ``import_array``), an ``ImportError``
-    (``numba._devicearray failed to import``) raised after the module printed the stop, which Python keeps as
-    ``sys.last_value``."""
-    seen = set()
-    while error is not None and id(error) not in seen:
-        if isinstance(error, (Stop, KeyboardInterrupt)):
-            return error
-        printed = getattr(sys, "last_value", None)
-        if isinstance(error, ImportError) and isinstance(printed, (Stop, KeyboardInterrupt)):
-            return printed
-        seen.add(id(error))
-        error = error.__cause__ or error.__context__
-    return None
-
-
-def raise_stop_behind(error: BaseException) -> None:
-    """Raise the stop behind ``error`` (:func:`stop_behind`), if any: where a bad sample is recorded and skipped
-    (``except Exception``), a Ctrl-C or SIGTERM inside compiled code must stop the run instead."""
-    stop = stop_behind(error)
-    if stop is not None:
-        raise stop from None
-
-
-def stopped_by(error: BaseException) -> BaseException:
-    """The stop behind ``error`` (:func:`stop_behind`); ``error`` itself is raised again where it is not a stop."""
-    stop = stop_behind(error)
-    if stop is None:
-        raise error
-    return stop
-
-
 @contextlib.contextmanager
-def _stops_unprinted() -> Iterator[None]:
-    """Within the block, a stop that a compiled module prints (its import calls ``PyErr_Print``, which calls
-    ``sys.excepthook``, then raises an ImportError in the stop's place) prints nothing: the stop becomes the entry
-    point's one line. Every other exception prints as before."""
-    previous = sys.excepthook
+def stops_unprinted() -> Iterator[None]:
+    """Within the block, a stop that Python or a compiled module prints instead of raising prints nothing: the stop
+    becomes the entry point's one line (:func:`~icpflow.core.launch.launched` ends a command whose stop was
+    swallowed as stopped). Where: a compiled module's import calls ``PyErr_Print`` (``sys.excepthook``), then raises
+    an ImportError in the stop's place; a signal's handler that runs inside a callback Python cannot raise from (a
+    weakref's, as importlib's module locks have; a finaliser) is "ignored" (``sys.unraisablehook``). Every other
+    exception prints as before."""
+    previous, previous_unraisable = sys.excepthook, sys.unraisablehook
 
     def hook(kind, value, traceback) -> None:
         if not isinstance(value, (Stop, KeyboardInterrupt)):
             previous(kind, value, traceback)
 
-    sys.excepthook = hook
+    def unraisable(report) -> None:
+        if not isinstance(report.exc_value, (Stop, KeyboardInterrupt)):
+            previous_unraisable(report)
+
+    sys.excepthook, sys.unraisablehook = hook, unraisable
     try:
         yield
     finally:
-        sys.excepthook = previous
+        sys.excepthook, sys.unraisablehook = previous, previous_unraisable
 
 
 @contextlib.contextmanager
@@ -288,10 +259,11 @@ def reported(prog: str, *expected: type[BaseException]) -> Iterator[None]:
     full = _full_error_asked()
     try:
         try:
-            with _stops_unprinted():
+            with stops_unprinted():
                 yield
-        except (SystemError, ImportError) as error:  # a stop that arrived inside compiled code: the stop behind it
-            raise stopped_by(error) from None
+        except Exception as error:  # a stop inside compiled code or a library, as another error: the stop behind it
+            raise_stop_behind(error)
+            raise
     except Stop as stop:
         if launching_process():  # the ranks a launcher started beside it stop with it, silently
             print(f"{prog}: {one_line(stop)}", file=sys.stderr)

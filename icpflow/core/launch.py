@@ -17,6 +17,8 @@ from icpflow.core.errors_and_signals import (
     raise_stop,
     signal_words,
     stop_signum,
+    stops_raised,
+    stops_unprinted,
 )
 
 
@@ -27,12 +29,23 @@ def launched(prog: str, load: Callable[[], Callable], *args, exits: bool = True)
     KeyboardInterrupt into an error of its own: omegaconf does), then is the line ``<prog>: interrupted (SIGINT)
     while starting; nothing was done`` (``terminated (SIGTERM)``) and exit status 128 + the signal. One that lands in
     ``main`` outside its own report (while it parses its options) is ``<prog>: interrupted (SIGINT)`` and 130, or
-    ``terminated (SIGTERM)`` and 143. Where the process ends after ``main`` (``exits``), a signal once ``main`` has
-    returned is ignored: the exit status is ``main``'s."""
+    ``terminated (SIGTERM)`` and 143. A stop raised in ``main`` that a library swallowed (``stops_raised``) ends it
+    as stopped where the command's work would start (``stop_on_signals``), or else after ``main``: its line and
+    128 + the signal in place of the status ``main`` gave. Where the process ends after ``main`` (``exits``), a
+    signal once ``main`` has returned is ignored: the exit status is ``main``'s."""
     main = _loaded(prog, load)
-    restore = on_signals(raise_stop, (signal.SIGTERM,))  # SIGINT is Python's KeyboardInterrupt already
+    restore = on_signals(_raise_in_main)
+    raised = stops_raised(signal.getsignal(signal.SIGTERM))  # None outside the main thread: nothing installed
+    raised = [] if raised is None else raised
     try:
-        return main(*args)
+        try:
+            with stops_unprinted():
+                status = main(*args)
+        except SystemExit as done:
+            _stop_kept(prog, raised, done.code)
+            raise
+        _stop_kept(prog, raised, status)
+        return status
     except (KeyboardInterrupt, Stop) as stop:  # before or after the command's own report
         print(f"{prog}: {stop if isinstance(stop, Stop) else signal_words(signal.SIGINT)}", file=sys.stderr)
         raise SystemExit(128 + stop_signum(stop)) from None
@@ -41,6 +54,21 @@ def launched(prog: str, load: Callable[[], Callable], *args, exits: bool = True)
         if exits:  # what follows is the interpreter's exit, where Python restores the default SIGINT action: a
             # signal there would end the process by the signal instead of with the status just given
             ignore_stop_signals()
+
+
+def _raise_in_main(signum: int) -> None:
+    """A stop signal in the command: Ctrl-C as Python's own KeyboardInterrupt, another as :class:`Stop`."""
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    raise_stop(signum)
+
+
+def _stop_kept(prog: str, raised: list[int], status: object) -> None:
+    """A command that ends with another status than 128 + a stop raised in it lost that stop (a library swallowed
+    it, or reported the error raised over it): the process ends as stopped, in its line."""
+    if raised and status not in {128 + signum for signum in raised}:
+        print(f"{prog}: {signal_words(raised[0])}", file=sys.stderr)
+        raise SystemExit(128 + raised[0])
 
 
 def _loaded(prog: str, load: Callable[[], Callable]) -> Callable:

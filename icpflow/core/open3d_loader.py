@@ -15,6 +15,7 @@ import functools
 import sys
 
 from icpflow.core.errors_and_signals import one_line
+from icpflow.core.stops import raise_stop_behind
 
 #: the soname of the system library open3d's ``libOpen3D.so`` needs
 LIBUSB = "libusb-1.0.so.0"
@@ -40,7 +41,8 @@ def provide_libusb() -> str | None:
         pass
     try:
         import libusb_package
-    except ImportError:
+    except ImportError as error:
+        raise_stop_behind(error)
         return None
     path = libusb_package.get_library_path()
     if path is None:  # a build of the package without the library (another platform)
@@ -59,6 +61,7 @@ def load_open3d():
     except ModuleNotFoundError as error:  # an install without it (a platform where its marker did not apply)
         raise ImportError(f"open3d is not installed; {OPEN3D_FIX}") from error
     except ImportError as error:
+        raise_stop_behind(error)
         if "libusb" not in str(error):
             raise
         raise ImportError(f"open3d cannot load {LIBUSB} ({one_line(error)}); {LIBUSB_FIX}") from error

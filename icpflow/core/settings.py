@@ -28,6 +28,8 @@ import types
 import typing
 from dataclasses import field
 
+from icpflow.core.stops import raise_stop_behind
+
 #: what each ``rule`` of :func:`setting` accepts, as the error message says it
 RULES = {
     "positive": "a number > 0",
@@ -194,7 +196,8 @@ def check_target_arguments(node, prefix: str) -> None:
         target = get_object(str(node["_target_"]))
         parameters = inspect.signature(target).parameters
         hints = typing.get_type_hints(target.__init__ if inspect.isclass(target) else target)
-    except Exception:  # noqa: BLE001 - an unknown target is Hydra's error to report, with its own words
+    except Exception as error:  # noqa: BLE001 - an unknown target is Hydra's error to report, with its own words
+        raise_stop_behind(error)
         return
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
         return

@@ -11,6 +11,7 @@ from abc import ABC, abstractmethod
 from pathlib import Path
 
 from icpflow.core.frame_pair import FramePair
+from icpflow.core.stops import raise_stop_behind
 
 
 class PairDataset(ABC):
@@ -117,7 +118,8 @@ def sample_id_or_index(dataset, index: int) -> str:
     may be what is broken)."""
     try:
         return dataset.sample_id(index)
-    except Exception:
+    except Exception as error:
+        raise_stop_behind(error)
         return f"index {index}"
 
 

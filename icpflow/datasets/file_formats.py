@@ -16,6 +16,7 @@ from icpflow.core.errors_and_signals import one_line
 from icpflow.core.files import NotAFile, read_text, regular_file
 from icpflow.core.frame_pair import MAX_ARRAY_VALUES, MAX_POINTS, FramePairError, check_points
 from icpflow.core.geometry import rigid_problem
+from icpflow.core.stops import raise_stop_behind
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -184,6 +185,7 @@ def read_feather(path: Path, columns: tuple[str, ...], optional: tuple[str, ...]
     except FileNotFoundError:
         raise fail(path, "file not found") from None
     except Exception as error:  # pyarrow raises several unrelated types for damaged files
+        raise_stop_behind(error)
         raise fail(path, f"cannot read feather (truncated or damaged?): {type(error).__name__}: {error}") from None
 
 

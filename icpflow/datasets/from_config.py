@@ -15,6 +15,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from icpflow.core.deprecation import MOVED_TARGETS, current_target
+from icpflow.core.stops import raise_stop_behind
 
 
 class DatasetError(ValueError):
@@ -38,7 +39,8 @@ def raise_max_horizon(cfg: DictConfig, horizon: int) -> bool:
     reader = cfg.dataset.reader
     try:
         takes = "max_horizon" in inspect.signature(get_class(reader_config(reader)._target_)).parameters
-    except Exception:  # an unimportable reader: opening it reports why
+    except Exception as error:  # an unimportable reader: opening it reports why
+        raise_stop_behind(error)
         return False
     if not takes or int(reader.get("max_horizon") or 1) >= horizon:
         return False
@@ -73,6 +75,7 @@ def open_dataset(cfg: DictConfig, horizon: int = 1):
     try:
         dataset = instantiate(reader_config(cfg.dataset.reader))
     except Exception as error:  # hydra wraps the reader's own one-line error
+        raise_stop_behind(error)
         cause = error.__cause__ or error
         text = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
         raise DatasetError(

@@ -24,8 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from icpflow.core.atomic import WriteError
-from icpflow.core.errors_and_signals import raise_stop_behind, signals_held
+from icpflow.core.errors_and_signals import signals_held
 from icpflow.core.frame_pair import FramePair
+from icpflow.core.stops import raise_stop_behind
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.evaluation.methods import Method
 from icpflow.evaluation.scoring import MethodScores, MetricOptions, PairScorer, PairScores

@@ -18,6 +18,7 @@ from concurrent.futures import FIRST_COMPLETED, wait
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context
 
+from icpflow.core.errors_and_signals import signals_held
 from icpflow.labelling.job import LabelError, LabelJob
 from icpflow.labelling.sample import label_sample
 
@@ -82,7 +83,9 @@ def local_pool(job: LabelJob, indices: list[int], workers: int, threads: int) ->
         while waiting or running:
             while waiting and len(running) < 2 * workers:
                 index = waiting.popleft()
-                running[pool.schedule(label_sample, (job, index, threads))] = index
+                with signals_held():  # the pool spawns its workers here, in this thread, on its first task: a stop
+                    # between a worker's start and the write of its channel would leave it failing to read it
+                    running[pool.schedule(label_sample, (job, index, threads))] = index
             done, _ = wait(running, timeout=0.5, return_when=FIRST_COMPLETED)
             for future in done:
                 index = running.pop(future)

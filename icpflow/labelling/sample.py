@@ -7,8 +7,8 @@ import time
 
 import numpy as np
 
-from icpflow.core.errors_and_signals import raise_stop_behind
 from icpflow.core.frame_pair import FramePairError
+from icpflow.core.stops import raise_stop_behind
 from icpflow.core.threads import thread_limit
 from icpflow.datasets.base import sample_id_or_index
 from icpflow.labelling.labeller import build_labeller

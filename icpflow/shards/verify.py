@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from icpflow.core.stops import raise_stop_behind
 from icpflow.shards.access import ShardError, open_shard, shard_array, shard_group
 from icpflow.shards.schema import CLOUD, FILE_ATTRS, OPTIONAL, REQUIRED, SAMPLE_ATTRS, SCHEMA_VERSION, group_name
 
@@ -68,4 +69,5 @@ def verify_shard(path: Path, config_hash: str | None = None, num_samples: int | 
     except ShardError:
         raise
     except Exception as error:  # h5py raises OSError/KeyError/RuntimeError on damaged files
+        raise_stop_behind(error)
         raise ShardError(f"{path}: unreadable ({type(error).__name__}: {str(error).splitlines()[0][:160]})") from None

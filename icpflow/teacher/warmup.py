@@ -28,6 +28,8 @@ import time
 from pathlib import Path
 
 from icpflow.core.atomic import write_text_atomic
+from icpflow.core.errors_and_signals import raise_swallowed_stop
+from icpflow.core.stops import raise_stop_behind
 
 #: the modules whose numba kernels the teacher calls on the CPU (the ground's also the Predictor and the stream; the
 #: bird's-eye-view cells only the student's refinement; the plane normals also the odometry)
@@ -64,7 +66,8 @@ def _cached(dispatcher) -> bool:
     try:
         index = dispatcher._cache._cache_file._load_index()  # {} when the source changed since it was written
         target = dispatcher.targetctx.codegen().magic_tuple()
-    except Exception:  # no cache (cache=False, unwritable) or another numba layout: treat as cold
+    except Exception as error:  # no cache (cache=False, unwritable) or another numba layout: treat as cold
+        raise_stop_behind(error)
         return False
     return any(key[1] == target for key in index)
 
@@ -83,7 +86,8 @@ def _cache_folder() -> Path | None:
     dispatcher = next(iter(kernels().values()))
     try:
         return Path(dispatcher._cache._cache_path)
-    except Exception:
+    except Exception as error:
+        raise_stop_behind(error)
         return None
 
 
@@ -162,6 +166,7 @@ def ensure_compiled(prefix: str = "icpflow", stream=None, eager: bool = True) ->
     first KITTI stream: 14 s against 80 s with every kernel compiled first). Returns True where it emptied."""
     stream = stream or sys.stderr
     stale = stale_cache()
+    raise_swallowed_stop()  # the kernels' first import (numba, scipy, numpy's Cython modules) may swallow a Ctrl-C
     if not eager:
         if stale:
             print(

@@ -30,6 +30,7 @@ import numpy as np
 from icpflow.core.atomic import atomic_path
 from icpflow.core.frame_pair import FramePair
 from icpflow.core.geometry import full_to_residual, transform_points
+from icpflow.core.stops import raise_stop_behind
 
 #: matplotlib colour map of the residual speed, 0 (dark) to ``max_speed`` (bright)
 SPEED_COLOURMAP = "turbo"
@@ -47,7 +48,8 @@ def import_rerun():
     os.environ.setdefault("RUST_LOG", "off")  # read when the Rust side starts; errors come back as exceptions
     try:
         import rerun
-    except ImportError:
+    except ImportError as error:
+        raise_stop_behind(error)
         raise ViewerUnavailable(
             "the 3D viewer needs the rerun-sdk package: pip install 'icpflow[viz]' (or pip install rerun-sdk)"
         ) from None

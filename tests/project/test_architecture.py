@@ -312,8 +312,8 @@ def test_messages_are_folded_onto_one_line_by_errors_and_signals_only():
 
 def test_importing_errors_and_signals_stays_cheap():
     """Every module may import icpflow.core.errors_and_signals (it imports nothing of the packages but
-    icpflow.core.settings,
-    which imports none): no heavy library comes with it."""
+    icpflow.core.settings and icpflow.core.stops; settings imports only stops, stops none): no heavy library comes
+    with it."""
     code = (
         "import sys, icpflow.core.errors_and_signals; print(' '.join(sorted(m for m in sys.modules if '.' not in m)))"
     )
@@ -321,5 +321,51 @@ def test_importing_errors_and_signals_stays_cheap():
     assert "icpflow" in loaded and not loaded & {"torch", "lightning", "hydra", "omegaconf", "numba", "scipy"}
     assert "icpflow.core.errors_and_signals" in import_graph() and import_graph()[
         "icpflow.core.errors_and_signals"
-    ] <= {"icpflow.core.settings"}
-    assert not import_graph()["icpflow.core.settings"]
+    ] <= {"icpflow.core.settings", "icpflow.core.stops"}
+    assert import_graph()["icpflow.core.settings"] <= {"icpflow.core.stops"}
+    assert not import_graph()["icpflow.core.stops"]
+
+
+#: what a broad handler catches, by name: a stop that arrived inside compiled code is an ImportError or a SystemError
+BROAD = {"Exception", "BaseException", "ImportError", "SystemError"}
+
+
+def broad_handlers(text: str) -> list[ast.ExceptHandler]:
+    """The ``except`` clauses of ``text`` that catch :data:`BROAD` (alone or in a tuple), or everything."""
+    found = []
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.ExceptHandler):
+            kinds = node.type.elts if isinstance(node.type, ast.Tuple) else [node.type]
+            if node.type is None or any(ast.unparse(kind).split(".")[-1] in BROAD for kind in kinds):
+                found.append(node)
+    return found
+
+
+def lets_a_stop_through(handler: ast.ExceptHandler) -> bool:
+    """The handler's first statement is ``raise_stop_behind(<its name>)``, or its last a bare ``raise``."""
+    first, last = handler.body[0], handler.body[-1]
+    if isinstance(last, ast.Raise) and last.exc is None:
+        return True
+    return handler.name is not None and ast.unparse(first) == f"raise_stop_behind({handler.name})"
+
+
+def test_every_broad_handler_lets_a_stop_through():
+    """A Ctrl-C or SIGTERM whose handler ran inside compiled code arrives as an ImportError (a compiled module's
+    import printed it) or a SystemError (a kernel returned over it): every ``except Exception``, ``except
+    ImportError`` (an optional package's fallback) and ``except SystemError`` of the packages raises the stop behind
+    the error first (``icpflow.core.stops.raise_stop_behind``), or re-raises, so that no stop is skipped as a bad
+    sample, a damaged file or a missing package. The reporter that reads them (``errors_and_signals``) is the one
+    exception."""
+    missing = [
+        f"{name}:{handler.lineno}"
+        for name, text in sources().items()
+        if name != "icpflow/core/errors_and_signals.py"
+        for handler in broad_handlers(text)
+        if not lets_a_stop_through(handler)
+    ]
+    assert missing == []
+    # the check reads the handlers: one that swallows is found, one that lets the stop through is not
+    swallowing = "try:\n    import x\nexcept (OSError, ImportError):\n    pass\n"
+    through = "try:\n    import x\nexcept ImportError as error:\n    raise_stop_behind(error)\n    pass\n"
+    assert [lets_a_stop_through(h) for h in broad_handlers(swallowing + through)] == [False, True]
+    assert sum(len(broad_handlers(text)) for text in sources().values()) > 20

@@ -323,6 +323,67 @@ def test_an_import_error_is_a_stop_only_over_a_printed_stop(monkeypatch):
     for stop in (KeyboardInterrupt(), Stop(signal.SIGTERM)):
         monkeypatch.setattr(sys, "last_value", stop, raising=False)
         assert stopped_by(error) is stop
+    # a Ctrl-C that an interactive session printed long ago is no stop behind an ImportError of its own: a missing
+    # package, or one raised over another error
+    monkeypatch.setattr(sys, "last_value", KeyboardInterrupt(), raising=False)
+    assert stop_behind(ImportError("onnxruntime is not installed")) is None
+    try:
+        raise ValueError("inner")
+    except ValueError as inner:
+        over = ImportError("x failed to import")
+        over.__cause__ = inner
+    assert stop_behind(over) is None
+
+
+def _raise(error: BaseException):
+    raise error
+
+
+def _converted(*args, **kwargs):
+    """What numpy's ``import_array`` raises in a compiled module's import after it printed the stop."""
+    _raise(ImportError("numpy.core.multiarray failed to import"))
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt(), Stop(signal.SIGTERM)], ids=["SIGINT", "SIGTERM"])
+def test_a_stop_turned_into_an_import_error_passes_every_fallback(monkeypatch, stop):
+    """The cousins of the CI failure: a stop that arrives while an import inside a broad handler's ``try`` runs (a
+    reader's module, a config target, numba's cache index, an optional package) is printed by the compiled module and
+    replaced by an ImportError; each handler raises the stop, none takes it for an unimportable reader (a run that went
+    on to the end, exit 0: one probe of 80), a bad target or a cold cache. ``tests/project/test_architecture.py``
+    checks that every broad handler of the packages does so."""
+    from omegaconf import OmegaConf
+
+    from icpflow.core import open3d_loader, settings
+    from icpflow.datasets.from_config import raise_max_horizon
+    from icpflow.teacher import warmup
+
+    monkeypatch.setattr(sys, "last_value", stop, raising=False)
+    monkeypatch.setattr("hydra.utils.get_class", _converted)
+    monkeypatch.setattr("hydra.utils.get_object", _converted)
+    cfg = OmegaConf.create({"dataset": {"reader": {"_target_": "some.Reader"}}})
+
+    class Dispatcher:
+        @property
+        def _cache(self):
+            _converted()
+
+    class Converting:  # a compiled module's import that printed the stop: the finder Python's import runs
+        def find_spec(self, name, path=None, target=None):
+            if name == "libusb_package":
+                _converted()
+
+    monkeypatch.delitem(sys.modules, "libusb_package", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [Converting(), *sys.meta_path])
+    monkeypatch.setattr(open3d_loader.ctypes, "CDLL", lambda *args, **kwargs: _raise(OSError("no libusb")))
+    for call in (
+        lambda: raise_max_horizon(cfg, 2),
+        lambda: settings.check_target_arguments(OmegaConf.create({"_target_": "some.Model", "x": 1}), "model"),
+        lambda: warmup._cached(Dispatcher()),
+        open3d_loader.provide_libusb,
+    ):
+        with pytest.raises(type(stop)) as raised:
+            call()
+        assert raised.value is stop
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
@@ -344,6 +405,81 @@ def test_a_stop_inside_a_compiled_call_stops_the_evaluation(signum):
     with pytest.raises(Stop) as stopped:
         evaluate(dataset, {1: {"kernel": kernel}}, MetricOptions())
     assert stopped.value.signum == signum
+
+
+#: a command started as an entry point is (``launched``) in which a library swallows a stop: ``hydra`` as Hydra's
+#: ``get_mode`` does before the command's own work (``except Exception`` over the error omegaconf raised over the
+#: stop), ``cython`` as numpy's Cython modules do while they import (their ABC registrations ignore every error: the
+#: signal lands in ``abc.register``, as one of 150 probes of ``label.py`` showed); ``omegaconf`` as omegaconf's
+#: config creation does where Hydra composes the run's config: an error of its own over the stop escapes;
+#: ``weakref`` as Python does with a stop raised in a callback it cannot raise from (importlib's module locks')
+SWALLOWED = """
+import os, signal, sys, weakref
+from icpflow.core.errors_and_signals import reported, stop_on_signals
+from icpflow.core.launch import launched
+
+where, signum = sys.argv[1], getattr(signal, sys.argv[2])
+
+
+class Thing:
+    pass
+
+
+def in_abc_register(frame, event, arg):
+    if event == "call" and frame.f_code.co_name == "register" and "numpy.random._generator" in sys.modules:
+        sys.settrace(None)
+        signal.raise_signal(signum)
+
+
+def load():
+    def main():
+        with reported("label"):
+            if where == "hydra":
+                try:
+                    try:
+                        signal.raise_signal(signum)
+                    except BaseException as stop:
+                        raise ValueError("omegaconf's error") from stop
+                except Exception:
+                    pass
+            if where == "weakref":  # a callback Python cannot raise from: the stop is "ignored", printed
+                thing = Thing()
+                ref = weakref.ref(thing, lambda gone: signal.raise_signal(signum))
+                del thing
+            if where == "omegaconf":  # its error over the stop escapes Hydra's compose (its context: the stop)
+                try:
+                    signal.raise_signal(signum)
+                except BaseException:
+                    raise AttributeError("'NoneType' object has no attribute '_invalidate_flags_cache'")
+            with stop_on_signals():
+                if where == "cython":
+                    assert "numpy.random" not in sys.modules
+                    sys.settrace(in_abc_register)
+                    import numpy.random
+                    assert "numpy.random._generator" in sys.modules  # the import went on over the stop
+                print("the long work", file=sys.stderr)
+        return 0
+    return main
+
+launched("label", load)
+"""
+
+
+@pytest.mark.parametrize("name", ["SIGINT", "SIGTERM"])
+@pytest.mark.parametrize("where", ["hydra", "weakref", "omegaconf", "cython"])
+def test_a_stop_a_library_swallowed_still_stops_the_command(where, name):
+    """A stop that a library swallows is no lost Ctrl-C (one probe of 80 of ``label.py`` ran to the end and exited 0):
+    one swallowed before the command's work (Hydra's) stops it where the work starts (``stop_on_signals``), nothing
+    done; an error raised over it is the stop; one swallowed inside it (a Cython module's import) ends the command
+    as stopped, 128 + the signal, in its line."""
+    import subprocess
+
+    done = subprocess.run(
+        [sys.executable, "-c", SWALLOWED, where, name], capture_output=True, text=True, timeout=120, cwd=REPO
+    )
+    words = "interrupted" if name == "SIGINT" else "terminated"
+    work = "the long work\n" if where == "cython" else ""
+    assert (done.returncode, done.stderr) == (128 + getattr(signal, name), f"{work}label: {words} ({name})\n")
 
 
 #: each entry point as its console script or checkout script starts it (``icpflow.core.launch``)

@@ -139,6 +139,49 @@ def test_sigint_stops_cleanly_with_only_complete_shards(tmp_path):
     assert not index["complete"] and index["planned"] == 5 and 2 <= index["labelled"] < 5
 
 
+#: label.py with the Ctrl-C landing where the pool spawns its first worker, in the main thread: after the worker process
+#: started, before its channel was written (``multiprocessing``'s ``_launch``, as a probe of the start once landed)
+STOP_WHILE_SPAWNING = """
+import runpy, signal, sys
+
+
+def in_launch(frame, event, arg):
+    if frame.f_code.co_name != "spawnv_passfds" or frame.f_back.f_code.co_name != "_launch":
+        return None
+
+    def at_return(frame, event, arg):
+        if event == "return":
+            sys.settrace(None)
+            signal.raise_signal(signal.SIGINT)
+        return at_return
+
+    return at_return
+
+
+sys.settrace(in_launch)
+sys.argv = sys.argv[1:]
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+def test_a_stop_while_the_pool_spawns_a_worker_leaves_no_worker_traceback(tmp_path):
+    """A Ctrl-C while the pool starts its worker (the main thread, between the worker's start and the write of its
+    channel) waits until the worker has its channel: the run ends as any stopped run, one line and 130, and no worker
+    prints ``EOFError: Ran out of input`` (the traceback once seen 1.6 s into a CI run's ``label.py``)."""
+    script = label_script(tmp_path, "workers=2")
+    done = subprocess.run(
+        [sys.executable, "-c", STOP_WHILE_SPAWNING, *script[1:]],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        preexec_fn=default_sigint,
+    )
+    assert done.returncode == 130, done.stderr
+    assert "Traceback" not in done.stderr and "EOFError" not in done.stderr
+    assert done.stderr.splitlines()[-1].startswith("label: interrupted; complete shards are kept in")
+
+
 def test_other_config_is_refused_unless_overwrite(reference, tmp_path):
     out = tmp_path / "labels"
     shutil.copytree(reference, out)
